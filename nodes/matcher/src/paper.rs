@@ -1,0 +1,512 @@
+//! The paper's matcher: support-value candidates, NCC + SV decision, row constraints.
+//!
+//! Per pixel and direction: the `k` disparities with the highest support value are the
+//! candidates; the winner maximises `NCC + SV / SVmax` over the same window (ties: higher
+//! NCC, then smaller |d|, then smaller d). Constraints are row-local (rectified images):
+//! the disparity range, uniqueness (a pixel of the other image claimed by several pixels
+//! keeps only the best), and the optional ordering and continuity checks.
+//!
+//! Everything a row needs — the SV and the NCC cross-correlation sums of every disparity —
+//! is computed once into a per-thread slab and read by both directions: right pixel `xr`
+//! at disparity `d` is the same pair of windows as left pixel `xr + d`.
+
+use crate::sv::{self, Descriptors, SvKernel, Weights};
+use rayon::prelude::*;
+use schemas::{DisparityMap, DisparityRange, INVALID_DISPARITY, Plane};
+use serde::{Deserialize, Serialize};
+
+/// Parameters of the paper matcher.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PaperParams {
+    /// Disparities searched.
+    pub range: DisparityRange,
+    /// Window side W (odd, 3..=31).
+    pub window: usize,
+    /// Weight matrix of the support value.
+    pub weights: Weights,
+    /// How many top-SV candidates go on to the NCC decision.
+    pub candidates: usize,
+    /// Keep only the best of several pixels claiming the same pixel of the other image.
+    pub uniqueness: bool,
+    /// Invalidate matches that break the left-to-right order of their row neighbours.
+    pub ordering: bool,
+    /// Invalidate matches no row neighbour supports (neighbour disparity within 1 px).
+    pub continuity: bool,
+}
+
+impl Default for PaperParams {
+    fn default() -> Self {
+        Self {
+            range: DisparityRange::new(0, 64),
+            window: 13,
+            weights: Weights::Equal,
+            candidates: 3,
+            uniqueness: true,
+            ordering: false,
+            continuity: false,
+        }
+    }
+}
+
+/// Which directions to match.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Directions {
+    /// Left image as reference only (the match-lr node).
+    LeftToRight,
+    /// Right image as reference only (the match-rl node).
+    RightToLeft,
+    /// Both, sharing the cost slab.
+    Both,
+}
+
+/// Result of the paper matcher; maps of a direction not matched are all invalid.
+#[derive(Clone, Debug)]
+pub struct PaperMatch {
+    /// Left-based disparity (integer values), left→right.
+    pub left: DisparityMap,
+    /// Right-based disparity (right pixel `xr` matches left `xr + d`), right→left.
+    pub right: DisparityMap,
+    /// Decision score `NCC + SV/SVmax` of each left match.
+    pub left_score: Plane<f32>,
+    /// Decision score of each right match.
+    pub right_score: Plane<f32>,
+    /// Support-value evaluations performed (pixel × disparity pairs, shared by both directions).
+    pub evaluations: u64,
+}
+
+/// One candidate under consideration.
+#[derive(Clone, Copy, Debug)]
+struct Cand {
+    sv: u32,
+    d: i32,
+}
+
+/// `true` when `a` ranks before `b` among SV candidates: higher SV, then smaller |d|, then d.
+#[inline(always)]
+fn sv_better(a: Cand, b: Cand) -> bool {
+    (
+        a.sv,
+        std::cmp::Reverse(a.d.unsigned_abs()),
+        std::cmp::Reverse(a.d),
+    ) > (
+        b.sv,
+        std::cmp::Reverse(b.d.unsigned_abs()),
+        std::cmp::Reverse(b.d),
+    )
+}
+
+/// `true` when decision `(score, ncc, d)` beats the current best.
+#[inline(always)]
+fn decision_better(a: (f64, f64, i32), b: (f64, f64, i32)) -> bool {
+    if a.0 != b.0 {
+        return a.0 > b.0;
+    }
+    if a.1 != b.1 {
+        return a.1 > b.1;
+    }
+    if a.2.unsigned_abs() != b.2.unsigned_abs() {
+        return a.2.unsigned_abs() < b.2.unsigned_abs();
+    }
+    a.2 < b.2
+}
+
+/// Per-image data shared by all rows.
+struct Side {
+    padded: Plane<u8>,
+    sums: Plane<u32>,
+    /// 1 / sqrt(n · variance) of each window, 0 for a flat window.
+    inv_dev: Vec<f64>,
+    desc: Descriptors,
+}
+
+fn prepare(img: &Plane<u8>, window: usize) -> Side {
+    let r = (window - 1) / 2;
+    let padded = sv::pad_replicate(img, r);
+    let (sums, sq) = sv::window_sums(&padded, window);
+    let n = (window * window) as f64;
+    let inv_dev = sums
+        .data
+        .iter()
+        .zip(&sq.data)
+        .map(|(&s, &q)| {
+            let v = q as f64 - (s as f64) * (s as f64) / n;
+            if v > 1e-6 { 1.0 / v.sqrt() } else { 0.0 }
+        })
+        .collect();
+    let desc = sv::descriptors_from_padded(&padded, &sums, window);
+    Side {
+        padded,
+        sums,
+        inv_dev,
+        desc,
+    }
+}
+
+/// Rows per parallel band: enough to amortise the window's start-up sums.
+const BAND: usize = 16;
+
+/// Matches a rectified grey pair with the paper's method.
+///
+/// Both images must have the same size and the window must fit (checked by the caller, see
+/// [`crate::check_inputs`]).
+pub fn match_paper(
+    left: &Plane<u8>,
+    right: &Plane<u8>,
+    params: &PaperParams,
+    directions: Directions,
+) -> PaperMatch {
+    let (w, h) = (left.width, left.height);
+    let window = params.window;
+    let kernel = SvKernel::new(window, params.weights);
+    let (ls, rs) = rayon::join(|| prepare(left, window), || prepare(right, window));
+    let ctx = RowCtx {
+        w,
+        window,
+        params,
+        kernel: &kernel,
+        l: &ls,
+        r: &rs,
+        directions,
+    };
+    let mut out_l = vec![INVALID_DISPARITY; w * h];
+    let mut out_r = vec![INVALID_DISPARITY; w * h];
+    let mut sc_l = vec![0f32; w * h];
+    let mut sc_r = vec![0f32; w * h];
+    let evaluations: u64 = out_l
+        .par_chunks_mut(BAND * w)
+        .zip(out_r.par_chunks_mut(BAND * w))
+        .zip(sc_l.par_chunks_mut(BAND * w))
+        .zip(sc_r.par_chunks_mut(BAND * w))
+        .enumerate()
+        .map(|(b, (((dl, dr), sl), sr))| {
+            let y0 = b * BAND;
+            let y1 = (y0 + BAND).min(h);
+            ctx.band(y0, y1, dl, dr, sl, sr)
+        })
+        .sum();
+    let plane = |data| Plane {
+        width: w,
+        height: h,
+        data,
+    };
+    PaperMatch {
+        left: plane(out_l),
+        right: plane(out_r),
+        left_score: plane(sc_l),
+        right_score: plane(sc_r),
+        evaluations,
+    }
+}
+
+struct RowCtx<'a> {
+    w: usize,
+    window: usize,
+    params: &'a PaperParams,
+    kernel: &'a SvKernel,
+    l: &'a Side,
+    r: &'a Side,
+    directions: Directions,
+}
+
+impl RowCtx<'_> {
+    /// Columns `u` of the padded images where both `u` and `u − d` exist.
+    fn padded_span(&self, d: i32) -> (usize, usize) {
+        let pw = self.l.padded.width as i32;
+        let lo = d.max(0);
+        let hi = pw.min(pw + d);
+        (lo as usize, hi.max(lo) as usize)
+    }
+
+    /// Left columns `x` whose match `x − d` lies inside the right image.
+    fn left_span(&self, d: i32) -> (usize, usize) {
+        let w = self.w as i32;
+        let lo = d.max(0);
+        let hi = w.min(w + d);
+        (lo as usize, hi.max(lo) as usize)
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn band(
+        &self,
+        y0: usize,
+        y1: usize,
+        out_l: &mut [f32],
+        out_r: &mut [f32],
+        sc_l: &mut [f32],
+        sc_r: &mut [f32],
+    ) -> u64 {
+        let w = self.w;
+        let range = self.params.range;
+        let nd = range.count();
+        let pw = self.l.padded.width;
+        let win = self.window;
+        let lp = &self.l.padded.data;
+        let rp = &self.r.padded.data;
+        let mut colsum = vec![0u32; nd * pw];
+        let mut cross = vec![0u32; nd * w];
+        let mut svs = vec![0u32; nd * w];
+        let mut evaluations = 0u64;
+        let k = self.params.candidates.max(1);
+        let mut cands: Vec<Cand> = Vec::with_capacity(k + 1);
+        let mut row_l = vec![(INVALID_DISPARITY, 0f32, 0f64); w];
+        let mut row_r = vec![(INVALID_DISPARITY, 0f32, 0f64); w];
+        for y in y0..y1 {
+            // NCC cross sums: column sums over the window rows, slid along the row.
+            for (di, d) in (range.min..=range.max).enumerate() {
+                let (ulo, uhi) = self.padded_span(d);
+                let col = &mut colsum[di * pw..(di + 1) * pw];
+                let du = d as isize;
+                let add_row = |py: usize, sign: i64, col: &mut [u32]| {
+                    let lrow = &lp[py * pw..(py + 1) * pw];
+                    let rrow = &rp[py * pw..(py + 1) * pw];
+                    let rs = (ulo as isize - du) as usize;
+                    let n = uhi - ulo;
+                    let (c, a, b) = (&mut col[ulo..uhi], &lrow[ulo..uhi], &rrow[rs..rs + n]);
+                    if sign > 0 {
+                        for i in 0..n {
+                            c[i] = c[i].wrapping_add(a[i] as u32 * b[i] as u32);
+                        }
+                    } else {
+                        for i in 0..n {
+                            c[i] = c[i].wrapping_sub(a[i] as u32 * b[i] as u32);
+                        }
+                    }
+                };
+                if y == y0 {
+                    col.fill(0);
+                    for i in 0..win {
+                        add_row(y + i, 1, col);
+                    }
+                } else {
+                    add_row(y + win - 1, 1, col);
+                    add_row(y - 1, -1, col);
+                }
+                let (xlo, xhi) = self.left_span(d);
+                let cr = &mut cross[di * w..(di + 1) * w];
+                if xlo < xhi {
+                    let mut s: u32 = col[xlo..xlo + win].iter().sum();
+                    for x in xlo..xhi {
+                        cr[x] = s;
+                        if x + 1 < xhi {
+                            s = s + col[x + win] - col[x];
+                        }
+                    }
+                }
+                // Support values of every valid (x, d).
+                let sv = &mut svs[di * w..(di + 1) * w];
+                let dl = self.l.desc.row(y);
+                let dr = self.r.desc.row(y);
+                let nw = self.kernel.words;
+                for x in xlo..xhi {
+                    let xr = (x as isize - du) as usize;
+                    sv[x] = self
+                        .kernel
+                        .support(&dl[x * nw..(x + 1) * nw], &dr[xr * nw..(xr + 1) * nw]);
+                }
+                evaluations += (xhi - xlo) as u64;
+            }
+            let n = (win * win) as f64;
+            let ncc = |x: usize, xr: usize, di: usize| -> f64 {
+                let sl = self.l.sums.data[y * w + x] as f64;
+                let sr = self.r.sums.data[y * w + xr] as f64;
+                let num = cross[di * w + x] as f64 - sl * sr / n;
+                num * self.l.inv_dev[y * w + x] * self.r.inv_dev[y * w + xr]
+            };
+            let svmax = self.kernel.max as f64;
+            let mut decide = |reference_x: usize, left_of: &dyn Fn(i32) -> Option<usize>| {
+                cands.clear();
+                for (di, d) in (range.min..=range.max).enumerate() {
+                    let Some(x) = left_of(d) else { continue };
+                    let c = Cand {
+                        sv: svs[di * w + x],
+                        d,
+                    };
+                    let pos = cands.iter().position(|&o| sv_better(c, o));
+                    match pos {
+                        Some(p) => {
+                            cands.insert(p, c);
+                            cands.truncate(k);
+                        }
+                        None if cands.len() < k => cands.push(c),
+                        None => {}
+                    }
+                }
+                let mut best: Option<(f64, f64, i32)> = None;
+                for c in &cands {
+                    let x = left_of(c.d).unwrap();
+                    let xr = (x as i32 - c.d) as usize;
+                    let di = (c.d - range.min) as usize;
+                    let nc = ncc(x, xr, di);
+                    let cand = (nc + c.sv as f64 / svmax, nc, c.d);
+                    if best.is_none_or(|b| decision_better(cand, b)) {
+                        best = Some(cand);
+                    }
+                }
+                let _ = reference_x;
+                best
+            };
+            let wi = w as i32;
+            if self.directions != Directions::RightToLeft {
+                for x in 0..w {
+                    let left_of = |d: i32| -> Option<usize> {
+                        let xr = x as i32 - d;
+                        (0..wi).contains(&xr).then_some(x)
+                    };
+                    row_l[x] = match decide(x, &left_of) {
+                        Some((s, nc, d)) => (d as f32, s as f32, nc),
+                        None => (INVALID_DISPARITY, 0.0, 0.0),
+                    };
+                }
+            }
+            if self.directions != Directions::LeftToRight {
+                for xr in 0..w {
+                    let left_of = |d: i32| -> Option<usize> {
+                        let x = xr as i32 + d;
+                        (0..wi).contains(&x).then_some(x as usize)
+                    };
+                    row_r[xr] = match decide(xr, &left_of) {
+                        Some((s, nc, d)) => (d as f32, s as f32, nc),
+                        None => (INVALID_DISPARITY, 0.0, 0.0),
+                    };
+                }
+            }
+            if self.params.uniqueness {
+                enforce_uniqueness(&mut row_l, |x, d| x as i32 - d);
+                enforce_uniqueness(&mut row_r, |xr, d| xr as i32 + d);
+            }
+            if self.params.ordering {
+                enforce_ordering(&mut row_l, |x, d| x as i32 - d);
+                enforce_ordering(&mut row_r, |xr, d| xr as i32 + d);
+            }
+            if self.params.continuity {
+                enforce_continuity(&mut row_l);
+                enforce_continuity(&mut row_r);
+            }
+            let o = (y - y0) * w;
+            for x in 0..w {
+                out_l[o + x] = row_l[x].0;
+                sc_l[o + x] = row_l[x].1;
+                out_r[o + x] = row_r[x].0;
+                sc_r[o + x] = row_r[x].1;
+            }
+        }
+        evaluations
+    }
+}
+
+/// Row entries are `(disparity, score, ncc)`; a pixel of the other image claimed by several
+/// pixels keeps the best claimant (score, then NCC, then smaller |d|).
+fn enforce_uniqueness(row: &mut [(f32, f32, f64)], target: impl Fn(usize, i32) -> i32) {
+    let w = row.len();
+    let mut owner: Vec<Option<usize>> = vec![None; w];
+    for x in 0..w {
+        let (d, s, nc) = row[x];
+        if !d.is_finite() {
+            continue;
+        }
+        let t = target(x, d as i32);
+        if !(0..w as i32).contains(&t) {
+            continue;
+        }
+        let slot = &mut owner[t as usize];
+        match *slot {
+            None => *slot = Some(x),
+            Some(o) => {
+                let (od, os, onc) = row[o];
+                if decision_better((s as f64, nc, d as i32), (os as f64, onc, od as i32)) {
+                    row[o].0 = INVALID_DISPARITY;
+                    *slot = Some(x);
+                } else {
+                    row[x].0 = INVALID_DISPARITY;
+                }
+            }
+        }
+    }
+}
+
+/// Invalidates both members of every pair of consecutive valid matches whose targets are
+/// not in the same left-to-right order as the pixels themselves.
+fn enforce_ordering(row: &mut [(f32, f32, f64)], target: impl Fn(usize, i32) -> i32) {
+    let valid: Vec<usize> = (0..row.len()).filter(|&x| row[x].0.is_finite()).collect();
+    let mut bad = vec![false; row.len()];
+    for pair in valid.windows(2) {
+        let (a, b) = (pair[0], pair[1]);
+        if target(b, row[b].0 as i32) <= target(a, row[a].0 as i32) {
+            bad[a] = true;
+            bad[b] = true;
+        }
+    }
+    for (x, b) in bad.into_iter().enumerate() {
+        if b {
+            row[x].0 = INVALID_DISPARITY;
+        }
+    }
+}
+
+/// Invalidates matches with no row neighbour within 1 px of disparity.
+fn enforce_continuity(row: &mut [(f32, f32, f64)]) {
+    let d: Vec<f32> = row.iter().map(|e| e.0).collect();
+    for x in 0..row.len() {
+        if !d[x].is_finite() {
+            continue;
+        }
+        let near = |o: Option<usize>| {
+            o.and_then(|o| d.get(o))
+                .is_some_and(|&n| (n - d[x]).abs() <= 1.0)
+        };
+        if !near(x.checked_sub(1)) && !near(Some(x + 1)) {
+            row[x].0 = INVALID_DISPARITY;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(ds: &[f32]) -> Vec<(f32, f32, f64)> {
+        ds.iter().map(|&d| (d, 1.0, 0.5)).collect()
+    }
+
+    #[test]
+    fn uniqueness_keeps_the_best_claimant() {
+        // x=2 (d=1) and x=3 (d=2) both claim right pixel 1; x=3 scores higher.
+        let mut r = row(&[0.0, 5.0, 1.0, 2.0]);
+        r[1].0 = INVALID_DISPARITY;
+        r[3].1 = 2.0;
+        enforce_uniqueness(&mut r, |x, d| x as i32 - d);
+        let ds: Vec<f32> = r.iter().map(|e| e.0).collect();
+        assert_eq!(ds, vec![0.0, INVALID_DISPARITY, INVALID_DISPARITY, 2.0]);
+    }
+
+    #[test]
+    fn ordering_flags_crossing_matches() {
+        // Targets: 10-0=10, 11-5=6 (crosses), 12-0=12 after the crossing pair.
+        let mut r = vec![(INVALID_DISPARITY, 0.0, 0.0); 13];
+        r[10] = (0.0, 1.0, 0.0);
+        r[11] = (5.0, 1.0, 0.0);
+        r[12] = (0.0, 1.0, 0.0);
+        enforce_ordering(&mut r, |x, d| x as i32 - d);
+        assert!(!r[10].0.is_finite() && !r[11].0.is_finite());
+        // 11 was invalidated as a member of the first pair; 12 vs 11 was also out of order.
+        assert!(!r[12].0.is_finite());
+    }
+
+    #[test]
+    fn continuity_removes_unsupported_matches() {
+        let mut r = row(&[3.0, 3.0, 9.0, 4.0, INVALID_DISPARITY, 7.0]);
+        enforce_continuity(&mut r);
+        let ds: Vec<f32> = r.iter().map(|e| e.0).collect();
+        assert_eq!(
+            ds,
+            vec![
+                3.0,
+                3.0,
+                INVALID_DISPARITY,
+                INVALID_DISPARITY,
+                INVALID_DISPARITY,
+                INVALID_DISPARITY
+            ]
+        );
+    }
+}

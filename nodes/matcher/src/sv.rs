@@ -1,0 +1,390 @@
+//! The support value (SV) of the paper, bit-packed.
+//!
+//! Each pixel gets a descriptor: its W×W window binarised against the window's own mean
+//! (bit = 1 where pixel ≥ mean), packed row-major into `words` u64s. The support value of
+//! two windows is the sum of the weights of the positions where the bits agree. With equal
+//! weights that is `W² − popcount(a ^ b)`; with decreasing weights (centre `R + 1`, one less
+//! per ring outwards, outermost ring 1, `R = (W − 1) / 2`) it is
+//! `Σ_k (|M_k| − popcount((a ^ b) & M_k))` over the nested squares `M_k` = "weight ≥ k":
+//! one masked popcount per ring. Windows are clamped at the image border (edge pixels
+//! repeat), both here and in [`support_value_naive`].
+
+use rayon::prelude::*;
+use schemas::Plane;
+use serde::{Deserialize, Serialize};
+
+/// Smallest supported window side.
+pub const MIN_WINDOW: usize = 3;
+/// Largest supported window side.
+pub const MAX_WINDOW: usize = 31;
+
+/// Weight matrix W(i, j) of the support value.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Weights {
+    /// Every position weighs 1.
+    #[default]
+    Equal,
+    /// Centre weighs R + 1, falling by one per ring to 1 on the outermost ring.
+    Decreasing,
+}
+
+/// The weight of window position `(i, j)` (0-based, row `i`, column `j`) for window side `w`.
+pub fn weight_at(weights: Weights, w: usize, i: usize, j: usize) -> u32 {
+    let r = (w - 1) / 2;
+    match weights {
+        Weights::Equal => 1,
+        Weights::Decreasing => {
+            let ring = i.abs_diff(r).max(j.abs_diff(r));
+            (r + 1 - ring) as u32
+        }
+    }
+}
+
+/// Precomputed masks that turn a descriptor XOR into a support value.
+#[derive(Clone, Debug)]
+pub struct SvKernel {
+    /// Window side W.
+    pub window: usize,
+    /// u64 words per descriptor.
+    pub words: usize,
+    /// Weight type.
+    pub weights: Weights,
+    /// Nested masks M_k (k = 1..=R+1), `words` u64s each; empty for equal weights.
+    masks: Vec<u64>,
+    /// |M_k| for each mask.
+    mask_sizes: Vec<u32>,
+    /// The largest possible support value (all positions agree).
+    pub max: u32,
+}
+
+impl SvKernel {
+    /// Builds the kernel for an odd window side in `MIN_WINDOW..=MAX_WINDOW`.
+    pub fn new(window: usize, weights: Weights) -> Self {
+        assert!(window % 2 == 1 && (MIN_WINDOW..=MAX_WINDOW).contains(&window));
+        let words = (window * window).div_ceil(64);
+        let r = (window - 1) / 2;
+        let mut masks = Vec::new();
+        let mut mask_sizes = Vec::new();
+        if weights == Weights::Decreasing {
+            for k in 1..=r + 1 {
+                let mut m = vec![0u64; words];
+                let mut n = 0;
+                for i in 0..window {
+                    for j in 0..window {
+                        if weight_at(weights, window, i, j) >= k as u32 {
+                            let bit = i * window + j;
+                            m[bit / 64] |= 1 << (bit % 64);
+                            n += 1;
+                        }
+                    }
+                }
+                masks.extend(m);
+                mask_sizes.push(n);
+            }
+        }
+        let max = (0..window)
+            .flat_map(|i| (0..window).map(move |j| (i, j)))
+            .map(|(i, j)| weight_at(weights, window, i, j))
+            .sum();
+        Self {
+            window,
+            words,
+            weights,
+            masks,
+            mask_sizes,
+            max,
+        }
+    }
+
+    /// Support value of two descriptors of `words` u64s each.
+    #[inline(always)]
+    pub fn support(&self, a: &[u64], b: &[u64]) -> u32 {
+        match self.weights {
+            Weights::Equal => {
+                let mut diff = 0;
+                for k in 0..self.words {
+                    diff += (a[k] ^ b[k]).count_ones();
+                }
+                self.max - diff
+            }
+            Weights::Decreasing => {
+                let mut sv = 0;
+                for (m, &size) in self.masks.chunks_exact(self.words).zip(&self.mask_sizes) {
+                    let mut diff = 0;
+                    for k in 0..self.words {
+                        diff += ((a[k] ^ b[k]) & m[k]).count_ones();
+                    }
+                    sv += size - diff;
+                }
+                sv
+            }
+        }
+    }
+}
+
+/// Bit-packed window descriptors of every pixel of an image.
+#[derive(Clone, Debug)]
+pub struct Descriptors {
+    /// Image columns.
+    pub width: usize,
+    /// Image rows.
+    pub height: usize,
+    /// u64 words per pixel.
+    pub words: usize,
+    /// `width * height * words` words, row-major by pixel.
+    pub data: Vec<u64>,
+}
+
+impl Descriptors {
+    /// The descriptor of pixel `(x, y)`.
+    #[inline(always)]
+    pub fn at(&self, x: usize, y: usize) -> &[u64] {
+        let o = (y * self.width + x) * self.words;
+        &self.data[o..o + self.words]
+    }
+
+    /// All descriptors of row `y`, `width * words` words.
+    #[inline(always)]
+    pub fn row(&self, y: usize) -> &[u64] {
+        let o = y * self.width * self.words;
+        &self.data[o..o + self.width * self.words]
+    }
+}
+
+/// The image with `r` replicated pixels on every side, so windows never need clamping.
+pub fn pad_replicate(img: &Plane<u8>, r: usize) -> Plane<u8> {
+    let (w, h) = (img.width, img.height);
+    let pw = w + 2 * r;
+    let ph = h + 2 * r;
+    let mut out = vec![0u8; pw * ph];
+    for py in 0..ph {
+        let sy = py.saturating_sub(r).min(h - 1);
+        let src = img.row(sy);
+        let dst = &mut out[py * pw..(py + 1) * pw];
+        dst[..r].fill(src[0]);
+        dst[r..r + w].copy_from_slice(src);
+        dst[r + w..].fill(src[w - 1]);
+    }
+    Plane {
+        width: pw,
+        height: ph,
+        data: out,
+    }
+}
+
+/// Per-pixel window sums over a padded image: `sum[x, y]` = Σ of the W×W window centred on
+/// original pixel `(x, y)`, plus the sum of squares.
+pub fn window_sums(padded: &Plane<u8>, window: usize) -> (Plane<u32>, Plane<u64>) {
+    let r = (window - 1) / 2;
+    let w = padded.width - 2 * r;
+    let h = padded.height - 2 * r;
+    let pw = padded.width;
+    // Vertical sums over `window` rows for every padded column, then a horizontal slide.
+    let mut sums = vec![0u32; w * h];
+    let mut sq = vec![0u64; w * h];
+    sums.par_chunks_mut(w)
+        .zip(sq.par_chunks_mut(w))
+        .enumerate()
+        .for_each(|(y, (srow, qrow))| {
+            let mut col = vec![0u32; pw];
+            let mut colq = vec![0u32; pw];
+            for i in 0..window {
+                let row = &padded.data[(y + i) * pw..(y + i + 1) * pw];
+                for (u, &v) in row.iter().enumerate() {
+                    col[u] += v as u32;
+                    colq[u] += (v as u32) * (v as u32);
+                }
+            }
+            let mut s: u32 = col[..window].iter().sum();
+            let mut q: u64 = colq[..window].iter().map(|&v| v as u64).sum();
+            for x in 0..w {
+                srow[x] = s;
+                qrow[x] = q;
+                if x + window < pw {
+                    s = s + col[x + window] - col[x];
+                    q = q + colq[x + window] as u64 - colq[x] as u64;
+                }
+            }
+        });
+    (
+        Plane {
+            width: w,
+            height: h,
+            data: sums,
+        },
+        Plane {
+            width: w,
+            height: h,
+            data: sq,
+        },
+    )
+}
+
+/// Computes the descriptor of every pixel: window binarised against its own mean.
+///
+/// `pixel ≥ mean` is evaluated exactly in integers as `pixel ≥ ceil(sum / W²)`.
+pub fn descriptors(img: &Plane<u8>, window: usize) -> Descriptors {
+    let r = (window - 1) / 2;
+    let padded = pad_replicate(img, r);
+    let (sums, _) = window_sums(&padded, window);
+    descriptors_from_padded(&padded, &sums, window)
+}
+
+/// [`descriptors`] for an image already padded by `(window − 1) / 2` with its window sums.
+pub fn descriptors_from_padded(
+    padded: &Plane<u8>,
+    sums: &Plane<u32>,
+    window: usize,
+) -> Descriptors {
+    let (w, h) = (sums.width, sums.height);
+    let words = (window * window).div_ceil(64);
+    let n = (window * window) as u32;
+    let pw = padded.width;
+    let mut data = vec![0u64; w * h * words];
+    data.par_chunks_mut(w * words)
+        .enumerate()
+        .for_each(|(y, out)| {
+            for x in 0..w {
+                let t = sums.data[y * w + x].div_ceil(n);
+                // `t` can exceed 255 only for an impossible sum; clamp keeps the compare exact.
+                let t = t.min(256) as u16;
+                let d = &mut out[x * words..(x + 1) * words];
+                let mut bit = 0usize;
+                for i in 0..window {
+                    let row = &padded.data[(y + i) * pw + x..(y + i) * pw + x + window];
+                    // One window row at a time: gather its bits, then splice them in.
+                    let mut bits: u64 = 0;
+                    for (j, &v) in row.iter().enumerate() {
+                        bits |= ((v as u16 >= t) as u64) << j;
+                    }
+                    let word = bit / 64;
+                    let off = bit % 64;
+                    d[word] |= bits << off;
+                    if off + window > 64 {
+                        d[word + 1] |= bits >> (64 - off);
+                    }
+                    bit += window;
+                }
+            }
+        });
+    Descriptors {
+        width: w,
+        height: h,
+        words,
+        data,
+    }
+}
+
+/// The support value straight from the definition, for tests and documentation: binarise
+/// both clamped windows against their own means and add the weights where they agree.
+pub fn support_value_naive(
+    left: &Plane<u8>,
+    right: &Plane<u8>,
+    (xl, yl): (usize, usize),
+    (xr, yr): (usize, usize),
+    window: usize,
+    weights: Weights,
+) -> u32 {
+    let r = (window - 1) as isize / 2;
+    let bin = |img: &Plane<u8>, cx: usize, cy: usize| -> Vec<bool> {
+        let px = |i: isize, j: isize| -> f64 {
+            let y = (cy as isize + i).clamp(0, img.height as isize - 1) as usize;
+            let x = (cx as isize + j).clamp(0, img.width as isize - 1) as usize;
+            *img.get(x, y) as f64
+        };
+        let mut vals = Vec::new();
+        for i in -r..=r {
+            for j in -r..=r {
+                vals.push(px(i, j));
+            }
+        }
+        let mean = vals.iter().sum::<f64>() / vals.len() as f64;
+        vals.iter().map(|&v| v >= mean).collect()
+    };
+    let a = bin(left, xl, yl);
+    let b = bin(right, xr, yr);
+    let mut sv = 0;
+    for i in 0..window {
+        for j in 0..window {
+            if a[i * window + j] == b[i * window + j] {
+                sv += weight_at(weights, window, i, j);
+            }
+        }
+    }
+    sv
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    fn random_image(w: usize, h: usize, seed: u64, levels: u8) -> Plane<u8> {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let data = (0..w * h).map(|_| rng.random_range(0..levels)).collect();
+        Plane::from_vec(w, h, data).unwrap()
+    }
+
+    #[test]
+    fn decreasing_weights_fall_by_one_per_ring() {
+        // 5×5: centre 3, first ring 2, outer ring 1.
+        assert_eq!(weight_at(Weights::Decreasing, 5, 2, 2), 3);
+        assert_eq!(weight_at(Weights::Decreasing, 5, 1, 3), 2);
+        assert_eq!(weight_at(Weights::Decreasing, 5, 0, 4), 1);
+        assert_eq!(weight_at(Weights::Decreasing, 5, 4, 2), 1);
+        assert_eq!(SvKernel::new(5, Weights::Decreasing).max, 3 + 8 * 2 + 16);
+        assert_eq!(SvKernel::new(13, Weights::Equal).max, 169);
+        assert_eq!(SvKernel::new(13, Weights::Equal).words, 3);
+        assert_eq!(SvKernel::new(31, Weights::Equal).words, 16);
+    }
+
+    #[test]
+    fn identical_windows_give_the_maximum() {
+        let img = random_image(20, 20, 1, 255);
+        for weights in [Weights::Equal, Weights::Decreasing] {
+            let k = SvKernel::new(7, weights);
+            let d = descriptors(&img, 7);
+            assert_eq!(k.support(d.at(5, 5), d.at(5, 5)), k.max);
+            assert_eq!(
+                support_value_naive(&img, &img, (5, 5), (5, 5), 7, weights),
+                k.max
+            );
+        }
+    }
+
+    #[test]
+    fn flat_window_is_all_ones() {
+        // Every pixel equals the mean, so every bit is set (pixel ≥ mean).
+        let img = Plane::filled(9, 9, 77u8);
+        let d = descriptors(&img, 5);
+        assert_eq!(d.at(4, 4)[0], (1u64 << 25) - 1);
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(64))]
+        /// The bit-packed SV equals the definition for every window size, weight type and
+        /// position, borders included.
+        #[test]
+        fn packed_support_value_matches_definition(
+            half in 1usize..=15,
+            seed in 0u64..1000,
+            levels in prop::sample::select(vec![2u8, 4, 255]),
+            decreasing in any::<bool>(),
+            xl in 0usize..40, yl in 0usize..30, xr in 0usize..40, yr in 0usize..30,
+        ) {
+            let window = 2 * half + 1;
+            let weights = if decreasing { Weights::Decreasing } else { Weights::Equal };
+            let left = random_image(40, 30, seed, levels);
+            let right = random_image(40, 30, seed + 7, levels);
+            let k = SvKernel::new(window, weights);
+            let dl = descriptors(&left, window);
+            let dr = descriptors(&right, window);
+            let fast = k.support(dl.at(xl, yl), dr.at(xr, yr));
+            let naive = support_value_naive(&left, &right, (xl, yl), (xr, yr), window, weights);
+            prop_assert_eq!(fast, naive);
+        }
+    }
+}

@@ -1,0 +1,233 @@
+//! Message types of microstereo, defined once.
+//!
+//! Every node, the CLI and (later) the transport and recorder use these types, so a
+//! disparity map or a point cloud means the same thing everywhere: a [`Plane`] is a dense
+//! row-major image of any pixel type, a [`DisparityMap`] is a `Plane<f32>` where
+//! [`INVALID_DISPARITY`] (+inf, as in Middlebury PFM files) marks "no value", and
+//! [`Calibration`] carries what triangulation needs in explicit units.
+
+use serde::{Deserialize, Serialize};
+
+/// Marker for "no disparity here": +inf, the Middlebury PFM convention.
+pub const INVALID_DISPARITY: f32 = f32::INFINITY;
+
+/// A dense, row-major image plane of any pixel type.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Plane<T> {
+    /// Columns.
+    pub width: usize,
+    /// Rows.
+    pub height: usize,
+    /// `width * height` pixels, row after row.
+    pub data: Vec<T>,
+}
+
+impl<T: Clone> Plane<T> {
+    /// A plane filled with one value.
+    pub fn filled(width: usize, height: usize, value: T) -> Self {
+        Self {
+            width,
+            height,
+            data: vec![value; width * height],
+        }
+    }
+
+    /// Wraps existing pixels; `None` when the length does not match the size.
+    pub fn from_vec(width: usize, height: usize, data: Vec<T>) -> Option<Self> {
+        (data.len() == width * height).then_some(Self {
+            width,
+            height,
+            data,
+        })
+    }
+}
+
+impl<T> Plane<T> {
+    /// The pixel at column `x`, row `y`.
+    #[inline]
+    pub fn get(&self, x: usize, y: usize) -> &T {
+        &self.data[y * self.width + x]
+    }
+
+    /// Mutable access to the pixel at column `x`, row `y`.
+    #[inline]
+    pub fn get_mut(&mut self, x: usize, y: usize) -> &mut T {
+        &mut self.data[y * self.width + x]
+    }
+
+    /// Row `y` as a slice.
+    #[inline]
+    pub fn row(&self, y: usize) -> &[T] {
+        &self.data[y * self.width..(y + 1) * self.width]
+    }
+
+    /// Row `y` as a mutable slice.
+    #[inline]
+    pub fn row_mut(&mut self, y: usize) -> &mut [T] {
+        &mut self.data[y * self.width..(y + 1) * self.width]
+    }
+
+    /// Total number of pixels.
+    pub fn len(&self) -> usize {
+        self.data.len()
+    }
+
+    /// True for a 0×N or N×0 plane.
+    pub fn is_empty(&self) -> bool {
+        self.data.is_empty()
+    }
+}
+
+/// Left- or right-based disparity in pixels; [`INVALID_DISPARITY`] where unknown.
+///
+/// Sign convention everywhere: a left pixel `x` with disparity `d` matches right pixel
+/// `x - d`; a right-based map stores the same `d`, so right pixel `xr` matches `xr + d`.
+pub type DisparityMap = Plane<f32>;
+
+/// A binary mask: 0 = off, 255 = on (so it can be saved as a PNG unchanged).
+pub type Mask = Plane<u8>;
+
+/// True when a disparity value is usable.
+#[inline]
+pub fn is_valid_disparity(d: f32) -> bool {
+    d.is_finite()
+}
+
+/// Share of valid pixels of a disparity map, 0..1.
+pub fn density(map: &DisparityMap) -> f64 {
+    if map.is_empty() {
+        return 0.0;
+    }
+    map.data.iter().filter(|d| d.is_finite()).count() as f64 / map.len() as f64
+}
+
+/// Inclusive integer disparity search range; negative values are allowed (convergent optics).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct DisparityRange {
+    /// Smallest disparity searched.
+    pub min: i32,
+    /// Largest disparity searched.
+    pub max: i32,
+}
+
+impl DisparityRange {
+    /// A range `min..=max`.
+    pub const fn new(min: i32, max: i32) -> Self {
+        Self { min, max }
+    }
+
+    /// Number of disparities searched.
+    pub fn count(&self) -> usize {
+        (self.max - self.min + 1).max(0) as usize
+    }
+}
+
+/// Length unit of a calibration and of everything triangulated with it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum LengthUnit {
+    /// Micrometres: microscope scenes.
+    #[serde(alias = "µm", alias = "micrometre", alias = "micrometer")]
+    Um,
+    /// Millimetres: bench-top stereo rigs and Middlebury scenes.
+    #[default]
+    Mm,
+    /// Metres.
+    M,
+}
+
+impl LengthUnit {
+    /// Short symbol for reports and file headers.
+    pub fn symbol(&self) -> &'static str {
+        match self {
+            LengthUnit::Um => "µm",
+            LengthUnit::Mm => "mm",
+            LengthUnit::M => "m",
+        }
+    }
+}
+
+/// Rectified parallel-axis stereo geometry, everything triangulation needs.
+///
+/// `focal_px` is the focal length in pixels; for a microscope it is f_eff / pixel pitch
+/// (see [`Calibration::from_microscope`]). Principal points are in pixels of the rectified
+/// images; `cx_right` differs from `cx` in convergent or shifted set-ups.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Calibration {
+    /// Distance between the two optical centres, in `unit`.
+    pub baseline: f64,
+    /// Focal length in pixels.
+    pub focal_px: f64,
+    /// Principal point column of the left image.
+    pub cx: f64,
+    /// Principal point row (shared by both rectified images).
+    pub cy: f64,
+    /// Principal point column of the right image.
+    pub cx_right: f64,
+    /// Unit of `baseline` and of every triangulated coordinate.
+    pub unit: LengthUnit,
+}
+
+impl Calibration {
+    /// A microscope calibration: effective focal length and pixel pitch in the same unit.
+    pub fn from_microscope(
+        baseline: f64,
+        f_eff: f64,
+        pixel_pitch: f64,
+        cx: f64,
+        cy: f64,
+        unit: LengthUnit,
+    ) -> Self {
+        Self {
+            baseline,
+            focal_px: f_eff / pixel_pitch,
+            cx,
+            cy,
+            cx_right: cx,
+            unit,
+        }
+    }
+}
+
+/// One triangulated point with the left image's colour.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Point3 {
+    /// Horizontal position, origin midway between the cameras.
+    pub x: f64,
+    /// Vertical position (image rows grow downwards, so does Y).
+    pub y: f64,
+    /// Depth along the optical axis.
+    pub z: f64,
+    /// Colour from the left image (grey images give r = g = b).
+    pub rgb: [u8; 3],
+    /// Left image column the point came from.
+    pub col: u32,
+    /// Left image row the point came from.
+    pub row: u32,
+}
+
+/// A metric point cloud: valid points only.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
+pub struct PointCloud {
+    /// Unit of every coordinate.
+    pub unit: LengthUnit,
+    /// The points, in left-image row-major order.
+    pub points: Vec<Point3>,
+}
+
+/// The paper's validation figures (Fig. 13): how left→right and right→left matches agree.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, Default)]
+pub struct ValidationFigures {
+    /// Left pixels with a left→right match (the denominator of the shares below).
+    pub matched: u64,
+    /// Share whose right→left match agrees exactly (tolerance 0).
+    pub consistent_exact: f64,
+    /// Share off by exactly one pixel.
+    pub off_by_one: f64,
+    /// Share off by more than one pixel, or whose partner has no match.
+    pub off_by_more: f64,
+    /// Share consistent within the tolerance used by the check.
+    pub consistent_within_tolerance: f64,
+    /// The tolerance used by the check, in pixels.
+    pub tolerance: u32,
+}

@@ -1,0 +1,658 @@
+//! The `microstereo` command line.
+
+use crate::io::{self, IoError};
+use crate::pipeline::{self, RangeKind, RangeScore, StereoConfig};
+use clap::{Args, Parser, Subcommand, ValueEnum};
+use matcher::{InputError, Mode, Weights};
+use postprocess::Fill;
+use schemas::{Calibration, DisparityRange, LengthUnit};
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// Turns a stereo light microscope into a 3D sensor.
+#[derive(Parser, Debug)]
+#[command(name = "microstereo", version, about)]
+pub struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Disparity map, occlusion masks, point cloud and report from a rectified pair.
+    Reconstruct(ReconstructArgs),
+    /// Compares a disparity map with ground truth (Middlebury figures).
+    Eval(EvalArgs),
+    /// Times every stage on cones and on a 1280×1024 pair.
+    Bench(BenchArgs),
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum ModeArg {
+    Quality,
+    Paper,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum WeightsArg {
+    Equal,
+    Decreasing,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum FillArg {
+    Background,
+    Linear,
+    None,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum, Serialize, Deserialize, PartialEq)]
+#[serde(rename_all = "lowercase")]
+enum UnitArg {
+    Um,
+    Mm,
+    M,
+}
+
+impl From<UnitArg> for LengthUnit {
+    fn from(u: UnitArg) -> Self {
+        match u {
+            UnitArg::Um => LengthUnit::Um,
+            UnitArg::Mm => LengthUnit::Mm,
+            UnitArg::M => LengthUnit::M,
+        }
+    }
+}
+
+#[derive(Args, Debug)]
+struct ReconstructArgs {
+    /// Rectified left image (PNG, JPEG or TIFF).
+    left: PathBuf,
+    /// Rectified right image.
+    right: PathBuf,
+    /// Output directory (created if missing).
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Matcher: `quality` (semi-global) or `paper` (support value + NCC).
+    #[arg(long, value_enum, default_value = "quality")]
+    mode: ModeArg,
+    /// Smallest disparity searched (may be negative).
+    #[arg(long, allow_hyphen_values = true, requires = "max_disparity")]
+    min_disparity: Option<i32>,
+    /// Largest disparity searched.
+    #[arg(
+        long,
+        allow_hyphen_values = true,
+        requires = "min_disparity",
+        conflicts_with = "auto_range"
+    )]
+    max_disparity: Option<i32>,
+    /// Pick the range with the highest LR consistency among `--range-radii`.
+    #[arg(long)]
+    auto_range: bool,
+    /// Radii tried by `--auto-range`.
+    #[arg(long, value_delimiter = ',', default_value = "4,8,12,16,24,32,48,64")]
+    range_radii: Vec<u32>,
+    /// `symmetric` tries −r..r (convergent microscope), `positive` tries 0..r.
+    #[arg(long, value_enum, default_value = "symmetric")]
+    range_kind: RangeKind,
+    /// Support-value / NCC window side (paper mode; odd, 3..31).
+    #[arg(long, default_value_t = 13)]
+    window: usize,
+    /// Support-value weights (paper mode).
+    #[arg(long, value_enum, default_value = "equal")]
+    weights: WeightsArg,
+    /// Top-SV candidates passed to the NCC decision (paper mode).
+    #[arg(long, default_value_t = 3)]
+    candidates: usize,
+    /// Disable the uniqueness constraint (paper mode).
+    #[arg(long)]
+    no_uniqueness: bool,
+    /// Enable the ordering check (paper mode).
+    #[arg(long)]
+    ordering: bool,
+    /// Enable the continuity check (paper mode).
+    #[arg(long)]
+    continuity: bool,
+    /// LR consistency tolerance in pixels (0..4).
+    #[arg(long, default_value_t = 1)]
+    lr_tolerance: u32,
+    /// Valid regions smaller than this are removed (default: 50 paper, 100 quality).
+    #[arg(long)]
+    min_region: Option<usize>,
+    /// Median radius over valid pixels (0 = off).
+    #[arg(long, default_value_t = 1)]
+    median: usize,
+    /// How invalid pixels are filled.
+    #[arg(long, value_enum, default_value = "background")]
+    fill: FillArg,
+    /// Baseline for triangulation (in `--unit`).
+    #[arg(long, requires = "focal", conflicts_with = "calibration")]
+    baseline: Option<f64>,
+    /// Focal length in pixels.
+    #[arg(long, requires = "baseline")]
+    focal: Option<f64>,
+    /// Principal point column (default: image centre).
+    #[arg(long)]
+    cx: Option<f64>,
+    /// Principal point row (default: image centre).
+    #[arg(long)]
+    cy: Option<f64>,
+    /// Right principal point column (default: `--cx`).
+    #[arg(long)]
+    cx_right: Option<f64>,
+    /// Unit of `--baseline` and of the point cloud.
+    #[arg(long, value_enum, default_value = "mm")]
+    unit: UnitArg,
+    /// Calibration file (TOML or JSON): baseline, focal_px or f_eff + pixel_pitch, cx, cy, unit.
+    #[arg(long)]
+    calibration: Option<PathBuf>,
+}
+
+#[derive(Args, Debug)]
+struct EvalArgs {
+    /// Disparity map to evaluate (PFM, or PNG holding d·scale with 0 = unknown).
+    disparity: PathBuf,
+    /// Scale of a PNG disparity map (default 256 for 16-bit, 1 for 8-bit).
+    #[arg(long)]
+    scale: Option<f32>,
+    /// Left ground truth (PFM or PNG).
+    #[arg(long)]
+    gt: PathBuf,
+    /// Scale of a PNG ground truth (Middlebury: 4 for cones, 2 for the half-size 2006 sets).
+    #[arg(long)]
+    gt_scale: Option<f32>,
+    /// Right ground truth, for the occlusion mask.
+    #[arg(long)]
+    gt_right: Option<PathBuf>,
+    /// Scale of the right ground truth (default: `--gt-scale`).
+    #[arg(long)]
+    gt_right_scale: Option<f32>,
+    /// Print JSON instead of a table.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args, Debug)]
+struct BenchArgs {
+    /// Directory with the cones pair (im2.png, im6.png).
+    #[arg(long, default_value = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/cones"))]
+    cones: PathBuf,
+    /// Runs per measurement (the median is reported).
+    #[arg(long, default_value_t = 5)]
+    repeat: usize,
+    /// Write the results as JSON here too.
+    #[arg(long)]
+    json: Option<PathBuf>,
+    /// Also write the 1280×1024 pair as PNGs here (so other tools can time the same images).
+    #[arg(long)]
+    write_pairs: Option<PathBuf>,
+    /// Skip the 1280×1024 pair.
+    #[arg(long)]
+    cones_only: bool,
+}
+
+/// A command failure: printed once, exit code 2.
+#[derive(Debug, thiserror::Error)]
+pub enum CliError {
+    /// A file problem.
+    #[error(transparent)]
+    Io(#[from] IoError),
+    /// The pair or the parameters cannot be matched.
+    #[error(transparent)]
+    Input(#[from] InputError),
+    /// Anything else, already phrased for the user.
+    #[error("{0}")]
+    Other(String),
+}
+
+/// Runs the CLI and returns the process exit code.
+pub fn main() -> i32 {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Reconstruct(a) => reconstruct(a),
+        Command::Eval(a) => eval(a),
+        Command::Bench(a) => bench(a),
+    };
+    match result {
+        Ok(()) => 0,
+        Err(e) => {
+            eprintln!("error: {e}");
+            2
+        }
+    }
+}
+
+/// Calibration file contents.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct CalibrationFile {
+    baseline: f64,
+    focal_px: Option<f64>,
+    f_eff: Option<f64>,
+    pixel_pitch: Option<f64>,
+    cx: Option<f64>,
+    cy: Option<f64>,
+    cx_right: Option<f64>,
+    #[serde(default)]
+    unit: Option<UnitArg>,
+}
+
+fn load_calibration(path: &Path, w: usize, h: usize) -> Result<Calibration, CliError> {
+    let text = std::fs::read_to_string(path).map_err(|e| {
+        CliError::Other(format!(
+            "calibration file '{}' cannot be read: {e}",
+            path.display()
+        ))
+    })?;
+    let is_json = path.extension().is_some_and(|e| e == "json");
+    let f: CalibrationFile = if is_json {
+        serde_json::from_str(&text).map_err(|e| e.to_string())
+    } else {
+        toml::from_str(&text).map_err(|e| e.to_string())
+    }
+    .map_err(|e| {
+        CliError::Other(format!(
+            "calibration file '{}' is not valid: {e}; expected baseline, focal_px (or f_eff and pixel_pitch), optional cx, cy, cx_right, unit",
+            path.display()
+        ))
+    })?;
+    let focal = match (f.focal_px, f.f_eff, f.pixel_pitch) {
+        (Some(fp), None, None) => fp,
+        (None, Some(fe), Some(pp)) if pp > 0.0 => fe / pp,
+        _ => {
+            return Err(CliError::Other(format!(
+                "calibration file '{}': give either focal_px, or f_eff with pixel_pitch (> 0)",
+                path.display()
+            )));
+        }
+    };
+    let cx = f.cx.unwrap_or((w as f64 - 1.0) / 2.0);
+    let c = Calibration {
+        baseline: f.baseline,
+        focal_px: focal,
+        cx,
+        cy: f.cy.unwrap_or((h as f64 - 1.0) / 2.0),
+        cx_right: f.cx_right.unwrap_or(cx),
+        unit: f.unit.unwrap_or(UnitArg::Mm).into(),
+    };
+    check_calibration(&c, &path.display().to_string())?;
+    Ok(c)
+}
+
+fn check_calibration(c: &Calibration, source: &str) -> Result<(), CliError> {
+    if !(c.baseline > 0.0 && c.baseline.is_finite() && c.focal_px > 0.0 && c.focal_px.is_finite()) {
+        return Err(CliError::Other(format!(
+            "calibration from {source}: baseline ({}) and focal length ({} px) must be positive",
+            c.baseline, c.focal_px
+        )));
+    }
+    Ok(())
+}
+
+/// What `report.json` holds.
+#[derive(Serialize)]
+struct Report<'a> {
+    mode: Mode,
+    left: String,
+    right: String,
+    width: usize,
+    height: usize,
+    range: DisparityRange,
+    auto_range_curve: Option<Vec<RangeScore>>,
+    config: &'a StereoConfig,
+    validation: schemas::ValidationFigures,
+    density_raw: f64,
+    density: f64,
+    evaluations: u64,
+    points: Option<usize>,
+    unit: Option<&'static str>,
+    times_ms: serde_json::Map<String, serde_json::Value>,
+    total_ms: f64,
+}
+
+fn reconstruct(a: ReconstructArgs) -> Result<(), CliError> {
+    let left = io::load_image(&a.left, "left image")?;
+    let right = io::load_image(&a.right, "right image")?;
+    let (w, h) = (left.grey.width, left.grey.height);
+    let mode = match a.mode {
+        ModeArg::Quality => Mode::Quality,
+        ModeArg::Paper => Mode::Paper,
+    };
+    if a.lr_tolerance > validate::MAX_TOLERANCE {
+        return Err(CliError::Other(format!(
+            "--lr-tolerance {} is out of range: use 0..{}",
+            a.lr_tolerance,
+            validate::MAX_TOLERANCE
+        )));
+    }
+    if a.candidates == 0 || a.candidates > 16 {
+        return Err(CliError::Other(format!(
+            "--candidates {} is out of range: use 1..16",
+            a.candidates
+        )));
+    }
+    let default_range = DisparityRange::new(0, 64.min(w as i32 / 2).max(1));
+    let range = match (a.min_disparity, a.max_disparity) {
+        (Some(lo), Some(hi)) => DisparityRange::new(lo, hi),
+        _ => default_range,
+    };
+    let mut cfg = StereoConfig::new(mode, range);
+    cfg.paper.window = a.window;
+    cfg.paper.weights = match a.weights {
+        WeightsArg::Equal => Weights::Equal,
+        WeightsArg::Decreasing => Weights::Decreasing,
+    };
+    cfg.paper.candidates = a.candidates;
+    cfg.paper.uniqueness = !a.no_uniqueness;
+    cfg.paper.ordering = a.ordering;
+    cfg.paper.continuity = a.continuity;
+    cfg.lr_tolerance = a.lr_tolerance;
+    if let Some(m) = a.min_region {
+        cfg.post.min_region = m;
+    }
+    cfg.post.median_radius = a.median;
+    cfg.post.fill = match a.fill {
+        FillArg::Background => Fill::Background,
+        FillArg::Linear => Fill::Linear,
+        FillArg::None => Fill::None,
+    };
+    // Geometry first, so a bad calibration fails before any work.
+    let calib = match (&a.calibration, a.baseline, a.focal) {
+        (Some(p), _, _) => Some(load_calibration(p, w, h)?),
+        (None, Some(b), Some(f)) => {
+            let cx = a.cx.unwrap_or((w as f64 - 1.0) / 2.0);
+            let c = Calibration {
+                baseline: b,
+                focal_px: f,
+                cx,
+                cy: a.cy.unwrap_or((h as f64 - 1.0) / 2.0),
+                cx_right: a.cx_right.unwrap_or(cx),
+                unit: a.unit.into(),
+            };
+            check_calibration(&c, "--baseline/--focal")?;
+            Some(c)
+        }
+        _ => None,
+    };
+    // Check the pair before the (possibly long) range search.
+    matcher::check_inputs(&left.grey, &right.grey, range, cfg.window())?;
+    let mut curve = None;
+    let mut auto_ms = 0.0;
+    if a.auto_range {
+        let ranges = pipeline::candidate_ranges(a.range_kind, &a.range_radii, w);
+        if ranges.is_empty() {
+            return Err(CliError::Other(format!(
+                "--range-radii {:?} has no radius between 1 and the image width {w}",
+                a.range_radii
+            )));
+        }
+        let t = Instant::now();
+        let (best, c) = pipeline::auto_range(&left.grey, &right.grey, &cfg, &ranges)?;
+        auto_ms = t.elapsed().as_secs_f64() * 1e3;
+        cfg.range = best;
+        curve = Some(c);
+    }
+    let mut out = pipeline::run_stereo(&left.grey, &right.grey, &cfg)?;
+    if a.auto_range {
+        out.times.stages.insert(0, ("auto_range".into(), auto_ms));
+    }
+    let cloud = calib.map(|c| {
+        out.times.time("triangulate", || {
+            triangulate::triangulate(&out.disparity, &c, &left.rgb)
+        })
+    });
+    // Everything computed: only now touch the output directory.
+    std::fs::create_dir_all(&a.output).map_err(|e| {
+        CliError::Other(format!(
+            "cannot create output directory '{}': {e}",
+            a.output.display()
+        ))
+    })?;
+    let t = Instant::now();
+    let o = &a.output;
+    io::write_pfm(&o.join("disparity.pfm"), &out.disparity)?;
+    io::write_pfm(&o.join("disparity_raw.pfm"), &out.checked.left)?;
+    let lost = io::write_disparity_png(&o.join("disparity.png"), &out.disparity)?;
+    if lost > 0 {
+        eprintln!(
+            "warning: {lost} pixels have disparities disparity.png cannot hold (negative or ≥ 256); disparity.pfm has them"
+        );
+    }
+    let (lo, hi) = (cfg.range.min as f32, cfg.range.max as f32);
+    io::write_color_png(
+        &o.join("disparity_color.png"),
+        &io::disparity_color(&out.disparity, lo, hi),
+    )?;
+    io::write_mask_png(&o.join("occlusion_left.png"), &out.checked.occlusion_left)?;
+    io::write_mask_png(&o.join("occlusion_right.png"), &out.checked.occlusion_right)?;
+    if let Some(c) = &cloud {
+        io::write_ply(&o.join("points.ply"), c)?;
+    }
+    out.times.add("write", t.elapsed().as_secs_f64() * 1e3);
+    let mut times = serde_json::Map::new();
+    for (k, v) in &out.times.stages {
+        times.insert(k.clone(), serde_json::json!((v * 1000.0).round() / 1000.0));
+    }
+    let report = Report {
+        mode,
+        left: a.left.display().to_string(),
+        right: a.right.display().to_string(),
+        width: w,
+        height: h,
+        range: cfg.range,
+        auto_range_curve: curve,
+        config: &cfg,
+        validation: out.figures,
+        density_raw: schemas::density(&out.checked.left),
+        density: schemas::density(&out.disparity),
+        evaluations: out.evaluations,
+        points: cloud.as_ref().map(|c| c.points.len()),
+        unit: cloud.as_ref().map(|c| c.unit.symbol()),
+        total_ms: out.times.total_ms(),
+        times_ms: times,
+    };
+    let json = serde_json::to_string_pretty(&report).expect("report serialises");
+    let rp = o.join("report.json");
+    std::fs::write(&rp, json + "\n")
+        .map_err(|e| CliError::Other(format!("cannot write '{}': {e}", rp.display())))?;
+    let f = &out.figures;
+    println!(
+        "{mode:?} mode, range {}..{}: consistent {:.1} %, off by 1 {:.1} %, off by more {:.1} %; density after LR check {:.1} %",
+        cfg.range.min,
+        cfg.range.max,
+        100.0 * f.consistent_exact,
+        100.0 * f.off_by_one,
+        100.0 * f.off_by_more,
+        100.0 * schemas::density(&out.checked.left)
+    );
+    if let Some(c) = &cloud {
+        println!("{} points ({})", c.points.len(), c.unit.symbol());
+    }
+    println!(
+        "total {:.1} ms; outputs in {}",
+        out.times.total_ms(),
+        o.display()
+    );
+    Ok(())
+}
+
+fn eval(a: EvalArgs) -> Result<(), CliError> {
+    let disp = io::read_disparity(&a.disparity, a.scale, "disparity map")?;
+    let gt = io::read_disparity(&a.gt, a.gt_scale, "ground truth")?;
+    if (disp.width, disp.height) != (gt.width, gt.height) {
+        return Err(CliError::Other(format!(
+            "disparity map '{}' is {}×{} but ground truth '{}' is {}×{}; evaluate maps of the same view and size",
+            a.disparity.display(),
+            disp.width,
+            disp.height,
+            a.gt.display(),
+            gt.width,
+            gt.height
+        )));
+    }
+    let visible = match &a.gt_right {
+        Some(p) => {
+            let gr = io::read_disparity(p, a.gt_right_scale.or(a.gt_scale), "right ground truth")?;
+            if (gr.width, gr.height) != (gt.width, gt.height) {
+                return Err(CliError::Other(format!(
+                    "right ground truth '{}' is {}×{} but the left one is {}×{}",
+                    p.display(),
+                    gr.width,
+                    gr.height,
+                    gt.width,
+                    gt.height
+                )));
+            }
+            Some(validate::occlusion_from_gt(&gt, &gr))
+        }
+        None => None,
+    };
+    let f = validate::evaluate(&disp, &gt, visible.as_ref());
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&f).expect("serialises"));
+        return Ok(());
+    }
+    println!(
+        "{:<8} {:>9} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8}",
+        "pixels", "count", "bad0.5%", "bad1%", "bad2%", "bad4%", "mae", "rms", "dens%"
+    );
+    let label = if visible.is_some() { "nonocc" } else { "known" };
+    for (name, s) in [(label, f.nonocc), ("all", f.all)] {
+        println!(
+            "{:<8} {:>9} {:>8.2} {:>8.2} {:>8.2} {:>8.2} {:>8.3} {:>8.3} {:>8.2}",
+            name,
+            s.pixels,
+            s.bad_0_5,
+            s.bad_1,
+            s.bad_2,
+            s.bad_4,
+            s.mean_abs_error,
+            s.rms,
+            s.density
+        );
+        if visible.is_none() {
+            break;
+        }
+    }
+    Ok(())
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(|a, b| a.total_cmp(b));
+    v[v.len() / 2]
+}
+
+/// One benchmark line.
+#[derive(Serialize)]
+struct BenchLine {
+    pair: String,
+    mode: Mode,
+    width: usize,
+    height: usize,
+    range: DisparityRange,
+    stages_ms: Vec<(String, f64)>,
+    total_ms: f64,
+    mevals_per_s: f64,
+}
+
+fn bench(a: BenchArgs) -> Result<(), CliError> {
+    let left = io::load_image(&a.cones.join("im2.png"), "cones left image")?;
+    let right = io::load_image(&a.cones.join("im6.png"), "cones right image")?;
+    let mut pairs = vec![(
+        "cones".to_string(),
+        left.grey,
+        right.grey,
+        DisparityRange::new(0, 63),
+    )];
+    if !a.cones_only {
+        let s = crate::synthetic::standard_scene(1280, 1024, 4, 14, 7);
+        if let Some(dir) = &a.write_pairs {
+            std::fs::create_dir_all(dir)
+                .map_err(|e| CliError::Other(format!("cannot create '{}': {e}", dir.display())))?;
+            for (name, p) in [
+                ("synth1280_left.png", &s.left),
+                ("synth1280_right.png", &s.right),
+            ] {
+                image::GrayImage::from_raw(p.width as u32, p.height as u32, p.data.clone())
+                    .expect("size")
+                    .save(dir.join(name))
+                    .map_err(|e| {
+                        CliError::Other(format!("cannot write '{}': {e}", dir.join(name).display()))
+                    })?;
+            }
+        }
+        pairs.push((
+            "synth1280".into(),
+            s.left,
+            s.right,
+            DisparityRange::new(0, 63),
+        ));
+    }
+    let mut lines = Vec::new();
+    println!(
+        "{} threads; median of {} runs; ranges 0..63 (64 disparities, as SGBM numDisparities=64)",
+        rayon::current_num_threads(),
+        a.repeat
+    );
+    for (name, l, r, range) in &pairs {
+        for mode in [Mode::Paper, Mode::Quality] {
+            let cfg = StereoConfig::new(mode, *range);
+            let mut runs = Vec::new();
+            let mut evals = 0;
+            for _ in 0..a.repeat.max(1) {
+                let out = pipeline::run_stereo(l, r, &cfg)?;
+                evals = out.evaluations;
+                runs.push(out.times);
+            }
+            let stage_names: Vec<String> = runs[0].stages.iter().map(|(n, _)| n.clone()).collect();
+            let stages: Vec<(String, f64)> = stage_names
+                .iter()
+                .enumerate()
+                .map(|(i, n)| {
+                    (
+                        n.clone(),
+                        median(runs.iter().map(|t| t.stages[i].1).collect()),
+                    )
+                })
+                .collect();
+            let total = median(runs.iter().map(|t| t.total_ms()).collect());
+            let match_ms = stages
+                .iter()
+                .find(|(n, _)| n == "match")
+                .map_or(total, |s| s.1);
+            let line = BenchLine {
+                pair: name.clone(),
+                mode,
+                width: l.width,
+                height: l.height,
+                range: *range,
+                stages_ms: stages,
+                total_ms: total,
+                mevals_per_s: evals as f64 / (match_ms * 1e3),
+            };
+            let st: Vec<String> = line
+                .stages_ms
+                .iter()
+                .map(|(n, v)| format!("{n} {v:.1}"))
+                .collect();
+            println!(
+                "{:<10} {:<8} {:>4}×{:<4} total {:>7.1} ms  [{}]  {:.0} M disparity evaluations/s",
+                name,
+                format!("{mode:?}").to_lowercase(),
+                l.width,
+                l.height,
+                total,
+                st.join(", "),
+                line.mevals_per_s
+            );
+            lines.push(line);
+        }
+    }
+    if let Some(p) = &a.json {
+        std::fs::write(p, serde_json::to_string_pretty(&lines).expect("serialises"))
+            .map_err(|e| CliError::Other(format!("cannot write '{}': {e}", p.display())))?;
+    }
+    Ok(())
+}
