@@ -106,23 +106,38 @@ struct ReconstructArgs {
     /// Top-SV candidates passed to the NCC decision (paper mode).
     #[arg(long, default_value_t = 3)]
     candidates: usize,
-    /// Disable the uniqueness constraint (paper mode).
+    /// Enable the uniqueness constraint (paper mode): a pixel claimed by several keeps the best.
     #[arg(long)]
-    no_uniqueness: bool,
+    uniqueness: bool,
     /// Enable the ordering check (paper mode).
     #[arg(long)]
     ordering: bool,
     /// Enable the continuity check (paper mode).
     #[arg(long)]
     continuity: bool,
+    /// SGM penalty for 1 px disparity changes (quality mode).
+    #[arg(long)]
+    p1: Option<u16>,
+    /// SGM penalty for larger jumps, lowered across intensity edges (quality mode).
+    #[arg(long)]
+    p2: Option<u16>,
+    /// Percent by which the best cost must beat other disparities (quality mode).
+    #[arg(long)]
+    uniqueness_ratio: Option<u16>,
+    /// Weight of the gradient term in the cost (quality mode; 0 = census only).
+    #[arg(long)]
+    gradient_weight: Option<u16>,
+    /// SGM paths: 4 or 8 (quality mode).
+    #[arg(long, value_parser = clap::builder::PossibleValuesParser::new(["4", "8"]))]
+    paths: Option<String>,
     /// LR consistency tolerance in pixels (0..4).
     #[arg(long, default_value_t = 1)]
     lr_tolerance: u32,
     /// Valid regions smaller than this are removed (default: 50 paper, 100 quality).
     #[arg(long)]
     min_region: Option<usize>,
-    /// Median radius over valid pixels (0 = off).
-    #[arg(long, default_value_t = 1)]
+    /// Median radius over valid pixels (0 = off, 2 = 5×5).
+    #[arg(long, default_value_t = 2)]
     median: usize,
     /// How invalid pixels are filled.
     #[arg(long, value_enum, default_value = "background")]
@@ -345,10 +360,24 @@ fn reconstruct(a: ReconstructArgs) -> Result<(), CliError> {
         WeightsArg::Decreasing => Weights::Decreasing,
     };
     cfg.paper.candidates = a.candidates;
-    cfg.paper.uniqueness = !a.no_uniqueness;
+    cfg.paper.uniqueness = a.uniqueness;
     cfg.paper.ordering = a.ordering;
     cfg.paper.continuity = a.continuity;
     cfg.lr_tolerance = a.lr_tolerance;
+    let q = &mut cfg.quality;
+    q.p1 = a.p1.unwrap_or(q.p1);
+    q.p2 = a.p2.unwrap_or(q.p2);
+    q.uniqueness_ratio = a.uniqueness_ratio.unwrap_or(q.uniqueness_ratio).min(99);
+    q.gradient_weight = a.gradient_weight.unwrap_or(q.gradient_weight);
+    if let Some(p) = &a.paths {
+        q.paths = p.parse().expect("validated by clap");
+    }
+    if q.p2 <= q.p1 {
+        return Err(CliError::Other(format!(
+            "--p2 ({}) must be larger than --p1 ({})",
+            q.p2, q.p1
+        )));
+    }
     if let Some(m) = a.min_region {
         cfg.post.min_region = m;
     }

@@ -31,12 +31,15 @@ impl StereoConfig {
     /// Defaults of a mode over a range.
     pub fn new(mode: Mode, range: DisparityRange) -> Self {
         let post = match mode {
-            Mode::Paper => PostParams::default(),
+            Mode::Paper => PostParams {
+                median_radius: 2,
+                ..PostParams::default()
+            },
             // Sub-pixel maps: smaller regions still count as one surface.
             Mode::Quality => PostParams {
                 min_region: 100,
                 region_max_diff: 1.0,
-                median_radius: 1,
+                median_radius: 2,
                 fill: postprocess::Fill::Background,
             },
         };

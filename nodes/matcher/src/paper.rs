@@ -27,6 +27,8 @@ pub struct PaperParams {
     /// How many top-SV candidates go on to the NCC decision.
     pub candidates: usize,
     /// Keep only the best of several pixels claiming the same pixel of the other image.
+    /// Off by default: on slanted surfaces integer disparities legitimately map two
+    /// pixels onto one, and the LR check already rejects the real conflicts.
     pub uniqueness: bool,
     /// Invalidate matches that break the left-to-right order of their row neighbours.
     pub ordering: bool,
@@ -41,7 +43,7 @@ impl Default for PaperParams {
             window: 13,
             weights: Weights::Equal,
             candidates: 3,
-            uniqueness: true,
+            uniqueness: false,
             ordering: false,
             continuity: false,
         }

@@ -35,11 +35,11 @@ impl Default for QualityParams {
     fn default() -> Self {
         Self {
             range: DisparityRange::new(0, 64),
-            p1: 10,
-            p2: 120,
+            p1: 14,
+            p2: 140,
             gradient_weight: 1,
             gradient_cap: 30,
-            uniqueness_ratio: 5,
+            uniqueness_ratio: 10,
             paths: 8,
         }
     }
