@@ -21,7 +21,7 @@ pub struct Cli {
 #[derive(Subcommand, Debug)]
 enum Command {
     /// Disparity map, occlusion masks, point cloud and report from a rectified pair.
-    Reconstruct(ReconstructArgs),
+    Reconstruct(Box<ReconstructArgs>),
     /// Compares a disparity map with ground truth (Middlebury figures).
     Eval(EvalArgs),
     /// Times every stage on cones and on a 1280×1024 pair.
@@ -143,10 +143,15 @@ struct ReconstructArgs {
     #[arg(long, value_enum, default_value = "background")]
     fill: FillArg,
     /// Baseline for triangulation (in `--unit`).
-    #[arg(long, requires = "focal", conflicts_with = "calibration")]
+    #[arg(
+        long,
+        requires = "focal",
+        conflicts_with = "calibration",
+        allow_hyphen_values = true
+    )]
     baseline: Option<f64>,
     /// Focal length in pixels.
-    #[arg(long, requires = "baseline")]
+    #[arg(long, requires = "baseline", allow_hyphen_values = true)]
     focal: Option<f64>,
     /// Principal point column (default: image centre).
     #[arg(long)]
@@ -226,7 +231,7 @@ pub enum CliError {
 pub fn main() -> i32 {
     let cli = Cli::parse();
     let result = match cli.command {
-        Command::Reconstruct(a) => reconstruct(a),
+        Command::Reconstruct(a) => reconstruct(*a),
         Command::Eval(a) => eval(a),
         Command::Bench(a) => bench(a),
     };

@@ -162,8 +162,8 @@ fn fill_line(line: &mut [f32], rule: Fill) -> bool {
         }
         let next = (x < n).then_some(x);
         let (va, vb) = (prev.map(|a| line[a]), next.map(|b| line[b]));
-        for i in start..x {
-            line[i] = match (va, vb) {
+        for (i, slot) in line.iter_mut().enumerate().take(x).skip(start) {
+            *slot = match (va, vb) {
                 (Some(a), Some(b)) => match rule {
                     Fill::Linear => {
                         let (ia, ib) = (prev.unwrap(), next.unwrap());
@@ -173,7 +173,7 @@ fn fill_line(line: &mut [f32], rule: Fill) -> bool {
                 },
                 (Some(a), None) => a,
                 (None, Some(b)) => b,
-                (None, None) => line[i],
+                (None, None) => *slot,
             };
         }
     }
@@ -198,8 +198,8 @@ pub fn fill(map: &mut DisparityMap, rule: Fill) {
     }
     let mut col = vec![0f32; h];
     for x in 0..w {
-        for y in 0..h {
-            col[y] = *map.get(x, y);
+        for (y, c) in col.iter_mut().enumerate() {
+            *c = *map.get(x, y);
         }
         fill_line(&mut col, rule);
         for &y in &empty_rows {

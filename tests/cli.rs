@@ -1,0 +1,304 @@
+//! The `microstereo` binary end to end: outputs, report, eval, and bad input.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_microstereo"))
+}
+
+fn data(name: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data")
+        .join(name)
+}
+
+fn run(args: &[&str]) -> Output {
+    bin().args(args).output().expect("binary runs")
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+/// One clear error line, exit code 2, no panic.
+fn assert_clean_failure(out: &Output, needle: &str) {
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "stderr: {err}");
+    assert!(!err.contains("panicked"), "panic: {err}");
+    assert!(err.contains(needle), "expected '{needle}' in: {err}");
+}
+
+#[test]
+fn reconstruct_writes_every_output_and_eval_reads_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = dir.path().join("out");
+    let (l, r) = (data("cones/im2.png"), data("cones/im6.png"));
+    let out = run(&[
+        "reconstruct",
+        s(&l),
+        s(&r),
+        "-o",
+        s(&o),
+        "--mode",
+        "paper",
+        "--min-disparity",
+        "0",
+        "--max-disparity",
+        "63",
+        "--baseline",
+        "160",
+        "--focal",
+        "3740",
+        "--unit",
+        "mm",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    for f in [
+        "disparity.pfm",
+        "disparity_raw.pfm",
+        "disparity.png",
+        "disparity_color.png",
+        "occlusion_left.png",
+        "occlusion_right.png",
+        "points.ply",
+        "report.json",
+    ] {
+        assert!(o.join(f).is_file(), "{f} missing");
+    }
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(o.join("report.json")).unwrap()).unwrap();
+    assert_eq!(report["mode"], "paper");
+    assert_eq!(report["range"]["max"], 63);
+    let v = &report["validation"];
+    let sum = v["consistent_exact"].as_f64().unwrap()
+        + v["off_by_one"].as_f64().unwrap()
+        + v["off_by_more"].as_f64().unwrap();
+    assert!((sum - 1.0).abs() < 1e-9);
+    assert!(report["times_ms"]["match"].as_f64().unwrap() > 0.0);
+    assert_eq!(
+        report["density"], 1.0,
+        "background fill makes the map dense"
+    );
+    // The PLY holds exactly the reported points, each 15 bytes.
+    let ply = std::fs::read(o.join("points.ply")).unwrap();
+    let n = report["points"].as_u64().unwrap() as usize;
+    let header_end = ply.windows(11).position(|w| w == b"end_header\n").unwrap() + 11;
+    let header = String::from_utf8_lossy(&ply[..header_end]);
+    assert!(header.contains(&format!("element vertex {n}")));
+    assert!(header.contains("unit mm"));
+    assert_eq!(ply.len() - header_end, n * 15);
+    // eval reads the PFM and the PNG alike and agrees with the library's figures.
+    let gt = data("cones/disp2.png");
+    let gtr = data("cones/disp6.png");
+    let e = |map: &str| -> serde_json::Value {
+        let out = run(&[
+            "eval",
+            s(&o.join(map)),
+            "--gt",
+            s(&gt),
+            "--gt-scale",
+            "4",
+            "--gt-right",
+            s(&gtr),
+            "--json",
+        ]);
+        assert!(out.status.success());
+        serde_json::from_slice(&out.stdout).unwrap()
+    };
+    let (pfm, png) = (e("disparity.pfm"), e("disparity.png"));
+    let b = pfm["nonocc"]["bad_1"].as_f64().unwrap();
+    assert!(b > 5.0 && b <= 10.5, "paper bad-1 {b}");
+    assert!((png["nonocc"]["bad_1"].as_f64().unwrap() - b).abs() < 0.01);
+    let table = run(&[
+        "eval",
+        s(&o.join("disparity.pfm")),
+        "--gt",
+        s(&gt),
+        "--gt-scale",
+        "4",
+    ]);
+    assert!(String::from_utf8_lossy(&table.stdout).contains("bad1%"));
+}
+
+#[test]
+fn auto_range_reports_the_curve() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = dir.path().join("auto");
+    let out = run(&[
+        "reconstruct",
+        s(&data("cones/im2.png")),
+        s(&data("cones/im6.png")),
+        "-o",
+        s(&o),
+        "--mode",
+        "paper",
+        "--auto-range",
+        "--range-kind",
+        "positive",
+        "--range-radii",
+        "16,32,64",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(o.join("report.json")).unwrap()).unwrap();
+    let curve = report["auto_range_curve"].as_array().unwrap();
+    assert_eq!(curve.len(), 3);
+    // Cones spans about 0..55 px: only 0..64 covers it.
+    assert_eq!(report["range"]["max"], 64);
+}
+
+#[test]
+fn bad_input_gives_one_clear_error_and_keeps_existing_outputs() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = dir.path().join("out");
+    std::fs::create_dir_all(&o).unwrap();
+    std::fs::write(o.join("disparity.pfm"), b"earlier result").unwrap();
+    let (l, r) = (data("cones/im2.png"), data("cones/im6.png"));
+    let (l, r) = (s(&l), s(&r));
+    let garbage = dir.path().join("garbage.png");
+    std::fs::write(&garbage, b"not an image").unwrap();
+    let small = dir.path().join("small.png");
+    image::GrayImage::new(100, 80).save(&small).unwrap();
+    let oo = s(&o);
+    let cases: Vec<(Vec<&str>, &str)> = vec![
+        (
+            vec!["reconstruct", "/nonexistent/left.png", r, "-o", oo],
+            "does not exist",
+        ),
+        (
+            vec!["reconstruct", l, s(&garbage), "-o", oo],
+            "cannot be read",
+        ),
+        (vec!["reconstruct", l, s(&small), "-o", oo], "same size"),
+        (
+            vec![
+                "reconstruct",
+                l,
+                r,
+                "-o",
+                oo,
+                "--min-disparity",
+                "10",
+                "--max-disparity",
+                "10",
+            ],
+            "is empty",
+        ),
+        (
+            vec![
+                "reconstruct",
+                l,
+                r,
+                "-o",
+                oo,
+                "--min-disparity",
+                "20",
+                "--max-disparity",
+                "5",
+            ],
+            "is empty",
+        ),
+        (
+            vec![
+                "reconstruct",
+                l,
+                r,
+                "-o",
+                oo,
+                "--mode",
+                "paper",
+                "--window",
+                "12",
+            ],
+            "odd size",
+        ),
+        (
+            vec![
+                "reconstruct",
+                l,
+                r,
+                "-o",
+                oo,
+                "--mode",
+                "paper",
+                "--window",
+                "35",
+            ],
+            "odd size",
+        ),
+        (
+            vec![
+                "reconstruct",
+                l,
+                r,
+                "-o",
+                oo,
+                "--min-disparity",
+                "-500",
+                "--max-disparity",
+                "5",
+            ],
+            "wider than the image",
+        ),
+        (
+            vec!["reconstruct", l, r, "-o", oo, "--lr-tolerance", "7"],
+            "--lr-tolerance",
+        ),
+        (
+            vec![
+                "reconstruct",
+                l,
+                r,
+                "-o",
+                oo,
+                "--baseline",
+                "-1",
+                "--focal",
+                "100",
+            ],
+            "must be positive",
+        ),
+        (
+            vec!["eval", "/nonexistent.pfm", "--gt", l],
+            "does not exist",
+        ),
+        (vec!["eval", s(&small), "--gt", l], "same view and size"),
+    ];
+    for (args, needle) in cases {
+        let out = run(&args);
+        assert_clean_failure(&out, needle);
+        assert_eq!(
+            std::fs::read(o.join("disparity.pfm")).unwrap(),
+            b"earlier result",
+            "{args:?}"
+        );
+    }
+    // A window larger than the image is named as such.
+    let tiny = dir.path().join("tiny.png");
+    image::GrayImage::new(20, 20).save(&tiny).unwrap();
+    let out = run(&[
+        "reconstruct",
+        s(&tiny),
+        s(&tiny),
+        "-o",
+        oo,
+        "--mode",
+        "paper",
+        "--window",
+        "31",
+        "--min-disparity",
+        "0",
+        "--max-disparity",
+        "5",
+    ]);
+    assert_clean_failure(&out, "does not fit");
+}

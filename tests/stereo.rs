@@ -1,0 +1,122 @@
+//! End-to-end accuracy of both matchers through the shared pipeline.
+
+use matcher::Mode;
+use microstereo::io;
+use microstereo::pipeline::{self, RangeKind, StereoConfig};
+use microstereo::synthetic::standard_scene;
+use schemas::{DisparityRange, Plane};
+use std::path::PathBuf;
+
+fn data(name: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data")
+        .join(name)
+}
+
+/// Share of non-occluded pixels (per the GT cross-check) whose disparity rounds to the GT.
+fn exact_share(
+    d: &schemas::DisparityMap,
+    gl: &schemas::DisparityMap,
+    gr: &schemas::DisparityMap,
+) -> f64 {
+    let vis = validate::occlusion_from_gt(gl, gr);
+    let (mut n, mut ok) = (0usize, 0usize);
+    for i in 0..d.len() {
+        if vis.data[i] {
+            n += 1;
+            ok += (d.data[i].is_finite() && (d.data[i] - gl.data[i]).abs() < 0.5) as usize;
+        }
+    }
+    ok as f64 / n as f64
+}
+
+#[test]
+fn synthetic_pairs_are_exact_in_both_modes_negative_disparities_included() {
+    // Layers at −7, −2, 3, 8 px, and at 2, 10, 18, 26 px.
+    for (base, step, range, seed) in [
+        (-7, 5, DisparityRange::new(-10, 10), 1),
+        (2, 8, DisparityRange::new(0, 32), 2),
+    ] {
+        let s = standard_scene(640, 480, base, step, seed);
+        for mode in [Mode::Paper, Mode::Quality] {
+            let cfg = StereoConfig::new(mode, range);
+            let out = pipeline::run_stereo(&s.left, &s.right, &cfg).unwrap();
+            let share = exact_share(&out.disparity, &s.gt_left, &s.gt_right);
+            assert!(
+                share >= 0.99,
+                "{mode:?} base {base}: only {:.2} % exact",
+                share * 100.0
+            );
+        }
+    }
+}
+
+fn cones_bad1(mode: Mode) -> f64 {
+    let l = io::load_image(&data("cones/im2.png"), "left").unwrap();
+    let r = io::load_image(&data("cones/im6.png"), "right").unwrap();
+    let gl = io::read_disparity(&data("cones/disp2.png"), Some(4.0), "gt").unwrap();
+    let gr = io::read_disparity(&data("cones/disp6.png"), Some(4.0), "gt").unwrap();
+    let cfg = StereoConfig::new(mode, DisparityRange::new(0, 63));
+    let out = pipeline::run_stereo(&l.grey, &r.grey, &cfg).unwrap();
+    let vis = validate::occlusion_from_gt(&gl, &gr);
+    validate::evaluate(&out.disparity, &gl, Some(&vis))
+        .nonocc
+        .bad_1
+}
+
+#[test]
+fn cones_paper_mode_bad1_within_bar() {
+    // Measured 10.09 % when this guard was written; the bar is 10.5 %.
+    let b = cones_bad1(Mode::Paper);
+    assert!(b <= 10.5, "paper bad-1 on cones {b:.2} %");
+    assert!(
+        b > 5.0,
+        "suspiciously good paper bad-1 {b:.2} %: is the GT read right?"
+    );
+}
+
+#[test]
+fn cones_quality_mode_beats_sgbm() {
+    // OpenCV StereoSGBM-3WAY reaches 4.26 % here; we measured 3.66 %.
+    let b = cones_bad1(Mode::Quality);
+    assert!(b < 4.26, "quality bad-1 on cones {b:.2} %");
+}
+
+#[test]
+fn auto_range_picks_the_narrowest_range_that_covers_the_scene() {
+    // True disparities −3..9: ±4 and ±8 miss the nearest layer, ±12 covers everything.
+    let s = standard_scene(240, 180, -3, 4, 5);
+    let cfg = StereoConfig::new(Mode::Paper, DisparityRange::new(0, 1));
+    let ranges = pipeline::candidate_ranges(RangeKind::Symmetric, &[4, 8, 12, 24, 48], 240);
+    let (best, curve) = pipeline::auto_range(&s.left, &s.right, &cfg, &ranges).unwrap();
+    assert_eq!(curve.len(), 5);
+    assert_eq!(best, DisparityRange::new(-12, 12), "curve: {curve:?}");
+    // The curve rises to the covering range and falls after it (the paper's Fig. 12).
+    let r: Vec<f64> = curve.iter().map(|s| s.consistency_ratio).collect();
+    assert!(
+        r[0] < r[1] && r[1] < r[2] && r[2] > r[3] && r[3] > r[4],
+        "{curve:?}"
+    );
+}
+
+#[test]
+fn left_and_right_directions_agree_on_a_plain_shift() {
+    // A whole image shifted by 5 px: every left pixel with a partner says 5, and so does
+    // every right pixel, in both modes.
+    let s = standard_scene(120, 90, 5, 0, 9);
+    for mode in [Mode::Paper, Mode::Quality] {
+        let cfg = StereoConfig::new(mode, DisparityRange::new(0, 12));
+        let mut t = runtime::StageTimes::default();
+        let (l, r, _) = pipeline::match_pair(&s.left, &s.right, &cfg, &mut t).unwrap();
+        let check = |m: &Plane<f32>, skip_left: usize, skip_right: usize| {
+            for y in 8..82 {
+                for x in skip_left..120 - skip_right {
+                    let d = *m.get(x, y);
+                    assert!((d - 5.0).abs() < 0.5, "{mode:?} ({x},{y}) = {d}");
+                }
+            }
+        };
+        check(&l, 17, 8);
+        check(&r, 8, 17);
+    }
+}
