@@ -76,27 +76,6 @@ pub struct PaperMatch {
     pub evaluations: u64,
 }
 
-/// One candidate under consideration.
-#[derive(Clone, Copy, Debug)]
-struct Cand {
-    sv: u32,
-    d: i32,
-}
-
-/// `true` when `a` ranks before `b` among SV candidates: higher SV, then smaller |d|, then d.
-#[inline(always)]
-fn sv_better(a: Cand, b: Cand) -> bool {
-    (
-        a.sv,
-        std::cmp::Reverse(a.d.unsigned_abs()),
-        std::cmp::Reverse(a.d),
-    ) > (
-        b.sv,
-        std::cmp::Reverse(b.d.unsigned_abs()),
-        std::cmp::Reverse(b.d),
-    )
-}
-
 /// `true` when decision `(score, ncc, d)` beats the current best.
 #[inline(always)]
 fn decision_better(a: (f64, f64, i32), b: (f64, f64, i32)) -> bool {
@@ -249,7 +228,11 @@ impl RowCtx<'_> {
         let mut svs = vec![0u32; nd * w];
         let mut evaluations = 0u64;
         let k = self.params.candidates.max(1);
-        let mut cands: Vec<Cand> = Vec::with_capacity(k + 1);
+        let mut top_sv = vec![-1i32; w * k];
+        let mut top_d = vec![0i32; w * k];
+        let mut count = vec![0u8; w];
+        let mut order: Vec<i32> = (range.min..=range.max).collect();
+        order.sort_by_key(|&d| (d.unsigned_abs(), d));
         let mut row_l = vec![(INVALID_DISPARITY, 0f32, 0f64); w];
         let mut row_r = vec![(INVALID_DISPARITY, 0f32, 0f64); w];
         for y in y0..y1 {
@@ -287,24 +270,20 @@ impl RowCtx<'_> {
                 let cr = &mut cross[di * w..(di + 1) * w];
                 if xlo < xhi {
                     let mut s: u32 = col[xlo..xlo + win].iter().sum();
-                    for x in xlo..xhi {
+                    for x in xlo..xhi - 1 {
                         cr[x] = s;
-                        if x + 1 < xhi {
-                            s = s + col[x + win] - col[x];
-                        }
+                        s = s + col[x + win] - col[x];
                     }
+                    cr[xhi - 1] = s;
                 }
-                // Support values of every valid (x, d).
-                let sv = &mut svs[di * w..(di + 1) * w];
-                let dl = self.l.desc.row(y);
-                let dr = self.r.desc.row(y);
-                let nw = self.kernel.words;
-                for x in xlo..xhi {
-                    let xr = (x as isize - du) as usize;
-                    sv[x] = self
-                        .kernel
-                        .support(&dl[x * nw..(x + 1) * nw], &dr[xr * nw..(xr + 1) * nw]);
-                }
+                self.kernel.support_row(
+                    self.l.desc.row(y),
+                    self.r.desc.row(y),
+                    xlo,
+                    xhi,
+                    du,
+                    &mut svs[di * w..(di + 1) * w],
+                );
                 evaluations += (xhi - xlo) as u64;
             }
             let n = (win * win) as f64;
@@ -315,58 +294,68 @@ impl RowCtx<'_> {
                 num * self.l.inv_dev[y * w + x] * self.r.inv_dev[y * w + xr]
             };
             let svmax = self.kernel.max as f64;
-            let mut decide = |reference_x: usize, left_of: &dyn Fn(i32) -> Option<usize>| {
-                cands.clear();
-                for (di, d) in (range.min..=range.max).enumerate() {
-                    let Some(x) = left_of(d) else { continue };
-                    let c = Cand {
-                        sv: svs[di * w + x],
-                        d,
-                    };
-                    let pos = cands.iter().position(|&o| sv_better(c, o));
-                    match pos {
-                        Some(p) => {
-                            cands.insert(p, c);
-                            cands.truncate(k);
-                        }
-                        None if cands.len() < k => cands.push(c),
-                        None => {}
-                    }
-                }
-                let mut best: Option<(f64, f64, i32)> = None;
-                for c in &cands {
-                    let x = left_of(c.d).unwrap();
-                    let xr = (x as i32 - c.d) as usize;
-                    let di = (c.d - range.min) as usize;
-                    let nc = ncc(x, xr, di);
-                    let cand = (nc + c.sv as f64 / svmax, nc, c.d);
-                    if best.is_none_or(|b| decision_better(cand, b)) {
-                        best = Some(cand);
-                    }
-                }
-                let _ = reference_x;
-                best
-            };
             let wi = w as i32;
-            if self.directions != Directions::RightToLeft {
-                for x in 0..w {
-                    let left_of = |d: i32| -> Option<usize> {
-                        let xr = x as i32 - d;
-                        (0..wi).contains(&xr).then_some(x)
-                    };
-                    row_l[x] = match decide(x, &left_of) {
-                        Some((s, nc, d)) => (d as f32, s as f32, nc),
-                        None => (INVALID_DISPARITY, 0.0, 0.0),
-                    };
+            for rl in [false, true] {
+                if (!rl && self.directions == Directions::RightToLeft)
+                    || (rl && self.directions == Directions::LeftToRight)
+                {
+                    continue;
                 }
-            }
-            if self.directions != Directions::LeftToRight {
-                for xr in 0..w {
-                    let left_of = |d: i32| -> Option<usize> {
-                        let x = xr as i32 + d;
-                        (0..wi).contains(&x).then_some(x as usize)
+                // Top-k by SV per reference pixel, slot j of pixel p at [j * w + p] (−1 =
+                // empty). Disparities come in order of |d| then d, and a candidate must be
+                // strictly better to move up: that is the tie rule. The insertion is a
+                // branch-free network, so it vectorises across pixels.
+                top_sv.fill(-1);
+                for &d in &order {
+                    let di = (d - range.min) as usize;
+                    let sv = &svs[di * w..(di + 1) * w];
+                    // Reference pixels p whose partner exists; the slab is indexed by left x.
+                    let (plo, phi) = if rl {
+                        ((-d).max(0) as usize, wi.min(wi - d).max(0) as usize)
+                    } else {
+                        (d.max(0) as usize, wi.min(wi + d).max(0) as usize)
                     };
-                    row_r[xr] = match decide(xr, &left_of) {
+                    if plo >= phi {
+                        continue;
+                    }
+                    let off = if rl { d as isize } else { 0 };
+                    let vals = &sv[(plo as isize + off) as usize..(phi as isize + off) as usize];
+                    for j in (0..k).rev() {
+                        let (above_t, cur_t) = top_sv.split_at_mut(j * w);
+                        let (above_d, cur_d) = top_d.split_at_mut(j * w);
+                        let n = phi - plo;
+                        let ct = &mut cur_t[plo..phi];
+                        let cd = &mut cur_d[plo..phi];
+                        if j == 0 {
+                            insert_top(&vals[..n], d, ct, cd, None);
+                        } else {
+                            let at = &above_t[(j - 1) * w + plo..(j - 1) * w + phi];
+                            let ad = &above_d[(j - 1) * w + plo..(j - 1) * w + phi];
+                            insert_top(&vals[..n], d, ct, cd, Some((at, ad)));
+                        }
+                    }
+                }
+                for p in 0..w {
+                    count[p] = (0..k).filter(|&j| top_sv[j * w + p] >= 0).count() as u8;
+                }
+                let row = if rl { &mut row_r } else { &mut row_l };
+                for p in 0..w {
+                    let mut best: Option<(f64, f64, i32)> = None;
+                    for c in 0..count[p] as usize {
+                        let d = top_d[c * w + p];
+                        let (x, xr) = if rl {
+                            ((p as i32 + d) as usize, p)
+                        } else {
+                            (p, (p as i32 - d) as usize)
+                        };
+                        let di = (d - range.min) as usize;
+                        let nc = ncc(x, xr, di);
+                        let cand = (nc + top_sv[c * w + p] as f64 / svmax, nc, d);
+                        if best.is_none_or(|b| decision_better(cand, b)) {
+                            best = Some(cand);
+                        }
+                    }
+                    row[p] = match best {
                         Some((s, nc, d)) => (d as f32, s as f32, nc),
                         None => (INVALID_DISPARITY, 0.0, 0.0),
                     };
@@ -393,6 +382,60 @@ impl RowCtx<'_> {
             }
         }
         evaluations
+    }
+}
+
+/// One slot of the branch-free top-k insertion, for a run of pixels: value `v[i]` at
+/// disparity `d` against the slot `(t, td)` and the slot above it `(at, ad)` (none for the
+/// first slot). Slots are sorted (above ≥ current), so the slot's new value is
+/// `max(t, min(v, above))`, and its disparity moves down from above when `v > above`.
+#[inline(always)]
+fn insert_top(v: &[u32], d: i32, t: &mut [i32], td: &mut [i32], above: Option<(&[i32], &[i32])>) {
+    let n = v.len();
+    let mut i = 0;
+    #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+    {
+        use std::arch::x86_64::*;
+        // SAFETY: every access is at index i..i + 8 ≤ n of slices at least n long (checked
+        // by the asserts), and AVX2 is enabled for this build.
+        unsafe {
+            assert!(t.len() >= n && td.len() >= n);
+            let dv = _mm256_set1_epi32(d);
+            while i + 8 <= n {
+                let vv = _mm256_loadu_si256(v.as_ptr().add(i) as *const __m256i);
+                let tv = _mm256_loadu_si256(t.as_ptr().add(i) as *const __m256i);
+                let tdv = _mm256_loadu_si256(td.as_ptr().add(i) as *const __m256i);
+                let gt = _mm256_cmpgt_epi32(vv, tv);
+                let mut nd = _mm256_blendv_epi8(tdv, dv, gt);
+                let nt = match above {
+                    None => _mm256_max_epi32(tv, vv),
+                    Some((at, ad)) => {
+                        assert!(at.len() >= n && ad.len() >= n);
+                        let av = _mm256_loadu_si256(at.as_ptr().add(i) as *const __m256i);
+                        let adv = _mm256_loadu_si256(ad.as_ptr().add(i) as *const __m256i);
+                        nd = _mm256_blendv_epi8(nd, adv, _mm256_cmpgt_epi32(vv, av));
+                        _mm256_max_epi32(tv, _mm256_min_epi32(vv, av))
+                    }
+                };
+                _mm256_storeu_si256(t.as_mut_ptr().add(i) as *mut __m256i, nt);
+                _mm256_storeu_si256(td.as_mut_ptr().add(i) as *mut __m256i, nd);
+                i += 8;
+            }
+        }
+    }
+    for i in i..n {
+        let x = v[i] as i32;
+        let moved = if x > t[i] { d } else { td[i] };
+        match above {
+            None => {
+                td[i] = moved;
+                t[i] = t[i].max(x);
+            }
+            Some((at, ad)) => {
+                td[i] = if x > at[i] { ad[i] } else { moved };
+                t[i] = t[i].max(x.min(at[i]));
+            }
+        }
     }
 }
 

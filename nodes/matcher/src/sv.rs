@@ -123,6 +123,66 @@ impl SvKernel {
     }
 }
 
+/// Equal-weight support values of one row for one disparity, `NW` words per descriptor:
+/// `out[x] = max − popcount(left[x] ^ right[x − d])` for `x` in `xlo..xhi`.
+#[inline(always)]
+fn sv_row_equal<const NW: usize>(
+    max: u32,
+    left: &[u64],
+    right: &[u64],
+    xlo: usize,
+    xhi: usize,
+    d: isize,
+    out: &mut [u32],
+) {
+    let l = &left[xlo * NW..xhi * NW];
+    let rs = (xlo as isize - d) as usize;
+    let r = &right[rs * NW..(rs + xhi - xlo) * NW];
+    for ((o, a), b) in out[xlo..xhi]
+        .iter_mut()
+        .zip(l.chunks_exact(NW))
+        .zip(r.chunks_exact(NW))
+    {
+        let mut diff = 0;
+        for k in 0..NW {
+            diff += (a[k] ^ b[k]).count_ones();
+        }
+        *o = max - diff;
+    }
+}
+
+impl SvKernel {
+    /// Support values of one image row for one disparity `d`: `out[x]` for left pixels
+    /// `x` in `xlo..xhi` against right pixels `x − d` (descriptor rows of both images).
+    pub fn support_row(
+        &self,
+        left: &[u64],
+        right: &[u64],
+        xlo: usize,
+        xhi: usize,
+        d: isize,
+        out: &mut [u32],
+    ) {
+        macro_rules! fixed {
+            ($($n:literal)*) => {
+                match self.words {
+                    $($n => sv_row_equal::<$n>(self.max, left, right, xlo, xhi, d, out),)*
+                    _ => unreachable!("window ≤ 31 needs at most 16 words"),
+                }
+            };
+        }
+        if self.weights == Weights::Equal {
+            fixed!(1 2 3 4 5 6 7 8 9 10 11 12 13 14 15 16);
+        } else {
+            let nw = self.words;
+            for x in xlo..xhi {
+                let xr = (x as isize - d) as usize;
+                out[x] = self.support(&left[x * nw..(x + 1) * nw], &right[xr * nw..(xr + 1) * nw]);
+            }
+        }
+    }
+}
+
 /// Bit-packed window descriptors of every pixel of an image.
 #[derive(Clone, Debug)]
 pub struct Descriptors {
@@ -221,6 +281,28 @@ pub fn window_sums(padded: &Plane<u8>, window: usize) -> (Plane<u32>, Plane<u64>
     )
 }
 
+/// Bits `j < window` set where `row[j] >= t`.
+#[inline(always)]
+fn row_bits(row: &[u8], t: u8, window: usize) -> u64 {
+    #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+    if row.len() >= 32 {
+        use std::arch::x86_64::*;
+        // SAFETY: the slice holds at least 32 bytes and AVX2 is enabled for this build.
+        let mask = unsafe {
+            let v = _mm256_loadu_si256(row.as_ptr() as *const __m256i);
+            let th = _mm256_set1_epi8(t as i8);
+            let ge = _mm256_cmpeq_epi8(_mm256_max_epu8(v, th), v);
+            _mm256_movemask_epi8(ge) as u32 as u64
+        };
+        return mask & ((1u64 << window) - 1);
+    }
+    let mut bits = 0u64;
+    for (j, &v) in row[..window].iter().enumerate() {
+        bits |= ((v >= t) as u64) << j;
+    }
+    bits
+}
+
 /// Computes the descriptor of every pixel: window binarised against its own mean.
 ///
 /// `pixel ≥ mean` is evaluated exactly in integers as `pixel ≥ ceil(sum / W²)`.
@@ -247,17 +329,13 @@ pub fn descriptors_from_padded(
         .for_each(|(y, out)| {
             for x in 0..w {
                 let t = sums.data[y * w + x].div_ceil(n);
-                // `t` can exceed 255 only for an impossible sum; clamp keeps the compare exact.
-                let t = t.min(256) as u16;
+                // A mean never exceeds 255, so the rounded-up threshold fits a byte.
+                let t = t.min(255) as u8;
                 let d = &mut out[x * words..(x + 1) * words];
                 let mut bit = 0usize;
                 for i in 0..window {
-                    let row = &padded.data[(y + i) * pw + x..(y + i) * pw + x + window];
                     // One window row at a time: gather its bits, then splice them in.
-                    let mut bits: u64 = 0;
-                    for (j, &v) in row.iter().enumerate() {
-                        bits |= ((v as u16 >= t) as u64) << j;
-                    }
+                    let bits = row_bits(&padded.data[(y + i) * pw + x..(y + i + 1) * pw], t, window);
                     let word = bit / 64;
                     let off = bit % 64;
                     d[word] |= bits << off;
