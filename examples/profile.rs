@@ -10,10 +10,16 @@ fn main() {
     for _ in 0..5 {
         let t = Instant::now();
         if mode == "quality" {
-            let p = matcher::QualityParams { range: DisparityRange::new(0, 63), ..Default::default() };
+            let p = matcher::QualityParams {
+                range: DisparityRange::new(0, 63),
+                ..Default::default()
+            };
             matcher::match_quality(&l, &r, &p);
         } else {
-            let p = matcher::PaperParams { range: DisparityRange::new(0, 63), ..Default::default() };
+            let p = matcher::PaperParams {
+                range: DisparityRange::new(0, 63),
+                ..Default::default()
+            };
             matcher::match_paper(&l, &r, &p, matcher::Directions::Both);
         }
         println!("{mode} {:.1} ms", t.elapsed().as_secs_f64() * 1e3);

@@ -60,21 +60,25 @@ pub struct QualityMatch {
 const CENSUS_RX: usize = 4;
 const CENSUS_RY: usize = 3;
 
-/// 9×7 census transform: bit set where the neighbour is darker than the centre.
+/// 9×7 census transform: bit set where the neighbour is darker than the centre (image
+/// edges repeat).
 pub fn census(img: &Plane<u8>) -> Plane<u64> {
     let (w, h) = (img.width, img.height);
+    let padded = crate::sv::pad_replicate(img, CENSUS_RX);
+    let pw = padded.width;
+    let cw = 2 * CENSUS_RX + 1;
+    let full = (1u64 << cw) - 1;
     let mut out = vec![0u64; w * h];
     out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
         for (x, o) in row.iter_mut().enumerate() {
             let c = *img.get(x, y);
             let mut bits = 0u64;
-            for dy in -(CENSUS_RY as isize)..=CENSUS_RY as isize {
-                let yy = (y as isize + dy).clamp(0, h as isize - 1) as usize;
-                let r = img.row(yy);
-                for dx in -(CENSUS_RX as isize)..=CENSUS_RX as isize {
-                    let xx = (x as isize + dx).clamp(0, w as isize - 1) as usize;
-                    bits = (bits << 1) | ((r[xx] < c) as u64);
-                }
+            for dy in 0..2 * CENSUS_RY + 1 {
+                // Padded by CENSUS_RX on every side; rows beyond the census height are unused.
+                let py = y + CENSUS_RX - CENSUS_RY + dy;
+                let r = &padded.data[py * pw + x..(py + 1) * pw];
+                // "darker than the centre" = not (≥ centre).
+                bits = (bits << cw) | (!crate::sv::row_bits(r, c, cw) & full);
             }
             *o = bits;
         }
@@ -187,41 +191,42 @@ fn aggregate(
     let mut left_min: i16 = 0;
     let mut scratch = vec![0i16; nd];
     let p1 = p.p1 as i16;
-    let map = |x: usize, y: usize| -> (usize, usize) {
-        if backward {
-            (w - 1 - x, h - 1 - y)
-        } else {
-            (x, y)
-        }
-    };
-    let px = |x: usize, y: usize| -> i16 {
-        let (ox, oy) = map(x, y);
-        *img.get(ox, oy) as i16
-    };
-    let p2_for = |a: i16, b: i16| -> i16 {
-        let grad = (a - b).unsigned_abs();
-        let p2 = (p.p2 as u32 * 16 / (16 + grad as u32)) as i16;
-        p2.max(p1 + 1)
-    };
+    // P2 lowered across intensity edges, looked up by |ΔI|.
+    let p2_lut: Vec<i16> = (0..256u32)
+        .map(|g| ((p.p2 as u32 * 16 / (16 + g)) as i16).max(p1 + 1))
+        .collect();
+    // Walk the image in sweep order: a backward sweep reads mirrored rows and columns.
+    let oy = |y: usize| if backward { h - 1 - y } else { y };
+    let ox = |x: usize| if backward { w - 1 - x } else { x };
+    let mut c = vec![0u8; nd];
+    let mut acc = vec![0u16; nd];
     for y in 0..h {
+        let irow = img.row(oy(y));
+        let iprev = img.row(if y > 0 { oy(y - 1) } else { oy(y) });
         for x in 0..w {
-            let (ox, oy) = map(x, y);
-            let c = &cost[(oy * w + ox) * nd..(oy * w + ox + 1) * nd];
-            let s = &mut sum[(oy * w + ox) * nd..(oy * w + ox + 1) * nd];
-            let here = px(x, y);
+            let pix = (oy(y) * w + ox(x)) * nd;
+            c.copy_from_slice(&cost[pix..pix + nd]);
+            let here = irow[ox(x)] as i16;
+            let p2_at = |other: u8| p2_lut[(here - other as i16).unsigned_abs() as usize];
             // Path from the left (same row).
             if x == 0 {
                 for d in 0..nd {
                     left_l[d] = c[d] as i16;
                 }
             } else {
-                let p2 = p2_for(here, px(x - 1, y));
-                step(c, &left_l, left_min, p1, p2, &mut scratch);
-                left_l.copy_from_slice(&scratch);
+                step(
+                    &c,
+                    &left_l,
+                    left_min,
+                    p1,
+                    p2_at(irow[ox(x - 1)]),
+                    &mut scratch,
+                );
+                std::mem::swap(&mut left_l, &mut scratch);
             }
-            left_min = *left_l.iter().min().unwrap();
+            left_min = min_i16(&left_l);
             for d in 0..nd {
-                s[d] = s[d].wrapping_add(left_l[d] as u16);
+                acc[d] = left_l[d] as u16;
             }
             // Paths from the previous row: 0 = top-left, 1 = top, 2 = top-right.
             for k in 0..3 {
@@ -241,28 +246,27 @@ fn aggregate(
                         }
                     }
                     (_, Some(sx)) => {
-                        let p2 = p2_for(here, px(sx, y - 1));
-                        step(
-                            c,
-                            &prev[k][sx * nd..(sx + 1) * nd],
-                            prev_min[k][sx],
-                            p1,
-                            p2,
-                            out,
-                        );
+                        let lp = &prev[k][sx * nd..(sx + 1) * nd];
+                        step(&c, lp, prev_min[k][sx], p1, p2_at(iprev[ox(sx)]), out);
                     }
                 }
-                let m = *out.iter().min().unwrap();
-                cur_min[k][x] = m;
+                cur_min[k][x] = min_i16(out);
                 for d in 0..nd {
-                    s[d] = s[d].wrapping_add(out[d] as u16);
+                    acc[d] = acc[d].wrapping_add(out[d] as u16);
                 }
             }
+            sum[pix..pix + nd].copy_from_slice(&acc);
         }
         std::mem::swap(&mut prev, &mut cur);
         std::mem::swap(&mut prev_min, &mut cur_min);
     }
     sum
+}
+
+/// Minimum of a slice; a plain fold vectorises where `Iterator::min` does not.
+#[inline(always)]
+fn min_i16(v: &[i16]) -> i16 {
+    v.iter().fold(i16::MAX, |m, &x| m.min(x))
 }
 
 /// One SGM recurrence step:

@@ -283,7 +283,7 @@ pub fn window_sums(padded: &Plane<u8>, window: usize) -> (Plane<u32>, Plane<u64>
 
 /// Bits `j < window` set where `row[j] >= t`.
 #[inline(always)]
-fn row_bits(row: &[u8], t: u8, window: usize) -> u64 {
+pub(crate) fn row_bits(row: &[u8], t: u8, window: usize) -> u64 {
     #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
     if row.len() >= 32 {
         use std::arch::x86_64::*;
@@ -335,7 +335,8 @@ pub fn descriptors_from_padded(
                 let mut bit = 0usize;
                 for i in 0..window {
                     // One window row at a time: gather its bits, then splice them in.
-                    let bits = row_bits(&padded.data[(y + i) * pw + x..(y + i + 1) * pw], t, window);
+                    let bits =
+                        row_bits(&padded.data[(y + i) * pw + x..(y + i + 1) * pw], t, window);
                     let word = bit / 64;
                     let off = bit % 64;
                     d[word] |= bits << off;

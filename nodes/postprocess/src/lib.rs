@@ -130,12 +130,14 @@ pub fn median_valid(map: &DisparityMap, r: usize) -> DisparityMap {
                     }
                 }
             }
-            vals.sort_unstable_by(|a, b| a.total_cmp(b));
             let n = vals.len();
+            let (below, &mut mid, _) = vals.select_nth_unstable_by(n / 2, |a, b| a.total_cmp(b));
             row[x] = if n % 2 == 1 {
-                vals[n / 2]
+                mid
             } else {
-                0.5 * (vals[n / 2 - 1] + vals[n / 2])
+                // The lower middle is the largest of the lower half.
+                let lower = below.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+                0.5 * (lower + mid)
             };
         }
     });
