@@ -1,4 +1,6 @@
-//! Times the quality and paper matchers' internals on cones (developer aid).
+//! Times the quality or paper matcher alone on cones, five runs, for profiling with perf.
+//!
+//! `cargo run --release --example profile [quality|paper]`
 use microstereo::io;
 use schemas::DisparityRange;
 use std::time::Instant;
