@@ -53,11 +53,6 @@ impl StageTimes {
     pub fn total_ms(&self) -> f64 {
         self.stages.iter().map(|(_, ms)| ms).sum()
     }
-
-    /// Stage durations as a JSON-friendly map, in insertion order.
-    pub fn to_json_map(&self) -> Vec<(String, f64)> {
-        self.stages.clone()
-    }
 }
 
 #[cfg(test)]

@@ -206,7 +206,6 @@ impl RowCtx<'_> {
         (lo as usize, hi.max(lo) as usize)
     }
 
-    #[allow(clippy::too_many_arguments)]
     fn band(
         &self,
         y0: usize,

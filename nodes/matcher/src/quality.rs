@@ -198,14 +198,13 @@ fn aggregate(
     // Walk the image in sweep order: a backward sweep reads mirrored rows and columns.
     let oy = |y: usize| if backward { h - 1 - y } else { y };
     let ox = |x: usize| if backward { w - 1 - x } else { x };
-    let mut c = vec![0u8; nd];
     let mut acc = vec![0u16; nd];
     for y in 0..h {
         let irow = img.row(oy(y));
         let iprev = img.row(if y > 0 { oy(y - 1) } else { oy(y) });
         for x in 0..w {
             let pix = (oy(y) * w + ox(x)) * nd;
-            c.copy_from_slice(&cost[pix..pix + nd]);
+            let c = &cost[pix..pix + nd];
             let here = irow[ox(x)] as i16;
             let p2_at = |other: u8| p2_lut[(here - other as i16).unsigned_abs() as usize];
             // Path from the left (same row).
@@ -215,7 +214,7 @@ fn aggregate(
                 }
             } else {
                 step(
-                    &c,
+                    c,
                     &left_l,
                     left_min,
                     p1,
@@ -247,7 +246,7 @@ fn aggregate(
                     }
                     (_, Some(sx)) => {
                         let lp = &prev[k][sx * nd..(sx + 1) * nd];
-                        step(&c, lp, prev_min[k][sx], p1, p2_at(iprev[ox(sx)]), out);
+                        step(c, lp, prev_min[k][sx], p1, p2_at(iprev[ox(sx)]), out);
                     }
                 }
                 cur_min[k][x] = min_i16(out);
@@ -304,40 +303,41 @@ fn select(
     left.par_chunks_mut(w)
         .zip(right.par_chunks_mut(w))
         .enumerate()
-        .for_each(|(y, (lrow, rrow))| {
-            let mut total = vec![0u16; w * nd];
-            let o = y * w * nd;
-            for i in 0..w * nd {
-                total[i] = s1[o + i].wrapping_add(s2[o + i]);
-            }
-            let mut buf = vec![0u16; nd];
-            // Left-based: every disparity whose right pixel exists.
-            for x in 0..w {
-                let lo = (x as i32 - w as i32 + 1 - dmin).max(0) as usize;
-                let hi = ((x as i32 - dmin + 1).min(nd as i32)).max(0) as usize;
-                if lo >= hi {
-                    continue;
+        .for_each_init(
+            || (vec![0u16; w * nd], vec![0u16; nd]),
+            |(total, buf), (y, (lrow, rrow))| {
+                let o = y * w * nd;
+                for i in 0..w * nd {
+                    total[i] = s1[o + i].wrapping_add(s2[o + i]);
                 }
-                let t = &total[x * nd..(x + 1) * nd];
-                lrow[x] = decide(&t[lo..hi], lo, p.uniqueness_ratio, dmin);
-            }
-            // Right-based: right pixel xr at disparity d is left pixel xr + d.
-            for xr in 0..w {
-                let mut lo = usize::MAX;
-                let mut hi = 0;
-                for (di, b) in buf.iter_mut().enumerate() {
-                    let x = xr as i32 + dmin + di as i32;
-                    if (0..w as i32).contains(&x) {
-                        *b = total[x as usize * nd + di];
-                        lo = lo.min(di);
-                        hi = di + 1;
+                // Left-based: every disparity whose right pixel exists.
+                for x in 0..w {
+                    let lo = (x as i32 - w as i32 + 1 - dmin).max(0) as usize;
+                    let hi = ((x as i32 - dmin + 1).min(nd as i32)).max(0) as usize;
+                    if lo >= hi {
+                        continue;
+                    }
+                    let t = &total[x * nd..(x + 1) * nd];
+                    lrow[x] = decide(&t[lo..hi], lo, p.uniqueness_ratio, dmin);
+                }
+                // Right-based: right pixel xr at disparity d is left pixel xr + d.
+                for xr in 0..w {
+                    let mut lo = usize::MAX;
+                    let mut hi = 0;
+                    for (di, b) in buf.iter_mut().enumerate() {
+                        let x = xr as i32 + dmin + di as i32;
+                        if (0..w as i32).contains(&x) {
+                            *b = total[x as usize * nd + di];
+                            lo = lo.min(di);
+                            hi = di + 1;
+                        }
+                    }
+                    if lo < hi {
+                        rrow[xr] = decide(&buf[lo..hi], lo, p.uniqueness_ratio, dmin);
                     }
                 }
-                if lo < hi {
-                    rrow[xr] = decide(&buf[lo..hi], lo, p.uniqueness_ratio, dmin);
-                }
-            }
-        });
+            },
+        );
     let plane = |data| Plane {
         width: w,
         height: h,

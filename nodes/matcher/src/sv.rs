@@ -246,27 +246,30 @@ pub fn window_sums(padded: &Plane<u8>, window: usize) -> (Plane<u32>, Plane<u64>
     sums.par_chunks_mut(w)
         .zip(sq.par_chunks_mut(w))
         .enumerate()
-        .for_each(|(y, (srow, qrow))| {
-            let mut col = vec![0u32; pw];
-            let mut colq = vec![0u32; pw];
-            for i in 0..window {
-                let row = &padded.data[(y + i) * pw..(y + i + 1) * pw];
-                for (u, &v) in row.iter().enumerate() {
-                    col[u] += v as u32;
-                    colq[u] += (v as u32) * (v as u32);
+        .for_each_init(
+            || (vec![0u32; pw], vec![0u32; pw]),
+            |(col, colq), (y, (srow, qrow))| {
+                col.fill(0);
+                colq.fill(0);
+                for i in 0..window {
+                    let row = &padded.data[(y + i) * pw..(y + i + 1) * pw];
+                    for (u, &v) in row.iter().enumerate() {
+                        col[u] += v as u32;
+                        colq[u] += (v as u32) * (v as u32);
+                    }
                 }
-            }
-            let mut s: u32 = col[..window].iter().sum();
-            let mut q: u64 = colq[..window].iter().map(|&v| v as u64).sum();
-            for x in 0..w {
-                srow[x] = s;
-                qrow[x] = q;
-                if x + window < pw {
-                    s = s + col[x + window] - col[x];
-                    q = q + colq[x + window] as u64 - colq[x] as u64;
+                let mut s: u32 = col[..window].iter().sum();
+                let mut q: u64 = colq[..window].iter().map(|&v| v as u64).sum();
+                for x in 0..w {
+                    srow[x] = s;
+                    qrow[x] = q;
+                    if x + window < pw {
+                        s = s + col[x + window] - col[x];
+                        q = q + colq[x + window] as u64 - colq[x] as u64;
+                    }
                 }
-            }
-        });
+            },
+        );
     (
         Plane {
             width: w,
