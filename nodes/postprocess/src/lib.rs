@@ -9,7 +9,9 @@
 //!    linear interpolation. Rows with no valid pixel are then filled from the rows above
 //!    and below with the same rule, so the result is dense whenever anything was matched.
 
-use rayon::prelude::*;
+mod median;
+
+pub use median::median_valid;
 use schemas::{DisparityMap, INVALID_DISPARITY};
 use serde::{Deserialize, Serialize};
 
@@ -109,39 +111,6 @@ pub fn remove_small_regions(map: &mut DisparityMap, min_size: usize, max_diff: f
         }
     }
     removed
-}
-
-/// Median of the valid pixels of each `(2r+1)²` window, at valid pixels only.
-pub fn median_valid(map: &DisparityMap, r: usize) -> DisparityMap {
-    let (w, h) = (map.width, map.height);
-    let mut out = map.clone();
-    out.data.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-        let mut vals = Vec::with_capacity((2 * r + 1) * (2 * r + 1));
-        for x in 0..w {
-            if !map.get(x, y).is_finite() {
-                continue;
-            }
-            vals.clear();
-            for yy in y.saturating_sub(r)..(y + r + 1).min(h) {
-                let src = map.row(yy);
-                for &v in &src[x.saturating_sub(r)..(x + r + 1).min(w)] {
-                    if v.is_finite() {
-                        vals.push(v);
-                    }
-                }
-            }
-            let n = vals.len();
-            let (below, &mut mid, _) = vals.select_nth_unstable_by(n / 2, |a, b| a.total_cmp(b));
-            row[x] = if n % 2 == 1 {
-                mid
-            } else {
-                // The lower middle is the largest of the lower half.
-                let lower = below.iter().copied().fold(f32::NEG_INFINITY, f32::max);
-                0.5 * (lower + mid)
-            };
-        }
-    });
-    out
 }
 
 /// Fills one line (a row, or a column through `stride`) in place. Returns false when the

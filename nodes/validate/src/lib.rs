@@ -16,6 +16,7 @@ pub mod eval;
 
 pub use eval::{ErrorStats, EvalFigures, evaluate, occlusion_from_gt};
 
+use rayon::prelude::*;
 use schemas::{DisparityMap, INVALID_DISPARITY, Mask, Plane, ValidationFigures};
 
 /// Largest tolerance the paper's relaxation allows.
@@ -59,22 +60,33 @@ pub fn lr_check(left: &DisparityMap, right: &DisparityMap, tolerance: u32) -> Ch
     let mut out_r = right.clone();
     let mut occ_l = Plane::filled(w, h, 0u8);
     let mut occ_r = Plane::filled(w, h, 0u8);
-    for y in 0..h {
-        let (lrow, rrow) = (left.row(y), right.row(y));
-        for x in 0..w {
-            let ok = lrow[x].is_finite()
-                && partner(rrow, x, lrow[x], -1.0).is_some_and(|p| (p - lrow[x]).abs() <= tol);
-            if !ok {
-                out_l.row_mut(y)[x] = INVALID_DISPARITY;
-                occ_l.row_mut(y)[x] = 255;
-            }
-            let ok = rrow[x].is_finite()
-                && partner(lrow, x, rrow[x], 1.0).is_some_and(|p| (p - rrow[x]).abs() <= tol);
-            if !ok {
-                out_r.row_mut(y)[x] = INVALID_DISPARITY;
-                occ_r.row_mut(y)[x] = 255;
-            }
-        }
+    if w > 0 {
+        out_l
+            .data
+            .par_chunks_mut(w)
+            .zip(out_r.data.par_chunks_mut(w))
+            .zip(occ_l.data.par_chunks_mut(w))
+            .zip(occ_r.data.par_chunks_mut(w))
+            .enumerate()
+            .for_each(|(y, (((ol, or), ocl), ocr))| {
+                let (lrow, rrow) = (left.row(y), right.row(y));
+                for x in 0..w {
+                    let ok = lrow[x].is_finite()
+                        && partner(rrow, x, lrow[x], -1.0)
+                            .is_some_and(|p| (p - lrow[x]).abs() <= tol);
+                    if !ok {
+                        ol[x] = INVALID_DISPARITY;
+                        ocl[x] = 255;
+                    }
+                    let ok = rrow[x].is_finite()
+                        && partner(lrow, x, rrow[x], 1.0)
+                            .is_some_and(|p| (p - rrow[x]).abs() <= tol);
+                    if !ok {
+                        or[x] = INVALID_DISPARITY;
+                        ocr[x] = 255;
+                    }
+                }
+            });
     }
     let figures = validation_figures(left, right, tolerance);
     Checked {
@@ -92,29 +104,37 @@ pub fn validation_figures(
     right: &DisparityMap,
     tolerance: u32,
 ) -> ValidationFigures {
-    let (mut matched, mut exact, mut one, mut within) = (0u64, 0u64, 0u64, 0u64);
-    for y in 0..left.height {
-        let (lrow, rrow) = (left.row(y), right.row(y));
-        for x in 0..left.width {
-            let d = lrow[x];
-            if !d.is_finite() {
-                continue;
-            }
-            matched += 1;
-            if let Some(p) = partner(rrow, x, d, -1.0) {
-                let diff = (p - d).abs();
-                // Sub-pixel maps: "exact" means within half a pixel, "one" within 1.5.
-                if diff < 0.5 {
-                    exact += 1;
-                } else if diff < 1.5 {
-                    one += 1;
+    let tol = tolerance as f32;
+    let (matched, exact, one, within) = (0..left.height)
+        .into_par_iter()
+        .map(|y| {
+            let (lrow, rrow) = (left.row(y), right.row(y));
+            let (mut matched, mut exact, mut one, mut within) = (0u64, 0u64, 0u64, 0u64);
+            for x in 0..left.width {
+                let d = lrow[x];
+                if !d.is_finite() {
+                    continue;
                 }
-                if diff <= tolerance as f32 {
-                    within += 1;
+                matched += 1;
+                if let Some(p) = partner(rrow, x, d, -1.0) {
+                    let diff = (p - d).abs();
+                    // Sub-pixel maps: "exact" means within half a pixel, "one" within 1.5.
+                    if diff < 0.5 {
+                        exact += 1;
+                    } else if diff < 1.5 {
+                        one += 1;
+                    }
+                    if diff <= tol {
+                        within += 1;
+                    }
                 }
             }
-        }
-    }
+            (matched, exact, one, within)
+        })
+        .reduce(
+            || (0, 0, 0, 0),
+            |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2, a.3 + b.3),
+        );
     let share = |n: u64| {
         if matched == 0 {
             0.0
