@@ -41,8 +41,14 @@ pub struct Checked {
 /// partner lies outside the image or has no value. `sign` is −1 from left to right.
 #[inline]
 fn partner(other: &[f32], x: usize, d: f32, sign: f32) -> Option<f32> {
-    let t = (x as f32 + sign * d).round();
-    if t < 0.0 || t >= other.len() as f32 {
+    // Round half away from zero, as f32::round, which is a library call on x86; below
+    // −0.5 the partner is outside anyway.
+    let t = x as f32 + sign * d;
+    if t <= -0.5 {
+        return None;
+    }
+    let t = (t + 0.5).floor();
+    if t >= other.len() as f32 {
         return None;
     }
     let v = other[t as usize];
