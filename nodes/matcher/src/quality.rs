@@ -129,23 +129,111 @@ fn cost_volume(left: &Plane<u8>, right: &Plane<u8>, p: &QualityParams) -> Vec<u8
     cost.par_chunks_mut(w * nd)
         .enumerate()
         .for_each(|(y, row)| {
-            let (cl, cr) = (cl.row(y), cr.row(y));
-            let (gl, gr) = (gl.row(y), gr.row(y));
+            let r = CostRow {
+                cl: cl.row(y),
+                cr: cr.row(y),
+                gl: gl.row(y),
+                gr: gr.row(y),
+                dmin: p.range.min,
+                gw,
+                cap,
+            };
+            #[cfg(target_arch = "x86_64")]
+            if crate::sv::has_vpopcnt() && r.fits_i32() {
+                // SAFETY: the CPU has the features (checked at run time).
+                return unsafe { r.fill_avx512(row) };
+            }
             for x in 0..w {
-                let out = &mut row[x * nd..(x + 1) * nd];
-                for (di, o) in out.iter_mut().enumerate() {
-                    let xr = x as i32 - (p.range.min + di as i32);
-                    if xr < 0 || xr >= w as i32 {
-                        continue;
-                    }
-                    let xr = xr as usize;
-                    let ham = (cl[x] ^ cr[xr]).count_ones() as u16;
-                    let g = (gl[x].abs_diff(gr[xr]) / 4).min(cap);
-                    *o = (ham * 2 + gw * g).min(COST_OUTSIDE as u16 - 1) as u8;
-                }
+                r.cells(x, 0..nd, &mut row[x * nd..(x + 1) * nd]);
             }
         });
     cost
+}
+
+/// The inputs of one row of the cost volume.
+struct CostRow<'a> {
+    cl: &'a [u64],
+    cr: &'a [u64],
+    gl: &'a [i16],
+    gr: &'a [i16],
+    dmin: i32,
+    gw: u16,
+    cap: u16,
+}
+
+impl CostRow<'_> {
+    /// Costs of left pixel `x` at disparity indices `dis` into `out[dis]`; disparities
+    /// pointing outside the right image are left alone.
+    #[inline(always)]
+    fn cells(&self, x: usize, dis: std::ops::Range<usize>, out: &mut [u8]) {
+        let w = self.cl.len() as i32;
+        for di in dis {
+            let xr = x as i32 - (self.dmin + di as i32);
+            if xr < 0 || xr >= w {
+                continue;
+            }
+            let xr = xr as usize;
+            let ham = (self.cl[x] ^ self.cr[xr]).count_ones() as u16;
+            let g = (self.gl[x].abs_diff(self.gr[xr]) / 4).min(self.cap);
+            out[di] = (ham * 2 + self.gw * g).min(COST_OUTSIDE as u16 - 1) as u8;
+        }
+    }
+
+    /// Whether the cost sum fits the vector path's i32 lanes exactly as it does the
+    /// scalar path's u16 (Hamming ≤ 63, doubled).
+    fn fits_i32(&self) -> bool {
+        self.gw as u32 * self.cap as u32 + 126 <= u16::MAX as u32
+    }
+
+    /// The whole row, eight disparities at a time: the right pixels `x − d` of eight
+    /// consecutive disparities are eight consecutive census words read backwards.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx512vpopcntdq")]
+    unsafe fn fill_avx512(&self, row: &mut [u8]) {
+        use std::arch::x86_64::*;
+        let w = self.cl.len();
+        let nd = row.len() / w;
+        let rev64 = _mm512_set_epi64(0, 1, 2, 3, 4, 5, 6, 7);
+        let rev16 = _mm_set_epi8(1, 0, 3, 2, 5, 4, 7, 6, 9, 8, 11, 10, 13, 12, 15, 14);
+        let capv = _mm256_set1_epi32(self.cap as i32);
+        let gwv = _mm256_set1_epi32(self.gw as i32);
+        let top = _mm256_set1_epi32(COST_OUTSIDE as i32 - 1);
+        for x in 0..w {
+            let out = &mut row[x * nd..(x + 1) * nd];
+            let clx = _mm512_set1_epi64(self.cl[x] as i64);
+            let glx = _mm256_set1_epi32(self.gl[x] as i32);
+            let mut di = 0;
+            while di + 8 <= nd {
+                // Right pixels of lanes 0..8 run from `hi` down to `hi − 7`.
+                let hi = x as i64 - self.dmin as i64 - di as i64;
+                if hi - 7 >= 0 && hi < w as i64 {
+                    let lo = (hi - 7) as usize;
+                    // SAFETY: lo..lo + 8 lies inside the row (checked just above), out
+                    // holds di + 8 <= nd bytes.
+                    unsafe {
+                        let c = _mm512_loadu_si512(self.cr.as_ptr().add(lo) as *const _);
+                        let c = _mm512_permutexvar_epi64(rev64, c);
+                        let ham =
+                            _mm512_cvtepi64_epi32(_mm512_popcnt_epi64(_mm512_xor_si512(c, clx)));
+                        let g = _mm_loadu_si128(self.gr.as_ptr().add(lo) as *const __m128i);
+                        let g = _mm256_cvtepi16_epi32(_mm_shuffle_epi8(g, rev16));
+                        let ad = _mm256_abs_epi32(_mm256_sub_epi32(glx, g));
+                        let gq = _mm256_min_epi32(_mm256_srli_epi32(ad, 2), capv);
+                        let v = _mm256_add_epi32(
+                            _mm256_slli_epi32(ham, 1),
+                            _mm256_mullo_epi32(gq, gwv),
+                        );
+                        let b = _mm256_cvtepi32_epi8(_mm256_min_epi32(v, top));
+                        _mm_storel_epi64(out.as_mut_ptr().add(di) as *mut __m128i, b);
+                    }
+                } else {
+                    self.cells(x, di..di + 8, out);
+                }
+                di += 8;
+            }
+            self.cells(x, di..nd, out);
+        }
+    }
 }
 
 /// Cost given to disparities that point outside the right image.
@@ -157,8 +245,8 @@ pub fn match_quality(left: &Plane<u8>, right: &Plane<u8>, p: &QualityParams) -> 
     let nd = p.range.count();
     let cost = cost_volume(left, right, p);
     let (s1, s2) = rayon::join(
-        || aggregate(&cost, left, w, h, nd, p, false),
-        || aggregate(&cost, left, w, h, nd, p, true),
+        || aggregate_fast(&cost, left, w, h, nd, p, false),
+        || aggregate_fast(&cost, left, w, h, nd, p, true),
     );
     let (dl, dr) = select(&s1, &s2, w, h, nd, p);
     QualityMatch {
@@ -260,6 +348,256 @@ fn aggregate(
         std::mem::swap(&mut prev_min, &mut cur_min);
     }
     sum
+}
+
+/// [`aggregate`] through the AVX2 kernel where the build has AVX2 and the penalties are
+/// small enough for its guard values; the plain version otherwise. Same output.
+fn aggregate_fast(
+    cost: &[u8],
+    img: &Plane<u8>,
+    w: usize,
+    h: usize,
+    nd: usize,
+    p: &QualityParams,
+    backward: bool,
+) -> Vec<u16> {
+    #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+    if p.p1 <= simd::MAX_PENALTY && p.p2 <= simd::MAX_PENALTY {
+        return simd::aggregate(cost, img, w, h, nd, p, backward);
+    }
+    aggregate(cost, img, w, h, nd, p, backward)
+}
+
+/// The SGM sweep with every path step as one AVX2 pass over 16 disparities at a time.
+///
+/// Path rows are stored per pixel as `[guard, L(0) … L(ndp − 1), guard]` with `ndp` the
+/// disparity count rounded up to 16: lanes past the last disparity and the guards hold
+/// [`simd::BIG`], so the `d ± 1` neighbours are plain unaligned loads and never win a
+/// minimum. All values stay non-negative, so the horizontal minimum is `phminposuw`.
+#[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+mod simd {
+    use super::QualityParams;
+    use schemas::Plane;
+    use std::arch::x86_64::*;
+
+    /// Value of lanes that are not disparities; above any real path cost.
+    pub const BIG: i16 = 0x3fff;
+    /// Largest P1/P2 for which `BIG + penalty` and real costs stay apart in i16.
+    pub const MAX_PENALTY: u16 = 4000;
+
+    /// Per-sweep constants of the kernel.
+    struct Kernel {
+        nvec: usize,
+        nd: usize,
+        /// Lanes of the last vector that are past the last disparity.
+        tail: __m256i,
+    }
+
+    impl Kernel {
+        /// Loads the 16 costs of vector `k` as i16 (the last vector from a zero-padded copy).
+        #[inline(always)]
+        unsafe fn cost(&self, c: &[u8], pad: &[u8; 16], k: usize) -> __m256i {
+            // SAFETY: full vectors lie inside `c` (nd bytes); the tail comes from `pad`.
+            unsafe {
+                let p = if (k + 1) * 16 <= self.nd {
+                    c.as_ptr().add(k * 16)
+                } else {
+                    pad.as_ptr()
+                };
+                _mm256_cvtepu8_epi16(_mm_loadu_si128(p as *const __m128i))
+            }
+        }
+
+        /// Stores `v` as the path value (vector `k`), adds it into `acc` (or sets it when
+        /// `first`), and folds it into the running minimum.
+        #[inline(always)]
+        unsafe fn put(
+            &self,
+            mut v: __m256i,
+            k: usize,
+            out: &mut [i16],
+            acc: &mut [u16],
+            first: bool,
+            mn: &mut __m256i,
+        ) {
+            // SAFETY: out holds ndp + 2 values and acc ndp (checked by the callers).
+            unsafe {
+                if k + 1 == self.nvec {
+                    v = _mm256_blendv_epi8(v, _mm256_set1_epi16(BIG), self.tail);
+                }
+                _mm256_storeu_si256(out.as_mut_ptr().add(1 + k * 16) as *mut __m256i, v);
+                let a = acc.as_mut_ptr().add(k * 16) as *mut __m256i;
+                let s = if first {
+                    v
+                } else {
+                    _mm256_add_epi16(_mm256_loadu_si256(a), v)
+                };
+                _mm256_storeu_si256(a, s);
+                *mn = _mm256_min_epi16(*mn, v);
+            }
+        }
+
+        /// Horizontal minimum of non-negative i16 lanes.
+        #[inline(always)]
+        fn hmin(mn: __m256i) -> i16 {
+            // SAFETY: AVX2 (and so SSE4.1) is enabled for this build.
+            unsafe {
+                let m = _mm_min_epi16(_mm256_castsi256_si128(mn), _mm256_extracti128_si256(mn, 1));
+                _mm_extract_epi16(_mm_minpos_epu16(m), 0) as i16
+            }
+        }
+
+        /// First pixel of a path: `L = C`. Returns `min L`.
+        #[inline(always)]
+        fn init(&self, c: &[u8], out: &mut [i16], acc: &mut [u16], first: bool) -> i16 {
+            let pad = self.pad(c);
+            // SAFETY: AVX2 is enabled for this build.
+            let mut mn = unsafe { _mm256_set1_epi16(BIG) };
+            for k in 0..self.nvec {
+                // SAFETY: see `cost` and `put`.
+                unsafe {
+                    let v = self.cost(c, &pad, k);
+                    self.put(v, k, out, acc, first, &mut mn);
+                }
+            }
+            Self::hmin(mn)
+        }
+
+        /// One recurrence step from `lp` (with guards) into `out`. Returns `min L`.
+        #[allow(clippy::too_many_arguments)]
+        #[inline(always)]
+        fn step(
+            &self,
+            c: &[u8],
+            lp: &[i16],
+            lp_min: i16,
+            p1: i16,
+            p2: i16,
+            out: &mut [i16],
+            acc: &mut [u16],
+            first: bool,
+        ) -> i16 {
+            assert!(lp.len() >= self.nvec * 16 + 2 && out.len() >= self.nvec * 16 + 2);
+            assert!(acc.len() >= self.nvec * 16 && c.len() >= self.nd);
+            let pad = self.pad(c);
+            // SAFETY: AVX2 is enabled for this build.
+            let mut mn = unsafe { _mm256_set1_epi16(BIG) };
+            // SAFETY: loads at lp[16k .. 16k + 18] stay inside lp (asserted above).
+            unsafe {
+                let p1v = _mm256_set1_epi16(p1);
+                let jump = _mm256_set1_epi16(lp_min + p2);
+                let minv = _mm256_set1_epi16(lp_min);
+                for k in 0..self.nvec {
+                    let base = lp.as_ptr().add(k * 16);
+                    let a = _mm256_loadu_si256(base as *const __m256i);
+                    let m = _mm256_loadu_si256(base.add(1) as *const __m256i);
+                    let b = _mm256_loadu_si256(base.add(2) as *const __m256i);
+                    let nb = _mm256_add_epi16(_mm256_min_epi16(a, b), p1v);
+                    let v = _mm256_min_epi16(_mm256_min_epi16(m, nb), jump);
+                    let v = _mm256_add_epi16(self.cost(c, &pad, k), _mm256_sub_epi16(v, minv));
+                    self.put(v, k, out, acc, first, &mut mn);
+                }
+            }
+            Self::hmin(mn)
+        }
+
+        /// The last partial vector's costs, zero-padded (unused when nd is a multiple of 16).
+        #[inline(always)]
+        fn pad(&self, c: &[u8]) -> [u8; 16] {
+            let mut pad = [0u8; 16];
+            let full = self.nd / 16 * 16;
+            pad[..self.nd - full].copy_from_slice(&c[full..self.nd]);
+            pad
+        }
+    }
+
+    /// See [`super::aggregate`]; identical output.
+    pub fn aggregate(
+        cost: &[u8],
+        img: &Plane<u8>,
+        w: usize,
+        h: usize,
+        nd: usize,
+        p: &QualityParams,
+        backward: bool,
+    ) -> Vec<u16> {
+        let nvec = nd.div_ceil(16);
+        let ndp = nvec * 16;
+        let stride = ndp + 2;
+        let lanes: [i16; 16] = std::array::from_fn(|i| i as i16);
+        // SAFETY: AVX2 is enabled for this build; `lanes` is 16 i16s.
+        let tail = unsafe {
+            let idx = _mm256_loadu_si256(lanes.as_ptr() as *const __m256i);
+            let last = ((nd - (nvec - 1) * 16) as i16) - 1;
+            _mm256_cmpgt_epi16(idx, _mm256_set1_epi16(last))
+        };
+        let kern = Kernel { nvec, nd, tail };
+        let mut sum = vec![0u16; w * h * nd];
+        let diagonals = p.paths >= 8;
+        let mut prev = vec![vec![BIG; w * stride]; 3];
+        let mut cur = vec![vec![BIG; w * stride]; 3];
+        let mut prev_min = vec![vec![0i16; w]; 3];
+        let mut cur_min = vec![vec![0i16; w]; 3];
+        let mut left_l = vec![BIG; stride];
+        let mut scratch = vec![BIG; stride];
+        let mut left_min: i16 = 0;
+        let p1 = p.p1 as i16;
+        let p2_lut: Vec<i16> = (0..256u32)
+            .map(|g| ((p.p2 as u32 * 16 / (16 + g)) as i16).max(p1 + 1))
+            .collect();
+        let oy = |y: usize| if backward { h - 1 - y } else { y };
+        let ox = |x: usize| if backward { w - 1 - x } else { x };
+        let mut acc = vec![0u16; ndp];
+        for y in 0..h {
+            let irow = img.row(oy(y));
+            let iprev = img.row(if y > 0 { oy(y - 1) } else { oy(y) });
+            for x in 0..w {
+                let pix = (oy(y) * w + ox(x)) * nd;
+                let c = &cost[pix..pix + nd];
+                let here = irow[ox(x)] as i16;
+                let p2_at = |other: u8| p2_lut[(here - other as i16).unsigned_abs() as usize];
+                left_min = if x == 0 {
+                    kern.init(c, &mut left_l, &mut acc, true)
+                } else {
+                    let m = kern.step(
+                        c,
+                        &left_l,
+                        left_min,
+                        p1,
+                        p2_at(irow[ox(x - 1)]),
+                        &mut scratch,
+                        &mut acc,
+                        true,
+                    );
+                    std::mem::swap(&mut left_l, &mut scratch);
+                    m
+                };
+                for k in 0..3 {
+                    if !diagonals && k != 1 {
+                        continue;
+                    }
+                    let src = match k {
+                        0 => x.checked_sub(1),
+                        1 => Some(x),
+                        _ => (x + 1 < w).then_some(x + 1),
+                    };
+                    let out = &mut cur[k][x * stride..(x + 1) * stride];
+                    cur_min[k][x] = match (y, src) {
+                        (0, _) | (_, None) => kern.init(c, out, &mut acc, false),
+                        (_, Some(sx)) => {
+                            let lp = &prev[k][sx * stride..(sx + 1) * stride];
+                            let p2 = p2_at(iprev[ox(sx)]);
+                            kern.step(c, lp, prev_min[k][sx], p1, p2, out, &mut acc, false)
+                        }
+                    };
+                }
+                sum[pix..pix + nd].copy_from_slice(&acc[..nd]);
+            }
+            std::mem::swap(&mut prev, &mut cur);
+            std::mem::swap(&mut prev_min, &mut cur_min);
+        }
+        sum
+    }
 }
 
 /// Minimum of a slice; a plain fold vectorises where `Iterator::min` does not.
@@ -371,4 +709,71 @@ fn decide(t: &[u16], lo: usize, uniqueness: u16, dmin: i32) -> f32 {
         }
     }
     d
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+    #[test]
+    fn simd_sweep_equals_the_plain_one() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let (w, h) = (37, 23);
+        let img = Plane::from_vec(w, h, (0..w * h).map(|_| rng.random::<u8>()).collect()).unwrap();
+        for nd in [1, 5, 16, 17, 40] {
+            let cost: Vec<u8> = (0..w * h * nd)
+                .map(|_| rng.random_range(0..COST_OUTSIDE))
+                .collect();
+            for paths in [4, 8] {
+                let p = QualityParams {
+                    range: DisparityRange::new(0, nd as i32 - 1),
+                    paths,
+                    ..Default::default()
+                };
+                for backward in [false, true] {
+                    assert_eq!(
+                        simd::aggregate(&cost, &img, w, h, nd, &p, backward),
+                        aggregate(&cost, &img, w, h, nd, &p, backward),
+                        "nd {nd} paths {paths} backward {backward}"
+                    );
+                }
+            }
+        }
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn vector_cost_row_equals_the_scalar_one() {
+        if !crate::sv::has_vpopcnt() {
+            return;
+        }
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        let w = 70;
+        let cl: Vec<u64> = (0..w).map(|_| rng.random::<u64>() >> 1).collect();
+        let cr: Vec<u64> = (0..w).map(|_| rng.random::<u64>() >> 1).collect();
+        let gl: Vec<i16> = (0..w).map(|_| rng.random_range(-1020..=1020)).collect();
+        let gr: Vec<i16> = (0..w).map(|_| rng.random_range(-1020..=1020)).collect();
+        for (dmin, nd) in [(0, 64), (-10, 21), (5, 8), (-3, 1), (60, 16)] {
+            let r = CostRow {
+                cl: &cl,
+                cr: &cr,
+                gl: &gl,
+                gr: &gr,
+                dmin,
+                gw: 1,
+                cap: 30,
+            };
+            let mut fast = vec![COST_OUTSIDE; w * nd];
+            let mut slow = fast.clone();
+            // SAFETY: the CPU has the features (checked above).
+            unsafe { r.fill_avx512(&mut fast) };
+            for x in 0..w {
+                r.cells(x, 0..nd, &mut slow[x * nd..(x + 1) * nd]);
+            }
+            assert_eq!(fast, slow, "dmin {dmin} nd {nd}");
+        }
+    }
 }

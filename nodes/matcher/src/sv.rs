@@ -158,11 +158,14 @@ fn sv_row_equal<const NW: usize>(
     }
 }
 
-/// Whether this CPU has AVX-512 VPOPCNTDQ (eight 64-bit popcounts per instruction).
+/// Whether this CPU has AVX-512 F/VL/BW and VPOPCNTDQ (eight 64-bit popcounts per
+/// instruction).
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
-fn has_vpopcnt() -> bool {
+pub(crate) fn has_vpopcnt() -> bool {
     std::arch::is_x86_feature_detected!("avx512f")
+        && std::arch::is_x86_feature_detected!("avx512vl")
+        && std::arch::is_x86_feature_detected!("avx512bw")
         && std::arch::is_x86_feature_detected!("avx512vpopcntdq")
 }
 
