@@ -362,7 +362,7 @@ fn aggregate_fast(
     backward: bool,
 ) -> Vec<u16> {
     #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
-    if p.p1 <= simd::MAX_PENALTY && p.p2 <= simd::MAX_PENALTY {
+    if p.p1 <= simd_limits::MAX_PENALTY && p.p2 <= simd_limits::MAX_PENALTY {
         return simd::aggregate(cost, img, w, h, nd, p, backward);
     }
     aggregate(cost, img, w, h, nd, p, backward)
@@ -382,8 +382,6 @@ mod simd {
 
     /// Value of lanes that are not disparities; above any real path cost.
     pub const BIG: i16 = 0x3fff;
-    /// Largest P1/P2 for which `BIG + penalty` and real costs stay apart in i16.
-    pub const MAX_PENALTY: u16 = 4000;
 
     /// Per-sweep constants of the kernel.
     struct Kernel {
@@ -508,6 +506,75 @@ mod simd {
             let full = self.nd / 16 * 16;
             pad[..self.nd - full].copy_from_slice(&c[full..self.nd]);
             pad
+        }
+    }
+
+    /// Horizontal minimum of unsigned u16 lanes.
+    #[inline(always)]
+    fn hmin_u16(v: __m256i) -> u16 {
+        // SAFETY: AVX2 (and so SSE4.1) is enabled for this build.
+        unsafe {
+            let m = _mm_min_epu16(_mm256_castsi256_si128(v), _mm256_extracti128_si256(v, 1));
+            _mm_extract_epi16(_mm_minpos_epu16(m), 0) as u16
+        }
+    }
+
+    /// [`super::decide`] over `t[lo..hi]` sixteen disparities at a time; `t` holds every
+    /// disparity index of the pixel (at most [`super::simd_limits::MAX_ND`]). Lanes
+    /// outside `lo..hi` read as `u16::MAX`, which no real summed cost reaches.
+    #[inline(always)]
+    pub fn decide(t: &[u16], lo: usize, hi: usize, uniqueness: u16, dmin: i32) -> f32 {
+        let nd = t.len();
+        let nvec = nd.div_ceil(16);
+        let mut tm = [u16::MAX; super::simd_limits::MAX_ND];
+        tm[lo..hi].copy_from_slice(&t[lo..hi]);
+        let lanes: [i16; 16] = std::array::from_fn(|i| i as i16);
+        // SAFETY: AVX2 is enabled for this build; loads read tm[16k .. 16k + 16] with
+        // 16 · nvec <= MAX_ND (nd <= MAX_ND is the caller's condition, and MAX_ND is a
+        // multiple of 16).
+        unsafe {
+            let idx0 = _mm256_loadu_si256(lanes.as_ptr() as *const __m256i);
+            let mut bestv = _mm256_set1_epi16(-1);
+            for k in 0..nvec {
+                let v = _mm256_loadu_si256(tm.as_ptr().add(k * 16) as *const __m256i);
+                bestv = _mm256_min_epu16(bestv, v);
+            }
+            let best = hmin_u16(bestv);
+            let bv = _mm256_set1_epi16(best as i16);
+            let mut bi = 0;
+            for k in 0..nvec {
+                let v = _mm256_loadu_si256(tm.as_ptr().add(k * 16) as *const __m256i);
+                let eq = _mm256_movemask_epi8(_mm256_cmpeq_epi16(v, bv)) as u32;
+                if eq != 0 {
+                    bi = k * 16 + eq.trailing_zeros() as usize / 2;
+                    break;
+                }
+            }
+            // Rival: the smallest cost more than one index away from bi.
+            let lo_n = _mm256_set1_epi16(bi as i16 - 2);
+            let hi_n = _mm256_set1_epi16(bi as i16 + 2);
+            let mut rivalv = _mm256_set1_epi16(-1);
+            for k in 0..nvec {
+                let v = _mm256_loadu_si256(tm.as_ptr().add(k * 16) as *const __m256i);
+                let idx = _mm256_add_epi16(idx0, _mm256_set1_epi16((k * 16) as i16));
+                let near =
+                    _mm256_and_si256(_mm256_cmpgt_epi16(idx, lo_n), _mm256_cmpgt_epi16(hi_n, idx));
+                rivalv = _mm256_min_epu16(rivalv, _mm256_or_si256(v, near));
+            }
+            let rival = hmin_u16(rivalv);
+            let u = uniqueness as u32;
+            if rival != u16::MAX && (rival as u32) * (100 - u) < (best as u32) * 100 {
+                return schemas::INVALID_DISPARITY;
+            }
+            let mut d = bi as f32 + dmin as f32;
+            if bi > lo && bi + 1 < hi {
+                let (a, b, c) = (tm[bi - 1] as f32, tm[bi] as f32, tm[bi + 1] as f32);
+                let den = a + c - 2.0 * b;
+                if den > 0.0 {
+                    d += (a - c) / (2.0 * den);
+                }
+            }
+            d
         }
     }
 
@@ -636,6 +703,7 @@ fn select(
     p: &QualityParams,
 ) -> (DisparityMap, DisparityMap) {
     let dmin = p.range.min;
+    let fast = simd_select_applies(nd, p);
     let mut left = vec![INVALID_DISPARITY; w * h];
     let mut right = vec![INVALID_DISPARITY; w * h];
     left.par_chunks_mut(w)
@@ -656,23 +724,21 @@ fn select(
                         continue;
                     }
                     let t = &total[x * nd..(x + 1) * nd];
-                    lrow[x] = decide(&t[lo..hi], lo, p.uniqueness_ratio, dmin);
+                    lrow[x] = decide_fast(t, lo, hi, p, fast);
                 }
                 // Right-based: right pixel xr at disparity d is left pixel xr + d.
                 for xr in 0..w {
-                    let mut lo = usize::MAX;
-                    let mut hi = 0;
-                    for (di, b) in buf.iter_mut().enumerate() {
-                        let x = xr as i32 + dmin + di as i32;
-                        if (0..w as i32).contains(&x) {
-                            *b = total[x as usize * nd + di];
-                            lo = lo.min(di);
-                            hi = di + 1;
-                        }
+                    // Disparity indices whose left pixel xr + dmin + di lies in the image.
+                    let base = xr as i64 + dmin as i64;
+                    let lo = (-base).clamp(0, nd as i64) as usize;
+                    let hi = (w as i64 - base).clamp(0, nd as i64) as usize;
+                    if lo >= hi {
+                        continue;
                     }
-                    if lo < hi {
-                        rrow[xr] = decide(&buf[lo..hi], lo, p.uniqueness_ratio, dmin);
+                    for di in lo..hi {
+                        buf[di] = total[(base + di as i64) as usize * nd + di];
                     }
+                    rrow[xr] = decide_fast(buf, lo, hi, p, fast);
                 }
             },
         );
@@ -682,6 +748,35 @@ fn select(
         data,
     };
     (plane(left), plane(right))
+}
+
+/// Whether [`simd::decide`] may stand in for [`decide`]: with the penalties the SIMD sweep
+/// accepts, no summed cost reaches `u16::MAX`, the value that marks unused lanes.
+fn simd_select_applies(nd: usize, p: &QualityParams) -> bool {
+    cfg!(all(target_arch = "x86_64", target_feature = "avx2"))
+        && nd <= simd_limits::MAX_ND
+        && p.p1 <= simd_limits::MAX_PENALTY
+        && p.p2 <= simd_limits::MAX_PENALTY
+        && p.uniqueness_ratio <= 100
+}
+
+/// Limits of the SIMD paths, also known where they are not compiled.
+mod simd_limits {
+    /// Largest P1/P2 for which the guard values stay apart from real costs.
+    pub const MAX_PENALTY: u16 = 4000;
+    /// Most disparities the SIMD decision holds on the stack.
+    pub const MAX_ND: usize = 256;
+}
+
+/// The decision over `t[lo..hi]` (`t` holds every disparity index of the pixel).
+#[inline(always)]
+fn decide_fast(t: &[u16], lo: usize, hi: usize, p: &QualityParams, fast: bool) -> f32 {
+    #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+    if fast {
+        return simd::decide(t, lo, hi, p.uniqueness_ratio, p.range.min);
+    }
+    let _ = fast;
+    decide(&t[lo..hi], lo, p.uniqueness_ratio, p.range.min)
 }
 
 /// Picks the best disparity of a contiguous cost run starting at index `lo`.
@@ -774,6 +869,27 @@ mod tests {
                 r.cells(x, 0..nd, &mut slow[x * nd..(x + 1) * nd]);
             }
             assert_eq!(fast, slow, "dmin {dmin} nd {nd}");
+        }
+    }
+
+    #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+    #[test]
+    fn simd_decision_equals_the_plain_one() {
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        for _ in 0..3000 {
+            let nd = rng.random_range(1..=100);
+            // Few distinct values, so ties and near-ties are common.
+            let t: Vec<u16> = (0..nd).map(|_| rng.random_range(200..240)).collect();
+            let lo = rng.random_range(0..nd);
+            let hi = rng.random_range(lo + 1..=nd);
+            let u = rng.random_range(0..=30);
+            let dmin = rng.random_range(-20..20);
+            let a = simd::decide(&t, lo, hi, u, dmin);
+            let b = decide(&t[lo..hi], lo, u, dmin);
+            assert!(
+                a == b || (a.is_infinite() && b.is_infinite()),
+                "{t:?} {lo}..{hi} u {u}"
+            );
         }
     }
 }
