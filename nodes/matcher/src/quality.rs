@@ -4,9 +4,14 @@
 //! differences between two microscope cameras) plus a truncated difference of horizontal
 //! gradients (sharpens depth edges). Aggregation: Hirschmüller's SGM over 8 paths, with the
 //! large-jump penalty P2 lowered across intensity edges. Two passes (top-down and
-//! bottom-up, four paths each) run in parallel. Decision: winner-takes-all with a
+//! bottom-up, four paths each) run in parallel and meet: whichever finishes an image row
+//! second adds the other's sums and decides the row. Decision: winner-takes-all with a
 //! uniqueness ratio and a sub-pixel parabola; the right-based map is read from the same
-//! aggregated volume along its diagonals, so the LR check costs no second matching.
+//! sums along their diagonals, so the LR check costs no second matching.
+//!
+//! With AVX2 (every build of this project) the sweeps run 16 disparities per
+//! instruction and the decision 16 pixels per instruction; the plain versions remain for
+//! penalties beyond the SIMD limits and as the reference the tests compare against.
 
 use rayon::prelude::*;
 use schemas::{DisparityMap, DisparityRange, INVALID_DISPARITY, Plane};
@@ -244,9 +249,18 @@ pub fn match_quality(left: &Plane<u8>, right: &Plane<u8>, p: &QualityParams) -> 
     let (w, h) = (left.width, left.height);
     let nd = p.range.count();
     let cost = cost_volume(left, right, p);
+    #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+    if simd_select_applies(nd, p) {
+        let (dl, dr) = meeting_sweeps(&cost, left, w, h, nd, p);
+        return QualityMatch {
+            left: dl,
+            right: dr,
+            evaluations: (w * h * nd) as u64,
+        };
+    }
     let (s1, s2) = rayon::join(
-        || aggregate_fast(&cost, left, w, h, nd, p, false),
-        || aggregate_fast(&cost, left, w, h, nd, p, true),
+        || aggregate(&cost, left, w, h, nd, p, false),
+        || aggregate(&cost, left, w, h, nd, p, true),
     );
     let (dl, dr) = select(&s1, &s2, w, h, nd, p);
     QualityMatch {
@@ -350,22 +364,61 @@ fn aggregate(
     sum
 }
 
-/// [`aggregate`] through the AVX2 kernel where the build has AVX2 and the penalties are
-/// small enough for its guard values; the plain version otherwise. Same output.
-fn aggregate_fast(
+/// The top-down and the bottom-up sweep run side by side and meet: for each image row,
+/// the sweep that finishes it first leaves its path sums in the row's slot, and the
+/// second adds its own and decides the row at once. No full volume of sums is ever
+/// written, and the decision runs inside the sweeps, half the rows on each thread.
+#[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+fn meeting_sweeps(
     cost: &[u8],
     img: &Plane<u8>,
     w: usize,
     h: usize,
     nd: usize,
     p: &QualityParams,
-    backward: bool,
-) -> Vec<u16> {
-    #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
-    if p.p1 <= simd_limits::MAX_PENALTY && p.p2 <= simd_limits::MAX_PENALTY {
-        return simd::aggregate(cost, img, w, h, nd, p, backward);
+) -> (DisparityMap, DisparityMap) {
+    use std::sync::Mutex;
+    type Decided = Vec<(usize, Vec<f32>, Vec<f32>)>;
+    let slots: Vec<Mutex<Option<Vec<u16>>>> = (0..h).map(|_| Mutex::new(None)).collect();
+    let run = |backward: bool| -> Decided {
+        let mut decided = Vec::new();
+        let mut buf = Vec::new();
+        simd::sweep(cost, img, w, h, nd, p, backward, |y, mut row| {
+            let other = {
+                let mut slot = slots[y].lock().unwrap_or_else(|e| e.into_inner());
+                match slot.take() {
+                    Some(other) => other,
+                    None => {
+                        *slot = Some(row);
+                        return vec![0u16; w * nd];
+                    }
+                }
+            };
+            for (a, b) in row.iter_mut().zip(&other) {
+                *a = a.wrapping_add(*b);
+            }
+            let mut lrow = vec![INVALID_DISPARITY; w];
+            let mut rrow = vec![INVALID_DISPARITY; w];
+            select_row(&row, w, nd, p, true, &mut buf, &mut lrow, &mut rrow);
+            decided.push((y, lrow, rrow));
+            // The other sweep's buffer is free now: it serves the next row.
+            other
+        });
+        decided
+    };
+    let (a, b) = rayon::join(|| run(false), || run(true));
+    let mut left = vec![INVALID_DISPARITY; w * h];
+    let mut right = vec![INVALID_DISPARITY; w * h];
+    for (y, l, r) in a.into_iter().chain(b) {
+        left[y * w..(y + 1) * w].copy_from_slice(&l);
+        right[y * w..(y + 1) * w].copy_from_slice(&r);
     }
-    aggregate(cost, img, w, h, nd, p, backward)
+    let plane = |data| Plane {
+        width: w,
+        height: h,
+        data,
+    };
+    (plane(left), plane(right))
 }
 
 /// The SGM sweep with every path step as one AVX2 pass over 16 disparities at a time.
@@ -578,7 +631,228 @@ mod simd {
         }
     }
 
+    /// Marks a disparity that does not exist; above every summed cost the limits allow
+    /// (8 paths · (cost 159 + penalty 3800) < 32767).
+    const NONE: i16 = i16::MAX;
+
+    /// Whether a row of this size fits the i16 lane arithmetic of [`select_row`].
+    pub fn rows_fit(w: usize, nd: usize, dmin: i32) -> bool {
+        w + nd + 2 * dmin.unsigned_abs() as usize + 64 < 30_000
+    }
+
+    /// Transposes the 16×16 block of `src` (rows `x`, stride `sstride`, 16 values each)
+    /// into `dst` (row `d` = column `d` of the block, stride `dstride`).
+    #[inline(always)]
+    unsafe fn transpose16(src: *const u16, sstride: usize, dst: *mut i16, dstride: usize) {
+        // SAFETY: the caller guarantees 16 rows of 16 values on both sides.
+        unsafe {
+            let a: [__m256i; 16] =
+                std::array::from_fn(|i| _mm256_loadu_si256(src.add(i * sstride) as *const __m256i));
+            for half in 0..2 {
+                // Rows i and i + 8 of one 8-column half share a register: an in-lane
+                // 8×8 transpose then yields whole 16-row columns.
+                let sel = if half == 0 { 0x20 } else { 0x31 };
+                let x: [__m256i; 8] = std::array::from_fn(|i| match sel {
+                    0x20 => _mm256_permute2x128_si256(a[i], a[i + 8], 0x20),
+                    _ => _mm256_permute2x128_si256(a[i], a[i + 8], 0x31),
+                });
+                let b = [
+                    _mm256_unpacklo_epi16(x[0], x[1]),
+                    _mm256_unpackhi_epi16(x[0], x[1]),
+                    _mm256_unpacklo_epi16(x[2], x[3]),
+                    _mm256_unpackhi_epi16(x[2], x[3]),
+                    _mm256_unpacklo_epi16(x[4], x[5]),
+                    _mm256_unpackhi_epi16(x[4], x[5]),
+                    _mm256_unpacklo_epi16(x[6], x[7]),
+                    _mm256_unpackhi_epi16(x[6], x[7]),
+                ];
+                let c = [
+                    _mm256_unpacklo_epi32(b[0], b[2]),
+                    _mm256_unpackhi_epi32(b[0], b[2]),
+                    _mm256_unpacklo_epi32(b[1], b[3]),
+                    _mm256_unpackhi_epi32(b[1], b[3]),
+                    _mm256_unpacklo_epi32(b[4], b[6]),
+                    _mm256_unpackhi_epi32(b[4], b[6]),
+                    _mm256_unpacklo_epi32(b[5], b[7]),
+                    _mm256_unpackhi_epi32(b[5], b[7]),
+                ];
+                let y = [
+                    _mm256_unpacklo_epi64(c[0], c[4]),
+                    _mm256_unpackhi_epi64(c[0], c[4]),
+                    _mm256_unpacklo_epi64(c[1], c[5]),
+                    _mm256_unpackhi_epi64(c[1], c[5]),
+                    _mm256_unpacklo_epi64(c[2], c[6]),
+                    _mm256_unpackhi_epi64(c[2], c[6]),
+                    _mm256_unpacklo_epi64(c[3], c[7]),
+                    _mm256_unpackhi_epi64(c[3], c[7]),
+                ];
+                for (j, v) in y.iter().enumerate() {
+                    _mm256_storeu_si256(dst.add((half * 8 + j) * dstride) as *mut __m256i, *v);
+                }
+            }
+        }
+    }
+
+    /// The decision for 16 pixels at once, one lane each: `load(di)` gives the 16 summed
+    /// costs at disparity index `di` ([`NONE`] where it does not exist). Returns per lane
+    /// the best cost, its first index, the best cost more than one index away, and the
+    /// costs at index − 1 and + 1 ([`NONE`] where absent).
+    #[inline(always)]
+    unsafe fn decide16(nd: usize, load: impl Fn(usize) -> __m256i) -> [[i16; 16]; 5] {
+        // SAFETY: AVX2 is enabled for this build; `load` is the caller's promise.
+        unsafe {
+            let none = _mm256_set1_epi16(NONE);
+            let mut best = none;
+            let mut bi = _mm256_setzero_si256();
+            for di in 0..nd {
+                let v = load(di);
+                let lt = _mm256_cmpgt_epi16(best, v);
+                best = _mm256_min_epi16(best, v);
+                bi = _mm256_blendv_epi8(bi, _mm256_set1_epi16(di as i16), lt);
+            }
+            let (lo2, hi2) = (
+                _mm256_sub_epi16(bi, _mm256_set1_epi16(2)),
+                _mm256_add_epi16(bi, _mm256_set1_epi16(2)),
+            );
+            let (bm1, bp1) = (
+                _mm256_sub_epi16(bi, _mm256_set1_epi16(1)),
+                _mm256_add_epi16(bi, _mm256_set1_epi16(1)),
+            );
+            let (mut rival, mut a, mut c) = (none, none, none);
+            for di in 0..nd {
+                let v = load(di);
+                let dv = _mm256_set1_epi16(di as i16);
+                let near =
+                    _mm256_and_si256(_mm256_cmpgt_epi16(dv, lo2), _mm256_cmpgt_epi16(hi2, dv));
+                rival = _mm256_min_epi16(rival, _mm256_blendv_epi8(v, none, near));
+                a = _mm256_blendv_epi8(a, v, _mm256_cmpeq_epi16(dv, bm1));
+                c = _mm256_blendv_epi8(c, v, _mm256_cmpeq_epi16(dv, bp1));
+            }
+            let mut out = [[0i16; 16]; 5];
+            for (o, v) in out.iter_mut().zip([best, bi, rival, a, c]) {
+                _mm256_storeu_si256(o.as_mut_ptr() as *mut __m256i, v);
+            }
+            out
+        }
+    }
+
+    /// Turns [`decide16`]'s figures for one lane into a disparity, as [`super::decide`].
+    #[inline(always)]
+    fn finish(f: &[[i16; 16]; 5], lane: usize, uniqueness: u16, dmin: i32) -> Option<f32> {
+        let (best, bi, rival, a, c) = (f[0][lane], f[1][lane], f[2][lane], f[3][lane], f[4][lane]);
+        if best == NONE {
+            return None;
+        }
+        let u = uniqueness as u32;
+        if rival != NONE && (rival as u32) * (100 - u) < (best as u32) * 100 {
+            return Some(schemas::INVALID_DISPARITY);
+        }
+        let mut d = bi as f32 + dmin as f32;
+        if a != NONE && c != NONE {
+            let (a, b, c) = (a as f32, best as f32, c as f32);
+            let den = a + c - 2.0 * b;
+            if den > 0.0 {
+                d += (a - c) / (2.0 * den);
+            }
+        }
+        Some(d)
+    }
+
+    /// [`super::select_row`] with the row transposed to disparity-major order, so that
+    /// both maps are decided 16 pixels at a time (lanes = pixels). `mt` is scratch.
+    pub fn select_row(
+        total: &[u16],
+        w: usize,
+        nd: usize,
+        p: &QualityParams,
+        mt: &mut Vec<u16>,
+        lrow: &mut [f32],
+        rrow: &mut [f32],
+    ) {
+        let dmin = p.range.min;
+        let u = p.uniqueness_ratio;
+        let w16 = w.div_ceil(16) * 16;
+        let pad = dmin.unsigned_abs() as usize + 16;
+        let stride = pad + w16 + pad + nd + 16;
+        if mt.len() != nd * stride {
+            mt.clear();
+            mt.resize(nd * stride, NONE as u16);
+        }
+        let base = mt.as_mut_ptr() as *mut i16;
+        assert!(total.len() >= w * nd);
+        // Transpose: mt[di][pad + x] = total[x][di]; outside 0..w stays NONE.
+        let (wf, df) = (w / 16 * 16, nd / 16 * 16);
+        for x0 in (0..wf).step_by(16) {
+            for d0 in (0..df).step_by(16) {
+                // SAFETY: rows x0..x0 + 16 < w and values d0..d0 + 16 <= nd of `total`;
+                // mt rows d0..d0 + 16 hold pad + x0 + 16 <= stride values.
+                unsafe {
+                    transpose16(
+                        total.as_ptr().add(x0 * nd + d0),
+                        nd,
+                        base.add(d0 * stride + pad + x0),
+                        stride,
+                    )
+                };
+            }
+        }
+        for x in 0..w {
+            let from = if x < wf { df } else { 0 };
+            for di in from..nd {
+                mt[di * stride + pad + x] = total[x * nd + di];
+            }
+        }
+        let mt = &mt[..];
+        let lanes: [i16; 16] = std::array::from_fn(|i| i as i16);
+        // SAFETY: AVX2 is enabled for this build. Every load reads 16 values of row di at
+        // column pad + x0 + (0 or dmin + di) with x0 < w16: inside the row by the padding
+        // (dmin + di >= −pad + 16, and pad + w16 + dmin + di + 16 <= stride).
+        unsafe {
+            let idx = _mm256_loadu_si256(lanes.as_ptr() as *const __m256i);
+            let none = _mm256_set1_epi16(NONE);
+            let row = |di: usize, col: isize| -> __m256i {
+                let o = (di * stride) as isize + pad as isize + col;
+                _mm256_loadu_si256(mt.as_ptr().offset(o) as *const __m256i)
+            };
+            for x0 in (0..w16).step_by(16) {
+                // Left-based: lanes x = x0 + i; disparity index di exists when the right
+                // pixel x − dmin − di lies in the image.
+                let interior = x0 as i64 - dmin as i64 - nd as i64 + 1 >= 0
+                    && (x0 + 15) as i64 - (dmin as i64) < w as i64;
+                let xv = _mm256_add_epi16(idx, _mm256_set1_epi16(x0 as i16));
+                let hi = _mm256_sub_epi16(xv, _mm256_set1_epi16(dmin as i16));
+                let lo = _mm256_sub_epi16(hi, _mm256_set1_epi16(w as i16 - 1));
+                let f = if interior {
+                    decide16(nd, |di| row(di, x0 as isize))
+                } else {
+                    decide16(nd, |di| {
+                        let dv = _mm256_set1_epi16(di as i16);
+                        let ok = _mm256_andnot_si256(
+                            _mm256_or_si256(_mm256_cmpgt_epi16(dv, hi), _mm256_cmpgt_epi16(lo, dv)),
+                            _mm256_set1_epi16(-1),
+                        );
+                        _mm256_blendv_epi8(none, row(di, x0 as isize), ok)
+                    })
+                };
+                for lane in 0..16.min(w - x0) {
+                    if let Some(d) = finish(&f, lane, u, dmin) {
+                        lrow[x0 + lane] = d;
+                    }
+                }
+                // Right-based: lanes xr = x0 + i read left pixel xr + dmin + di, which
+                // the padding marks NONE outside the image.
+                let f = decide16(nd, |di| row(di, x0 as isize + dmin as isize + di as isize));
+                for lane in 0..16.min(w - x0) {
+                    if let Some(d) = finish(&f, lane, u, dmin) {
+                        rrow[x0 + lane] = d;
+                    }
+                }
+            }
+        }
+    }
+
     /// See [`super::aggregate`]; identical output.
+    #[cfg(test)]
     pub fn aggregate(
         cost: &[u8],
         img: &Plane<u8>,
@@ -588,6 +862,28 @@ mod simd {
         p: &QualityParams,
         backward: bool,
     ) -> Vec<u16> {
+        let mut sum = vec![0u16; w * h * nd];
+        sweep(cost, img, w, h, nd, p, backward, |y, row| {
+            sum[y * w * nd..(y + 1) * w * nd].copy_from_slice(&row);
+            row
+        });
+        sum
+    }
+
+    /// One SGM sweep over 4 paths (see [`super::aggregate`]). Each finished image row
+    /// (`w · nd` path sums, in image order) goes to `row_done(y, row)`, which hands back a
+    /// buffer of the same size for the next row.
+    #[allow(clippy::too_many_arguments)]
+    pub fn sweep(
+        cost: &[u8],
+        img: &Plane<u8>,
+        w: usize,
+        h: usize,
+        nd: usize,
+        p: &QualityParams,
+        backward: bool,
+        mut row_done: impl FnMut(usize, Vec<u16>) -> Vec<u16>,
+    ) {
         let nvec = nd.div_ceil(16);
         let ndp = nvec * 16;
         let stride = ndp + 2;
@@ -599,7 +895,7 @@ mod simd {
             _mm256_cmpgt_epi16(idx, _mm256_set1_epi16(last))
         };
         let kern = Kernel { nvec, nd, tail };
-        let mut sum = vec![0u16; w * h * nd];
+        let mut row_sum = vec![0u16; w * nd];
         let diagonals = p.paths >= 8;
         let mut prev = vec![vec![BIG; w * stride]; 3];
         let mut cur = vec![vec![BIG; w * stride]; 3];
@@ -658,12 +954,12 @@ mod simd {
                         }
                     };
                 }
-                sum[pix..pix + nd].copy_from_slice(&acc[..nd]);
+                row_sum[ox(x) * nd..(ox(x) + 1) * nd].copy_from_slice(&acc[..nd]);
             }
+            row_sum = row_done(oy(y), row_sum);
             std::mem::swap(&mut prev, &mut cur);
             std::mem::swap(&mut prev_min, &mut cur_min);
         }
-        sum
     }
 }
 
@@ -702,7 +998,6 @@ fn select(
     nd: usize,
     p: &QualityParams,
 ) -> (DisparityMap, DisparityMap) {
-    let dmin = p.range.min;
     let fast = simd_select_applies(nd, p);
     let mut left = vec![INVALID_DISPARITY; w * h];
     let mut right = vec![INVALID_DISPARITY; w * h];
@@ -710,36 +1005,13 @@ fn select(
         .zip(right.par_chunks_mut(w))
         .enumerate()
         .for_each_init(
-            || (vec![0u16; w * nd], vec![0u16; nd]),
+            || (vec![0u16; w * nd], Vec::new()),
             |(total, buf), (y, (lrow, rrow))| {
                 let o = y * w * nd;
                 for i in 0..w * nd {
                     total[i] = s1[o + i].wrapping_add(s2[o + i]);
                 }
-                // Left-based: every disparity whose right pixel exists.
-                for x in 0..w {
-                    let lo = (x as i32 - w as i32 + 1 - dmin).max(0) as usize;
-                    let hi = ((x as i32 - dmin + 1).min(nd as i32)).max(0) as usize;
-                    if lo >= hi {
-                        continue;
-                    }
-                    let t = &total[x * nd..(x + 1) * nd];
-                    lrow[x] = decide_fast(t, lo, hi, p, fast);
-                }
-                // Right-based: right pixel xr at disparity d is left pixel xr + d.
-                for xr in 0..w {
-                    // Disparity indices whose left pixel xr + dmin + di lies in the image.
-                    let base = xr as i64 + dmin as i64;
-                    let lo = (-base).clamp(0, nd as i64) as usize;
-                    let hi = (w as i64 - base).clamp(0, nd as i64) as usize;
-                    if lo >= hi {
-                        continue;
-                    }
-                    for di in lo..hi {
-                        buf[di] = total[(base + di as i64) as usize * nd + di];
-                    }
-                    rrow[xr] = decide_fast(buf, lo, hi, p, fast);
-                }
+                select_row(total, w, nd, p, fast, buf, lrow, rrow);
             },
         );
     let plane = |data| Plane {
@@ -748,6 +1020,51 @@ fn select(
         data,
     };
     (plane(left), plane(right))
+}
+
+/// Decides one row from its summed path costs `total` (`w · nd`): the left-based map from
+/// each pixel's disparities, the right-based one along the diagonals. `buf` is scratch.
+#[allow(clippy::too_many_arguments)]
+fn select_row(
+    total: &[u16],
+    w: usize,
+    nd: usize,
+    p: &QualityParams,
+    fast: bool,
+    buf: &mut Vec<u16>,
+    lrow: &mut [f32],
+    rrow: &mut [f32],
+) {
+    #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+    if fast && simd::rows_fit(w, nd, p.range.min) {
+        return simd::select_row(total, w, nd, p, buf, lrow, rrow);
+    }
+    buf.resize(nd, 0);
+    let dmin = p.range.min;
+    // Left-based: every disparity whose right pixel exists.
+    for x in 0..w {
+        let lo = (x as i32 - w as i32 + 1 - dmin).max(0) as usize;
+        let hi = ((x as i32 - dmin + 1).min(nd as i32)).max(0) as usize;
+        if lo >= hi {
+            continue;
+        }
+        let t = &total[x * nd..(x + 1) * nd];
+        lrow[x] = decide_fast(t, lo, hi, p, fast);
+    }
+    // Right-based: right pixel xr at disparity d is left pixel xr + d.
+    for xr in 0..w {
+        // Disparity indices whose left pixel xr + dmin + di lies in the image.
+        let base = xr as i64 + dmin as i64;
+        let lo = (-base).clamp(0, nd as i64) as usize;
+        let hi = (w as i64 - base).clamp(0, nd as i64) as usize;
+        if lo >= hi {
+            continue;
+        }
+        for di in lo..hi {
+            buf[di] = total[(base + di as i64) as usize * nd + di];
+        }
+        rrow[xr] = decide_fast(buf, lo, hi, p, fast);
+    }
 }
 
 /// Whether [`simd::decide`] may stand in for [`decide`]: with the penalties the SIMD sweep
@@ -762,8 +1079,9 @@ fn simd_select_applies(nd: usize, p: &QualityParams) -> bool {
 
 /// Limits of the SIMD paths, also known where they are not compiled.
 mod simd_limits {
-    /// Largest P1/P2 for which the guard values stay apart from real costs.
-    pub const MAX_PENALTY: u16 = 4000;
+    /// Largest P1/P2 for which the guard values stay apart from real costs and eight
+    /// summed paths stay below `i16::MAX`.
+    pub const MAX_PENALTY: u16 = 3800;
     /// Most disparities the SIMD decision holds on the stack.
     pub const MAX_ND: usize = 256;
 }
@@ -890,6 +1208,52 @@ mod tests {
                 a == b || (a.is_infinite() && b.is_infinite()),
                 "{t:?} {lo}..{hi} u {u}"
             );
+        }
+    }
+
+    #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+    #[test]
+    fn transposed_row_decision_equals_the_plain_one() {
+        let mut rng = ChaCha8Rng::seed_from_u64(13);
+        for (w, nd, dmin) in [
+            (40, 16, 0),
+            (37, 20, -5),
+            (70, 64, 3),
+            (16, 1, 0),
+            (50, 33, -40),
+        ] {
+            let p = QualityParams {
+                range: DisparityRange::new(dmin, dmin + nd as i32 - 1),
+                ..Default::default()
+            };
+            // A clear valley at a random disparity for most pixels, flat noise (ties,
+            // uniqueness rejections) for the rest.
+            let mut total = vec![0u16; w * nd];
+            for px in total.chunks_mut(nd) {
+                let valley = rng.random_range(0..nd) as i32;
+                let flat = rng.random_bool(0.3);
+                for (di, t) in px.iter_mut().enumerate() {
+                    *t = if flat {
+                        rng.random_range(900..960)
+                    } else {
+                        300 + (di as i32 - valley).unsigned_abs() as u16 * 40
+                            + rng.random_range(0..20)
+                    };
+                }
+            }
+            let (mut l1, mut r1) = (vec![INVALID_DISPARITY; w], vec![INVALID_DISPARITY; w]);
+            let (mut l2, mut r2) = (l1.clone(), r1.clone());
+            let mut buf = Vec::new();
+            simd::select_row(&total, w, nd, &p, &mut buf, &mut l1, &mut r1);
+            select_row(&total, w, nd, &p, false, &mut buf, &mut l2, &mut r2);
+            let same = |a: &[f32], b: &[f32]| {
+                a.iter()
+                    .zip(b)
+                    .all(|(x, y)| x == y || (x.is_infinite() && y.is_infinite()))
+            };
+            assert!(same(&l1, &l2), "left w {w} nd {nd} dmin {dmin}");
+            assert!(same(&r1, &r2), "right w {w} nd {nd} dmin {dmin}");
+            assert!(l1.iter().any(|d| d.is_finite()) && r1.iter().any(|d| d.is_finite()));
         }
     }
 }
