@@ -250,7 +250,7 @@ pub fn match_quality(left: &Plane<u8>, right: &Plane<u8>, p: &QualityParams) -> 
     let nd = p.range.count();
     let cost = cost_volume(left, right, p);
     #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
-    if simd_select_applies(nd, p) {
+    if simd_select_applies(nd, p) && simd::rows_fit(w, nd, p.range.min) {
         let (dl, dr) = meeting_sweeps(&cost, left, w, h, nd, p);
         return QualityMatch {
             left: dl,
@@ -380,6 +380,7 @@ fn meeting_sweeps(
     use std::sync::Mutex;
     type Decided = Vec<(usize, Vec<f32>, Vec<f32>)>;
     let slots: Vec<Mutex<Option<Vec<u16>>>> = (0..h).map(|_| Mutex::new(None)).collect();
+    let ndp = nd.div_ceil(16) * 16;
     let run = |backward: bool| -> Decided {
         let mut decided = Vec::new();
         let mut buf = Vec::new();
@@ -390,7 +391,7 @@ fn meeting_sweeps(
                     Some(other) => other,
                     None => {
                         *slot = Some(row);
-                        return vec![0u16; w * nd];
+                        return vec![0u16; w * ndp];
                     }
                 }
             };
@@ -399,7 +400,7 @@ fn meeting_sweeps(
             }
             let mut lrow = vec![INVALID_DISPARITY; w];
             let mut rrow = vec![INVALID_DISPARITY; w];
-            select_row(&row, w, nd, p, true, &mut buf, &mut lrow, &mut rrow);
+            simd::select_row(&row, ndp, w, nd, p, &mut buf, &mut lrow, &mut rrow);
             decided.push((y, lrow, rrow));
             // The other sweep's buffer is free now: it serves the next row.
             other
@@ -759,9 +760,12 @@ mod simd {
     }
 
     /// [`super::select_row`] with the row transposed to disparity-major order, so that
-    /// both maps are decided 16 pixels at a time (lanes = pixels). `mt` is scratch.
+    /// both maps are decided 16 pixels at a time (lanes = pixels). Pixel `x`'s sums start
+    /// at `total[x · tstride]`; `mt` is scratch.
+    #[allow(clippy::too_many_arguments)]
     pub fn select_row(
         total: &[u16],
+        tstride: usize,
         w: usize,
         nd: usize,
         p: &QualityParams,
@@ -779,7 +783,7 @@ mod simd {
             mt.resize(nd * stride, NONE as u16);
         }
         let base = mt.as_mut_ptr() as *mut i16;
-        assert!(total.len() >= w * nd);
+        assert!(tstride >= nd && total.len() >= (w - 1) * tstride + nd);
         // Transpose: mt[di][pad + x] = total[x][di]; outside 0..w stays NONE.
         let (wf, df) = (w / 16 * 16, nd / 16 * 16);
         for x0 in (0..wf).step_by(16) {
@@ -788,8 +792,8 @@ mod simd {
                 // mt rows d0..d0 + 16 hold pad + x0 + 16 <= stride values.
                 unsafe {
                     transpose16(
-                        total.as_ptr().add(x0 * nd + d0),
-                        nd,
+                        total.as_ptr().add(x0 * tstride + d0),
+                        tstride,
                         base.add(d0 * stride + pad + x0),
                         stride,
                     )
@@ -799,7 +803,7 @@ mod simd {
         for x in 0..w {
             let from = if x < wf { df } else { 0 };
             for di in from..nd {
-                mt[di * stride + pad + x] = total[x * nd + di];
+                mt[di * stride + pad + x] = total[x * tstride + di];
             }
         }
         let mt = &mt[..];
@@ -863,16 +867,20 @@ mod simd {
         backward: bool,
     ) -> Vec<u16> {
         let mut sum = vec![0u16; w * h * nd];
+        let ndp = nd.div_ceil(16) * 16;
         sweep(cost, img, w, h, nd, p, backward, |y, row| {
-            sum[y * w * nd..(y + 1) * w * nd].copy_from_slice(&row);
+            for x in 0..w {
+                let o = (y * w + x) * nd;
+                sum[o..o + nd].copy_from_slice(&row[x * ndp..x * ndp + nd]);
+            }
             row
         });
         sum
     }
 
     /// One SGM sweep over 4 paths (see [`super::aggregate`]). Each finished image row
-    /// (`w · nd` path sums, in image order) goes to `row_done(y, row)`, which hands back a
-    /// buffer of the same size for the next row.
+    /// (path sums in image order, `nd.div_ceil(16) · 16` per pixel) goes to
+    /// `row_done(y, row)`, which hands back a buffer of the same size for the next row.
     #[allow(clippy::too_many_arguments)]
     pub fn sweep(
         cost: &[u8],
@@ -895,7 +903,7 @@ mod simd {
             _mm256_cmpgt_epi16(idx, _mm256_set1_epi16(last))
         };
         let kern = Kernel { nvec, nd, tail };
-        let mut row_sum = vec![0u16; w * nd];
+        let mut row_sum = vec![0u16; w * ndp];
         let diagonals = p.paths >= 8;
         let mut prev = vec![vec![BIG; w * stride]; 3];
         let mut cur = vec![vec![BIG; w * stride]; 3];
@@ -910,7 +918,6 @@ mod simd {
             .collect();
         let oy = |y: usize| if backward { h - 1 - y } else { y };
         let ox = |x: usize| if backward { w - 1 - x } else { x };
-        let mut acc = vec![0u16; ndp];
         for y in 0..h {
             let irow = img.row(oy(y));
             let iprev = img.row(if y > 0 { oy(y - 1) } else { oy(y) });
@@ -919,8 +926,9 @@ mod simd {
                 let c = &cost[pix..pix + nd];
                 let here = irow[ox(x)] as i16;
                 let p2_at = |other: u8| p2_lut[(here - other as i16).unsigned_abs() as usize];
+                let acc = &mut row_sum[ox(x) * ndp..(ox(x) + 1) * ndp];
                 left_min = if x == 0 {
-                    kern.init(c, &mut left_l, &mut acc, true)
+                    kern.init(c, &mut left_l, acc, true)
                 } else {
                     let m = kern.step(
                         c,
@@ -929,7 +937,7 @@ mod simd {
                         p1,
                         p2_at(irow[ox(x - 1)]),
                         &mut scratch,
-                        &mut acc,
+                        acc,
                         true,
                     );
                     std::mem::swap(&mut left_l, &mut scratch);
@@ -946,15 +954,14 @@ mod simd {
                     };
                     let out = &mut cur[k][x * stride..(x + 1) * stride];
                     cur_min[k][x] = match (y, src) {
-                        (0, _) | (_, None) => kern.init(c, out, &mut acc, false),
+                        (0, _) | (_, None) => kern.init(c, out, acc, false),
                         (_, Some(sx)) => {
                             let lp = &prev[k][sx * stride..(sx + 1) * stride];
                             let p2 = p2_at(iprev[ox(sx)]);
-                            kern.step(c, lp, prev_min[k][sx], p1, p2, out, &mut acc, false)
+                            kern.step(c, lp, prev_min[k][sx], p1, p2, out, acc, false)
                         }
                     };
                 }
-                row_sum[ox(x) * nd..(ox(x) + 1) * nd].copy_from_slice(&acc[..nd]);
             }
             row_sum = row_done(oy(y), row_sum);
             std::mem::swap(&mut prev, &mut cur);
@@ -1037,7 +1044,7 @@ fn select_row(
 ) {
     #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
     if fast && simd::rows_fit(w, nd, p.range.min) {
-        return simd::select_row(total, w, nd, p, buf, lrow, rrow);
+        return simd::select_row(total, nd, w, nd, p, buf, lrow, rrow);
     }
     buf.resize(nd, 0);
     let dmin = p.range.min;
@@ -1244,7 +1251,7 @@ mod tests {
             let (mut l1, mut r1) = (vec![INVALID_DISPARITY; w], vec![INVALID_DISPARITY; w]);
             let (mut l2, mut r2) = (l1.clone(), r1.clone());
             let mut buf = Vec::new();
-            simd::select_row(&total, w, nd, &p, &mut buf, &mut l1, &mut r1);
+            simd::select_row(&total, nd, w, nd, &p, &mut buf, &mut l1, &mut r1);
             select_row(&total, w, nd, &p, false, &mut buf, &mut l2, &mut r2);
             let same = |a: &[f32], b: &[f32]| {
                 a.iter()
