@@ -50,6 +50,46 @@ fn compare_exchange(v: &mut [Lane], i: usize, j: usize) {
     v[j] = hi;
 }
 
+/// Spells a comparator list out as straight-line code on a local array, so the values
+/// live in registers instead of going through memory at every comparator.
+macro_rules! network {
+    ($v:ident; $(($i:literal, $j:literal))*) => { $( compare_exchange(&mut $v[..], $i, $j); )* };
+}
+
+/// [`sorting_network`]`(9)` unrolled (3×3 windows).
+#[inline(always)]
+fn sort9(v: &mut [Lane; 9]) {
+    network!(v; (0, 1) (2, 3) (4, 5) (6, 7) (0, 2) (1, 3) (4, 6) (5, 7) (1, 2) (5, 6) (0, 4) (1, 5) (2, 6) (3, 7) (2, 4) (3, 5) (1, 2) (3, 4) (5, 6) (0, 8) (4, 8) (2, 4) (3, 5) (6, 8) (1, 2) (3, 4) (5, 6) (7, 8));
+}
+
+/// [`sorting_network`]`(25)` unrolled (5×5 windows, the default).
+#[inline(always)]
+fn sort25(v: &mut [Lane; 25]) {
+    network!(v; (0, 1) (2, 3) (4, 5) (6, 7) (8, 9) (10, 11) (12, 13) (14, 15) (16, 17) (18, 19) (20, 21) (22, 23) (0, 2) (1, 3) (4, 6) (5, 7) (8, 10) (9, 11) (12, 14) (13, 15) (16, 18) (17, 19) (20, 22) (21, 23) (1, 2) (5, 6) (9, 10) (13, 14) (17, 18) (21, 22) (0, 4) (1, 5) (2, 6) (3, 7) (8, 12) (9, 13) (10, 14) (11, 15) (16, 20) (17, 21) (18, 22) (19, 23) (2, 4) (3, 5) (10, 12) (11, 13) (18, 20) (19, 21) (1, 2) (3, 4) (5, 6) (9, 10) (11, 12) (13, 14) (17, 18) (19, 20) (21, 22) (0, 8) (1, 9) (2, 10) (3, 11) (4, 12) (5, 13) (6, 14) (7, 15) (16, 24) (4, 8) (5, 9) (6, 10) (7, 11) (20, 24) (2, 4) (3, 5) (6, 8) (7, 9) (10, 12) (11, 13) (18, 20) (19, 21) (22, 24) (1, 2) (3, 4) (5, 6) (7, 8) (9, 10) (11, 12) (13, 14) (17, 18) (19, 20) (21, 22) (23, 24) (0, 16) (1, 17) (2, 18) (3, 19) (4, 20) (5, 21) (6, 22) (7, 23) (8, 24) (8, 16) (9, 17) (10, 18) (11, 19) (12, 20) (13, 21) (14, 22) (15, 23) (4, 8) (5, 9) (6, 10) (7, 11) (12, 16) (13, 17) (14, 18) (15, 19) (20, 24) (2, 4) (3, 5) (6, 8) (7, 9) (10, 12) (11, 13) (14, 16) (15, 17) (18, 20) (19, 21) (22, 24) (1, 2) (3, 4) (5, 6) (7, 8) (9, 10) (11, 12) (13, 14) (15, 16) (17, 18) (19, 20) (21, 22) (23, 24));
+}
+
+/// Sorts the window `win` (n lanes) by the unrolled network when there is one.
+#[inline(always)]
+fn sort_window(win: &mut [Lane], net: &[(u16, u16)]) {
+    match win.len() {
+        9 => {
+            let mut v: [Lane; 9] = win.try_into().expect("9");
+            sort9(&mut v);
+            win.copy_from_slice(&v);
+        }
+        25 => {
+            let mut v: [Lane; 25] = win.try_into().expect("25");
+            sort25(&mut v);
+            win.copy_from_slice(&v);
+        }
+        _ => {
+            for &(i, j) in net {
+                compare_exchange(win, i as usize, j as usize);
+            }
+        }
+    }
+}
+
 /// Median of the valid pixels of each `(2r+1)²` window, at valid pixels only.
 pub fn median_valid(map: &DisparityMap, r: usize) -> DisparityMap {
     let (w, h) = (map.width, map.height);
@@ -88,9 +128,7 @@ pub fn median_valid(map: &DisparityMap, r: usize) -> DisparityMap {
                         win[dy * side + dx] = lane;
                     }
                 }
-                for &(i, j) in &net {
-                    compare_exchange(win, i as usize, j as usize);
-                }
+                sort_window(win, &net);
                 for l in 0..lanes {
                     if !row[x0 + l].is_finite() {
                         continue;
@@ -139,6 +177,23 @@ mod tests {
             }
         }
         out
+    }
+
+    #[test]
+    fn unrolled_networks_are_the_generated_ones() {
+        // The literal lists in sort9/sort25 were printed from sorting_network.
+        for n in [9, 25] {
+            let net = sorting_network(n);
+            let mut win: Vec<Lane> = (0..n)
+                .map(|i| std::array::from_fn(|l| ((i * 7 + l * 13) % n) as f32))
+                .collect();
+            let mut by_net = win.clone();
+            for &(i, j) in &net {
+                compare_exchange(&mut by_net, i as usize, j as usize);
+            }
+            sort_window(&mut win, &net);
+            assert_eq!(win, by_net, "n = {n}");
+        }
     }
 
     #[test]

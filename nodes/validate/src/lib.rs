@@ -66,21 +66,27 @@ pub fn lr_check(left: &DisparityMap, right: &DisparityMap, tolerance: u32) -> Ch
     let mut out_r = right.clone();
     let mut occ_l = Plane::filled(w, h, 0u8);
     let mut occ_r = Plane::filled(w, h, 0u8);
+    let mut counts = Counts::default();
     if w > 0 {
-        out_l
+        counts = out_l
             .data
             .par_chunks_mut(w)
             .zip(out_r.data.par_chunks_mut(w))
             .zip(occ_l.data.par_chunks_mut(w))
             .zip(occ_r.data.par_chunks_mut(w))
             .enumerate()
-            .for_each(|(y, (((ol, or), ocl), ocr))| {
+            .map(|(y, (((ol, or), ocl), ocr))| {
                 let (lrow, rrow) = (left.row(y), right.row(y));
+                let mut c = Counts::default();
                 for x in 0..w {
-                    let ok = lrow[x].is_finite()
-                        && partner(rrow, x, lrow[x], -1.0)
-                            .is_some_and(|p| (p - lrow[x]).abs() <= tol);
-                    if !ok {
+                    // The figures come from the same lookups as the check.
+                    let diff = lrow[x]
+                        .is_finite()
+                        .then(|| partner(rrow, x, lrow[x], -1.0).map(|p| (p - lrow[x]).abs()));
+                    if let Some(diff) = diff {
+                        c.add(diff, tol);
+                    }
+                    if !diff.flatten().is_some_and(|d| d <= tol) {
                         ol[x] = INVALID_DISPARITY;
                         ocl[x] = 255;
                     }
@@ -92,15 +98,71 @@ pub fn lr_check(left: &DisparityMap, right: &DisparityMap, tolerance: u32) -> Ch
                         ocr[x] = 255;
                     }
                 }
-            });
+                c
+            })
+            .reduce(Counts::default, Counts::merge);
     }
-    let figures = validation_figures(left, right, tolerance);
     Checked {
         left: out_l,
         right: out_r,
         occlusion_left: occ_l,
         occlusion_right: occ_r,
-        figures,
+        figures: counts.figures(tolerance),
+    }
+}
+
+/// Tallies behind [`ValidationFigures`].
+#[derive(Clone, Copy, Default)]
+struct Counts {
+    matched: u64,
+    exact: u64,
+    one: u64,
+    within: u64,
+}
+
+impl Counts {
+    /// One left match whose partner differs by `diff` (`None`: no partner).
+    #[inline(always)]
+    fn add(&mut self, diff: Option<f32>, tol: f32) {
+        self.matched += 1;
+        if let Some(diff) = diff {
+            // Sub-pixel maps: "exact" means within half a pixel, "one" within 1.5.
+            if diff < 0.5 {
+                self.exact += 1;
+            } else if diff < 1.5 {
+                self.one += 1;
+            }
+            if diff <= tol {
+                self.within += 1;
+            }
+        }
+    }
+
+    fn merge(a: Self, b: Self) -> Self {
+        Self {
+            matched: a.matched + b.matched,
+            exact: a.exact + b.exact,
+            one: a.one + b.one,
+            within: a.within + b.within,
+        }
+    }
+
+    fn figures(&self, tolerance: u32) -> ValidationFigures {
+        let share = |n: u64| {
+            if self.matched == 0 {
+                0.0
+            } else {
+                n as f64 / self.matched as f64
+            }
+        };
+        ValidationFigures {
+            matched: self.matched,
+            consistent_exact: share(self.exact),
+            off_by_one: share(self.one),
+            off_by_more: share(self.matched - self.exact - self.one),
+            consistent_within_tolerance: share(self.within),
+            tolerance,
+        }
     }
 }
 
@@ -111,51 +173,20 @@ pub fn validation_figures(
     tolerance: u32,
 ) -> ValidationFigures {
     let tol = tolerance as f32;
-    let (matched, exact, one, within) = (0..left.height)
+    (0..left.height)
         .into_par_iter()
         .map(|y| {
             let (lrow, rrow) = (left.row(y), right.row(y));
-            let (mut matched, mut exact, mut one, mut within) = (0u64, 0u64, 0u64, 0u64);
-            for x in 0..left.width {
-                let d = lrow[x];
-                if !d.is_finite() {
-                    continue;
-                }
-                matched += 1;
-                if let Some(p) = partner(rrow, x, d, -1.0) {
-                    let diff = (p - d).abs();
-                    // Sub-pixel maps: "exact" means within half a pixel, "one" within 1.5.
-                    if diff < 0.5 {
-                        exact += 1;
-                    } else if diff < 1.5 {
-                        one += 1;
-                    }
-                    if diff <= tol {
-                        within += 1;
-                    }
+            let mut c = Counts::default();
+            for (x, &d) in lrow.iter().enumerate() {
+                if d.is_finite() {
+                    c.add(partner(rrow, x, d, -1.0).map(|p| (p - d).abs()), tol);
                 }
             }
-            (matched, exact, one, within)
+            c
         })
-        .reduce(
-            || (0, 0, 0, 0),
-            |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2, a.3 + b.3),
-        );
-    let share = |n: u64| {
-        if matched == 0 {
-            0.0
-        } else {
-            n as f64 / matched as f64
-        }
-    };
-    ValidationFigures {
-        matched,
-        consistent_exact: share(exact),
-        off_by_one: share(one),
-        off_by_more: share(matched - exact - one),
-        consistent_within_tolerance: share(within),
-        tolerance,
-    }
+        .reduce(Counts::default, Counts::merge)
+        .figures(tolerance)
 }
 
 #[cfg(test)]
@@ -185,6 +216,7 @@ mod tests {
         let t2 = lr_check(&left, &right, 2);
         assert_eq!(t2.left.row(0), &[X, X, 2.0, 1.0, 2.0, X]);
         let f = t1.figures;
+        assert_eq!(f, validation_figures(&left, &right, 1));
         assert_eq!(f.matched, 4);
         assert_eq!(f.consistent_exact, 0.25);
         assert_eq!(f.off_by_one, 0.25);
