@@ -460,35 +460,6 @@ mod simd {
             }
         }
 
-        /// Stores `v` as the path value (vector `k`), adds it into `acc` (or sets it when
-        /// `first`), and folds it into the running minimum.
-        #[inline(always)]
-        unsafe fn put(
-            &self,
-            mut v: __m256i,
-            k: usize,
-            out: &mut [i16],
-            acc: &mut [u16],
-            first: bool,
-            mn: &mut __m256i,
-        ) {
-            // SAFETY: out holds ndp + 2 values and acc ndp (checked by the callers).
-            unsafe {
-                if k + 1 == self.nvec {
-                    v = _mm256_blendv_epi8(v, _mm256_set1_epi16(BIG), self.tail);
-                }
-                _mm256_storeu_si256(out.as_mut_ptr().add(1 + k * 16) as *mut __m256i, v);
-                let a = acc.as_mut_ptr().add(k * 16) as *mut __m256i;
-                let s = if first {
-                    v
-                } else {
-                    _mm256_add_epi16(_mm256_loadu_si256(a), v)
-                };
-                _mm256_storeu_si256(a, s);
-                *mn = _mm256_min_epi16(*mn, v);
-            }
-        }
-
         /// Horizontal minimum of non-negative i16 lanes.
         #[inline(always)]
         fn hmin(mn: __m256i) -> i16 {
@@ -499,58 +470,61 @@ mod simd {
             }
         }
 
-        /// First pixel of a path: `L = C`. Returns `min L`.
+        /// `N` paths stepped together from their predecessors `(values with guards,
+        /// minimum, P2)` into `outs`; `acc` receives their sum. The cost vector is loaded
+        /// once and the sum stays in a register. Returns each path's new minimum.
         #[inline(always)]
-        fn init(&self, c: &[u8], out: &mut [i16], acc: &mut [u16], first: bool) -> i16 {
-            let pad = self.pad(c);
-            // SAFETY: AVX2 is enabled for this build.
-            let mut mn = unsafe { _mm256_set1_epi16(BIG) };
-            for k in 0..self.nvec {
-                // SAFETY: see `cost` and `put`.
-                unsafe {
-                    let v = self.cost(c, &pad, k);
-                    self.put(v, k, out, acc, first, &mut mn);
-                }
-            }
-            Self::hmin(mn)
-        }
-
-        /// One recurrence step from `lp` (with guards) into `out`. Returns `min L`.
-        #[allow(clippy::too_many_arguments)]
-        #[inline(always)]
-        fn step(
+        fn paths<const N: usize>(
             &self,
             c: &[u8],
-            lp: &[i16],
-            lp_min: i16,
+            from: [(&[i16], i16, i16); N],
             p1: i16,
-            p2: i16,
-            out: &mut [i16],
+            outs: [&mut [i16]; N],
             acc: &mut [u16],
-            first: bool,
-        ) -> i16 {
-            assert!(lp.len() >= self.nvec * 16 + 2 && out.len() >= self.nvec * 16 + 2);
-            assert!(acc.len() >= self.nvec * 16 && c.len() >= self.nd);
+        ) -> [i16; N] {
+            let n = self.nvec * 16;
+            assert!(acc.len() >= n && c.len() >= self.nd);
+            for (lp, _, _) in &from {
+                assert!(lp.len() >= n + 2);
+            }
+            for out in &outs {
+                assert!(out.len() >= n + 2);
+            }
             let pad = self.pad(c);
-            // SAFETY: AVX2 is enabled for this build.
-            let mut mn = unsafe { _mm256_set1_epi16(BIG) };
-            // SAFETY: loads at lp[16k .. 16k + 18] stay inside lp (asserted above).
+            // SAFETY: AVX2 is enabled for this build; loads and stores stay inside the
+            // slices (lengths asserted above).
             unsafe {
                 let p1v = _mm256_set1_epi16(p1);
-                let jump = _mm256_set1_epi16(lp_min + p2);
-                let minv = _mm256_set1_epi16(lp_min);
+                let jump: [__m256i; N] =
+                    std::array::from_fn(|j| _mm256_set1_epi16(from[j].1 + from[j].2));
+                let minv: [__m256i; N] = std::array::from_fn(|j| _mm256_set1_epi16(from[j].1));
+                let mut mn = [_mm256_set1_epi16(BIG); N];
+                let big = _mm256_set1_epi16(BIG);
                 for k in 0..self.nvec {
-                    let base = lp.as_ptr().add(k * 16);
-                    let a = _mm256_loadu_si256(base as *const __m256i);
-                    let m = _mm256_loadu_si256(base.add(1) as *const __m256i);
-                    let b = _mm256_loadu_si256(base.add(2) as *const __m256i);
-                    let nb = _mm256_add_epi16(_mm256_min_epi16(a, b), p1v);
-                    let v = _mm256_min_epi16(_mm256_min_epi16(m, nb), jump);
-                    let v = _mm256_add_epi16(self.cost(c, &pad, k), _mm256_sub_epi16(v, minv));
-                    self.put(v, k, out, acc, first, &mut mn);
+                    let cv = self.cost(c, &pad, k);
+                    let mut sum = _mm256_setzero_si256();
+                    for j in 0..N {
+                        let base = from[j].0.as_ptr().add(k * 16);
+                        let a = _mm256_loadu_si256(base as *const __m256i);
+                        let m = _mm256_loadu_si256(base.add(1) as *const __m256i);
+                        let b = _mm256_loadu_si256(base.add(2) as *const __m256i);
+                        let nb = _mm256_add_epi16(_mm256_min_epi16(a, b), p1v);
+                        let v = _mm256_min_epi16(_mm256_min_epi16(m, nb), jump[j]);
+                        let mut v = _mm256_add_epi16(cv, _mm256_sub_epi16(v, minv[j]));
+                        if k + 1 == self.nvec {
+                            v = _mm256_blendv_epi8(v, big, self.tail);
+                        }
+                        _mm256_storeu_si256(
+                            outs[j].as_mut_ptr().add(1 + k * 16) as *mut __m256i,
+                            v,
+                        );
+                        mn[j] = _mm256_min_epi16(mn[j], v);
+                        sum = _mm256_add_epi16(sum, v);
+                    }
+                    _mm256_storeu_si256(acc.as_mut_ptr().add(k * 16) as *mut __m256i, sum);
                 }
+                std::array::from_fn(|j| Self::hmin(mn[j]))
             }
-            Self::hmin(mn)
         }
 
         /// The last partial vector's costs, zero-padded (unused when nd is a multiple of 16).
@@ -905,12 +879,15 @@ mod simd {
         let kern = Kernel { nvec, nd, tail };
         let mut row_sum = vec![0u16; w * ndp];
         let diagonals = p.paths >= 8;
-        let mut prev = vec![vec![BIG; w * stride]; 3];
-        let mut cur = vec![vec![BIG; w * stride]; 3];
-        let mut prev_min = vec![vec![0i16; w]; 3];
-        let mut cur_min = vec![vec![0i16; w]; 3];
+        let mut prev: [Vec<i16>; 3] = std::array::from_fn(|_| vec![BIG; w * stride]);
+        let mut cur: [Vec<i16>; 3] = std::array::from_fn(|_| vec![BIG; w * stride]);
+        let mut prev_min = [vec![0i16; w], vec![0i16; w], vec![0i16; w]];
+        let mut cur_min = prev_min.clone();
         let mut left_l = vec![BIG; stride];
         let mut scratch = vec![BIG; stride];
+        // A path with no predecessor starts at L = C: an all-zero predecessor with
+        // minimum 0 gives exactly that (every candidate of the minimum is ≥ 0).
+        let zeros = vec![0i16; stride];
         let mut left_min: i16 = 0;
         let p1 = p.p1 as i16;
         let p2_lut: Vec<i16> = (0..256u32)
@@ -921,47 +898,55 @@ mod simd {
         for y in 0..h {
             let irow = img.row(oy(y));
             let iprev = img.row(if y > 0 { oy(y - 1) } else { oy(y) });
+            let [c0, c1, c2] = &mut cur;
             for x in 0..w {
                 let pix = (oy(y) * w + ox(x)) * nd;
                 let c = &cost[pix..pix + nd];
                 let here = irow[ox(x)] as i16;
                 let p2_at = |other: u8| p2_lut[(here - other as i16).unsigned_abs() as usize];
                 let acc = &mut row_sum[ox(x) * ndp..(ox(x) + 1) * ndp];
-                left_min = if x == 0 {
-                    kern.init(c, &mut left_l, acc, true)
-                } else {
-                    let m = kern.step(
-                        c,
-                        &left_l,
-                        left_min,
-                        p1,
-                        p2_at(irow[ox(x - 1)]),
-                        &mut scratch,
-                        acc,
-                        true,
-                    );
-                    std::mem::swap(&mut left_l, &mut scratch);
-                    m
+                // Predecessor of path k (0 = top-left, 1 = top, 2 = top-right) and of the
+                // path from the left: (values, minimum, P2).
+                let from_row = |k: usize, sx: Option<usize>| match (y, sx) {
+                    (0, _) | (_, None) => (&zeros[..], 0, 0),
+                    (_, Some(sx)) => (
+                        &prev[k][sx * stride..(sx + 1) * stride],
+                        prev_min[k][sx],
+                        p2_at(iprev[ox(sx)]),
+                    ),
                 };
-                for k in 0..3 {
-                    if !diagonals && k != 1 {
-                        continue;
-                    }
-                    let src = match k {
-                        0 => x.checked_sub(1),
-                        1 => Some(x),
-                        _ => (x + 1 < w).then_some(x + 1),
-                    };
-                    let out = &mut cur[k][x * stride..(x + 1) * stride];
-                    cur_min[k][x] = match (y, src) {
-                        (0, _) | (_, None) => kern.init(c, out, acc, false),
-                        (_, Some(sx)) => {
-                            let lp = &prev[k][sx * stride..(sx + 1) * stride];
-                            let p2 = p2_at(iprev[ox(sx)]);
-                            kern.step(c, lp, prev_min[k][sx], p1, p2, out, acc, false)
-                        }
-                    };
+                let left = if x == 0 {
+                    (&zeros[..], 0, 0)
+                } else {
+                    (&left_l[..], left_min, p2_at(irow[ox(x - 1)]))
+                };
+                let top = from_row(1, Some(x));
+                let o = x * stride..(x + 1) * stride;
+                if diagonals {
+                    let tl = from_row(0, x.checked_sub(1));
+                    let tr = from_row(2, (x + 1 < w).then_some(x + 1));
+                    let m = kern.paths(
+                        c,
+                        [left, tl, top, tr],
+                        p1,
+                        [
+                            &mut scratch,
+                            &mut c0[o.clone()],
+                            &mut c1[o.clone()],
+                            &mut c2[o],
+                        ],
+                        acc,
+                    );
+                    left_min = m[0];
+                    cur_min[0][x] = m[1];
+                    cur_min[1][x] = m[2];
+                    cur_min[2][x] = m[3];
+                } else {
+                    let m = kern.paths(c, [left, top], p1, [&mut scratch, &mut c1[o]], acc);
+                    left_min = m[0];
+                    cur_min[1][x] = m[1];
                 }
+                std::mem::swap(&mut left_l, &mut scratch);
             }
             row_sum = row_done(oy(y), row_sum);
             std::mem::swap(&mut prev, &mut cur);
