@@ -1,6 +1,6 @@
 //! Times the quality or paper matcher alone on cones, five runs, for profiling with perf.
 //!
-//! `cargo run --release --example profile [quality|paper]`
+//! `cargo run --release --example profile [quality|quality4|paper]` (quality4: 4 SGM paths)
 use microstereo::io;
 use schemas::DisparityRange;
 use std::time::Instant;
@@ -11,9 +11,10 @@ fn main() {
     let mode = std::env::args().nth(1).unwrap_or("quality".into());
     for _ in 0..5 {
         let t = Instant::now();
-        if mode == "quality" {
+        if mode.starts_with("quality") {
             let p = matcher::QualityParams {
                 range: DisparityRange::new(0, 63),
+                paths: if mode == "quality4" { 4 } else { 8 },
                 ..Default::default()
             };
             matcher::match_quality(&l, &r, &p);
