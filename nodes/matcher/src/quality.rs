@@ -75,7 +75,26 @@ pub fn census(img: &Plane<u8>) -> Plane<u64> {
     let full = (1u64 << cw) - 1;
     let mut out = vec![0u64; w * h];
     out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-        for (x, o) in row.iter_mut().enumerate() {
+        #[allow(unused_mut)]
+        let mut x0 = 0;
+        #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+        {
+            use crate::sv::BLOCK;
+            while x0 + BLOCK <= w {
+                let t: [u8; BLOCK] = img.row(y)[x0..x0 + BLOCK].try_into().expect("block");
+                let out = &mut row[x0..x0 + BLOCK];
+                out.fill(0);
+                let top = y + CENSUS_RX - CENSUS_RY;
+                crate::sv::block_row_bits(&padded, top, (2 * CENSUS_RY + 1, cw), x0, &t, |_, b| {
+                    for (o, &b) in out.iter_mut().zip(b) {
+                        // "darker than the centre" = not (≥ centre).
+                        *o = (*o << cw) | (!b & full);
+                    }
+                });
+                x0 += BLOCK;
+            }
+        }
+        for (x, o) in row.iter_mut().enumerate().skip(x0) {
             let c = *img.get(x, y);
             let mut bits = 0u64;
             for dy in 0..2 * CENSUS_RY + 1 {
@@ -1246,6 +1265,36 @@ mod tests {
             assert!(same(&l1, &l2), "left w {w} nd {nd} dmin {dmin}");
             assert!(same(&r1, &r2), "right w {w} nd {nd} dmin {dmin}");
             assert!(l1.iter().any(|d| d.is_finite()) && r1.iter().any(|d| d.is_finite()));
+        }
+    }
+
+    #[test]
+    fn census_follows_its_definition() {
+        let mut rng = ChaCha8Rng::seed_from_u64(17);
+        let (w, h) = (75, 12);
+        // Few grey levels: ties with the centre (not darker) are common.
+        let img = Plane::from_vec(
+            w,
+            h,
+            (0..w * h).map(|_| rng.random_range(0..6u8) * 40).collect(),
+        )
+        .unwrap();
+        let c = census(&img);
+        for y in 0..h {
+            for x in 0..w {
+                let centre = *img.get(x, y);
+                let mut bits = 0u64;
+                for dy in 0..7 {
+                    let yy = (y as i64 + dy - 3).clamp(0, h as i64 - 1) as usize;
+                    let mut row = 0u64;
+                    for j in 0..9 {
+                        let xx = (x as i64 + j - 4).clamp(0, w as i64 - 1) as usize;
+                        row |= u64::from(*img.get(xx, yy) < centre) << j;
+                    }
+                    bits = (bits << 9) | row;
+                }
+                assert_eq!(*c.get(x, y), bits, "pixel ({x}, {y})");
+            }
         }
     }
 }

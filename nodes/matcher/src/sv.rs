@@ -434,13 +434,58 @@ pub fn descriptors_from_padded(
 }
 
 /// Pixels per vectorised descriptor block.
-const BLOCK: usize = 32;
+pub(crate) const BLOCK: usize = 32;
 
-/// Descriptors of the 32 pixels `x0..x0 + 32` of row `y`, written into the word planes
-/// `out` of that row. Per window row, one byte compare per window column tests all 32
-/// pixels at once and ORs the result into per-pixel bytes (bit `j % 8` of byte group
-/// `j / 8`); the bytes are then spliced into the u64 words. Needs `x0 + 32 <= width`: the
-/// padded rows are `width + window − 1` long, so every load stays inside.
+/// Window-row bit masks of 32 pixels at once: for the pixels `x0..x0 + 32` with
+/// thresholds `t`, and each window row `i < rows` (padded row `top + i`), calls
+/// `emit(i, bits)` where bit `j < cols` of `bits[p]` is set when
+/// `padded[top + i][x0 + p + j] >= t[p]`. One byte compare per window column tests all 32
+/// pixels and ORs the result into per-pixel bytes (bit `j % 8` of byte group `j / 8`).
+/// Needs `x0 + 32 + cols − 1 <= padded.width`, `top + rows <= padded.height`, `cols <= 32`.
+#[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+pub(crate) fn block_row_bits(
+    padded: &Plane<u8>,
+    top: usize,
+    (rows, cols): (usize, usize),
+    x0: usize,
+    t: &[u8; BLOCK],
+    mut emit: impl FnMut(usize, &[u64; BLOCK]),
+) {
+    use std::arch::x86_64::*;
+    let pw = padded.width;
+    assert!(x0 + BLOCK + cols - 1 <= pw && top + rows <= padded.height && cols <= 32);
+    let mut groups = [[0u8; BLOCK]; 4];
+    // SAFETY: AVX2 is enabled for this build; every load reads 32 bytes at
+    // (top + i) * pw + x0 + j with j < cols, inside row top + i (asserted above).
+    unsafe {
+        let tv = _mm256_loadu_si256(t.as_ptr() as *const __m256i);
+        for i in 0..rows {
+            let row = padded.data.as_ptr().add((top + i) * pw + x0);
+            let mut acc = [_mm256_setzero_si256(); 4];
+            for j in 0..cols {
+                let v = _mm256_loadu_si256(row.add(j) as *const __m256i);
+                let ge = _mm256_cmpeq_epi8(_mm256_max_epu8(v, tv), v);
+                let bit = _mm256_set1_epi8((1u8 << (j % 8)) as i8);
+                acc[j / 8] = _mm256_or_si256(acc[j / 8], _mm256_and_si256(ge, bit));
+            }
+            for g in 0..cols.div_ceil(8) {
+                _mm256_storeu_si256(groups[g].as_mut_ptr() as *mut __m256i, acc[g]);
+            }
+            let mut bits = [0u64; BLOCK];
+            for (p, b) in bits.iter_mut().enumerate() {
+                *b = groups[0][p] as u64
+                    | (groups[1][p] as u64) << 8
+                    | (groups[2][p] as u64) << 16
+                    | (groups[3][p] as u64) << 24;
+            }
+            emit(i, &bits);
+        }
+    }
+}
+
+/// Descriptors of the 32 pixels `x0..x0 + 32` of row `y`, spliced into the word planes
+/// `out` of that row. Needs `x0 + 32 <= width`: the padded rows are `width + window − 1`
+/// long.
 #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
 fn descriptor_block(
     padded: &Plane<u8>,
@@ -450,52 +495,24 @@ fn descriptor_block(
     x0: usize,
     out: &mut [u64],
 ) {
-    use std::arch::x86_64::*;
     let w = sums.width;
-    let pw = padded.width;
     let n = (window * window) as u32;
-    assert!(x0 + BLOCK <= w && pw == w + window - 1 && padded.height >= y + window);
     let mut t = [0u8; BLOCK];
     for (p, tp) in t.iter_mut().enumerate() {
         *tp = sums.data[y * w + x0 + p].div_ceil(n).min(255) as u8;
     }
-    let mut groups = [[0u8; BLOCK]; 4];
-    // SAFETY: AVX2 is enabled for this build; every load reads 32 bytes at
-    // (y + i) * pw + x0 + j with j < window, which ends at most at
-    // (y + i) * pw + w + window − 2 < (y + i + 1) * pw (asserted above).
-    unsafe {
-        let tv = _mm256_loadu_si256(t.as_ptr() as *const __m256i);
-        for i in 0..window {
-            let row = padded.data.as_ptr().add((y + i) * pw + x0);
-            let mut acc = [_mm256_setzero_si256(); 4];
-            for j in 0..window {
-                let v = _mm256_loadu_si256(row.add(j) as *const __m256i);
-                let ge = _mm256_cmpeq_epi8(_mm256_max_epu8(v, tv), v);
-                let bit = _mm256_set1_epi8((1u8 << (j % 8)) as i8);
-                acc[j / 8] = _mm256_or_si256(acc[j / 8], _mm256_and_si256(ge, bit));
-            }
-            for g in 0..window.div_ceil(8) {
-                _mm256_storeu_si256(groups[g].as_mut_ptr() as *mut __m256i, acc[g]);
-            }
-            let bit = i * window;
-            let (word, off) = (bit / 64, bit % 64);
-            let mut bits = [0u64; BLOCK];
-            for (p, b) in bits.iter_mut().enumerate() {
-                *b = groups[0][p] as u64
-                    | (groups[1][p] as u64) << 8
-                    | (groups[2][p] as u64) << 16
-                    | (groups[3][p] as u64) << 24;
-            }
-            for (o, &b) in out[word * w + x0..][..BLOCK].iter_mut().zip(&bits) {
-                *o |= b << off;
-            }
-            if off + window > 64 {
-                for (o, &b) in out[(word + 1) * w + x0..][..BLOCK].iter_mut().zip(&bits) {
-                    *o |= b >> (64 - off);
-                }
+    block_row_bits(padded, y, (window, window), x0, &t, |i, bits| {
+        let bit = i * window;
+        let (word, off) = (bit / 64, bit % 64);
+        for (o, &b) in out[word * w + x0..][..BLOCK].iter_mut().zip(bits) {
+            *o |= b << off;
+        }
+        if off + window > 64 {
+            for (o, &b) in out[(word + 1) * w + x0..][..BLOCK].iter_mut().zip(bits) {
+                *o |= b >> (64 - off);
             }
         }
-    }
+    });
 }
 
 /// The support value straight from the definition, for tests and documentation: binarise
