@@ -147,7 +147,9 @@ fn cost_volume(left: &Plane<u8>, right: &Plane<u8>, p: &QualityParams) -> Vec<u8
         || rayon::join(|| census(left), || census(right)),
         || rayon::join(|| sobel_x(left), || sobel_x(right)),
     );
-    let mut cost = vec![COST_OUTSIDE; w * h * nd];
+    // Zeroed (fresh pages from the kernel, no fill pass); every entry is written below,
+    // disparities outside the image included, by the threads that own the rows.
+    let mut cost = vec![0u8; w * h * nd];
     let gw = p.gradient_weight;
     let cap = p.gradient_cap;
     cost.par_chunks_mut(w * nd)
@@ -187,13 +189,14 @@ struct CostRow<'a> {
 
 impl CostRow<'_> {
     /// Costs of left pixel `x` at disparity indices `dis` into `out[dis]`; disparities
-    /// pointing outside the right image are left alone.
+    /// pointing outside the right image get [`COST_OUTSIDE`].
     #[inline(always)]
     fn cells(&self, x: usize, dis: std::ops::Range<usize>, out: &mut [u8]) {
         let w = self.cl.len() as i32;
         for di in dis {
             let xr = x as i32 - (self.dmin + di as i32);
             if xr < 0 || xr >= w {
+                out[di] = COST_OUTSIDE;
                 continue;
             }
             let xr = xr as usize;
@@ -1190,7 +1193,7 @@ mod tests {
                 gw: 1,
                 cap: 30,
             };
-            let mut fast = vec![COST_OUTSIDE; w * nd];
+            let mut fast = vec![0u8; w * nd];
             let mut slow = fast.clone();
             // SAFETY: the CPU has the features (checked above).
             unsafe { r.fill_avx512(&mut fast) };
