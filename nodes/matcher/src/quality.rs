@@ -628,6 +628,70 @@ mod simd {
         }
     }
 
+    /// The 8-path step of one pixel for exactly `16 · NV` disparities, written out path by
+    /// path so that the per-path constants and minima stay in registers.
+    ///
+    /// # Safety
+    /// `c` and `acc` point at `16 · NV` values, every `lp` and `out` at `16 · NV + 2`.
+    #[inline(always)]
+    unsafe fn step4<const NV: usize>(
+        c: *const u8,
+        lp: [*const i16; 4],
+        mins: [i16; 4],
+        p2s: [i16; 4],
+        p1: i16,
+        out: [*mut i16; 4],
+        acc: *mut u16,
+    ) -> [i16; 4] {
+        // SAFETY: the caller's promise; AVX2 is enabled for this build.
+        unsafe {
+            let p1v = _mm256_set1_epi16(p1);
+            let (j0, j1, j2, j3) = (
+                _mm256_set1_epi16(mins[0] + p2s[0]),
+                _mm256_set1_epi16(mins[1] + p2s[1]),
+                _mm256_set1_epi16(mins[2] + p2s[2]),
+                _mm256_set1_epi16(mins[3] + p2s[3]),
+            );
+            let (m0, m1, m2, m3) = (
+                _mm256_set1_epi16(mins[0]),
+                _mm256_set1_epi16(mins[1]),
+                _mm256_set1_epi16(mins[2]),
+                _mm256_set1_epi16(mins[3]),
+            );
+            let big = _mm256_set1_epi16(BIG);
+            let (mut n0, mut n1, mut n2, mut n3) = (big, big, big, big);
+            macro_rules! path {
+                ($i:literal, $k:ident, $cv:ident, $jump:ident, $minv:ident, $mn:ident, $sum:ident) => {{
+                    let base = lp[$i].add($k * 16);
+                    let a = _mm256_loadu_si256(base as *const __m256i);
+                    let m = _mm256_loadu_si256(base.add(1) as *const __m256i);
+                    let b = _mm256_loadu_si256(base.add(2) as *const __m256i);
+                    let nb = _mm256_add_epi16(_mm256_min_epi16(a, b), p1v);
+                    let v = _mm256_min_epi16(_mm256_min_epi16(m, nb), $jump);
+                    let v = _mm256_add_epi16($cv, _mm256_sub_epi16(v, $minv));
+                    _mm256_storeu_si256(out[$i].add(1 + $k * 16) as *mut __m256i, v);
+                    $mn = _mm256_min_epi16($mn, v);
+                    $sum = _mm256_add_epi16($sum, v);
+                }};
+            }
+            for k in 0..NV {
+                let cv = _mm256_cvtepu8_epi16(_mm_loadu_si128(c.add(k * 16) as *const __m128i));
+                let mut sum = _mm256_setzero_si256();
+                path!(0, k, cv, j0, m0, n0, sum);
+                path!(1, k, cv, j1, m1, n1, sum);
+                path!(2, k, cv, j2, m2, n2, sum);
+                path!(3, k, cv, j3, m3, n3, sum);
+                _mm256_storeu_si256(acc.add(k * 16) as *mut __m256i, sum);
+            }
+            [
+                Kernel::hmin(n0),
+                Kernel::hmin(n1),
+                Kernel::hmin(n2),
+                Kernel::hmin(n3),
+            ]
+        }
+    }
+
     /// Marks a disparity that does not exist; above every summed cost the limits allow
     /// (8 paths · (cost 159 + penalty 3800) < 32767).
     const NONE: i16 = i16::MAX;
@@ -944,7 +1008,37 @@ mod simd {
                 };
                 let top = from_row(1, Some(x));
                 let o = x * stride..(x + 1) * stride;
-                if diagonals {
+                if diagonals && (nd == 64 || nd == 128) {
+                    let tl = from_row(0, x.checked_sub(1));
+                    let tr = from_row(2, (x + 1 < w).then_some(x + 1));
+                    let from = [left, tl, top, tr];
+                    for (lp, _, _) in &from {
+                        assert!(lp.len() >= stride);
+                    }
+                    assert!(c.len() == nd && acc.len() == nd && scratch.len() == stride);
+                    let outs = [
+                        scratch.as_mut_ptr(),
+                        c0[o.clone()].as_mut_ptr(),
+                        c1[o.clone()].as_mut_ptr(),
+                        c2[o].as_mut_ptr(),
+                    ];
+                    let lps = from.map(|f| f.0.as_ptr());
+                    let mins = from.map(|f| f.1);
+                    let p2s = from.map(|f| f.2);
+                    // SAFETY: every predecessor and output holds `stride` = nd + 2 values,
+                    // the costs and the sum nd (asserted above); AVX2 is enabled.
+                    let m = unsafe {
+                        if nd == 64 {
+                            step4::<4>(c.as_ptr(), lps, mins, p2s, p1, outs, acc.as_mut_ptr())
+                        } else {
+                            step4::<8>(c.as_ptr(), lps, mins, p2s, p1, outs, acc.as_mut_ptr())
+                        }
+                    };
+                    left_min = m[0];
+                    cur_min[0][x] = m[1];
+                    cur_min[1][x] = m[2];
+                    cur_min[2][x] = m[3];
+                } else if diagonals {
                     let tl = from_row(0, x.checked_sub(1));
                     let tr = from_row(2, (x + 1 < w).then_some(x + 1));
                     let m = kern.paths(
@@ -1150,7 +1244,7 @@ mod tests {
         let mut rng = ChaCha8Rng::seed_from_u64(5);
         let (w, h) = (37, 23);
         let img = Plane::from_vec(w, h, (0..w * h).map(|_| rng.random::<u8>()).collect()).unwrap();
-        for nd in [1, 5, 16, 17, 40] {
+        for nd in [1, 5, 16, 17, 40, 64, 128] {
             let cost: Vec<u8> = (0..w * h * nd)
                 .map(|_| rng.random_range(0..COST_OUTSIDE))
                 .collect();
