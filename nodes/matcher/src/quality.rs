@@ -1000,16 +1000,18 @@ mod simd {
                 // Predecessor of path k (0 = top-left, 1 = top, 2 = top-right) and of the
                 // path from the left: (values, minimum, P2). Plain inline code: as closures
                 // these were calls, a fifth of the sweep.
-                let from_row = |k: usize, sx: Option<usize>| -> (&[i16], i16, i16) {
-                    match sx {
-                        Some(sx) if y > 0 => (
-                            &prev[k][sx * stride..(sx + 1) * stride],
-                            prev_min[k][sx],
-                            p2_between(&p2_lut, here, iprev[ox(sx)]),
-                        ),
-                        _ => (&zeros[..], 0, 0),
-                    }
-                };
+                macro_rules! from_row {
+                    ($k:expr, $sx:expr) => {
+                        match $sx {
+                            Some(sx) if y > 0 => (
+                                &prev[$k][sx * stride..(sx + 1) * stride],
+                                prev_min[$k][sx],
+                                p2_between(&p2_lut, here, iprev[ox(sx)]),
+                            ),
+                            _ => (&zeros[..], 0, 0),
+                        }
+                    };
+                }
                 let left = if x == 0 {
                     (&zeros[..], 0, 0)
                 } else {
@@ -1019,11 +1021,11 @@ mod simd {
                         p2_between(&p2_lut, here, irow[ox(x - 1)]),
                     )
                 };
-                let top = from_row(1, Some(x));
+                let top: (&[i16], i16, i16) = from_row!(1, Some(x));
                 let o = x * stride..(x + 1) * stride;
                 if diagonals && (nd == 64 || nd == 128) {
-                    let tl = from_row(0, x.checked_sub(1));
-                    let tr = from_row(2, (x + 1 < w).then_some(x + 1));
+                    let tl = from_row!(0, x.checked_sub(1));
+                    let tr = from_row!(2, (x + 1 < w).then_some(x + 1));
                     let from = [left, tl, top, tr];
                     for (lp, _, _) in &from {
                         assert!(lp.len() >= stride);
@@ -1052,8 +1054,8 @@ mod simd {
                     cur_min[1][x] = m[2];
                     cur_min[2][x] = m[3];
                 } else if diagonals {
-                    let tl = from_row(0, x.checked_sub(1));
-                    let tr = from_row(2, (x + 1 < w).then_some(x + 1));
+                    let tl = from_row!(0, x.checked_sub(1));
+                    let tr = from_row!(2, (x + 1 < w).then_some(x + 1));
                     let m = kern.paths(
                         c,
                         [left, tl, top, tr],
