@@ -1409,4 +1409,58 @@ mod tests {
             }
         }
     }
+
+    #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+    #[test]
+    fn meeting_sweeps_equal_the_plain_pipeline() {
+        let mut rng = ChaCha8Rng::seed_from_u64(21);
+        let (w, h) = (61, 40);
+        let left = Plane::from_vec(w, h, (0..w * h).map(|_| rng.random::<u8>()).collect()).unwrap();
+        // The right view: the left shifted by 3 px plus noise, so matches exist.
+        let right = Plane::from_vec(
+            w,
+            h,
+            (0..w * h)
+                .map(|i| {
+                    let (x, y) = (i % w, i / w);
+                    left.get((x + 3).min(w - 1), y)
+                        .saturating_add(rng.random_range(0..8))
+                })
+                .collect(),
+        )
+        .unwrap();
+        for (dmin, nd) in [(0, 16), (-4, 21), (0, 64)] {
+            let p = QualityParams {
+                range: DisparityRange::new(dmin, dmin + nd as i32 - 1),
+                ..Default::default()
+            };
+            let fast = match_quality(&left, &right, &p);
+            let cost = cost_volume(&left, &right, &p);
+            let s1 = aggregate(&cost, &left, w, h, nd, &p, false);
+            let s2 = aggregate(&cost, &left, w, h, nd, &p, true);
+            let mut buf = Vec::new();
+            for y in 0..h {
+                let o = y * w * nd;
+                let total: Vec<u16> = (0..w * nd)
+                    .map(|i| s1[o + i].wrapping_add(s2[o + i]))
+                    .collect();
+                let (mut l, mut r) = (vec![INVALID_DISPARITY; w], vec![INVALID_DISPARITY; w]);
+                select_row(&total, w, nd, &p, false, &mut buf, &mut l, &mut r);
+                let same = |a: &[f32], b: &[f32]| {
+                    a.iter()
+                        .zip(b)
+                        .all(|(x, y)| x == y || (x.is_infinite() && y.is_infinite()))
+                };
+                assert!(
+                    same(fast.left.row(y), &l),
+                    "left row {y}, range {dmin}+{nd}"
+                );
+                assert!(
+                    same(fast.right.row(y), &r),
+                    "right row {y}, range {dmin}+{nd}"
+                );
+            }
+            assert!(fast.left.data.iter().filter(|d| d.is_finite()).count() > w * h / 4);
+        }
+    }
 }
