@@ -1,10 +1,14 @@
 #!/usr/bin/env python3
 """Times microstereo and OpenCV StereoSGBM (MODE_SGBM_3WAY) on the same images, same run.
 
-Usage: python3 scripts/bench_vs_opencv.py [--repeat N]
+Usage: python3 scripts/bench_vs_opencv.py [--rounds N] [--repeat K]
 Needs: pip install opencv-python-headless numpy; a release build (cargo build --release).
-Prints per pair: SGBM-3WAY median ms, microstereo paper and quality median ms (whole
-pipeline: both directions, LR check, post-processing), and the ratios.
+
+The machines are shared and their speed drifts from one second to the next, so the two
+are interleaved: each round runs `microstereo bench` (K runs per mode, median) and then K
+SGBM runs (median) on each pair, and the ratio is taken within the round. Printed per pair:
+the median over rounds of SGBM-3WAY ms, microstereo paper and quality ms (whole pipeline:
+both directions, LR check, post-processing), and the median of the per-round ratios.
 """
 import argparse, json, os, subprocess, sys, tempfile, time
 
@@ -33,32 +37,40 @@ def time_sgbm(left, right, repeat):
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--repeat", type=int, default=7)
+    ap.add_argument("--rounds", type=int, default=5)
+    ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--bin", default=os.path.join(ROOT, "target/release/microstereo"))
     a = ap.parse_args()
     cv2.setNumThreads(os.cpu_count() or 1)
+    rows = {}  # pair -> list of (sgbm, paper, quality) per round
     with tempfile.TemporaryDirectory() as tmp:
         js = os.path.join(tmp, "bench.json")
-        subprocess.run([a.bin, "bench", "--repeat", str(a.repeat), "--json", js,
-                        "--write-pairs", tmp], check=True)
-        ours = json.load(open(js))
-        pairs = {
-            "cones": (os.path.join(ROOT, "tests/data/cones/im2.png"),
-                      os.path.join(ROOT, "tests/data/cones/im6.png")),
-            "synth1280": (os.path.join(tmp, "synth1280_left.png"),
-                          os.path.join(tmp, "synth1280_right.png")),
-        }
-        print(f"\nOpenCV {cv2.__version__}, {cv2.getNumThreads()} threads; whole pipelines, median of {a.repeat}")
-        print(f"{'pair':<10} {'SGBM-3WAY ms':>12} {'paper ms':>9} {'ratio':>6} {'quality ms':>10} {'ratio':>6}")
-        for name, (l, r) in pairs.items():
-            lines = {x["mode"]: x for x in ours if x["pair"] == name}
-            if not lines:
-                continue
-            left = cv2.imread(l, cv2.IMREAD_GRAYSCALE)
-            right = cv2.imread(r, cv2.IMREAD_GRAYSCALE)
-            sg = time_sgbm(left, right, a.repeat)
-            p, q = lines["paper"]["total_ms"], lines["quality"]["total_ms"]
-            print(f"{name:<10} {sg:>12.1f} {p:>9.1f} {p / sg:>6.2f} {q:>10.1f} {q / sg:>6.2f}")
+        images = {}
+        for _ in range(a.rounds):
+            subprocess.run([a.bin, "bench", "--repeat", str(a.repeat), "--json", js,
+                            "--write-pairs", tmp], check=True, stdout=subprocess.DEVNULL)
+            ours = json.load(open(js))
+            if not images:
+                for name, (l, r) in {
+                    "cones": ("tests/data/cones/im2.png", "tests/data/cones/im6.png"),
+                    "synth1280": (os.path.join(tmp, "synth1280_left.png"),
+                                  os.path.join(tmp, "synth1280_right.png")),
+                }.items():
+                    images[name] = tuple(cv2.imread(os.path.join(ROOT, p), cv2.IMREAD_GRAYSCALE)
+                                         for p in (l, r))
+            for name, (left, right) in images.items():
+                lines = {x["mode"]: x["total_ms"] for x in ours if x["pair"] == name}
+                if len(lines) == 2:
+                    sg = time_sgbm(left, right, a.repeat)
+                    rows.setdefault(name, []).append((sg, lines["paper"], lines["quality"]))
+    print(f"OpenCV {cv2.__version__}, {cv2.getNumThreads()} threads; whole pipelines; "
+          f"{a.rounds} interleaved rounds of {a.repeat} runs")
+    print(f"{'pair':<10} {'SGBM-3WAY ms':>12} {'paper ms':>9} {'ratio':>6} {'quality ms':>10} {'ratio':>6}")
+    for name, r in rows.items():
+        r = np.array(r)
+        sg, p, q = np.median(r, axis=0)
+        rp, rq = np.median(r[:, 1] / r[:, 0]), np.median(r[:, 2] / r[:, 0])
+        print(f"{name:<10} {sg:>12.1f} {p:>9.1f} {rp:>6.2f} {q:>10.1f} {rq:>6.2f}")
 
 
 if __name__ == "__main__":
