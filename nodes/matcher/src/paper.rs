@@ -224,6 +224,7 @@ impl RowCtx<'_> {
         let rp = &self.r.padded.data;
         let mut colsum = vec![0u32; nd * pw];
         let mut cross = vec![0u32; nd * w];
+        let mut prefix = Vec::new();
         let mut svs = vec![0u32; nd * w];
         let mut evaluations = 0u64;
         let k = self.params.candidates.max(1);
@@ -268,12 +269,12 @@ impl RowCtx<'_> {
                 let (xlo, xhi) = self.left_span(d);
                 let cr = &mut cross[di * w..(di + 1) * w];
                 if xlo < xhi {
-                    let mut s: u32 = col[xlo..xlo + win].iter().sum();
-                    for x in xlo..xhi - 1 {
-                        cr[x] = s;
-                        s = s + col[x + win] - col[x];
-                    }
-                    cr[xhi - 1] = s;
+                    window_sums_row(
+                        &col[xlo..xhi + win - 1],
+                        win,
+                        &mut cr[xlo..xhi],
+                        &mut prefix,
+                    );
                 }
                 self.kernel.support_row(
                     self.l.desc.row(y),
@@ -381,6 +382,52 @@ impl RowCtx<'_> {
             }
         }
         evaluations
+    }
+}
+
+/// `out[x] = Σ col[x..x + win]` for every `x < out.len()` (`col` holds `out.len() + win − 1`
+/// values, wrapping arithmetic), as differences of a prefix sum. A running window sum is
+/// a chain of dependent adds; the prefix sum is built eight values at a time with an
+/// in-register scan.
+fn window_sums_row(col: &[u32], win: usize, out: &mut [u32], prefix: &mut Vec<u32>) {
+    let n = col.len();
+    debug_assert_eq!(n, out.len() + win - 1);
+    // prefix[i] = Σ col[..i], n + 1 values.
+    prefix.clear();
+    prefix.resize(n + 1, 0);
+    let mut i = 0;
+    let mut carry = 0u32;
+    #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+    {
+        use std::arch::x86_64::*;
+        // SAFETY: AVX2 is enabled for this build; loads read col[i..i + 8] and stores write
+        // prefix[i + 1..i + 9], both inside (i + 8 <= n).
+        unsafe {
+            let mut carry_v = _mm256_setzero_si256();
+            let last = _mm256_set1_epi32(7);
+            let low_total = _mm256_set_epi32(3, 3, 3, 3, 0, 0, 0, 0);
+            while i + 8 <= n {
+                let mut v = _mm256_loadu_si256(col.as_ptr().add(i) as *const __m256i);
+                // Scan inside each 128-bit half, then carry the low half's total up.
+                v = _mm256_add_epi32(v, _mm256_slli_si256(v, 4));
+                v = _mm256_add_epi32(v, _mm256_slli_si256(v, 8));
+                let lo = _mm256_permutevar8x32_epi32(v, low_total);
+                let lo = _mm256_blend_epi32(lo, _mm256_setzero_si256(), 0x0f);
+                v = _mm256_add_epi32(_mm256_add_epi32(v, lo), carry_v);
+                _mm256_storeu_si256(prefix.as_mut_ptr().add(i + 1) as *mut __m256i, v);
+                carry_v = _mm256_permutevar8x32_epi32(v, last);
+                i += 8;
+            }
+            carry = _mm256_extract_epi32(carry_v, 0) as u32;
+        }
+    }
+    while i < n {
+        carry = carry.wrapping_add(col[i]);
+        prefix[i + 1] = carry;
+        i += 1;
+    }
+    for (x, o) in out.iter_mut().enumerate() {
+        *o = prefix[x + win].wrapping_sub(prefix[x]);
     }
 }
 
@@ -552,5 +599,24 @@ mod tests {
                 INVALID_DISPARITY
             ]
         );
+    }
+
+    #[test]
+    fn window_sums_row_equals_direct_sums() {
+        let col: Vec<u32> = (0..90u32)
+            .map(|i| i.wrapping_mul(2_654_435_761) >> 7)
+            .collect();
+        let mut prefix = Vec::new();
+        for win in [1, 2, 3, 5, 13, 31] {
+            for len in [1, 3, 7, 8, 9, 16, 17, 40, 60] {
+                let c = &col[..len + win - 1];
+                let mut out = vec![0; len];
+                window_sums_row(c, win, &mut out, &mut prefix);
+                for x in 0..len {
+                    let direct = c[x..x + win].iter().fold(0u32, |a, &v| a.wrapping_add(v));
+                    assert_eq!(out[x], direct, "win {win} len {len} x {x}");
+                }
+            }
+        }
     }
 }
