@@ -395,32 +395,7 @@ fn window_sums_row(col: &[u32], win: usize, out: &mut [u32], prefix: &mut Vec<u3
     // prefix[i] = Σ col[..i], n + 1 values.
     prefix.clear();
     prefix.resize(n + 1, 0);
-    let mut i = 0;
-    let mut carry = 0u32;
-    #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
-    {
-        use std::arch::x86_64::*;
-        // SAFETY: AVX2 is enabled for this build; loads read col[i..i + 8] and stores write
-        // prefix[i + 1..i + 9], both inside (i + 8 <= n).
-        unsafe {
-            let mut carry_v = _mm256_setzero_si256();
-            let last = _mm256_set1_epi32(7);
-            let low_total = _mm256_set_epi32(3, 3, 3, 3, 0, 0, 0, 0);
-            while i + 8 <= n {
-                let mut v = _mm256_loadu_si256(col.as_ptr().add(i) as *const __m256i);
-                // Scan inside each 128-bit half, then carry the low half's total up.
-                v = _mm256_add_epi32(v, _mm256_slli_si256(v, 4));
-                v = _mm256_add_epi32(v, _mm256_slli_si256(v, 8));
-                let lo = _mm256_permutevar8x32_epi32(v, low_total);
-                let lo = _mm256_blend_epi32(lo, _mm256_setzero_si256(), 0x0f);
-                v = _mm256_add_epi32(_mm256_add_epi32(v, lo), carry_v);
-                _mm256_storeu_si256(prefix.as_mut_ptr().add(i + 1) as *mut __m256i, v);
-                carry_v = _mm256_permutevar8x32_epi32(v, last);
-                i += 8;
-            }
-            carry = _mm256_extract_epi32(carry_v, 0) as u32;
-        }
-    }
+    let (mut i, mut carry) = prefix_sums_simd(col, prefix);
     while i < n {
         carry = carry.wrapping_add(col[i]);
         prefix[i + 1] = carry;
@@ -429,6 +404,42 @@ fn window_sums_row(col: &[u32], win: usize, out: &mut [u32], prefix: &mut Vec<u3
     for (x, o) in out.iter_mut().enumerate() {
         *o = prefix[x + win].wrapping_sub(prefix[x]);
     }
+}
+
+/// The vector part of [`window_sums_row`]'s prefix sum: fills `prefix[1..=i]` for the
+/// first `i` (a multiple of 8) values and returns `i` and `Σ col[..i]`.
+#[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+fn prefix_sums_simd(col: &[u32], prefix: &mut [u32]) -> (usize, u32) {
+    use std::arch::x86_64::*;
+    let n = col.len();
+    assert!(prefix.len() > n);
+    let mut i = 0;
+    // SAFETY: AVX2 is enabled for this build; loads read col[i..i + 8] and stores write
+    // prefix[i + 1..i + 9], both inside (i + 8 <= n < prefix.len()).
+    unsafe {
+        let mut carry = _mm256_setzero_si256();
+        let last = _mm256_set1_epi32(7);
+        let low_total = _mm256_set_epi32(3, 3, 3, 3, 0, 0, 0, 0);
+        while i + 8 <= n {
+            let mut v = _mm256_loadu_si256(col.as_ptr().add(i) as *const __m256i);
+            // Scan inside each 128-bit half, then carry the low half's total up.
+            v = _mm256_add_epi32(v, _mm256_slli_si256(v, 4));
+            v = _mm256_add_epi32(v, _mm256_slli_si256(v, 8));
+            let lo = _mm256_permutevar8x32_epi32(v, low_total);
+            let lo = _mm256_blend_epi32(lo, _mm256_setzero_si256(), 0x0f);
+            v = _mm256_add_epi32(_mm256_add_epi32(v, lo), carry);
+            _mm256_storeu_si256(prefix.as_mut_ptr().add(i + 1) as *mut __m256i, v);
+            carry = _mm256_permutevar8x32_epi32(v, last);
+            i += 8;
+        }
+        (i, _mm256_extract_epi32(carry, 0) as u32)
+    }
+}
+
+/// Without AVX2 the prefix sum is all scalar.
+#[cfg(not(all(target_arch = "x86_64", target_feature = "avx2")))]
+fn prefix_sums_simd(_: &[u32], _: &mut [u32]) -> (usize, u32) {
+    (0, 0)
 }
 
 /// One slot of the branch-free top-k insertion, for a run of pixels: value `v[i]` at
