@@ -55,6 +55,113 @@ fn partner(other: &[f32], x: usize, d: f32, sign: f32) -> Option<f32> {
     v.is_finite().then_some(v)
 }
 
+/// Checks one row of `this` map against the `other` map's row (`sign` −1 from left to
+/// right): inconsistent pixels become invalid in `out` and 255 in `occ`, and `counts`
+/// tallies the figures. Eight pixels at a time where the build has AVX2.
+fn check_row(
+    this: &[f32],
+    other: &[f32],
+    sign: f32,
+    tol: f32,
+    out: &mut [f32],
+    occ: &mut [u8],
+    counts: &mut Counts,
+) {
+    let x0 = check_row_simd(this, other, sign, tol, out, occ, counts);
+    for x in x0..this.len() {
+        // The figures come from the same lookups as the check.
+        let d = this[x];
+        let diff = d
+            .is_finite()
+            .then(|| partner(other, x, d, sign).map(|p| (p - d).abs()));
+        if let Some(diff) = diff {
+            counts.add(diff, tol);
+        }
+        if !diff.flatten().is_some_and(|d| d <= tol) {
+            out[x] = INVALID_DISPARITY;
+            occ[x] = 255;
+        }
+    }
+}
+
+/// The vector part of [`check_row`]: the same float operations as [`partner`], with the
+/// partner fetched by a masked gather. Returns how many pixels it did (a multiple of 8).
+#[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+fn check_row_simd(
+    this: &[f32],
+    other: &[f32],
+    sign: f32,
+    tol: f32,
+    out: &mut [f32],
+    occ: &mut [u8],
+    counts: &mut Counts,
+) -> usize {
+    use std::arch::x86_64::*;
+    let n = this.len();
+    assert!(other.len() == n && out.len() == n && occ.len() == n && n < 1 << 24);
+    let mut x0 = 0;
+    // SAFETY: AVX2 is enabled for this build; loads and stores touch [x0, x0 + 8) < n, and
+    // the gather reads other[t] only in lanes where 0 <= t < n.
+    unsafe {
+        let inf = _mm256_set1_ps(f32::INFINITY);
+        let abs = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fff_ffff));
+        let half = _mm256_set1_ps(0.5);
+        let len = _mm256_set1_ps(n as f32);
+        let signv = _mm256_set1_ps(sign);
+        let tolv = _mm256_set1_ps(tol);
+        let lanes = _mm256_setr_ps(0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0);
+        let finite = |v: __m256| _mm256_cmp_ps::<_CMP_LT_OQ>(_mm256_and_ps(v, abs), inf);
+        while x0 + 8 <= n {
+            let d = _mm256_loadu_ps(this.as_ptr().add(x0));
+            let has_d = finite(d);
+            let x = _mm256_add_ps(_mm256_set1_ps(x0 as f32), lanes);
+            let raw = _mm256_add_ps(x, _mm256_mul_ps(signv, d));
+            let t = _mm256_floor_ps(_mm256_add_ps(raw, half));
+            let inside = _mm256_and_ps(
+                _mm256_cmp_ps::<_CMP_GT_OQ>(raw, _mm256_set1_ps(-0.5)),
+                _mm256_cmp_ps::<_CMP_LT_OQ>(t, len),
+            );
+            let fetch = _mm256_and_ps(has_d, inside);
+            let idx = _mm256_cvttps_epi32(_mm256_and_ps(t, fetch));
+            let p = _mm256_mask_i32gather_ps::<4>(inf, other.as_ptr(), idx, fetch);
+            let has_p = _mm256_and_ps(fetch, finite(p));
+            let diff = _mm256_and_ps(_mm256_sub_ps(p, d), abs);
+            let bits = |m: __m256| _mm256_movemask_ps(m) as u32;
+            let lt = |a: __m256, b: f32| _mm256_cmp_ps::<_CMP_LT_OQ>(a, _mm256_set1_ps(b));
+            let ok = bits(has_p) & bits(_mm256_cmp_ps::<_CMP_LE_OQ>(diff, tolv));
+            counts.matched += bits(has_d).count_ones() as u64;
+            let exact = bits(has_p) & bits(lt(diff, 0.5));
+            counts.exact += exact.count_ones() as u64;
+            counts.one += (bits(has_p) & !exact & bits(lt(diff, 1.5))).count_ones() as u64;
+            counts.within += ok.count_ones() as u64;
+            if ok != 0xff {
+                for l in 0..8 {
+                    if ok >> l & 1 == 0 {
+                        out[x0 + l] = INVALID_DISPARITY;
+                        occ[x0 + l] = 255;
+                    }
+                }
+            }
+            x0 += 8;
+        }
+    }
+    x0
+}
+
+/// Without AVX2 the check is all scalar.
+#[cfg(not(all(target_arch = "x86_64", target_feature = "avx2")))]
+fn check_row_simd(
+    _: &[f32],
+    _: &[f32],
+    _: f32,
+    _: f32,
+    _: &mut [f32],
+    _: &mut [u8],
+    _: &mut Counts,
+) -> usize {
+    0
+}
+
 /// Left/right consistency check with a tolerance of 0..=4 px.
 ///
 /// Both maps must have the same size (callers get them from one matcher run).
@@ -78,26 +185,8 @@ pub fn lr_check(left: &DisparityMap, right: &DisparityMap, tolerance: u32) -> Ch
             .map(|(y, (((ol, or), ocl), ocr))| {
                 let (lrow, rrow) = (left.row(y), right.row(y));
                 let mut c = Counts::default();
-                for x in 0..w {
-                    // The figures come from the same lookups as the check.
-                    let diff = lrow[x]
-                        .is_finite()
-                        .then(|| partner(rrow, x, lrow[x], -1.0).map(|p| (p - lrow[x]).abs()));
-                    if let Some(diff) = diff {
-                        c.add(diff, tol);
-                    }
-                    if !diff.flatten().is_some_and(|d| d <= tol) {
-                        ol[x] = INVALID_DISPARITY;
-                        ocl[x] = 255;
-                    }
-                    let ok = rrow[x].is_finite()
-                        && partner(lrow, x, rrow[x], 1.0)
-                            .is_some_and(|p| (p - rrow[x]).abs() <= tol);
-                    if !ok {
-                        or[x] = INVALID_DISPARITY;
-                        ocr[x] = 255;
-                    }
-                }
+                check_row(lrow, rrow, -1.0, tol, ol, ocl, &mut c);
+                check_row(rrow, lrow, 1.0, tol, or, ocr, &mut Counts::default());
                 c
             })
             .reduce(Counts::default, Counts::merge);
@@ -233,5 +322,57 @@ mod tests {
         assert_eq!(c.left.row(0)[1], -2.0);
         assert_eq!(c.right.row(0)[3], -2.0);
         assert_eq!(c.figures.consistent_exact, 1.0);
+    }
+
+    #[test]
+    fn vector_row_check_equals_the_scalar_one() {
+        let mut st = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = move || {
+            st ^= st << 13;
+            st ^= st >> 7;
+            st ^= st << 17;
+            st
+        };
+        for n in [1, 7, 8, 9, 31, 64, 100] {
+            for tol in [0.0, 1.0, 4.0] {
+                // Half-pixel disparities hit the rounding edges (x − d = −0.5, k + 0.5).
+                let mut row = || -> Vec<f32> {
+                    (0..n)
+                        .map(|_| match next() % 8 {
+                            0 => INVALID_DISPARITY,
+                            1 => f32::NAN,
+                            2 => (next() % 20) as f32 * 0.5 - 3.0,
+                            _ => (next() % 400) as f32 * 0.037 - 2.0,
+                        })
+                        .collect()
+                };
+                let (this, other) = (row(), row());
+                for sign in [-1.0, 1.0] {
+                    let (mut o1, mut c1, mut k1) = (this.clone(), vec![0u8; n], Counts::default());
+                    check_row(&this, &other, sign, tol, &mut o1, &mut c1, &mut k1);
+                    // The reference: the scalar loop through `partner` alone.
+                    let (mut o2, mut c2, mut k2) = (this.clone(), vec![0u8; n], Counts::default());
+                    for x in 0..n {
+                        let d = this[x];
+                        let diff = d
+                            .is_finite()
+                            .then(|| partner(&other, x, d, sign).map(|p| (p - d).abs()));
+                        if let Some(diff) = diff {
+                            k2.add(diff, tol);
+                        }
+                        if !diff.flatten().is_some_and(|d| d <= tol) {
+                            o2[x] = INVALID_DISPARITY;
+                            c2[x] = 255;
+                        }
+                    }
+                    let same = o1.iter().zip(&o2).all(|(a, b)| a.to_bits() == b.to_bits());
+                    assert!(same && c1 == c2, "n {n} tol {tol} sign {sign}");
+                    assert_eq!(
+                        (k1.matched, k1.exact, k1.one, k1.within),
+                        (k2.matched, k2.exact, k2.one, k2.within)
+                    );
+                }
+            }
+        }
     }
 }
