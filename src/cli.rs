@@ -451,7 +451,7 @@ fn reconstruct(a: ReconstructArgs) -> Result<(), CliError> {
     let lost = io::write_disparity_png(&o.join("disparity.png"), &out.disparity)?;
     if lost > 0 {
         eprintln!(
-            "warning: {lost} pixels have disparities disparity.png cannot hold (negative or ≥ 256); disparity.pfm has them"
+            "warning: {lost} pixels have disparities disparity.png cannot hold (below 1/512 px, where 0 already means unknown, or ≥ 256); disparity.pfm has them"
         );
     }
     let (lo, hi) = (cfg.range.min as f32, cfg.range.max as f32);
