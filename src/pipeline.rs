@@ -53,11 +53,12 @@ impl StereoConfig {
         }
     }
 
-    /// The window the input checks apply (paper window, or the census window).
-    pub fn window(&self) -> usize {
+    /// The window the input checks apply: the paper window. Quality mode has none to
+    /// check: its census pads the image borders, so any image size works.
+    pub fn window(&self) -> Option<usize> {
         match self.mode {
-            Mode::Paper => self.paper.window,
-            Mode::Quality => 9,
+            Mode::Paper => Some(self.paper.window),
+            Mode::Quality => None,
         }
     }
 }

@@ -302,3 +302,47 @@ fn bad_input_gives_one_clear_error_and_keeps_existing_outputs() {
     ]);
     assert_clean_failure(&out, "does not fit");
 }
+
+#[test]
+fn quality_mode_takes_images_smaller_than_its_census_window() {
+    // The census pads its borders, so a 40×4 strip (shorter than the 9×7 census) matches.
+    let dir = tempfile::tempdir().unwrap();
+    let (l, r) = (dir.path().join("l.png"), dir.path().join("r.png"));
+    let left =
+        image::GrayImage::from_fn(40, 4, |x, y| image::Luma([((x * 37 + y * 11) % 251) as u8]));
+    // The right view is the left shifted by 2 px.
+    let right = image::GrayImage::from_fn(40, 4, |x, y| *left.get_pixel((x + 2).min(39), y));
+    left.save(&l).unwrap();
+    right.save(&r).unwrap();
+    let o = dir.path().join("out");
+    let out = run(&[
+        "reconstruct",
+        s(&l),
+        s(&r),
+        "-o",
+        s(&o),
+        "--mode",
+        "quality",
+        "--min-disparity",
+        "0",
+        "--max-disparity",
+        "5",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let d = microstereo::io::read_disparity(&o.join("disparity.pfm"), None, "out").unwrap();
+    // Away from the left border (x < 2 has no partner) most pixels find the 2 px shift.
+    let inner: Vec<f32> = (0..4)
+        .flat_map(|y| (8..32).map(move |x| (x, y)))
+        .map(|(x, y)| *d.get(x, y))
+        .collect();
+    let right_shift = inner.iter().filter(|v| (**v - 2.0).abs() < 0.5).count();
+    assert!(
+        right_shift * 10 >= inner.len() * 9,
+        "{right_shift} of {}",
+        inner.len()
+    );
+}

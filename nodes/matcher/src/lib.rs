@@ -104,12 +104,13 @@ pub enum InputError {
     },
 }
 
-/// Checks a pair, a range and a window before matching; the matchers assume these hold.
+/// Checks a pair, a range and a window (`None`: the matcher has none) before matching;
+/// the matchers assume these hold.
 pub fn check_inputs<T>(
     left: &Plane<T>,
     right: &Plane<T>,
     range: DisparityRange,
-    window: usize,
+    window: Option<usize>,
 ) -> Result<(), InputError> {
     if left.width != right.width || left.height != right.height {
         return Err(InputError::SizeMismatch {
@@ -139,6 +140,9 @@ pub fn check_inputs<T>(
             width,
         });
     }
+    let Some(window) = window else {
+        return Ok(());
+    };
     if window.is_multiple_of(2) || !(sv::MIN_WINDOW..=sv::MAX_WINDOW).contains(&window) {
         return Err(InputError::BadWindow { window });
     }
@@ -162,33 +166,36 @@ mod tests {
         let b = Plane::filled(41, 30, 0u8);
         let r = DisparityRange::new(0, 10);
         assert!(matches!(
-            check_inputs(&a, &b, r, 5),
+            check_inputs(&a, &b, r, Some(5)),
             Err(InputError::SizeMismatch { .. })
         ));
         assert!(matches!(
-            check_inputs(&a, &a, DisparityRange::new(5, 5), 5),
+            check_inputs(&a, &a, DisparityRange::new(5, 5), Some(5)),
             Err(InputError::EmptyRange { .. })
         ));
         assert!(matches!(
-            check_inputs(&a, &a, DisparityRange::new(-40, 3), 5),
+            check_inputs(&a, &a, DisparityRange::new(-40, 3), Some(5)),
             Err(InputError::RangeTooWide { .. })
         ));
         assert_eq!(
-            check_inputs(&a, &a, r, 4),
+            check_inputs(&a, &a, r, Some(4)),
             Err(InputError::BadWindow { window: 4 })
         );
         assert_eq!(
-            check_inputs(&a, &a, r, 33),
+            check_inputs(&a, &a, r, Some(33)),
             Err(InputError::BadWindow { window: 33 })
         );
         assert!(matches!(
-            check_inputs(&a, &a, r, 31),
+            check_inputs(&a, &a, r, Some(31)),
             Err(InputError::WindowTooLarge { .. })
         ));
-        assert_eq!(check_inputs(&a, &a, r, 13), Ok(()));
+        assert_eq!(check_inputs(&a, &a, r, Some(13)), Ok(()));
+        // No window (quality mode): a 2-row image is fine.
+        let thin = Plane::filled(40, 2, 0u8);
+        assert_eq!(check_inputs(&thin, &thin, r, None), Ok(()));
         let e = Plane::filled(0, 0, 0u8);
         assert!(matches!(
-            check_inputs(&e, &e, r, 3),
+            check_inputs(&e, &e, r, Some(3)),
             Err(InputError::Empty { .. })
         ));
     }
