@@ -241,30 +241,31 @@ impl RowCtx<'_> {
                 let (ulo, uhi) = self.padded_span(d);
                 let col = &mut colsum[di * pw..(di + 1) * pw];
                 let du = d as isize;
-                let add_row = |py: usize, sign: i64, col: &mut [u32]| {
+                let rs = (ulo as isize - du) as usize;
+                let n = uhi - ulo;
+                // Row py's products l·r over the span: (left run, right run).
+                let runs = |py: usize| {
                     let lrow = &lp[py * pw..(py + 1) * pw];
                     let rrow = &rp[py * pw..(py + 1) * pw];
-                    let rs = (ulo as isize - du) as usize;
-                    let n = uhi - ulo;
-                    let (c, a, b) = (&mut col[ulo..uhi], &lrow[ulo..uhi], &rrow[rs..rs + n]);
-                    if sign > 0 {
-                        for i in 0..n {
-                            c[i] = c[i].wrapping_add(a[i] as u32 * b[i] as u32);
-                        }
-                    } else {
-                        for i in 0..n {
-                            c[i] = c[i].wrapping_sub(a[i] as u32 * b[i] as u32);
-                        }
-                    }
+                    (&lrow[ulo..uhi], &rrow[rs..rs + n])
                 };
+                let c = &mut col[ulo..uhi];
                 if y == y0 {
-                    col.fill(0);
+                    c.fill(0);
                     for i in 0..win {
-                        add_row(y + i, 1, col);
+                        let (a, b) = runs(y + i);
+                        for k in 0..n {
+                            c[k] = c[k].wrapping_add(a[k] as u32 * b[k] as u32);
+                        }
                     }
                 } else {
-                    add_row(y + win - 1, 1, col);
-                    add_row(y - 1, -1, col);
+                    // The row entering the window and the row leaving it, in one pass.
+                    let ((a, b), (e, f)) = (runs(y + win - 1), runs(y - 1));
+                    for k in 0..n {
+                        let enter = a[k] as u32 * b[k] as u32;
+                        let leave = e[k] as u32 * f[k] as u32;
+                        c[k] = c[k].wrapping_add(enter).wrapping_sub(leave);
+                    }
                 }
                 let (xlo, xhi) = self.left_span(d);
                 let cr = &mut cross[di * w..(di + 1) * w];
