@@ -272,7 +272,7 @@ pub fn match_quality(left: &Plane<u8>, right: &Plane<u8>, p: &QualityParams) -> 
     let nd = p.range.count();
     let cost = cost_volume(left, right, p);
     #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
-    if simd_select_applies(nd, p) && simd::rows_fit(w, nd, p.range.min) {
+    if simd_applies(p) && simd::rows_fit(w, nd, p.range.min) {
         let (dl, dr) = meeting_sweeps(&cost, left, w, h, nd, p);
         return QualityMatch {
             left: dl,
@@ -483,7 +483,6 @@ fn select(
     nd: usize,
     p: &QualityParams,
 ) -> (DisparityMap, DisparityMap) {
-    let fast = simd_select_applies(nd, p);
     let mut left = vec![INVALID_DISPARITY; w * h];
     let mut right = vec![INVALID_DISPARITY; w * h];
     left.par_chunks_mut(w)
@@ -496,7 +495,7 @@ fn select(
                 for i in 0..w * nd {
                     total[i] = s1[o + i].wrapping_add(s2[o + i]);
                 }
-                select_row(total, w, nd, p, fast, buf, lrow, rrow);
+                select_row(total, w, nd, p, buf, lrow, rrow);
             },
         );
     let plane = |data| Plane {
@@ -515,15 +514,10 @@ fn select_row(
     w: usize,
     nd: usize,
     p: &QualityParams,
-    fast: bool,
     buf: &mut Vec<u16>,
     lrow: &mut [f32],
     rrow: &mut [f32],
 ) {
-    #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
-    if fast && simd::rows_fit(w, nd, p.range.min) {
-        return simd::select_row(total, nd, w, nd, p, buf, lrow, rrow);
-    }
     buf.resize(nd, 0);
     let dmin = p.range.min;
     // Left-based: every disparity whose right pixel exists.
@@ -534,7 +528,7 @@ fn select_row(
             continue;
         }
         let t = &total[x * nd..(x + 1) * nd];
-        lrow[x] = decide_fast(t, lo, hi, p, fast);
+        lrow[x] = decide(&t[lo..hi], lo, p.uniqueness_ratio, dmin);
     }
     // Right-based: right pixel xr at disparity d is left pixel xr + d.
     for xr in 0..w {
@@ -548,39 +542,21 @@ fn select_row(
         for di in lo..hi {
             buf[di] = total[(base + di as i64) as usize * nd + di];
         }
-        rrow[xr] = decide_fast(buf, lo, hi, p, fast);
+        rrow[xr] = decide(&buf[lo..hi], lo, p.uniqueness_ratio, dmin);
     }
 }
 
-/// Whether [`simd::decide`] may stand in for [`decide`]: with the penalties the SIMD sweep
-/// accepts, no summed cost reaches `u16::MAX`, the value that marks unused lanes.
-fn simd_select_applies(nd: usize, p: &QualityParams) -> bool {
+/// Whether the SIMD path (sweeps and decision) applies: with the penalties it accepts, its
+/// guard values stay apart from real costs and eight summed paths stay below `i16::MAX`.
+fn simd_applies(p: &QualityParams) -> bool {
     cfg!(all(target_arch = "x86_64", target_feature = "avx2"))
-        && nd <= simd_limits::MAX_ND
-        && p.p1 <= simd_limits::MAX_PENALTY
-        && p.p2 <= simd_limits::MAX_PENALTY
+        && p.p1 <= MAX_SIMD_PENALTY
+        && p.p2 <= MAX_SIMD_PENALTY
         && p.uniqueness_ratio <= 100
 }
 
-/// Limits of the SIMD paths, also known where they are not compiled.
-mod simd_limits {
-    /// Largest P1/P2 for which the guard values stay apart from real costs and eight
-    /// summed paths stay below `i16::MAX`.
-    pub const MAX_PENALTY: u16 = 3800;
-    /// Most disparities the SIMD decision holds on the stack.
-    pub const MAX_ND: usize = 256;
-}
-
-/// The decision over `t[lo..hi]` (`t` holds every disparity index of the pixel).
-#[inline(always)]
-fn decide_fast(t: &[u16], lo: usize, hi: usize, p: &QualityParams, fast: bool) -> f32 {
-    #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
-    if fast {
-        return simd::decide(t, lo, hi, p.uniqueness_ratio, p.range.min);
-    }
-    let _ = fast;
-    decide(&t[lo..hi], lo, p.uniqueness_ratio, p.range.min)
-}
+/// Largest P1/P2 the SIMD path accepts (see [`simd_applies`]).
+const MAX_SIMD_PENALTY: u16 = 3800;
 
 /// Picks the best disparity of a contiguous cost run starting at index `lo`.
 #[inline]
@@ -677,27 +653,6 @@ mod tests {
 
     #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
     #[test]
-    fn simd_decision_equals_the_plain_one() {
-        let mut rng = ChaCha8Rng::seed_from_u64(11);
-        for _ in 0..3000 {
-            let nd = rng.random_range(1..=100);
-            // Few distinct values, so ties and near-ties are common.
-            let t: Vec<u16> = (0..nd).map(|_| rng.random_range(200..240)).collect();
-            let lo = rng.random_range(0..nd);
-            let hi = rng.random_range(lo + 1..=nd);
-            let u = rng.random_range(0..=30);
-            let dmin = rng.random_range(-20..20);
-            let a = simd::decide(&t, lo, hi, u, dmin);
-            let b = decide(&t[lo..hi], lo, u, dmin);
-            assert!(
-                a == b || (a.is_infinite() && b.is_infinite()),
-                "{t:?} {lo}..{hi} u {u}"
-            );
-        }
-    }
-
-    #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
-    #[test]
     fn transposed_row_decision_equals_the_plain_one() {
         let mut rng = ChaCha8Rng::seed_from_u64(13);
         for (w, nd, dmin) in [
@@ -730,7 +685,7 @@ mod tests {
             let (mut l2, mut r2) = (l1.clone(), r1.clone());
             let mut buf = Vec::new();
             simd::select_row(&total, nd, w, nd, &p, &mut buf, &mut l1, &mut r1);
-            select_row(&total, w, nd, &p, false, &mut buf, &mut l2, &mut r2);
+            select_row(&total, w, nd, &p, &mut buf, &mut l2, &mut r2);
             let same = |a: &[f32], b: &[f32]| {
                 a.iter()
                     .zip(b)
@@ -807,7 +762,7 @@ mod tests {
                     .map(|i| s1[o + i].wrapping_add(s2[o + i]))
                     .collect();
                 let (mut l, mut r) = (vec![INVALID_DISPARITY; w], vec![INVALID_DISPARITY; w]);
-                select_row(&total, w, nd, &p, false, &mut buf, &mut l, &mut r);
+                select_row(&total, w, nd, &p, &mut buf, &mut l, &mut r);
                 let same = |a: &[f32], b: &[f32]| {
                     a.iter()
                         .zip(b)
