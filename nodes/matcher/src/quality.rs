@@ -316,9 +316,7 @@ fn aggregate(
     let mut scratch = vec![0i16; nd];
     let p1 = p.p1 as i16;
     // P2 lowered across intensity edges, looked up by |ΔI|.
-    let p2_lut: Vec<i16> = (0..256u32)
-        .map(|g| ((p.p2 as u32 * 16 / (16 + g)) as i16).max(p1 + 1))
-        .collect();
+    let p2_lut = p2_table(p);
     // Walk the image in sweep order: a backward sweep reads mirrored rows and columns.
     let oy = |y: usize| if backward { h - 1 - y } else { y };
     let ox = |x: usize| if backward { w - 1 - x } else { x };
@@ -447,6 +445,14 @@ fn meeting_sweeps(
 /// The AVX2 kernels: SGM sweep and row decision.
 #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
 mod simd;
+
+/// P2 by intensity step `|ΔI|` (index 0..=255): lowered across edges, always above P1.
+fn p2_table(p: &QualityParams) -> Vec<i16> {
+    let p1 = p.p1 as i16;
+    (0..256u32)
+        .map(|g| ((p.p2 as u32 * 16 / (16 + g)) as i16).max(p1 + 1))
+        .collect()
+}
 
 /// Minimum of a slice; a plain fold vectorises where `Iterator::min` does not.
 #[inline(always)]

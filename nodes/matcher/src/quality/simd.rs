@@ -200,9 +200,8 @@ unsafe fn transpose16(src: *const u16, sstride: usize, dst: *mut i16, dstride: u
         for half in 0..2 {
             // Rows i and i + 8 of one 8-column half share a register: an in-lane
             // 8×8 transpose then yields whole 16-row columns.
-            let sel = if half == 0 { 0x20 } else { 0x31 };
-            let x: [__m256i; 8] = std::array::from_fn(|i| match sel {
-                0x20 => _mm256_permute2x128_si256(a[i], a[i + 8], 0x20),
+            let x: [__m256i; 8] = std::array::from_fn(|i| match half {
+                0 => _mm256_permute2x128_si256(a[i], a[i + 8], 0x20),
                 _ => _mm256_permute2x128_si256(a[i], a[i + 8], 0x31),
             });
             let b = [
@@ -463,9 +462,7 @@ pub fn sweep(
     let zeros = vec![0i16; stride];
     let mut left_min: i16 = 0;
     let p1 = p.p1 as i16;
-    let p2_lut: Vec<i16> = (0..256u32)
-        .map(|g| ((p.p2 as u32 * 16 / (16 + g)) as i16).max(p1 + 1))
-        .collect();
+    let p2_lut = super::p2_table(p);
     let oy = |y: usize| if backward { h - 1 - y } else { y };
     let ox = |x: usize| if backward { w - 1 - x } else { x };
     for y in 0..h {
