@@ -255,6 +255,8 @@ pub fn fill(map: &mut DisparityMap, rule: Fill) {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
     use schemas::Plane;
     const X: f32 = INVALID_DISPARITY;
 
@@ -326,13 +328,8 @@ mod tests {
 
     #[test]
     fn region_removal_equals_one_flood_fill_on_random_maps() {
-        let mut s = 0x2545_f491_4f6c_dd1du64;
-        let mut next = move || {
-            s ^= s << 13;
-            s ^= s >> 7;
-            s ^= s << 17;
-            s
-        };
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let mut next = move || rng.random::<u64>();
         // Tall maps, so several bands and seams are crossed by regions of every shape.
         for (w, h, min) in [
             (1, 1, 2),
