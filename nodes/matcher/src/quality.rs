@@ -273,7 +273,7 @@ pub fn match_quality(left: &Plane<u8>, right: &Plane<u8>, p: &QualityParams) -> 
     let cost = cost_volume(left, right, p);
     #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
     if simd_applies(p) && simd::rows_fit(w, nd, p.range.min) {
-        let (dl, dr) = meeting_sweeps(&cost, left, w, h, nd, p);
+        let (dl, dr) = meeting_sweeps(&cost, left, p);
         return QualityMatch {
             left: dl,
             right: dr,
@@ -281,8 +281,8 @@ pub fn match_quality(left: &Plane<u8>, right: &Plane<u8>, p: &QualityParams) -> 
         };
     }
     let (s1, s2) = rayon::join(
-        || aggregate(&cost, left, w, h, nd, p, false),
-        || aggregate(&cost, left, w, h, nd, p, true),
+        || aggregate(&cost, left, p, false),
+        || aggregate(&cost, left, p, true),
     );
     let (dl, dr) = select(&s1, &s2, w, h, nd, p);
     QualityMatch {
@@ -294,15 +294,8 @@ pub fn match_quality(left: &Plane<u8>, right: &Plane<u8>, p: &QualityParams) -> 
 
 /// One SGM sweep over 4 paths. `backward` walks bottom-up, right-to-left, which mirrors
 /// the four forward paths (left, top-left, top, top-right) onto the other four.
-fn aggregate(
-    cost: &[u8],
-    img: &Plane<u8>,
-    w: usize,
-    h: usize,
-    nd: usize,
-    p: &QualityParams,
-    backward: bool,
-) -> Vec<u16> {
+fn aggregate(cost: &[u8], img: &Plane<u8>, p: &QualityParams, backward: bool) -> Vec<u16> {
+    let (w, h, nd) = (img.width, img.height, p.range.count());
     let mut sum = vec![0u16; w * h * nd];
     let diagonals = p.paths >= 8;
     // Lr rows for the paths from the previous row (top-left, top, top-right) and the
@@ -389,14 +382,8 @@ fn aggregate(
 /// second adds its own and decides the row at once. No full volume of sums is ever
 /// written, and the decision runs inside the sweeps, half the rows on each thread.
 #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
-fn meeting_sweeps(
-    cost: &[u8],
-    img: &Plane<u8>,
-    w: usize,
-    h: usize,
-    nd: usize,
-    p: &QualityParams,
-) -> (DisparityMap, DisparityMap) {
+fn meeting_sweeps(cost: &[u8], img: &Plane<u8>, p: &QualityParams) -> (DisparityMap, DisparityMap) {
+    let (w, h, nd) = (img.width, img.height, p.range.count());
     use std::sync::Mutex;
     type Decided = Vec<(usize, Vec<f32>, Vec<f32>)>;
     let slots: Vec<Mutex<Option<Vec<u16>>>> = (0..h).map(|_| Mutex::new(None)).collect();
@@ -404,7 +391,7 @@ fn meeting_sweeps(
     let run = |backward: bool| -> Decided {
         let mut decided = Vec::new();
         let mut buf = Vec::new();
-        simd::sweep(cost, img, w, h, nd, p, backward, |y, mut row| {
+        simd::sweep(cost, img, p, backward, |y, mut row| {
             let other = {
                 let mut slot = slots[y].lock().unwrap_or_else(|e| e.into_inner());
                 match slot.take() {
@@ -420,7 +407,7 @@ fn meeting_sweeps(
             }
             let mut lrow = vec![INVALID_DISPARITY; w];
             let mut rrow = vec![INVALID_DISPARITY; w];
-            simd::select_row(&row, ndp, w, nd, p, &mut buf, &mut lrow, &mut rrow);
+            simd::select_row(&row, ndp, p, &mut buf, &mut lrow, &mut rrow);
             decided.push((y, lrow, rrow));
             // The other sweep's buffer is free now: it serves the next row.
             other
@@ -501,7 +488,7 @@ fn select(
                 for i in 0..w * nd {
                     total[i] = s1[o + i].wrapping_add(s2[o + i]);
                 }
-                select_row(total, w, nd, p, buf, lrow, rrow);
+                select_row(total, p, buf, lrow, rrow);
             },
         );
     let plane = |data| Plane {
@@ -512,18 +499,17 @@ fn select(
     (plane(left), plane(right))
 }
 
-/// Decides one row from its summed path costs `total` (`w · nd`): the left-based map from
-/// each pixel's disparities, the right-based one along the diagonals. `buf` is scratch.
-#[allow(clippy::too_many_arguments)]
+/// Decides one row from its summed path costs `total` (`w · nd`, `w` the length of the
+/// output rows): the left-based map from each pixel's disparities, the right-based one
+/// along the diagonals. `buf` is scratch.
 fn select_row(
     total: &[u16],
-    w: usize,
-    nd: usize,
     p: &QualityParams,
     buf: &mut Vec<u16>,
     lrow: &mut [f32],
     rrow: &mut [f32],
 ) {
+    let (w, nd) = (lrow.len(), p.range.count());
     buf.resize(nd, 0);
     let dmin = p.range.min;
     // Left-based: every disparity whose right pixel exists.
@@ -615,8 +601,8 @@ mod tests {
                 };
                 for backward in [false, true] {
                     assert_eq!(
-                        simd::aggregate(&cost, &img, w, h, nd, &p, backward),
-                        aggregate(&cost, &img, w, h, nd, &p, backward),
+                        simd::aggregate(&cost, &img, &p, backward),
+                        aggregate(&cost, &img, &p, backward),
                         "nd {nd} paths {paths} backward {backward}"
                     );
                 }
@@ -690,8 +676,8 @@ mod tests {
             let (mut l1, mut r1) = (vec![INVALID_DISPARITY; w], vec![INVALID_DISPARITY; w]);
             let (mut l2, mut r2) = (l1.clone(), r1.clone());
             let mut buf = Vec::new();
-            simd::select_row(&total, nd, w, nd, &p, &mut buf, &mut l1, &mut r1);
-            select_row(&total, w, nd, &p, &mut buf, &mut l2, &mut r2);
+            simd::select_row(&total, nd, &p, &mut buf, &mut l1, &mut r1);
+            select_row(&total, &p, &mut buf, &mut l2, &mut r2);
             let same = |a: &[f32], b: &[f32]| {
                 a.iter()
                     .zip(b)
@@ -759,8 +745,8 @@ mod tests {
             };
             let fast = match_quality(&left, &right, &p);
             let cost = cost_volume(&left, &right, &p);
-            let s1 = aggregate(&cost, &left, w, h, nd, &p, false);
-            let s2 = aggregate(&cost, &left, w, h, nd, &p, true);
+            let s1 = aggregate(&cost, &left, &p, false);
+            let s2 = aggregate(&cost, &left, &p, true);
             let mut buf = Vec::new();
             for y in 0..h {
                 let o = y * w * nd;
@@ -768,7 +754,7 @@ mod tests {
                     .map(|i| s1[o + i].wrapping_add(s2[o + i]))
                     .collect();
                 let (mut l, mut r) = (vec![INVALID_DISPARITY; w], vec![INVALID_DISPARITY; w]);
-                select_row(&total, w, nd, &p, &mut buf, &mut l, &mut r);
+                select_row(&total, &p, &mut buf, &mut l, &mut r);
                 let same = |a: &[f32], b: &[f32]| {
                     a.iter()
                         .zip(b)

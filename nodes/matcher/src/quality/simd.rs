@@ -308,17 +308,15 @@ fn finish(f: &[[i16; 16]; 5], lane: usize, uniqueness: u16, dmin: i32) -> Option
 /// [`super::select_row`] with the row transposed to disparity-major order, so that
 /// both maps are decided 16 pixels at a time (lanes = pixels). Pixel `x`'s sums start
 /// at `total[x · tstride]`; `mt` is scratch.
-#[allow(clippy::too_many_arguments)]
 pub fn select_row(
     total: &[u16],
     tstride: usize,
-    w: usize,
-    nd: usize,
     p: &QualityParams,
     mt: &mut Vec<u16>,
     lrow: &mut [f32],
     rrow: &mut [f32],
 ) {
+    let (w, nd) = (lrow.len(), p.range.count());
     let dmin = p.range.min;
     let u = p.uniqueness_ratio;
     let w16 = w.div_ceil(16) * 16;
@@ -403,18 +401,11 @@ pub fn select_row(
 
 /// See [`super::aggregate`]; identical output.
 #[cfg(test)]
-pub fn aggregate(
-    cost: &[u8],
-    img: &Plane<u8>,
-    w: usize,
-    h: usize,
-    nd: usize,
-    p: &QualityParams,
-    backward: bool,
-) -> Vec<u16> {
+pub fn aggregate(cost: &[u8], img: &Plane<u8>, p: &QualityParams, backward: bool) -> Vec<u16> {
+    let (w, h, nd) = (img.width, img.height, p.range.count());
     let mut sum = vec![0u16; w * h * nd];
     let ndp = nd.div_ceil(16) * 16;
-    sweep(cost, img, w, h, nd, p, backward, |y, row| {
+    sweep(cost, img, p, backward, |y, row| {
         for x in 0..w {
             let o = (y * w + x) * nd;
             sum[o..o + nd].copy_from_slice(&row[x * ndp..x * ndp + nd]);
@@ -427,17 +418,14 @@ pub fn aggregate(
 /// One SGM sweep over 4 paths (see [`super::aggregate`]). Each finished image row
 /// (path sums in image order, `nd.div_ceil(16) · 16` per pixel) goes to
 /// `row_done(y, row)`, which hands back a buffer of the same size for the next row.
-#[allow(clippy::too_many_arguments)]
 pub fn sweep(
     cost: &[u8],
     img: &Plane<u8>,
-    w: usize,
-    h: usize,
-    nd: usize,
     p: &QualityParams,
     backward: bool,
     mut row_done: impl FnMut(usize, Vec<u16>) -> Vec<u16>,
 ) {
+    let (w, h, nd) = (img.width, img.height, p.range.count());
     let nvec = nd.div_ceil(16);
     let ndp = nvec * 16;
     let stride = ndp + 2;
