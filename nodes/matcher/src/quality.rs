@@ -30,7 +30,8 @@ pub struct QualityParams {
     pub gradient_weight: u16,
     /// Truncation of the gradient difference.
     pub gradient_cap: u16,
-    /// Percent margin by which the best cost must beat every non-neighbour disparity.
+    /// Percent margin by which the best cost must beat every non-neighbour disparity
+    /// (100 or more rejects every pixel that has a rival and a best cost above 0).
     pub uniqueness_ratio: u16,
     /// Aggregation paths: 4 (horizontal + vertical) or 8 (with diagonals).
     pub paths: u8,
@@ -544,7 +545,6 @@ fn simd_applies(p: &QualityParams) -> bool {
     cfg!(all(target_arch = "x86_64", target_feature = "avx2"))
         && p.p1 <= MAX_SIMD_PENALTY
         && p.p2 <= MAX_SIMD_PENALTY
-        && p.uniqueness_ratio <= 100
 }
 
 /// Largest P1/P2 the SIMD path accepts (see [`simd_applies`]).
@@ -562,7 +562,7 @@ fn decide(t: &[u16], lo: usize, uniqueness: u16, dmin: i32) -> f32 {
     }
     let u = uniqueness as u32;
     for (i, &v) in t.iter().enumerate() {
-        if i.abs_diff(bi) > 1 && (v as u32) * (100 - u) < (best as u32) * 100 {
+        if i.abs_diff(bi) > 1 && (v as u32) * 100u32.saturating_sub(u) < (best as u32) * 100 {
             return INVALID_DISPARITY;
         }
     }

@@ -291,7 +291,7 @@ fn finish(f: &[[i16; 16]; 5], lane: usize, uniqueness: u16, dmin: i32) -> Option
         return None;
     }
     let u = uniqueness as u32;
-    if rival != NONE && (rival as u32) * (100 - u) < (best as u32) * 100 {
+    if rival != NONE && (rival as u32) * 100u32.saturating_sub(u) < (best as u32) * 100 {
         return Some(schemas::INVALID_DISPARITY);
     }
     let mut d = bi as f32 + dmin as f32;
