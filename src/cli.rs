@@ -635,8 +635,10 @@ fn bench(a: BenchArgs) -> Result<(), CliError> {
             let cfg = StereoConfig::new(mode, *range);
             let mut runs = Vec::new();
             let mut evals = 0;
+            // As a live node does: one workspace for the whole stream of frames.
+            let mut ws = pipeline::Workspace::default();
             for _ in 0..a.repeat.max(1) {
-                let out = pipeline::run_stereo(l, r, &cfg)?;
+                let out = pipeline::run_stereo_in(&mut ws, l, r, &cfg)?;
                 evals = out.evaluations;
                 runs.push(out.times);
             }

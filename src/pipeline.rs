@@ -82,8 +82,16 @@ pub struct StereoOutput {
     pub evaluations: u64,
 }
 
+/// Buffers a stream of stereo runs keeps from one frame to the next (a live graph node, a
+/// benchmark); one-shot callers pass a fresh one.
+#[derive(Debug, Default)]
+pub struct Workspace {
+    quality: matcher::QualityWorkspace,
+}
+
 /// Runs the matching stages (both directions) only.
 pub fn match_pair(
+    ws: &mut Workspace,
     left: &Plane<u8>,
     right: &Plane<u8>,
     cfg: &StereoConfig,
@@ -106,7 +114,9 @@ pub fn match_pair(
                 range: cfg.range,
                 ..cfg.quality.clone()
             };
-            let m = times.time("match", || matcher::match_quality(left, right, &p));
+            let m = times.time("match", || {
+                matcher::match_quality_in(&mut ws.quality, left, right, &p)
+            });
             (m.left, m.right, m.evaluations)
         }
     })
@@ -118,8 +128,18 @@ pub fn run_stereo(
     right: &Plane<u8>,
     cfg: &StereoConfig,
 ) -> Result<StereoOutput, InputError> {
+    run_stereo_in(&mut Workspace::default(), left, right, cfg)
+}
+
+/// Runs the whole chain on a rectified grey pair in the buffers of `ws`.
+pub fn run_stereo_in(
+    ws: &mut Workspace,
+    left: &Plane<u8>,
+    right: &Plane<u8>,
+    cfg: &StereoConfig,
+) -> Result<StereoOutput, InputError> {
     let mut times = StageTimes::default();
-    let (ml, mr, evaluations) = match_pair(left, right, cfg, &mut times)?;
+    let (ml, mr, evaluations) = match_pair(ws, left, right, cfg, &mut times)?;
     let checked = times.time("validate", || {
         validate::lr_check(&ml, &mr, cfg.lr_tolerance)
     });
@@ -175,13 +195,14 @@ pub fn auto_range(
     ranges: &[DisparityRange],
 ) -> Result<(DisparityRange, Vec<RangeScore>), InputError> {
     let mut curve = Vec::new();
+    let mut ws = Workspace::default();
     for &range in ranges {
         let c = StereoConfig {
             range,
             ..cfg.clone()
         };
         let mut t = StageTimes::default();
-        let (ml, mr, _) = match_pair(left, right, &c, &mut t)?;
+        let (ml, mr, _) = match_pair(&mut ws, left, right, &c, &mut t)?;
         let checked = validate::lr_check(&ml, &mr, cfg.lr_tolerance);
         // Pixels that have at least one candidate: the right pixel x − d exists for some d.
         let w = left.width as i64;

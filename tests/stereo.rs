@@ -107,7 +107,8 @@ fn left_and_right_directions_agree_on_a_plain_shift() {
     for mode in [Mode::Paper, Mode::Quality] {
         let cfg = StereoConfig::new(mode, DisparityRange::new(0, 12));
         let mut t = runtime::StageTimes::default();
-        let (l, r, _) = pipeline::match_pair(&s.left, &s.right, &cfg, &mut t).unwrap();
+        let (l, r, _) =
+            pipeline::match_pair(&mut Default::default(), &s.left, &s.right, &cfg, &mut t).unwrap();
         let check = |m: &Plane<f32>, skip_left: usize, skip_right: usize| {
             for y in 8..82 {
                 for x in skip_left..120 - skip_right {

@@ -22,7 +22,7 @@ pub mod quality;
 pub mod sv;
 
 pub use paper::{Directions, PaperMatch, PaperParams, match_paper};
-pub use quality::{QualityParams, match_quality};
+pub use quality::{QualityParams, QualityWorkspace, match_quality, match_quality_in};
 pub use sv::{SvKernel, Weights};
 
 use schemas::{DisparityRange, Plane};

@@ -139,18 +139,20 @@ fn sobel_x(img: &Plane<u8>) -> Plane<i16> {
     }
 }
 
-/// Matching cost volume `[y][x][d]` (u8); disparities whose right pixel falls outside the
-/// image get [`COST_OUTSIDE`].
-fn cost_volume(left: &Plane<u8>, right: &Plane<u8>, p: &QualityParams) -> Vec<u8> {
+/// Matching cost volume `[y][x][d]` (u8) into `cost`; disparities whose right pixel falls
+/// outside the image get [`COST_OUTSIDE`].
+fn cost_volume(left: &Plane<u8>, right: &Plane<u8>, p: &QualityParams, cost: &mut Vec<u8>) {
     let (w, h) = (left.width, left.height);
     let nd = p.range.count();
     let ((cl, cr), (gl, gr)) = rayon::join(
         || rayon::join(|| census(left), || census(right)),
         || rayon::join(|| sobel_x(left), || sobel_x(right)),
     );
-    // Zeroed (fresh pages from the kernel, no fill pass); every entry is written below,
-    // disparities outside the image included, by the threads that own the rows.
-    let mut cost = vec![0u8; w * h * nd];
+    // Every entry is written below, disparities outside the image included, by the
+    // threads that own the rows: a volume of the right size is reused as it is.
+    if cost.len() != w * h * nd {
+        *cost = vec![0u8; w * h * nd];
+    }
     let gw = p.gradient_weight;
     let cap = p.gradient_cap;
     cost.par_chunks_mut(w * nd)
@@ -174,7 +176,6 @@ fn cost_volume(left: &Plane<u8>, right: &Plane<u8>, p: &QualityParams) -> Vec<u8
                 r.cells(x, 0..nd, &mut row[x * nd..(x + 1) * nd]);
             }
         });
-    cost
 }
 
 /// The inputs of one row of the cost volume.
@@ -267,14 +268,35 @@ impl CostRow<'_> {
 /// Cost given to disparities that point outside the right image.
 pub const COST_OUTSIDE: u8 = 160;
 
-/// Matches a rectified grey pair (checked with [`crate::check_inputs`]).
+/// Buffers the quality matcher keeps from one frame to the next. The cost volume is
+/// `w·h·n` bytes (84 MB at 1280×1024 and 64 disparities): faulting fresh pages in for it
+/// every frame took longer than computing it, so a stream of frames reuses one.
+#[derive(Debug, Default)]
+pub struct QualityWorkspace {
+    cost: Vec<u8>,
+}
+
+/// Matches a rectified grey pair (checked with [`crate::check_inputs`]), with buffers
+/// allocated for this call alone; [`match_quality_in`] reuses them across frames.
 pub fn match_quality(left: &Plane<u8>, right: &Plane<u8>, p: &QualityParams) -> QualityMatch {
+    match_quality_in(&mut QualityWorkspace::default(), left, right, p)
+}
+
+/// Matches a rectified grey pair (checked with [`crate::check_inputs`]) in the buffers of
+/// `ws`, which keep their size for the next frame.
+pub fn match_quality_in(
+    ws: &mut QualityWorkspace,
+    left: &Plane<u8>,
+    right: &Plane<u8>,
+    p: &QualityParams,
+) -> QualityMatch {
     let (w, h) = (left.width, left.height);
     let nd = p.range.count();
-    let cost = cost_volume(left, right, p);
+    cost_volume(left, right, p, &mut ws.cost);
+    let cost = &ws.cost;
     #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
     if simd_applies(p) && simd::rows_fit(w, nd, p.range.min) {
-        let (dl, dr) = meeting_sweeps(&cost, left, p);
+        let (dl, dr) = meeting_sweeps(cost, left, p);
         return QualityMatch {
             left: dl,
             right: dr,
@@ -282,8 +304,8 @@ pub fn match_quality(left: &Plane<u8>, right: &Plane<u8>, p: &QualityParams) -> 
         };
     }
     let (s1, s2) = rayon::join(
-        || aggregate(&cost, left, p, false),
-        || aggregate(&cost, left, p, true),
+        || aggregate(cost, left, p, false),
+        || aggregate(cost, left, p, true),
     );
     let (dl, dr) = select(&s1, &s2, w, h, nd, p);
     QualityMatch {
@@ -744,7 +766,8 @@ mod tests {
                 ..Default::default()
             };
             let fast = match_quality(&left, &right, &p);
-            let cost = cost_volume(&left, &right, &p);
+            let mut cost = Vec::new();
+            cost_volume(&left, &right, &p, &mut cost);
             let s1 = aggregate(&cost, &left, &p, false);
             let s2 = aggregate(&cost, &left, &p, true);
             let mut buf = Vec::new();
@@ -771,5 +794,33 @@ mod tests {
             }
             assert!(fast.left.data.iter().filter(|d| d.is_finite()).count() > w * h / 4);
         }
+    }
+
+    #[test]
+    fn a_reused_workspace_gives_the_fresh_result() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let (w, h) = (57, 33);
+        let mut pair = || {
+            let l: Vec<u8> = (0..w * h).map(|_| rng.random::<u8>()).collect();
+            let r: Vec<u8> = (0..w * h).map(|i| l[(i + 2).min(w * h - 1)]).collect();
+            (
+                Plane::from_vec(w, h, l).unwrap(),
+                Plane::from_vec(w, h, r).unwrap(),
+            )
+        };
+        let (a, b) = (pair(), pair());
+        let p = QualityParams {
+            range: DisparityRange::new(-2, 17),
+            ..Default::default()
+        };
+        let mut ws = QualityWorkspace::default();
+        match_quality_in(&mut ws, &a.0, &a.1, &p);
+        // Same size: the second frame runs in the first frame's buffers.
+        let reused = match_quality_in(&mut ws, &b.0, &b.1, &p);
+        let fresh = match_quality(&b.0, &b.1, &p);
+        let bits = |m: &DisparityMap| m.data.iter().map(|d| d.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&reused.left), bits(&fresh.left));
+        assert_eq!(bits(&reused.right), bits(&fresh.right));
+        assert!(fresh.left.data.iter().filter(|d| d.is_finite()).count() > w * h / 2);
     }
 }
