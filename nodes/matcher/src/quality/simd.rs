@@ -100,6 +100,38 @@ impl Kernel {
         }
     }
 
+    /// [`Kernel::paths`], through the fully unrolled [`step_paths`] for the common
+    /// disparity counts 64 and 128.
+    #[inline(always)]
+    fn step<const N: usize>(
+        &self,
+        c: &[u8],
+        from: [(&[i16], i16, i16); N],
+        p1: i16,
+        outs: [&mut [i16]; N],
+        acc: &mut [u16],
+    ) -> [i16; N] {
+        if self.nd != 64 && self.nd != 128 {
+            return self.paths(c, from, p1, outs, acc);
+        }
+        let n = self.nd;
+        assert!(c.len() >= n && acc.len() >= n);
+        assert!(from.iter().all(|f| f.0.len() >= n + 2) && outs.iter().all(|o| o.len() >= n + 2));
+        let lps = from.map(|f| f.0.as_ptr());
+        let mins = from.map(|f| f.1);
+        let p2s = from.map(|f| f.2);
+        let outs = outs.map(|o| o.as_mut_ptr());
+        // SAFETY: costs and sum hold nd values, every predecessor and output nd + 2
+        // (asserted above); AVX2 is enabled for this build.
+        unsafe {
+            if n == 64 {
+                step_paths::<4, N>(c.as_ptr(), lps, mins, p2s, p1, outs, acc.as_mut_ptr())
+            } else {
+                step_paths::<8, N>(c.as_ptr(), lps, mins, p2s, p1, outs, acc.as_mut_ptr())
+            }
+        }
+    }
+
     /// The last partial vector's costs, zero-padded (unused when nd is a multiple of 16).
     #[inline(always)]
     fn pad(&self, c: &[u8]) -> [u8; 16] {
@@ -116,67 +148,46 @@ fn p2_between(lut: &[i16], a: u8, b: u8) -> i16 {
     lut[a.abs_diff(b) as usize]
 }
 
-/// The 8-path step of one pixel for exactly `16 · NV` disparities, written out path by
-/// path so that the per-path constants and minima stay in registers.
+/// The step of `NP` paths of one pixel for exactly `16 · NV` disparities: both counts
+/// are constants, so the loops unroll and the per-path constants and minima stay in
+/// registers.
 ///
 /// # Safety
 /// `c` and `acc` point at `16 · NV` values, every `lp` and `out` at `16 · NV + 2`.
 #[inline(always)]
-unsafe fn step4<const NV: usize>(
+unsafe fn step_paths<const NV: usize, const NP: usize>(
     c: *const u8,
-    lp: [*const i16; 4],
-    mins: [i16; 4],
-    p2s: [i16; 4],
+    lp: [*const i16; NP],
+    mins: [i16; NP],
+    p2s: [i16; NP],
     p1: i16,
-    out: [*mut i16; 4],
+    out: [*mut i16; NP],
     acc: *mut u16,
-) -> [i16; 4] {
+) -> [i16; NP] {
     // SAFETY: the caller's promise; AVX2 is enabled for this build.
     unsafe {
         let p1v = _mm256_set1_epi16(p1);
-        let (j0, j1, j2, j3) = (
-            _mm256_set1_epi16(mins[0] + p2s[0]),
-            _mm256_set1_epi16(mins[1] + p2s[1]),
-            _mm256_set1_epi16(mins[2] + p2s[2]),
-            _mm256_set1_epi16(mins[3] + p2s[3]),
-        );
-        let (m0, m1, m2, m3) = (
-            _mm256_set1_epi16(mins[0]),
-            _mm256_set1_epi16(mins[1]),
-            _mm256_set1_epi16(mins[2]),
-            _mm256_set1_epi16(mins[3]),
-        );
-        let big = _mm256_set1_epi16(BIG);
-        let (mut n0, mut n1, mut n2, mut n3) = (big, big, big, big);
-        macro_rules! path {
-            ($i:literal, $k:ident, $cv:ident, $jump:ident, $minv:ident, $mn:ident, $sum:ident) => {{
-                let base = lp[$i].add($k * 16);
+        let jump: [__m256i; NP] = std::array::from_fn(|j| _mm256_set1_epi16(mins[j] + p2s[j]));
+        let minv: [__m256i; NP] = std::array::from_fn(|j| _mm256_set1_epi16(mins[j]));
+        let mut mn = [_mm256_set1_epi16(BIG); NP];
+        for k in 0..NV {
+            let cv = _mm256_cvtepu8_epi16(_mm_loadu_si128(c.add(k * 16) as *const __m128i));
+            let mut sum = _mm256_setzero_si256();
+            for j in 0..NP {
+                let base = lp[j].add(k * 16);
                 let a = _mm256_loadu_si256(base as *const __m256i);
                 let m = _mm256_loadu_si256(base.add(1) as *const __m256i);
                 let b = _mm256_loadu_si256(base.add(2) as *const __m256i);
                 let nb = _mm256_add_epi16(_mm256_min_epi16(a, b), p1v);
-                let v = _mm256_min_epi16(_mm256_min_epi16(m, nb), $jump);
-                let v = _mm256_add_epi16($cv, _mm256_sub_epi16(v, $minv));
-                _mm256_storeu_si256(out[$i].add(1 + $k * 16) as *mut __m256i, v);
-                $mn = _mm256_min_epi16($mn, v);
-                $sum = _mm256_add_epi16($sum, v);
-            }};
-        }
-        for k in 0..NV {
-            let cv = _mm256_cvtepu8_epi16(_mm_loadu_si128(c.add(k * 16) as *const __m128i));
-            let mut sum = _mm256_setzero_si256();
-            path!(0, k, cv, j0, m0, n0, sum);
-            path!(1, k, cv, j1, m1, n1, sum);
-            path!(2, k, cv, j2, m2, n2, sum);
-            path!(3, k, cv, j3, m3, n3, sum);
+                let v = _mm256_min_epi16(_mm256_min_epi16(m, nb), jump[j]);
+                let v = _mm256_add_epi16(cv, _mm256_sub_epi16(v, minv[j]));
+                _mm256_storeu_si256(out[j].add(1 + k * 16) as *mut __m256i, v);
+                mn[j] = _mm256_min_epi16(mn[j], v);
+                sum = _mm256_add_epi16(sum, v);
+            }
             _mm256_storeu_si256(acc.add(k * 16) as *mut __m256i, sum);
         }
-        [
-            Kernel::hmin(n0),
-            Kernel::hmin(n1),
-            Kernel::hmin(n2),
-            Kernel::hmin(n3),
-        ]
+        std::array::from_fn(|j| Kernel::hmin(mn[j]))
     }
 }
 
@@ -489,40 +500,10 @@ pub fn sweep(
             };
             let top: (&[i16], i16, i16) = from_row!(1, Some(x));
             let o = x * stride..(x + 1) * stride;
-            if diagonals && (nd == 64 || nd == 128) {
+            if diagonals {
                 let tl = from_row!(0, x.checked_sub(1));
                 let tr = from_row!(2, (x + 1 < w).then_some(x + 1));
-                let from = [left, tl, top, tr];
-                for (lp, _, _) in &from {
-                    assert!(lp.len() >= stride);
-                }
-                assert!(c.len() == nd && acc.len() == nd && scratch.len() == stride);
-                let outs = [
-                    scratch.as_mut_ptr(),
-                    c0[o.clone()].as_mut_ptr(),
-                    c1[o.clone()].as_mut_ptr(),
-                    c2[o].as_mut_ptr(),
-                ];
-                let lps = from.map(|f| f.0.as_ptr());
-                let mins = from.map(|f| f.1);
-                let p2s = from.map(|f| f.2);
-                // SAFETY: every predecessor and output holds `stride` = nd + 2 values,
-                // the costs and the sum nd (asserted above); AVX2 is enabled.
-                let m = unsafe {
-                    if nd == 64 {
-                        step4::<4>(c.as_ptr(), lps, mins, p2s, p1, outs, acc.as_mut_ptr())
-                    } else {
-                        step4::<8>(c.as_ptr(), lps, mins, p2s, p1, outs, acc.as_mut_ptr())
-                    }
-                };
-                left_min = m[0];
-                cur_min[0][x] = m[1];
-                cur_min[1][x] = m[2];
-                cur_min[2][x] = m[3];
-            } else if diagonals {
-                let tl = from_row!(0, x.checked_sub(1));
-                let tr = from_row!(2, (x + 1 < w).then_some(x + 1));
-                let m = kern.paths(
+                let m = kern.step(
                     c,
                     [left, tl, top, tr],
                     p1,
@@ -539,7 +520,7 @@ pub fn sweep(
                 cur_min[1][x] = m[2];
                 cur_min[2][x] = m[3];
             } else {
-                let m = kern.paths(c, [left, top], p1, [&mut scratch, &mut c1[o]], acc);
+                let m = kern.step(c, [left, top], p1, [&mut scratch, &mut c1[o]], acc);
                 left_min = m[0];
                 cur_min[1][x] = m[1];
             }
