@@ -4,18 +4,20 @@
 //! differences between two microscope cameras) plus a truncated difference of horizontal
 //! gradients (sharpens depth edges). Aggregation: Hirschmüller's SGM over 8 paths, with the
 //! large-jump penalty P2 lowered across intensity edges. Two passes (top-down and
-//! bottom-up, four paths each) run in parallel and meet: whichever finishes an image row
-//! second adds the other's sums and decides the row. Decision: winner-takes-all with a
+//! bottom-up, four paths each) run in parallel and meet: whichever reaches an image row
+//! second adds the other's sums into its own and decides the row. Decision: winner-takes-all with a
 //! uniqueness ratio and a sub-pixel parabola; the right-based map is read from the same
 //! sums along their diagonals, so the LR check costs no second matching.
 //!
 //! With AVX2 (every build of this project) the sweeps run 16 disparities per
-//! instruction and the decision 16 pixels per instruction; the plain versions remain for
-//! penalties beyond the SIMD limits and as the reference the tests compare against.
+//! instruction and the decision 16 pixels per instruction; where the CPU has AVX-512BW
+//! (checked at run time) 32 of each. The plain versions remain for penalties beyond the
+//! SIMD limits and as the reference the tests compare against.
 
 use rayon::prelude::*;
 use schemas::{DisparityMap, DisparityRange, INVALID_DISPARITY, Plane};
 use serde::{Deserialize, Serialize};
+use std::sync::{Mutex, MutexGuard};
 
 /// Parameters of the quality matcher.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -274,6 +276,9 @@ pub const COST_OUTSIDE: u8 = 160;
 #[derive(Debug, Default)]
 pub struct QualityWorkspace {
     cost: Vec<u8>,
+    /// Row buffers of path sums: the sweeps leave half the image's rows behind for each
+    /// other (168 MB at 1280×1024), which cost as much to fault in as the cost volume.
+    rows: Vec<Vec<u16>>,
 }
 
 /// Matches a rectified grey pair (checked with [`crate::check_inputs`]), with buffers
@@ -296,7 +301,7 @@ pub fn match_quality_in(
     let cost = &ws.cost;
     #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
     if simd_applies(p) && simd::rows_fit(w, nd, p.range.min) {
-        let (dl, dr) = meeting_sweeps(cost, left, p);
+        let (dl, dr) = meeting_sweeps(cost, left, p, &mut ws.rows);
         return QualityMatch {
             left: dl,
             right: dr,
@@ -401,43 +406,39 @@ fn aggregate(cost: &[u8], img: &Plane<u8>, p: &QualityParams, backward: bool) ->
 }
 
 /// The top-down and the bottom-up sweep run side by side and meet: for each image row,
-/// the sweep that finishes it first leaves its path sums in the row's slot, and the
-/// second adds its own and decides the row at once. No full volume of sums is ever
-/// written, and the decision runs inside the sweeps, half the rows on each thread.
+/// the sweep that reaches it first leaves its path sums in the row's slot, and the
+/// second adds them into its own (while it computes the row, when they are there in
+/// time) and decides the row at once. The decision runs inside the sweeps, half the
+/// rows on each thread. `rows` keeps the row buffers for the next frame.
 #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
-fn meeting_sweeps(cost: &[u8], img: &Plane<u8>, p: &QualityParams) -> (DisparityMap, DisparityMap) {
+fn meeting_sweeps(
+    cost: &[u8],
+    img: &Plane<u8>,
+    p: &QualityParams,
+    rows: &mut Vec<Vec<u16>>,
+) -> (DisparityMap, DisparityMap) {
     let (w, h, nd) = (img.width, img.height, p.range.count());
-    use std::sync::Mutex;
-    type Decided = Vec<(usize, Vec<f32>, Vec<f32>)>;
-    let slots: Vec<Mutex<Option<Vec<u16>>>> = (0..h).map(|_| Mutex::new(None)).collect();
     let ndp = nd.div_ceil(16) * 16;
-    let run = |backward: bool| -> Decided {
-        let mut decided = Vec::new();
-        let mut buf = Vec::new();
-        simd::sweep(cost, img, p, backward, |y, mut row| {
-            let other = {
-                let mut slot = slots[y].lock().unwrap_or_else(|e| e.into_inner());
-                match slot.take() {
-                    Some(other) => other,
-                    None => {
-                        *slot = Some(row);
-                        return vec![0u16; w * ndp];
-                    }
-                }
-            };
-            for (a, b) in row.iter_mut().zip(&other) {
-                *a = a.wrapping_add(*b);
-            }
-            let mut lrow = vec![INVALID_DISPARITY; w];
-            let mut rrow = vec![INVALID_DISPARITY; w];
-            simd::select_row(&row, ndp, p, &mut buf, &mut lrow, &mut rrow);
-            decided.push((y, lrow, rrow));
-            // The other sweep's buffer is free now: it serves the next row.
-            other
-        });
-        decided
+    rows.retain(|r| r.len() == w * ndp);
+    let shared = Meeting {
+        slots: (0..h).map(|_| Mutex::new(None)).collect(),
+        pool: Mutex::new(std::mem::take(rows)),
+        w,
+        ndp,
+    };
+    let run = |backward: bool| {
+        let mut side = MeetingSide {
+            shared: &shared,
+            p,
+            decided: Vec::new(),
+            scratch: Vec::new(),
+        };
+        let last = simd::sweep(cost, img, p, backward, shared.buffer(), &mut side);
+        lock(&shared.pool).push(last);
+        side.decided
     };
     let (a, b) = rayon::join(|| run(false), || run(true));
+    *rows = shared.pool.into_inner().unwrap_or_else(|e| e.into_inner());
     let mut left = vec![INVALID_DISPARITY; w * h];
     let mut right = vec![INVALID_DISPARITY; w * h];
     for (y, l, r) in a.into_iter().chain(b) {
@@ -450,6 +451,102 @@ fn meeting_sweeps(cost: &[u8], img: &Plane<u8>, p: &QualityParams) -> (Disparity
         data,
     };
     (plane(left), plane(right))
+}
+
+#[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+/// Locks a mutex whether or not another thread panicked holding it (the data stay
+/// consistent: every critical section below is a plain move).
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// What the two sweeps of [`meeting_sweeps`] share.
+#[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+struct Meeting {
+    /// Per image row: the sums the first sweep to finish it left for the second.
+    slots: Vec<Mutex<Option<Vec<u16>>>>,
+    /// Free row buffers. Every value of a buffer is overwritten by the sweep, so none
+    /// needs clearing.
+    pool: Mutex<Vec<Vec<u16>>>,
+    /// Row width.
+    w: usize,
+    /// Values per pixel in a row buffer.
+    ndp: usize,
+}
+
+#[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+impl Meeting {
+    /// A free row buffer.
+    fn buffer(&self) -> Vec<u16> {
+        lock(&self.pool)
+            .pop()
+            .unwrap_or_else(|| vec![0u16; self.w * self.ndp])
+    }
+}
+
+/// One sweep's end of a [`Meeting`]: the rows it decided.
+#[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+struct MeetingSide<'a> {
+    shared: &'a Meeting,
+    p: &'a QualityParams,
+    decided: Vec<(usize, Vec<f32>, Vec<f32>)>,
+    scratch: Vec<u16>,
+}
+
+#[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+impl MeetingSide<'_> {
+    /// Decides row `y` from `total` (+ `other`).
+    fn decide(&mut self, y: usize, total: &[u16], other: Option<&[u16]>) {
+        let (w, ndp) = (self.shared.w, self.shared.ndp);
+        let mut lrow = vec![INVALID_DISPARITY; w];
+        let mut rrow = vec![INVALID_DISPARITY; w];
+        simd::select_row(
+            total,
+            other,
+            ndp,
+            self.p,
+            &mut self.scratch,
+            &mut lrow,
+            &mut rrow,
+        );
+        self.decided.push((y, lrow, rrow));
+    }
+}
+
+#[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+impl simd::Rows for &mut MeetingSide<'_> {
+    fn start(&mut self, y: usize) -> Option<Vec<u16>> {
+        lock(&self.shared.slots[y]).take()
+    }
+
+    fn done(&mut self, y: usize, row: Vec<u16>, added: Option<Vec<u16>>) -> Vec<u16> {
+        let other = match added {
+            Some(other) => {
+                // `row` is the total already.
+                self.decide(y, &row, None);
+                other
+            }
+            None => {
+                let mut slot = lock(&self.shared.slots[y]);
+                match slot.take() {
+                    // The other sweep finished the row while this one computed it.
+                    Some(other) => {
+                        drop(slot);
+                        self.decide(y, &row, Some(&other));
+                        other
+                    }
+                    None => {
+                        *slot = Some(row);
+                        drop(slot);
+                        return self.shared.buffer();
+                    }
+                }
+            }
+        };
+        // Both buffers are free now: one serves this sweep's next row.
+        lock(&self.shared.pool).push(other);
+        row
+    }
 }
 
 /// The AVX2 kernels: SGM sweep and row decision.
@@ -621,11 +718,14 @@ mod tests {
                     paths,
                     ..Default::default()
                 };
-                for backward in [false, true] {
+                // The AVX-512 kernel covers 64 and 128 disparities where the CPU has it.
+                let wide = (nd == 64 || nd == 128) && simd::has_avx512bw();
+                for (backward, wide) in [(false, false), (true, false), (false, wide), (true, wide)]
+                {
                     assert_eq!(
-                        simd::aggregate(&cost, &img, &p, backward),
+                        simd::aggregate(&cost, &img, &p, backward, wide),
                         aggregate(&cost, &img, &p, backward),
-                        "nd {nd} paths {paths} backward {backward}"
+                        "nd {nd} paths {paths} backward {backward} avx-512 {wide}"
                     );
                 }
             }
@@ -695,19 +795,31 @@ mod tests {
                     };
                 }
             }
-            let (mut l1, mut r1) = (vec![INVALID_DISPARITY; w], vec![INVALID_DISPARITY; w]);
-            let (mut l2, mut r2) = (l1.clone(), r1.clone());
+            let (mut l2, mut r2) = (vec![INVALID_DISPARITY; w], vec![INVALID_DISPARITY; w]);
             let mut buf = Vec::new();
-            simd::select_row(&total, nd, &p, &mut buf, &mut l1, &mut r1);
             select_row(&total, &p, &mut buf, &mut l2, &mut r2);
-            let same = |a: &[f32], b: &[f32]| {
-                a.iter()
-                    .zip(b)
-                    .all(|(x, y)| x == y || (x.is_infinite() && y.is_infinite()))
-            };
-            assert!(same(&l1, &l2), "left w {w} nd {nd} dmin {dmin}");
-            assert!(same(&r1, &r2), "right w {w} nd {nd} dmin {dmin}");
-            assert!(l1.iter().any(|d| d.is_finite()) && r1.iter().any(|d| d.is_finite()));
+            assert!(l2.iter().any(|d| d.is_finite()) && r2.iter().any(|d| d.is_finite()));
+            // The AVX2 decision, and the AVX-512 one where the CPU has it; the sums
+            // whole, or as two parts added on the way (the meeting sweeps' case).
+            let half: Vec<u16> = total.iter().map(|t| t / 2).collect();
+            let rest: Vec<u16> = total.iter().zip(&half).map(|(t, h)| t - h).collect();
+            for wide in [false, true] {
+                if wide && !simd::has_avx512bw() {
+                    continue;
+                }
+                for (sums, other) in [(&total[..], None), (&half[..], Some(&rest[..]))] {
+                    let (mut l1, mut r1) = (vec![INVALID_DISPARITY; w], vec![INVALID_DISPARITY; w]);
+                    simd::select_row_with(sums, other, nd, &p, &mut buf, &mut l1, &mut r1, wide);
+                    let same = |a: &[f32], b: &[f32]| {
+                        a.iter()
+                            .zip(b)
+                            .all(|(x, y)| x == y || (x.is_infinite() && y.is_infinite()))
+                    };
+                    let case = format!("w {w} nd {nd} dmin {dmin} avx-512 {wide}");
+                    assert!(same(&l1, &l2), "left {case}");
+                    assert!(same(&r1, &r2), "right {case}");
+                }
+            }
         }
     }
 
