@@ -70,7 +70,7 @@ pub fn postprocess(map: &DisparityMap, p: &PostParams) -> DisparityMap {
 /// Invalidates valid regions of fewer than `min_size` pixels (4-connected, neighbours
 /// joined when their disparities differ by at most `max_diff`). Returns pixels removed.
 ///
-/// Bands of rows are flood-filled in parallel, each into its own region labels; regions
+/// Bands of rows are labelled in parallel ([`label_band`]), each with its own labels; regions
 /// that touch across a band seam are then joined (union-find over the labels) and their
 /// sizes added before the small ones are dropped.
 pub fn remove_small_regions(map: &mut DisparityMap, min_size: usize, max_diff: f32) -> usize {
@@ -84,45 +84,7 @@ pub fn remove_small_regions(map: &mut DisparityMap, min_size: usize, max_diff: f
     // Per band: a label per pixel (u32::MAX = invalid) and the size of each label.
     let bands: Vec<(Vec<u32>, Vec<u32>)> = data
         .par_chunks(band_rows * w)
-        .map(|band| {
-            let bh = band.len() / w;
-            let mut label = vec![u32::MAX; band.len()];
-            let mut sizes = Vec::new();
-            let mut stack = Vec::new();
-            for start in 0..band.len() {
-                if label[start] != u32::MAX || !band[start].is_finite() {
-                    continue;
-                }
-                let id = sizes.len() as u32;
-                let mut size = 0;
-                label[start] = id;
-                stack.push(start);
-                while let Some(i) = stack.pop() {
-                    size += 1;
-                    let (x, y) = (i % w, i / w);
-                    let mut visit = |j: usize| {
-                        if label[j] == u32::MAX && joins(band[j], band[i]) {
-                            label[j] = id;
-                            stack.push(j);
-                        }
-                    };
-                    if x > 0 {
-                        visit(i - 1);
-                    }
-                    if x + 1 < w {
-                        visit(i + 1);
-                    }
-                    if y > 0 {
-                        visit(i - w);
-                    }
-                    if y + 1 < bh {
-                        visit(i + w);
-                    }
-                }
-                sizes.push(size);
-            }
-            (label, sizes)
-        })
+        .map(|band| label_band(band, w, &joins))
         .collect();
     // Global label = band offset + band label; join across seams.
     let offsets: Vec<u32> = bands
@@ -184,6 +146,70 @@ pub fn remove_small_regions(map: &mut DisparityMap, min_size: usize, max_diff: f
             removed
         })
         .sum()
+}
+
+/// Labels the regions of one band of rows (`w` wide): a label per pixel (`u32::MAX` =
+/// invalid) and each label's size. Runs along a row are found first, then runs that
+/// touch across rows are joined (union-find over runs): per pixel that is two
+/// comparisons and a store, where a flood fill pushes and pops every pixel.
+/// Every pixel of a region carries the region's root run; other runs get size 0.
+fn label_band(band: &[f32], w: usize, joins: &impl Fn(f32, f32) -> bool) -> (Vec<u32>, Vec<u32>) {
+    let mut label = vec![u32::MAX; band.len()];
+    // Per run: its first pixel and its length.
+    let mut runs: Vec<(usize, u32)> = Vec::new();
+    let mut parent: Vec<u32> = Vec::new();
+    fn find(parent: &mut [u32], mut a: u32) -> u32 {
+        while parent[a as usize] != a {
+            let g = parent[parent[a as usize] as usize];
+            parent[a as usize] = g;
+            a = g;
+        }
+        a
+    }
+    for (y, row) in band.chunks(w).enumerate() {
+        let o = y * w;
+        let mut x = 0;
+        while x < w {
+            if !row[x].is_finite() {
+                x += 1;
+                continue;
+            }
+            let start = x;
+            while x + 1 < w && joins(row[x], row[x + 1]) {
+                x += 1;
+            }
+            x += 1;
+            let id = runs.len() as u32;
+            runs.push((o + start, (x - start) as u32));
+            parent.push(id);
+            label[o + start..o + x].fill(id);
+        }
+        if y == 0 {
+            continue;
+        }
+        // Join with the runs above; consecutive pixels mostly repeat the last pair.
+        let mut last = (u32::MAX, u32::MAX);
+        for x in 0..w {
+            let (a, b) = (label[o + x], label[o - w + x]);
+            if a == u32::MAX || b == u32::MAX || (a, b) == last {
+                continue;
+            }
+            if joins(band[o + x], band[o - w + x]) {
+                last = (a, b);
+                let (ra, rb) = (find(&mut parent, a), find(&mut parent, b));
+                parent[ra.max(rb) as usize] = ra.min(rb);
+            }
+        }
+    }
+    let mut sizes = vec![0u32; runs.len()];
+    for (id, &(start, len)) in runs.iter().enumerate() {
+        let root = find(&mut parent, id as u32);
+        sizes[root as usize] += len;
+        if root != id as u32 {
+            label[start..start + len as usize].fill(root);
+        }
+    }
+    (label, sizes)
 }
 
 /// Fills one line (a row, or a column through `stride`) in place. Returns false when the
