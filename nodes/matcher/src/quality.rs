@@ -71,6 +71,16 @@ const CENSUS_RY: usize = 3;
 /// 9×7 census transform: bit set where the neighbour is darker than the centre (image
 /// edges repeat).
 pub fn census(img: &Plane<u8>) -> Plane<u64> {
+    #[cfg(target_arch = "x86_64")]
+    let wide = census512::available();
+    #[cfg(not(target_arch = "x86_64"))]
+    let wide = false;
+    census_with(img, wide)
+}
+
+/// [`census`], 64 pixels at a time with AVX-512 when `wide` (which the CPU must
+/// support), else 32 with AVX2.
+fn census_with(img: &Plane<u8>, wide: bool) -> Plane<u64> {
     let (w, h) = (img.width, img.height);
     let padded = crate::sv::pad_replicate(img, CENSUS_RX);
     let pw = padded.width;
@@ -80,6 +90,12 @@ pub fn census(img: &Plane<u8>) -> Plane<u64> {
     out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
         #[allow(unused_mut)]
         let mut x0 = 0;
+        #[cfg(target_arch = "x86_64")]
+        if wide {
+            assert!(census512::available(), "AVX-512 census on a CPU without it");
+            // SAFETY: the CPU has AVX-512BW (asserted just above).
+            x0 = unsafe { census512::row(&padded, img.row(y), y, row) };
+        }
         #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
         {
             use crate::sv::BLOCK;
@@ -114,6 +130,87 @@ pub fn census(img: &Plane<u8>) -> Plane<u64> {
         width: w,
         height: h,
         data: out,
+    }
+}
+
+/// The census with AVX-512: one byte compare tests a window position for 64 pixels.
+#[cfg(target_arch = "x86_64")]
+mod census512 {
+    use super::{CENSUS_RX, CENSUS_RY};
+    use schemas::Plane;
+    use std::arch::x86_64::*;
+
+    /// Whether the CPU runs AVX-512BW.
+    pub fn available() -> bool {
+        is_x86_feature_detected!("avx512f") && is_x86_feature_detected!("avx512bw")
+    }
+
+    /// Census words of row `y` (grey values `centre`) into `out`, 64 pixels at a time
+    /// from the start; returns how many pixels it did (a multiple of 64). `padded` is
+    /// the image with `CENSUS_RX` replicated pixels on every side.
+    ///
+    /// # Safety
+    /// The CPU must support AVX-512F and AVX-512BW.
+    #[target_feature(enable = "avx512f,avx512bw")]
+    pub unsafe fn row(padded: &Plane<u8>, centre: &[u8], y: usize, out: &mut [u64]) -> usize {
+        const COLS: usize = 2 * CENSUS_RX + 1;
+        const ROWS: usize = 2 * CENSUS_RY + 1;
+        let (w, pw) = (out.len(), padded.width);
+        assert!(centre.len() == w && pw == w + 2 * CENSUS_RX);
+        assert!(padded.height > y + CENSUS_RX + CENSUS_RY);
+        let full = _mm512_set1_epi64(((1u128 << (COLS * ROWS)) - 1) as i64);
+        let mut x0 = 0;
+        while x0 + 64 <= w {
+            // SAFETY: the window rows y + RX − RY + i lie inside `padded` and the loads
+            // read bytes x0 + j .. x0 + j + 64 <= w + 2·RX of them (asserted above);
+            // `centre` and `out` hold x0 + 64 values.
+            unsafe {
+                let t = _mm512_loadu_si512(centre.as_ptr().add(x0) as *const _);
+                // Per pixel, bits of the window rows so far, in 64-bit lanes of 8
+                // consecutive pixels.
+                let mut acc = [_mm512_setzero_si512(); 8];
+                for i in 0..ROWS {
+                    let src = padded
+                        .data
+                        .as_ptr()
+                        .add((y + CENSUS_RX - CENSUS_RY + i) * pw + x0);
+                    // Bit j of a pixel's byte in lo (j < 8) or hi (j = 8): not darker.
+                    let (mut lo, mut hi) = (_mm512_setzero_si512(), _mm512_setzero_si512());
+                    for j in 0..COLS {
+                        let v = _mm512_loadu_si512(src.add(j) as *const _);
+                        let ge = _mm512_cmpge_epu8_mask(v, t);
+                        let bit = _mm512_set1_epi8((1u8 << (j % 8)) as i8);
+                        if j < 8 {
+                            lo = _mm512_mask_add_epi8(lo, ge, lo, bit);
+                        } else {
+                            hi = _mm512_mask_add_epi8(hi, ge, hi, bit);
+                        }
+                    }
+                    // 9-bit words per pixel; each 128-bit lane L of the unpacked
+                    // vectors holds pixels 16L..16L + 8 (low) and 16L + 8..16L + 16.
+                    let words = [_mm512_unpacklo_epi8(lo, hi), _mm512_unpackhi_epi8(lo, hi)];
+                    let shift = _mm_cvtsi64_si128(((ROWS - 1 - i) * COLS) as i64);
+                    for (q, a) in acc.iter_mut().enumerate() {
+                        let (lane, half) = (q / 2, q % 2);
+                        let part = match lane {
+                            0 => _mm512_extracti32x4_epi32::<0>(words[half]),
+                            1 => _mm512_extracti32x4_epi32::<1>(words[half]),
+                            2 => _mm512_extracti32x4_epi32::<2>(words[half]),
+                            _ => _mm512_extracti32x4_epi32::<3>(words[half]),
+                        };
+                        let wide = _mm512_sll_epi64(_mm512_cvtepu16_epi64(part), shift);
+                        *a = _mm512_or_si512(*a, wide);
+                    }
+                }
+                for (q, a) in acc.iter().enumerate() {
+                    // "darker than the centre" = not (≥ centre).
+                    let v = _mm512_andnot_si512(*a, full);
+                    _mm512_storeu_si512(out.as_mut_ptr().add(x0 + 8 * q) as *mut _, v);
+                }
+            }
+            x0 += 64;
+        }
+        x0
     }
 }
 
@@ -834,7 +931,13 @@ mod tests {
             (0..w * h).map(|_| rng.random_range(0..6u8) * 40).collect(),
         )
         .unwrap();
-        let c = census(&img);
+        // The AVX2 blocks, and the AVX-512 ones where the CPU has them.
+        #[cfg(target_arch = "x86_64")]
+        let wide = census512::available();
+        #[cfg(not(target_arch = "x86_64"))]
+        let wide = false;
+        let c = census_with(&img, false);
+        assert_eq!(census_with(&img, wide).data, c.data);
         for y in 0..h {
             for x in 0..w {
                 let centre = *img.get(x, y);

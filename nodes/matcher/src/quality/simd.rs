@@ -144,6 +144,19 @@ impl Kernel {
     }
 }
 
+/// Pixels ahead of the sweep whose costs and sums are prefetched.
+const PREFETCH_AHEAD: usize = 6;
+
+/// Asks for the `bytes` bytes at `p` in the first-level cache.
+#[inline(always)]
+fn prefetch<T>(p: *const T, bytes: usize) {
+    let p = p as *const i8;
+    for line in (0..bytes).step_by(64) {
+        // SAFETY: a prefetch never faults, whatever the address.
+        unsafe { _mm_prefetch::<_MM_HINT_T0>(p.wrapping_add(line)) };
+    }
+}
+
 /// P2 between two neighbouring intensities (lowered across edges).
 #[inline(always)]
 fn p2_between(lut: &[i16], a: u8, b: u8) -> i16 {
@@ -243,8 +256,13 @@ unsafe fn step_paths<const NV: usize, const NP: usize>(s: RawStep<NP>) -> [i16; 
 
 /// How [`sweep_with`] steps the paths of one pixel.
 trait PathStep {
-    /// [`Kernel::step`]'s contract.
+    /// The path from the left restarts (the first pixel of a row is next).
+    fn row_start(&mut self) {}
+
+    /// [`Kernel::step`]'s contract; path 0 is the path from the left.
+    #[allow(clippy::too_many_arguments)]
     fn step<const N: usize>(
+        &mut self,
         kern: &Kernel,
         c: &[u8],
         from: [(&[i16], i16, i16); N],
@@ -261,6 +279,7 @@ struct Avx2;
 impl PathStep for Avx2 {
     #[inline(always)]
     fn step<const N: usize>(
+        &mut self,
         kern: &Kernel,
         c: &[u8],
         from: [(&[i16], i16, i16); N],
@@ -275,11 +294,39 @@ impl PathStep for Avx2 {
 
 /// 32 disparities per instruction, for 64 or 128 disparities; only reached through
 /// [`sweep_avx512`], whose caller has checked the CPU.
-struct Avx512;
+///
+/// The path from the left stays in registers from one pixel to the next, its minimum
+/// as a broadcast vector: read back from memory, its `d ± 1` neighbours were unaligned
+/// loads of a store still in flight, which the CPU cannot forward, and that stall sat
+/// on the chain from one pixel to the next.
+struct Avx512 {
+    /// L of the previous pixel's path from the left, 32 disparities per register.
+    left: [__m512i; 4],
+    /// Its minimum in every lane.
+    left_min: __m512i,
+}
+
+impl Avx512 {
+    /// A path state of zeros (what a path starts from).
+    fn new() -> Self {
+        // SAFETY: all-zero bits are a valid __m512i.
+        let zero: __m512i = unsafe { std::mem::zeroed() };
+        Self {
+            left: [zero; 4],
+            left_min: zero,
+        }
+    }
+}
 
 impl PathStep for Avx512 {
     #[inline(always)]
+    fn row_start(&mut self) {
+        *self = Self::new();
+    }
+
+    #[inline(always)]
     fn step<const N: usize>(
+        &mut self,
         kern: &Kernel,
         c: &[u8],
         from: [(&[i16], i16, i16); N],
@@ -294,8 +341,8 @@ impl PathStep for Avx512 {
         // is only used by `sweep_avx512`).
         unsafe {
             match n {
-                64 => step_paths512::<2, N>(s),
-                128 => step_paths512::<4, N>(s),
+                64 => step_paths512::<2, N>(s, self),
+                128 => step_paths512::<4, N>(s, self),
                 _ => panic!("the AVX-512 sweep takes 64 or 128 disparities, not {n}"),
             }
         }
@@ -304,11 +351,18 @@ impl PathStep for Avx512 {
 
 /// [`step_paths`] with 32 disparities per instruction (`32 · NV` disparities).
 ///
+/// Path 0, the path from the left, reads its predecessor from `st` instead of `s.lp[0]`
+/// (which is not read) and leaves its result there instead of in `s.out[0]` (which is
+/// not written); its minimum comes from `st` too.
+///
 /// # Safety
 /// `s` was made by [`RawStep::new`] for `32 · NV` disparities; the CPU must support
 /// AVX-512F and AVX-512BW.
 #[inline(always)]
-unsafe fn step_paths512<const NV: usize, const NP: usize>(s: RawStep<NP>) -> [i16; NP] {
+unsafe fn step_paths512<const NV: usize, const NP: usize>(
+    s: RawStep<NP>,
+    st: &mut Avx512,
+) -> [i16; NP] {
     let RawStep {
         c,
         lp,
@@ -322,9 +376,18 @@ unsafe fn step_paths512<const NV: usize, const NP: usize>(s: RawStep<NP>) -> [i1
     // SAFETY: the caller's promise.
     unsafe {
         let p1v = _mm512_set1_epi16(p1);
-        let jump: [__m512i; NP] = std::array::from_fn(|j| _mm512_set1_epi16(mins[j] + p2s[j]));
-        let minv: [__m512i; NP] = std::array::from_fn(|j| _mm512_set1_epi16(mins[j]));
-        let mut mn = [_mm512_set1_epi16(BIG); NP];
+        let big = _mm512_set1_epi16(BIG);
+        let mut minv: [__m512i; NP] = std::array::from_fn(|j| _mm512_set1_epi16(mins[j]));
+        minv[0] = st.left_min;
+        let jump: [__m512i; NP] =
+            std::array::from_fn(|j| _mm512_add_epi16(minv[j], _mm512_set1_epi16(p2s[j])));
+        // Lanes of L(d − 1) and L(d + 1) from two neighbouring registers.
+        let down: [i16; 32] = std::array::from_fn(|i| if i == 0 { 31 } else { 31 + i as i16 });
+        let up: [i16; 32] = std::array::from_fn(|i| i as i16 + 1);
+        let down = _mm512_loadu_si512(down.as_ptr() as *const _);
+        let up = _mm512_loadu_si512(up.as_ptr() as *const _);
+        let prev = st.left;
+        let mut mn = [big; NP];
         for k in 0..NV {
             let cv = _mm512_cvtepu8_epi16(_mm256_loadu_si256(c.add(k * 32) as *const __m256i));
             let mut sum = if base.is_null() {
@@ -333,20 +396,48 @@ unsafe fn step_paths512<const NV: usize, const NP: usize>(s: RawStep<NP>) -> [i1
                 _mm512_loadu_si512(base.add(k * 32) as *const _)
             };
             for j in 0..NP {
-                let base = lp[j].add(k * 32);
-                let a = _mm512_loadu_si512(base as *const _);
-                let m = _mm512_loadu_si512(base.add(1) as *const _);
-                let b = _mm512_loadu_si512(base.add(2) as *const _);
+                let (a, m, b) = if j == 0 {
+                    let m = prev[k];
+                    let below = if k > 0 { prev[k - 1] } else { big };
+                    let above = if k + 1 < NV { prev[k + 1] } else { big };
+                    (
+                        _mm512_permutex2var_epi16(below, down, m),
+                        m,
+                        _mm512_permutex2var_epi16(m, up, above),
+                    )
+                } else {
+                    let base = lp[j].add(k * 32);
+                    (
+                        _mm512_loadu_si512(base as *const _),
+                        _mm512_loadu_si512(base.add(1) as *const _),
+                        _mm512_loadu_si512(base.add(2) as *const _),
+                    )
+                };
                 let nb = _mm512_add_epi16(_mm512_min_epi16(a, b), p1v);
                 let v = _mm512_min_epi16(_mm512_min_epi16(m, nb), jump[j]);
                 let v = _mm512_add_epi16(cv, _mm512_sub_epi16(v, minv[j]));
-                _mm512_storeu_si512(out[j].add(1 + k * 32) as *mut _, v);
+                if j == 0 {
+                    st.left[k] = v;
+                } else {
+                    _mm512_storeu_si512(out[j].add(1 + k * 32) as *mut _, v);
+                }
                 mn[j] = _mm512_min_epi16(mn[j], v);
                 sum = _mm512_add_epi16(sum, v);
             }
             _mm512_storeu_si512(acc.add(k * 32) as *mut _, sum);
         }
+        // The left minimum stays a vector: swap halves, quarters, … and keep the min.
+        let mut m = mn[0];
+        m = _mm512_min_epi16(m, _mm512_shuffle_i64x2(m, m, 0b01_00_11_10));
+        m = _mm512_min_epi16(m, _mm512_shuffle_i64x2(m, m, 0b10_11_00_01));
+        m = _mm512_min_epi16(m, _mm512_shuffle_epi32(m, 0b01_00_11_10));
+        m = _mm512_min_epi16(m, _mm512_shuffle_epi32(m, 0b10_11_00_01));
+        m = _mm512_min_epi16(m, _mm512_rol_epi32(m, 16));
+        st.left_min = m;
         std::array::from_fn(|j| {
+            if j == 0 {
+                return _mm_extract_epi16(_mm512_castsi512_si128(m), 0) as i16;
+            }
             let m = _mm256_min_epi16(
                 _mm512_castsi512_si256(mn[j]),
                 _mm512_extracti64x4_epi64(mn[j], 1),
@@ -882,7 +973,7 @@ pub fn sweep_on(
         // SAFETY: the CPU has AVX-512BW (asserted just above).
         unsafe { sweep_avx512(cost, img, p, backward, row, rows) }
     } else {
-        sweep_with::<Avx2>(cost, img, p, backward, row, rows)
+        sweep_with(Avx2, cost, img, p, backward, row, rows)
     }
 }
 
@@ -913,12 +1004,13 @@ unsafe fn sweep_avx512(
     row: Vec<u16>,
     rows: impl Rows,
 ) -> Vec<u16> {
-    sweep_with::<Avx512>(cost, img, p, backward, row, rows)
+    sweep_with(Avx512::new(), cost, img, p, backward, row, rows)
 }
 
-/// The sweep of [`sweep`] with the path step of `S`.
+/// The sweep of [`sweep`] with the path step `s`.
 #[inline(always)]
-fn sweep_with<S: PathStep>(
+fn sweep_with(
+    mut s: impl PathStep,
     cost: &[u8],
     img: &Plane<u8>,
     p: &QualityParams,
@@ -960,6 +1052,7 @@ fn sweep_with<S: PathStep>(
         let iprev = img.row(if y > 0 { oy(y - 1) } else { oy(y) });
         let [c0, c1, c2] = &mut cur;
         let added = rows.start(oy(y));
+        s.row_start();
         assert!(added.as_ref().is_none_or(|a| a.len() == w * ndp));
         for x in 0..w {
             let xi = ox(x);
@@ -968,6 +1061,22 @@ fn sweep_with<S: PathStep>(
             let here = irow[xi];
             let acc = &mut row_sum[xi * ndp..(xi + 1) * ndp];
             let base = added.as_ref().map(|a| &a[xi * ndp..(xi + 1) * ndp]);
+            // The costs and the other sweep's sums of a pixel a few steps ahead: both
+            // come from memory the hardware prefetcher does not bring in early enough.
+            // Addresses past the row are harmless to prefetch (never dereferenced).
+            let ahead = if backward {
+                xi.wrapping_sub(PREFETCH_AHEAD)
+            } else {
+                xi + PREFETCH_AHEAD
+            };
+            prefetch(
+                cost.as_ptr()
+                    .wrapping_add((oy(y) * w).wrapping_add(ahead).wrapping_mul(nd)),
+                nd,
+            );
+            if let Some(a) = &added {
+                prefetch(a.as_ptr().wrapping_add(ahead.wrapping_mul(ndp)), 2 * ndp);
+            }
             // Predecessor of path k (0 = top-left, 1 = top, 2 = top-right) and of the
             // path from the left: (values, minimum, P2). Plain inline code: as closures
             // these were calls, a fifth of the sweep.
@@ -997,7 +1106,7 @@ fn sweep_with<S: PathStep>(
             if diagonals {
                 let tl = from_row!(0, x.checked_sub(1));
                 let tr = from_row!(2, (x + 1 < w).then_some(x + 1));
-                let m = S::step(
+                let m = s.step(
                     &kern,
                     c,
                     [left, tl, top, tr],
@@ -1016,7 +1125,7 @@ fn sweep_with<S: PathStep>(
                 cur_min[1][x] = m[2];
                 cur_min[2][x] = m[3];
             } else {
-                let m = S::step(
+                let m = s.step(
                     &kern,
                     c,
                     [left, top],
