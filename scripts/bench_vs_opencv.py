@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Times microstereo and OpenCV StereoSGBM (MODE_SGBM_3WAY) on the same images, same run.
 
-Usage: python3 scripts/bench_vs_opencv.py [--rounds N] [--repeat K]
+Usage: python3 scripts/bench_vs_opencv.py [--rounds N] [--repeat K] [--paths 4|8]
 Needs: pip install opencv-python-headless numpy; a release build (cargo build --release).
 
 The machines are shared and their speed drifts from one second to the next, so the two
@@ -40,6 +40,7 @@ def main():
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--bin", default=os.path.join(ROOT, "target/release/microstereo"))
+    ap.add_argument("--paths", choices=["4", "8"], help="SGM paths of quality mode")
     a = ap.parse_args()
     cv2.setNumThreads(os.cpu_count() or 1)
     rows = {}  # pair -> list of (sgbm, paper, quality) per round
@@ -47,8 +48,9 @@ def main():
         js = os.path.join(tmp, "bench.json")
         images = {}
         for _ in range(a.rounds):
+            paths = ["--paths", a.paths] if a.paths else []
             subprocess.run([a.bin, "bench", "--repeat", str(a.repeat), "--json", js,
-                            "--write-pairs", tmp], check=True, stdout=subprocess.DEVNULL)
+                            "--write-pairs", tmp] + paths, check=True, stdout=subprocess.DEVNULL)
             ours = json.load(open(js))
             if not images:
                 for name, (l, r) in {
@@ -64,7 +66,8 @@ def main():
                     sg = time_sgbm(left, right, a.repeat)
                     rows.setdefault(name, []).append((sg, lines["paper"], lines["quality"]))
     print(f"OpenCV {cv2.__version__}, {cv2.getNumThreads()} threads; whole pipelines; "
-          f"{a.rounds} interleaved rounds of {a.repeat} runs")
+          f"{a.rounds} interleaved rounds of {a.repeat} runs; quality with "
+          f"{a.paths or 'the default'} paths")
     print(f"{'pair':<10} {'SGBM-3WAY ms':>12} {'paper ms':>9} {'ratio':>6} {'quality ms':>10} {'ratio':>6}")
     for name, r in rows.items():
         r = np.array(r)

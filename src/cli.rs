@@ -211,6 +211,9 @@ struct BenchArgs {
     /// Skip the 1280×1024 pair.
     #[arg(long)]
     cones_only: bool,
+    /// SGM paths of quality mode: 4 (the default) or 8.
+    #[arg(long, value_parser = clap::builder::PossibleValuesParser::new(["4", "8"]))]
+    paths: Option<String>,
 }
 
 /// A command failure: printed once, exit code 2.
@@ -632,7 +635,10 @@ fn bench(a: BenchArgs) -> Result<(), CliError> {
     );
     for (name, l, r, range) in &pairs {
         for mode in [Mode::Paper, Mode::Quality] {
-            let cfg = StereoConfig::new(mode, *range);
+            let mut cfg = StereoConfig::new(mode, *range);
+            if let Some(p) = &a.paths {
+                cfg.quality.paths = p.parse().expect("validated by clap");
+            }
             let mut runs = Vec::new();
             let mut evals = 0;
             // As a live node does: one workspace for the whole stream of frames.

@@ -7,8 +7,9 @@
 //!   the top-k candidates, NCC + SV/SVmax decides, row constraints (uniqueness, ordering,
 //!   continuity). Integer disparities, both directions from one shared cost slab.
 //! - [`quality`]: our own design on the same kind of costs — census + gradient cost,
-//!   semi-global aggregation over 8 paths, uniqueness ratio, sub-pixel parabola. It returns
-//!   both a left- and a right-based map so the same validation and post-processing apply.
+//!   semi-global aggregation over 4 (default) or 8 paths, uniqueness ratio, sub-pixel
+//!   parabola. It returns both a left- and a right-based map so the same validation and
+//!   post-processing apply.
 //!
 //! The crate is a pure library: no I/O, no CLI. Validation (LR check) and post-processing
 //! live in the `validate` and `postprocess` crates.

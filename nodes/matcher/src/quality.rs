@@ -1,13 +1,16 @@
-//! Quality mode: census + gradient cost, semi-global aggregation over 8 paths.
+//! Quality mode: census + gradient cost, semi-global aggregation over 4 or 8 paths.
 //!
 //! Cost: Hamming distance of 9×7 census descriptors (robust to the gain and offset
 //! differences between two microscope cameras) plus a truncated difference of horizontal
-//! gradients (sharpens depth edges). Aggregation: Hirschmüller's SGM over 8 paths, with the
-//! large-jump penalty P2 lowered across intensity edges. Two passes (top-down and
-//! bottom-up, four paths each) run in parallel and meet: whichever reaches an image row
-//! second adds the other's sums into its own and decides the row. Decision: winner-takes-all with a
-//! uniqueness ratio and a sub-pixel parabola; the right-based map is read from the same
-//! sums along their diagonals, so the LR check costs no second matching.
+//! gradients (sharpens depth edges). Aggregation: Hirschmüller's SGM over 4 paths
+//! (horizontal and vertical, the default) or 8 (with the diagonals), with the large-jump
+//! penalty P2 lowered across intensity edges. On the four Middlebury sets 8 paths gain
+//! 0.04 points of mean bad-1 (2.67 against 2.71 %) for ~35 % more matching time, so 4 is
+//! the default. Two passes (top-down and bottom-up, half the paths each) run in parallel
+//! and meet: whichever reaches an image row second adds the other's sums into its own
+//! and decides the row. Decision: winner-takes-all with a uniqueness ratio and a
+//! sub-pixel parabola; the right-based map is read from the same sums along their
+//! diagonals, so the LR check costs no second matching.
 //!
 //! With AVX2 (every build of this project) the sweeps run 16 disparities per
 //! instruction and the decision 16 pixels per instruction; where the CPU has AVX-512BW
@@ -48,7 +51,7 @@ impl Default for QualityParams {
             gradient_weight: 1,
             gradient_cap: 30,
             uniqueness_ratio: 10,
-            paths: 8,
+            paths: 4,
         }
     }
 }
