@@ -127,7 +127,7 @@ struct ReconstructArgs {
     /// Weight of the gradient term in the cost (quality mode; 0 = census only).
     #[arg(long)]
     gradient_weight: Option<u16>,
-    /// SGM paths: 4 or 8 (quality mode).
+    /// SGM paths: 4 (the default) or 8 (quality mode).
     #[arg(long, value_parser = clap::builder::PossibleValuesParser::new(["4", "8"]))]
     paths: Option<String>,
     /// LR consistency tolerance in pixels (0..4).

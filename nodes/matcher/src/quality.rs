@@ -978,9 +978,16 @@ mod tests {
                 .collect(),
         )
         .unwrap();
-        for (dmin, nd) in [(0, 16), (-4, 21), (0, 64)] {
+        for (dmin, nd, paths) in [
+            (0, 16, 4),
+            (-4, 21, 8),
+            (0, 64, 4),
+            (0, 64, 8),
+            (-9, 128, 8),
+        ] {
             let p = QualityParams {
                 range: DisparityRange::new(dmin, dmin + nd as i32 - 1),
+                paths,
                 ..Default::default()
             };
             let fast = match_quality(&left, &right, &p);
@@ -1003,11 +1010,11 @@ mod tests {
                 };
                 assert!(
                     same(fast.left.row(y), &l),
-                    "left row {y}, range {dmin}+{nd}"
+                    "left row {y}, range {dmin}+{nd}, {paths} paths"
                 );
                 assert!(
                     same(fast.right.row(y), &r),
-                    "right row {y}, range {dmin}+{nd}"
+                    "right row {y}, range {dmin}+{nd}, {paths} paths"
                 );
             }
             assert!(fast.left.data.iter().filter(|d| d.is_finite()).count() > w * h / 4);
