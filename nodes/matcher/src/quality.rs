@@ -5,8 +5,8 @@
 //! gradients (sharpens depth edges). Aggregation: Hirschmüller's SGM over 4 paths
 //! (horizontal and vertical, the default) or 8 (with the diagonals), with the large-jump
 //! penalty P2 lowered across intensity edges. On the four Middlebury sets 8 paths gain
-//! 0.04 points of mean bad-1 (2.67 against 2.71 %) for ~35 % more matching time, so 4 is
-//! the default. Two passes (top-down and bottom-up, half the paths each) run in parallel
+//! 0.04 points of mean bad-1 (2.67 against 2.71 %) for 16–25 % more matching time, so 4
+//! is the default. Two passes (top-down and bottom-up, half the paths each) run in parallel
 //! and meet: whichever reaches an image row second adds the other's sums into its own
 //! and decides the row. Decision: winner-takes-all with a uniqueness ratio and a
 //! sub-pixel parabola; the right-based map is read from the same sums along their
@@ -75,7 +75,7 @@ const CENSUS_RY: usize = 3;
 /// edges repeat).
 pub fn census(img: &Plane<u8>) -> Plane<u64> {
     #[cfg(target_arch = "x86_64")]
-    let wide = census512::available();
+    let wide = crate::sv::has_avx512bw();
     #[cfg(not(target_arch = "x86_64"))]
     let wide = false;
     census_with(img, wide)
@@ -95,7 +95,10 @@ fn census_with(img: &Plane<u8>, wide: bool) -> Plane<u64> {
         let mut x0 = 0;
         #[cfg(target_arch = "x86_64")]
         if wide {
-            assert!(census512::available(), "AVX-512 census on a CPU without it");
+            assert!(
+                crate::sv::has_avx512bw(),
+                "AVX-512 census on a CPU without it"
+            );
             // SAFETY: the CPU has AVX-512BW (asserted just above).
             x0 = unsafe { census512::row(&padded, img.row(y), y, row) };
         }
@@ -142,11 +145,6 @@ mod census512 {
     use super::{CENSUS_RX, CENSUS_RY};
     use schemas::Plane;
     use std::arch::x86_64::*;
-
-    /// Whether the CPU runs AVX-512BW.
-    pub fn available() -> bool {
-        is_x86_feature_detected!("avx512f") && is_x86_feature_detected!("avx512bw")
-    }
 
     /// Census words of row `y` (grey values `centre`) into `out`, 64 pixels at a time
     /// from the start; returns how many pixels it did (a multiple of 64). `padded` is
@@ -520,8 +518,19 @@ fn meeting_sweeps(
     let (w, h, nd) = (img.width, img.height, p.range.count());
     let ndp = nd.div_ceil(16) * 16;
     rows.retain(|r| r.len() == w * ndp);
+    let mut left = vec![INVALID_DISPARITY; w * h];
+    let mut right = vec![INVALID_DISPARITY; w * h];
     let shared = Meeting {
-        slots: (0..h).map(|_| Mutex::new(None)).collect(),
+        slots: left
+            .chunks_mut(w)
+            .zip(right.chunks_mut(w))
+            .map(|out| {
+                Mutex::new(Slot {
+                    sums: None,
+                    out: Some(out),
+                })
+            })
+            .collect(),
         pool: Mutex::new(std::mem::take(rows)),
         w,
         ndp,
@@ -530,21 +539,13 @@ fn meeting_sweeps(
         let mut side = MeetingSide {
             shared: &shared,
             p,
-            decided: Vec::new(),
             scratch: Vec::new(),
         };
         let last = simd::sweep(cost, img, p, backward, shared.buffer(), &mut side);
         lock(&shared.pool).push(last);
-        side.decided
     };
-    let (a, b) = rayon::join(|| run(false), || run(true));
+    rayon::join(|| run(false), || run(true));
     *rows = shared.pool.into_inner().unwrap_or_else(|e| e.into_inner());
-    let mut left = vec![INVALID_DISPARITY; w * h];
-    let mut right = vec![INVALID_DISPARITY; w * h];
-    for (y, l, r) in a.into_iter().chain(b) {
-        left[y * w..(y + 1) * w].copy_from_slice(&l);
-        right[y * w..(y + 1) * w].copy_from_slice(&r);
-    }
     let plane = |data| Plane {
         width: w,
         height: h,
@@ -553,18 +554,27 @@ fn meeting_sweeps(
     (plane(left), plane(right))
 }
 
-#[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
 /// Locks a mutex whether or not another thread panicked holding it (the data stay
 /// consistent: every critical section below is a plain move).
+#[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
+/// One image row of a [`Meeting`].
+#[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+struct Slot<'a> {
+    /// The sums the first sweep to finish the row left for the second.
+    sums: Option<Vec<u16>>,
+    /// The row of the left- and the right-based map, until the row is decided.
+    out: Option<(&'a mut [f32], &'a mut [f32])>,
+}
+
 /// What the two sweeps of [`meeting_sweeps`] share.
 #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
-struct Meeting {
-    /// Per image row: the sums the first sweep to finish it left for the second.
-    slots: Vec<Mutex<Option<Vec<u16>>>>,
+struct Meeting<'a> {
+    /// Per image row: its slot.
+    slots: Vec<Mutex<Slot<'a>>>,
     /// Free row buffers. Every value of a buffer is overwritten by the sweep, so none
     /// needs clearing.
     pool: Mutex<Vec<Vec<u16>>>,
@@ -575,7 +585,7 @@ struct Meeting {
 }
 
 #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
-impl Meeting {
+impl Meeting<'_> {
     /// A free row buffer.
     fn buffer(&self) -> Vec<u16> {
         lock(&self.pool)
@@ -584,39 +594,29 @@ impl Meeting {
     }
 }
 
-/// One sweep's end of a [`Meeting`]: the rows it decided.
+/// One sweep's end of a [`Meeting`].
 #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
-struct MeetingSide<'a> {
-    shared: &'a Meeting,
+struct MeetingSide<'a, 'o> {
+    shared: &'a Meeting<'o>,
     p: &'a QualityParams,
-    decided: Vec<(usize, Vec<f32>, Vec<f32>)>,
     scratch: Vec<u16>,
 }
 
 #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
-impl MeetingSide<'_> {
-    /// Decides row `y` from `total` (+ `other`).
+impl MeetingSide<'_, '_> {
+    /// Decides row `y` from `total` (+ `other`) into the maps.
     fn decide(&mut self, y: usize, total: &[u16], other: Option<&[u16]>) {
-        let (w, ndp) = (self.shared.w, self.shared.ndp);
-        let mut lrow = vec![INVALID_DISPARITY; w];
-        let mut rrow = vec![INVALID_DISPARITY; w];
-        simd::select_row(
-            total,
-            other,
-            ndp,
-            self.p,
-            &mut self.scratch,
-            &mut lrow,
-            &mut rrow,
-        );
-        self.decided.push((y, lrow, rrow));
+        let out = lock(&self.shared.slots[y]).out.take();
+        let (lrow, rrow) = out.expect("every row is decided once");
+        let ndp = self.shared.ndp;
+        simd::select_row(total, other, ndp, self.p, &mut self.scratch, lrow, rrow);
     }
 }
 
 #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
-impl simd::Rows for &mut MeetingSide<'_> {
+impl simd::Rows for &mut MeetingSide<'_, '_> {
     fn start(&mut self, y: usize) -> Option<Vec<u16>> {
-        lock(&self.shared.slots[y]).take()
+        lock(&self.shared.slots[y]).sums.take()
     }
 
     fn done(&mut self, y: usize, row: Vec<u16>, added: Option<Vec<u16>>) -> Vec<u16> {
@@ -628,7 +628,7 @@ impl simd::Rows for &mut MeetingSide<'_> {
             }
             None => {
                 let mut slot = lock(&self.shared.slots[y]);
-                match slot.take() {
+                match slot.sums.take() {
                     // The other sweep finished the row while this one computed it.
                     Some(other) => {
                         drop(slot);
@@ -636,7 +636,7 @@ impl simd::Rows for &mut MeetingSide<'_> {
                         other
                     }
                     None => {
-                        *slot = Some(row);
+                        slot.sums = Some(row);
                         drop(slot);
                         return self.shared.buffer();
                     }
@@ -819,7 +819,7 @@ mod tests {
                     ..Default::default()
                 };
                 // The AVX-512 kernel covers 64 and 128 disparities where the CPU has it.
-                let wide = (nd == 64 || nd == 128) && simd::has_avx512bw();
+                let wide = (nd == 64 || nd == 128) && crate::sv::has_avx512bw();
                 for (backward, wide) in [(false, false), (true, false), (false, wide), (true, wide)]
                 {
                     assert_eq!(
@@ -904,7 +904,7 @@ mod tests {
             let half: Vec<u16> = total.iter().map(|t| t / 2).collect();
             let rest: Vec<u16> = total.iter().zip(&half).map(|(t, h)| t - h).collect();
             for wide in [false, true] {
-                if wide && !simd::has_avx512bw() {
+                if wide && !crate::sv::has_avx512bw() {
                     continue;
                 }
                 for (sums, other) in [(&total[..], None), (&half[..], Some(&rest[..]))] {
@@ -936,7 +936,7 @@ mod tests {
         .unwrap();
         // The AVX2 blocks, and the AVX-512 ones where the CPU has them.
         #[cfg(target_arch = "x86_64")]
-        let wide = census512::available();
+        let wide = crate::sv::has_avx512bw();
         #[cfg(not(target_arch = "x86_64"))]
         let wide = false;
         let c = census_with(&img, false);

@@ -158,6 +158,15 @@ fn sv_row_equal<const NW: usize>(
     }
 }
 
+/// Whether this CPU has AVX-512 F and BW (32 lanes of 16 bits, 64 of 8, per
+/// instruction). Checked once per row or sweep, never per pixel.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+pub(crate) fn has_avx512bw() -> bool {
+    std::arch::is_x86_feature_detected!("avx512f")
+        && std::arch::is_x86_feature_detected!("avx512bw")
+}
+
 /// Whether this CPU has AVX-512 F/VL/BW and VPOPCNTDQ (eight 64-bit popcounts per
 /// instruction).
 #[cfg(target_arch = "x86_64")]

@@ -599,7 +599,7 @@ pub fn select_row(
     lrow: &mut [f32],
     rrow: &mut [f32],
 ) {
-    let wide = has_avx512bw();
+    let wide = crate::sv::has_avx512bw();
     select_row_with(total, other, tstride, p, mt, lrow, rrow, wide)
 }
 
@@ -616,7 +616,7 @@ pub fn select_row_with(
     wide: bool,
 ) {
     assert!(
-        !wide || has_avx512bw(),
+        !wide || crate::sv::has_avx512bw(),
         "AVX-512 decision on a CPU without it"
     );
     let (w, nd) = (lrow.len(), p.range.count());
@@ -664,7 +664,6 @@ impl<'a> Transposed<'a> {
         let base = mt.as_mut_ptr() as *mut i16;
         assert!(tstride >= nd && total.len() >= (w - 1) * tstride + nd);
         assert!(other.is_none_or(|o| o.len() >= (w - 1) * tstride + nd));
-        let other = other.map(|o| o.as_ptr());
         // Transpose: mt[di][pad + x] = total[x][di]; outside 0..w stays NONE.
         let (wf, df) = (w / 16 * 16, nd / 16 * 16);
         for x0 in (0..wf).step_by(16) {
@@ -675,7 +674,7 @@ impl<'a> Transposed<'a> {
                 unsafe {
                     transpose16(
                         total.as_ptr().add(o),
-                        other.map(|a| a.add(o)),
+                        other.map(|a| a.as_ptr().add(o)),
                         tstride,
                         base.add(d0 * stride + pad + x0),
                         stride,
@@ -687,8 +686,7 @@ impl<'a> Transposed<'a> {
             let from = if x < wf { df } else { 0 };
             for di in from..nd {
                 let i = x * tstride + di;
-                // SAFETY: i < (w − 1) · tstride + nd, inside `other` (asserted above).
-                let add = other.map_or(0, |a| unsafe { *a.add(i) });
+                let add = other.map_or(0, |a| a[i]);
                 mt[di * stride + pad + x] = total[i].wrapping_add(add);
             }
         }
@@ -949,7 +947,7 @@ pub fn sweep(
     rows: impl Rows,
 ) -> Vec<u16> {
     let nd = p.range.count();
-    let wide = (nd == 64 || nd == 128) && has_avx512bw();
+    let wide = (nd == 64 || nd == 128) && crate::sv::has_avx512bw();
     sweep_on(wide, cost, img, p, backward, row, rows)
 }
 
@@ -967,7 +965,7 @@ pub fn sweep_on(
     if wide {
         let nd = p.range.count();
         assert!(
-            (nd == 64 || nd == 128) && has_avx512bw(),
+            (nd == 64 || nd == 128) && crate::sv::has_avx512bw(),
             "no AVX-512 sweep here"
         );
         // SAFETY: the CPU has AVX-512BW (asserted just above).
@@ -984,11 +982,6 @@ pub trait Rows {
     /// Image row `y` is done: `row` holds its path sums plus those of `added`, the
     /// buffer [`Rows::start`] gave. Returns the buffer for the next row.
     fn done(&mut self, y: usize, row: Vec<u16>, added: Option<Vec<u16>>) -> Vec<u16>;
-}
-
-/// Whether the CPU runs AVX-512BW (checked once per sweep or row, not per pixel).
-pub fn has_avx512bw() -> bool {
-    is_x86_feature_detected!("avx512f") && is_x86_feature_detected!("avx512bw")
 }
 
 /// [`sweep_with`] compiled for AVX-512, so that [`Avx512`]'s kernel inlines into it.
