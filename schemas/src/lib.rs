@@ -231,3 +231,61 @@ pub struct ValidationFigures {
     /// The tolerance used by the check, in pixels.
     pub tolerance: u32,
 }
+
+/// Axis-aligned pixel box `[x0, x1] × [y0, y1]`, inclusive.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct BoundingBox {
+    /// First column.
+    pub x0: u32,
+    /// First row.
+    pub y0: u32,
+    /// Last column.
+    pub x1: u32,
+    /// Last row.
+    pub y1: u32,
+}
+
+/// One segmented cell in one image: what segmentation hands to matching and the manipulator.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Cell {
+    /// Label in the label image (1, 2, …, in raster order of the first pixel).
+    pub id: u32,
+    /// Pixels.
+    pub area: u64,
+    /// Mean pixel position `[x, y]`.
+    pub centroid: [f64; 2],
+    /// Extent.
+    pub bbox: BoundingBox,
+    /// Closed outer boundary `[x, y]`, counter-clockwise on screen, first pixel the
+    /// cell's first in raster order (not repeated at the end).
+    pub contour: Vec<[u32; 2]>,
+    /// Length of the contour's chain code: 1 per axis step, √2 per diagonal.
+    pub perimeter: f64,
+}
+
+/// Per-cell 3D figures from a stereo pair, in the calibration's unit.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Cell3 {
+    /// Id of the cell in the left image's segmentation.
+    pub id: u32,
+    /// Id of the paired cell in the right image's segmentation.
+    pub right_id: u32,
+    /// Left-image pixels of the cell.
+    pub area_px: u64,
+    /// Left-image centroid `[x, y]` in pixels.
+    pub centroid_px: [f64; 2],
+    /// Median disparity over the cell, pixels.
+    pub disparity: f64,
+    /// 3D centroid `[X, Y, Z]` of the cell's surface points.
+    pub centroid: [f64; 3],
+    /// Depth of the substrate under the cell, from the disparity on a ring around it.
+    pub substrate_z: f64,
+    /// Height of the cell's top above the substrate.
+    pub height: f64,
+    /// Volume between the cell's surface and the substrate.
+    pub volume: f64,
+    /// The contour lifted onto the substrate plane: `[X, Y, Z]` per contour pixel.
+    pub contour: Vec<[f64; 3]>,
+    /// Share of the cell's pixels with a valid disparity after the LR check, 0..1.
+    pub valid_share: f64,
+}

@@ -1,0 +1,140 @@
+//! Connected-component labelling of a binary mask: row runs joined by union-find.
+
+use schemas::{Mask, Plane};
+
+/// Pixel adjacency.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Connectivity {
+    /// Edge neighbours only.
+    Four,
+    /// Edge and corner neighbours.
+    Eight,
+}
+
+/// A run of "on" pixels `[x0, x1)` in row `y`.
+#[derive(Clone, Copy)]
+struct Run {
+    y: usize,
+    x0: usize,
+    x1: usize,
+}
+
+fn find(parent: &mut [u32], mut i: u32) -> u32 {
+    while parent[i as usize] != i {
+        parent[i as usize] = parent[parent[i as usize] as usize];
+        i = parent[i as usize];
+    }
+    i
+}
+
+/// Labels the pixels where `on(value)` holds: 0 elsewhere, components 1..=n numbered in raster
+/// order of their first pixel. Returns the label image and `n`.
+pub fn label_where<T>(
+    img: &Plane<T>,
+    on: impl Fn(&T) -> bool,
+    conn: Connectivity,
+) -> (Plane<u32>, u32) {
+    let (w, h) = (img.width, img.height);
+    let mut runs: Vec<Run> = Vec::new();
+    let mut row_start = Vec::with_capacity(h + 1);
+    for y in 0..h {
+        row_start.push(runs.len());
+        let row = img.row(y);
+        let mut x = 0;
+        while x < w {
+            if on(&row[x]) {
+                let x0 = x;
+                while x < w && on(&row[x]) {
+                    x += 1;
+                }
+                runs.push(Run { y, x0, x1: x });
+            } else {
+                x += 1;
+            }
+        }
+    }
+    row_start.push(runs.len());
+    let mut parent: Vec<u32> = (0..runs.len() as u32).collect();
+    // Corner neighbours touch when runs overlap after widening by one column.
+    let reach = usize::from(conn == Connectivity::Eight);
+    for y in 1..h {
+        let (prev, cur) = (row_start[y - 1]..row_start[y], row_start[y]..row_start[y + 1]);
+        let mut j = prev.start;
+        for i in cur {
+            let r = runs[i];
+            while j < prev.end && runs[j].x1 + reach <= r.x0 {
+                j += 1;
+            }
+            let mut k = j;
+            while k < prev.end && runs[k].x0 < r.x1 + reach {
+                let (a, b) = (find(&mut parent, i as u32), find(&mut parent, k as u32));
+                if a != b {
+                    // The older run stays the root, so roots are in raster order.
+                    parent[a.max(b) as usize] = a.min(b);
+                }
+                k += 1;
+            }
+        }
+    }
+    let mut out = Plane::filled(w, h, 0u32);
+    let mut label_of_root = vec![0u32; runs.len()];
+    let mut n = 0;
+    for i in 0..runs.len() {
+        let root = find(&mut parent, i as u32) as usize;
+        if label_of_root[root] == 0 {
+            n += 1;
+            label_of_root[root] = n;
+        }
+        let r = runs[i];
+        out.row_mut(r.y)[r.x0..r.x1].fill(label_of_root[root]);
+    }
+    (out, n)
+}
+
+/// Labels the on-pixels (non-zero) of a mask.
+pub fn label(mask: &Mask, conn: Connectivity) -> (Plane<u32>, u32) {
+    label_where(mask, |&v| v != 0, conn)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn mask(rows: &[&str]) -> Mask {
+        let w = rows[0].len();
+        let data = rows
+            .iter()
+            .flat_map(|r| r.bytes().map(|b| if b == b'#' { 255 } else { 0 }))
+            .collect();
+        Plane::from_vec(w, rows.len(), data).unwrap()
+    }
+
+    #[test]
+    fn corner_contact_joins_only_with_eight_connectivity() {
+        let m = mask(&["#..#", ".#..", "..#.", "...."]);
+        let (l8, n8) = label(&m, Connectivity::Eight);
+        assert_eq!(n8, 2);
+        assert_eq!(l8.data[..4], [1, 0, 0, 2]);
+        assert_eq!((*l8.get(1, 1), *l8.get(2, 2)), (1, 1));
+        let (_, n4) = label(&m, Connectivity::Four);
+        assert_eq!(n4, 4);
+    }
+
+    #[test]
+    fn u_shape_merges_into_one_label_numbered_in_raster_order() {
+        let m = mask(&["#.#.#", "#.#.#", "###.#", "....#"]);
+        let (l, n) = label(&m, Connectivity::Four);
+        assert_eq!(n, 2);
+        assert_eq!(l.row(0), &[1, 0, 1, 0, 2]);
+        assert_eq!(l.row(2), &[1, 1, 1, 0, 2]);
+    }
+
+    #[test]
+    fn empty_and_full_masks() {
+        let (_, n) = label(&Plane::filled(5, 3, 0u8), Connectivity::Eight);
+        assert_eq!(n, 0);
+        let (l, n) = label(&Plane::filled(5, 3, 255u8), Connectivity::Eight);
+        assert_eq!(n, 1);
+        assert!(l.data.iter().all(|&v| v == 1));
+    }
+}

@@ -1,0 +1,270 @@
+//! Cell segmentation for the stereo microscope, the paper's §3 steps as plain functions:
+//!
+//! 1. [`local_variance`] over a `(2M+1)²` window from integral images (O(1) per pixel) and
+//!    [`normalise`] onto 0–255: cells are textured, the background is smooth;
+//! 2. [`otsu_threshold`] on its [`histogram`] (with an absolute floor, `min_std`, so a
+//!    textureless image yields no cells instead of half its noise);
+//! 3. clean-up: optional [`open`]/[`close`], [`fill_holes`], [`remove_small`];
+//! 4. [`label`]: 8-connected components;
+//! 5. [`trace_boundary`]: chain-code boundary following with the paper's search-start rule;
+//! 6. per cell: id, area, centroid, bounding box, contour and perimeter ([`schemas::Cell`]).
+//!
+//! [`segment`] runs them all and keeps every intermediate image for the CLI to write.
+
+mod label;
+mod morph;
+mod otsu;
+mod trace;
+mod variance;
+
+pub use label::{Connectivity, label, label_where};
+pub use morph::{close, dilate, fill_holes, open, remove_small};
+pub use otsu::{histogram, otsu_threshold};
+pub use trace::{DIRECTIONS, chain_length, search_start, trace_boundary};
+pub use variance::{VarianceScale, local_variance, normalise};
+
+use schemas::{BoundingBox, Cell, Mask, Plane};
+use serde::{Deserialize, Serialize};
+
+/// Segmentation settings.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SegmentParams {
+    /// M: the variance window is `(2M+1)²`.
+    pub variance_radius: usize,
+    /// How the variance is mapped onto 0–255.
+    pub scale: VarianceScale,
+    /// Smallest local standard deviation (grey levels) that can count as cell, whatever
+    /// Otsu says: camera noise alone is 1–2 grey levels on the reference images.
+    pub min_std: f32,
+    /// Blobs smaller than this many pixels are dropped.
+    pub min_area: usize,
+    /// Fill holes inside cells.
+    pub fill_holes: bool,
+    /// Opening radius before hole filling (0 = off).
+    pub open_radius: u8,
+    /// Closing radius before hole filling (0 = off).
+    pub close_radius: u8,
+}
+
+impl Default for SegmentParams {
+    fn default() -> Self {
+        Self {
+            variance_radius: 3,
+            scale: VarianceScale::StdDev,
+            min_std: 4.0,
+            min_area: 200,
+            fill_holes: true,
+            open_radius: 0,
+            close_radius: 0,
+        }
+    }
+}
+
+/// Everything segmentation produces, intermediate images included.
+#[derive(Clone, Debug)]
+pub struct Segmentation {
+    /// The normalised variance image (0–255).
+    pub variance: Plane<u8>,
+    /// Largest value before normalisation (standard deviation or variance, grey levels).
+    pub variance_max: f32,
+    /// Histogram of `variance`.
+    pub histogram: [u64; 256],
+    /// Otsu's threshold on `variance` (`None`: the image is flat).
+    pub otsu: Option<u8>,
+    /// The threshold applied: Otsu's, raised to the `min_std` floor (256 = nothing passes).
+    pub threshold: u16,
+    /// Final foreground mask (255 = cell).
+    pub mask: Mask,
+    /// Label image: 0 background, cell `i` has label `i`.
+    pub labels: Plane<u32>,
+    /// The cells, by id.
+    pub cells: Vec<Cell>,
+}
+
+/// Where on the 0–255 scale a local standard deviation of `std` grey levels falls.
+fn floor_level(std: f32, max: f32, scale: VarianceScale) -> u16 {
+    if max <= 0.0 {
+        return 256;
+    }
+    let v = match scale {
+        VarianceScale::StdDev => std,
+        VarianceScale::Variance => std * std,
+    };
+    (v / max * 255.0).ceil().clamp(0.0, 256.0) as u16
+}
+
+/// Segments the cells of a grey image.
+pub fn segment(img: &Plane<u8>, p: &SegmentParams) -> Segmentation {
+    let var = local_variance(img, p.variance_radius);
+    let (variance, variance_max) = normalise(&var, p.scale);
+    let histogram = histogram(&variance);
+    let otsu = otsu_threshold(&histogram);
+    let floor = floor_level(p.min_std, variance_max, p.scale);
+    let threshold = otsu.map_or(256, |t| (t as u16).max(floor));
+    let data = variance
+        .data
+        .iter()
+        .map(|&v| if v as u16 >= threshold { 255 } else { 0 })
+        .collect();
+    let mut mask = Plane::from_vec(img.width, img.height, data).expect("same size");
+    mask = close(&open(&mask, p.open_radius), p.close_radius);
+    if p.fill_holes && !mask.is_empty() {
+        mask = fill_holes(&mask);
+    }
+    mask = remove_small(&mask, p.min_area.max(1));
+    let (labels, n) = label(&mask, Connectivity::Eight);
+    let cells = describe_cells(&labels, n);
+    Segmentation {
+        variance,
+        variance_max,
+        histogram,
+        otsu,
+        threshold,
+        mask,
+        labels,
+        cells,
+    }
+}
+
+/// Per-cell figures of a label image with labels `1..=n`.
+pub fn describe_cells(labels: &Plane<u32>, n: u32) -> Vec<Cell> {
+    struct Acc {
+        area: u64,
+        sx: f64,
+        sy: f64,
+        bbox: BoundingBox,
+        first: [u32; 2],
+    }
+    let mut acc: Vec<Option<Acc>> = (0..=n).map(|_| None).collect();
+    for y in 0..labels.height {
+        for (x, &l) in labels.row(y).iter().enumerate() {
+            if l == 0 {
+                continue;
+            }
+            let (x, y) = (x as u32, y as u32);
+            let a = acc[l as usize].get_or_insert(Acc {
+                area: 0,
+                sx: 0.0,
+                sy: 0.0,
+                bbox: BoundingBox {
+                    x0: x,
+                    y0: y,
+                    x1: x,
+                    y1: y,
+                },
+                first: [x, y],
+            });
+            a.area += 1;
+            a.sx += x as f64;
+            a.sy += y as f64;
+            a.bbox.x0 = a.bbox.x0.min(x);
+            a.bbox.x1 = a.bbox.x1.max(x);
+            a.bbox.y1 = y;
+        }
+    }
+    acc.into_iter()
+        .enumerate()
+        .filter_map(|(id, a)| {
+            let a = a?;
+            let contour = trace_boundary(labels, id as u32, a.first);
+            Some(Cell {
+                id: id as u32,
+                area: a.area,
+                centroid: [a.sx / a.area as f64, a.sy / a.area as f64],
+                bbox: a.bbox,
+                perimeter: chain_length(&contour),
+                contour,
+            })
+        })
+        .collect()
+}
+
+/// Dice overlap `2|A∩B| / (|A|+|B|)` of two masks' non-zero pixels (1 when both are empty).
+pub fn dice(a: &Mask, b: &Mask) -> f64 {
+    assert_eq!((a.width, a.height), (b.width, b.height));
+    let (mut both, mut na, mut nb) = (0u64, 0u64, 0u64);
+    for (&x, &y) in a.data.iter().zip(&b.data) {
+        na += (x != 0) as u64;
+        nb += (y != 0) as u64;
+        both += (x != 0 && y != 0) as u64;
+    }
+    if na + nb == 0 {
+        1.0
+    } else {
+        2.0 * both as f64 / (na + nb) as f64
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    /// A smooth noisy background with textured discs; returns the image and the discs.
+    fn scene(seed: u64) -> (Plane<u8>, Vec<(f64, f64, f64)>) {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let (w, h) = (200, 150);
+        let discs = vec![(50.0, 40.0, 18.0), (140.0, 60.0, 25.0), (80.0, 115.0, 14.0)];
+        let mut img = Plane::filled(w, h, 0u8);
+        for y in 0..h {
+            for x in 0..w {
+                let mut v = 120.0 + 0.1 * x as f64 + rng.random_range(-2.0..2.0);
+                for &(cx, cy, r) in &discs {
+                    if (x as f64 - cx).hypot(y as f64 - cy) <= r {
+                        v += rng.random_range(-40.0..40.0);
+                    }
+                }
+                *img.get_mut(x, y) = v.clamp(0.0, 255.0) as u8;
+            }
+        }
+        (img, discs)
+    }
+
+    #[test]
+    fn finds_textured_discs_on_a_smooth_background() {
+        let (img, discs) = scene(3);
+        let s = segment(&img, &SegmentParams::default());
+        assert_eq!(s.cells.len(), 3);
+        for (cell, &(cx, cy, r)) in s.cells.iter().zip(&discs) {
+            assert!((cell.centroid[0] - cx).abs() < 1.0, "{:?}", cell.centroid);
+            assert!((cell.centroid[1] - cy).abs() < 1.0, "{:?}", cell.centroid);
+            let true_area = std::f64::consts::PI * r * r;
+            // The variance window widens a cell by up to M = 3 px all round.
+            assert!(
+                cell.area as f64 > true_area && (cell.area as f64) < std::f64::consts::PI * (r + 3.5).powi(2),
+                "area {} vs {true_area}",
+                cell.area
+            );
+            // The contour starts at the first raster pixel and runs all round the cell.
+            assert_eq!(cell.contour[0][1], cell.bbox.y0);
+            let per_circle = 2.0 * std::f64::consts::PI * r;
+            assert!(cell.perimeter > 0.9 * per_circle && cell.perimeter < 1.3 * (per_circle + 22.0));
+        }
+        assert!(s.otsu.is_some());
+    }
+
+    #[test]
+    fn flat_and_noise_only_images_have_no_cells() {
+        let flat = Plane::filled(64, 48, 90u8);
+        let s = segment(&flat, &SegmentParams::default());
+        assert!(s.cells.is_empty());
+        assert_eq!((s.otsu, s.threshold), (None, 256));
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let data = (0..64 * 48).map(|_| rng.random_range(100..104)).collect();
+        let noise = Plane::from_vec(64, 48, data).unwrap();
+        let s = segment(&noise, &SegmentParams::default());
+        assert!(s.cells.is_empty(), "{} cells in noise", s.cells.len());
+    }
+
+    #[test]
+    fn dice_of_known_overlaps() {
+        let a = Plane::from_vec(4, 1, vec![255, 255, 0, 0]).unwrap();
+        let b = Plane::from_vec(4, 1, vec![0, 255, 255, 0]).unwrap();
+        assert_eq!(dice(&a, &b), 0.5);
+        assert_eq!(dice(&a, &a), 1.0);
+        let z = Plane::filled(4, 1, 0u8);
+        assert_eq!(dice(&z, &z), 1.0);
+        assert_eq!(dice(&a, &z), 0.0);
+    }
+}

@@ -1,0 +1,145 @@
+//! Local variance over a `(2M+1)²` window in O(1) per pixel from integral images of I and I².
+
+use schemas::Plane;
+use serde::{Deserialize, Serialize};
+
+/// How the variance is mapped onto 0–255 before Otsu.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum VarianceScale {
+    /// The standard deviation (√variance) scaled so the largest is 255. The variance's heavy
+    /// tail (a few edge pixels hundreds of times the cell interior) otherwise crowds every
+    /// cell pixel into the lowest bins, where Otsu cannot separate them.
+    #[default]
+    StdDev,
+    /// The variance itself scaled so the largest is 255, as printed in the paper.
+    Variance,
+}
+
+/// Summed-area table with one extra zero row and column: `at(x, y)` sums `[0, x) × [0, y)`.
+struct Integral {
+    w1: usize,
+    s: Vec<u64>,
+    s2: Vec<u64>,
+}
+
+impl Integral {
+    fn new(img: &Plane<u8>) -> Self {
+        let (w, h) = (img.width, img.height);
+        let w1 = w + 1;
+        let mut s = vec![0u64; w1 * (h + 1)];
+        let mut s2 = vec![0u64; w1 * (h + 1)];
+        for y in 0..h {
+            let (mut row, mut row2) = (0u64, 0u64);
+            for (x, &v) in img.row(y).iter().enumerate() {
+                row += v as u64;
+                row2 += (v as u64) * (v as u64);
+                s[(y + 1) * w1 + x + 1] = s[y * w1 + x + 1] + row;
+                s2[(y + 1) * w1 + x + 1] = s2[y * w1 + x + 1] + row2;
+            }
+        }
+        Self { w1, s, s2 }
+    }
+
+    /// Sums of I and I² over `[x0, x1) × [y0, y1)`.
+    fn rect(&self, x0: usize, y0: usize, x1: usize, y1: usize) -> (u64, u64) {
+        let w1 = self.w1;
+        let f = |t: &[u64]| t[y1 * w1 + x1] + t[y0 * w1 + x0] - t[y0 * w1 + x1] - t[y1 * w1 + x0];
+        (f(&self.s), f(&self.s2))
+    }
+}
+
+/// Variance of the `(2·radius+1)²` window around every pixel; at the borders the window is
+/// clipped to the image (the variance of the pixels that exist).
+pub fn local_variance(img: &Plane<u8>, radius: usize) -> Plane<f32> {
+    let (w, h) = (img.width, img.height);
+    let ii = Integral::new(img);
+    let mut out = Plane::filled(w, h, 0f32);
+    for y in 0..h {
+        let (y0, y1) = (y.saturating_sub(radius), (y + radius + 1).min(h));
+        for x in 0..w {
+            let (x0, x1) = (x.saturating_sub(radius), (x + radius + 1).min(w));
+            let n = ((x1 - x0) * (y1 - y0)) as u64;
+            let (s, s2) = ii.rect(x0, y0, x1, y1);
+            // Exact in integers: n·ΣI² − (ΣI)² ≥ 0, so no cancellation below zero.
+            let num = n * s2 - s * s;
+            *out.get_mut(x, y) = (num as f64 / (n * n) as f64) as f32;
+        }
+    }
+    out
+}
+
+/// Maps a variance image onto 0–255 (rounded); an all-flat image maps to all zeros.
+pub fn normalise(var: &Plane<f32>, scale: VarianceScale) -> (Plane<u8>, f32) {
+    let f = |v: f32| match scale {
+        VarianceScale::StdDev => v.sqrt(),
+        VarianceScale::Variance => v,
+    };
+    let max = var.data.iter().map(|&v| f(v)).fold(0f32, f32::max);
+    let k = if max > 0.0 { 255.0 / max } else { 0.0 };
+    let data = var
+        .data
+        .iter()
+        .map(|&v| (f(v) * k).round().clamp(0.0, 255.0) as u8)
+        .collect();
+    (
+        Plane::from_vec(var.width, var.height, data).expect("same size"),
+        max,
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn brute(img: &Plane<u8>, r: usize) -> Plane<f32> {
+        let mut out = Plane::filled(img.width, img.height, 0f32);
+        for y in 0..img.height {
+            for x in 0..img.width {
+                let mut v = Vec::new();
+                for yy in y.saturating_sub(r)..(y + r + 1).min(img.height) {
+                    for xx in x.saturating_sub(r)..(x + r + 1).min(img.width) {
+                        v.push(*img.get(xx, yy) as f64);
+                    }
+                }
+                let m = v.iter().sum::<f64>() / v.len() as f64;
+                let var = v.iter().map(|a| (a - m) * (a - m)).sum::<f64>() / v.len() as f64;
+                *out.get_mut(x, y) = var as f32;
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn integral_variance_matches_the_direct_sum() {
+        let data: Vec<u8> = (0..23 * 17).map(|i| ((i * 97 + i * i) % 251) as u8).collect();
+        let img = Plane::from_vec(23, 17, data).unwrap();
+        for r in [0, 1, 3, 9] {
+            let a = local_variance(&img, r);
+            let b = brute(&img, r);
+            for (p, q) in a.data.iter().zip(&b.data) {
+                assert!((p - q).abs() <= 1e-3 * q.max(1.0), "r={r}: {p} vs {q}");
+            }
+        }
+    }
+
+    #[test]
+    fn flat_image_has_zero_variance_and_normalises_to_zero() {
+        let img = Plane::filled(8, 6, 77u8);
+        let v = local_variance(&img, 2);
+        assert!(v.data.iter().all(|&x| x == 0.0));
+        let (n, max) = normalise(&v, VarianceScale::StdDev);
+        assert_eq!(max, 0.0);
+        assert!(n.data.iter().all(|&x| x == 0));
+    }
+
+    #[test]
+    fn normalisation_puts_the_largest_at_255() {
+        let v = Plane::from_vec(4, 1, vec![0.0, 4.0, 16.0, 64.0]).unwrap();
+        let (s, max) = normalise(&v, VarianceScale::StdDev);
+        assert_eq!(max, 8.0);
+        assert_eq!(s.data, vec![0, 64, 128, 255]);
+        let (l, _) = normalise(&v, VarianceScale::Variance);
+        assert_eq!(l.data, vec![0, 16, 64, 255]);
+    }
+}
