@@ -12,7 +12,9 @@
 //! The algorithms live in the node crates: `matcher`, `validate`, `postprocess`,
 //! `triangulate`; the message types in `schemas`.
 
+pub mod cells;
 pub mod cli;
 pub mod io;
 pub mod pipeline;
+pub mod render;
 pub mod synthetic;

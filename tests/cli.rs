@@ -346,3 +346,126 @@ fn quality_mode_takes_images_smaller_than_its_census_window() {
         inner.len()
     );
 }
+
+fn json(p: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
+}
+
+/// Segments a real image against its ground truth through the binary.
+fn segment_real(
+    image: &str,
+    truth: &str,
+    extra: &[&str],
+) -> (serde_json::Value, PathBuf, tempfile::TempDir) {
+    let dir = tempfile::tempdir().unwrap();
+    let o = dir.path().join("seg");
+    let (i, t) = (data(image), data(truth));
+    let mut args = vec!["segment", s(&i), "-o", s(&o), "--truth", s(&t)];
+    args.extend_from_slice(extra);
+    let out = run(&args);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    (json(&o.join("cells.json")), o, dir)
+}
+
+#[test]
+fn segment_finds_the_cho_cells_of_bbbc030() {
+    let (r, o, _dir) = segment_real("cells/cho22_crop.png", "cells/cho22_crop_mask.png", &[]);
+    let t = &r["truth"];
+    assert!(t["dice"].as_f64().unwrap() >= 0.90, "{t}");
+    assert_eq!(
+        (t["found_cells"].as_u64(), t["truth_cells"].as_u64()),
+        (Some(7), Some(7))
+    );
+    let cells = r["cells"].as_array().unwrap();
+    assert_eq!(cells.len(), 7);
+    for c in cells {
+        // CHO cells here are ~50 px across: areas 1500–6000 px, closed contours around them.
+        let area = c["area"].as_u64().unwrap();
+        assert!((1500..6000).contains(&area), "{c}");
+        let contour = c["contour"].as_array().unwrap();
+        let per = c["perimeter"].as_f64().unwrap();
+        assert!(contour.len() as f64 <= per + 1.0 && per < 2.0 * contour.len() as f64);
+    }
+    for f in ["labels.png", "overlay.png", "variance.png", "histogram.png"] {
+        assert!(o.join(f).exists(), "{f}");
+    }
+    let labels = image::open(o.join("labels.png")).unwrap();
+    assert!(matches!(labels, image::DynamicImage::ImageLuma16(_)));
+    let l = labels.to_luma16();
+    let max = l.pixels().map(|p| p.0[0]).max().unwrap();
+    assert_eq!(max, 7);
+    let hist: u64 = r["histogram"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_u64().unwrap())
+        .sum();
+    assert_eq!(hist, 760 * 620);
+}
+
+#[test]
+fn segment_finds_the_embryo_of_bbbc003() {
+    let (r, _, _dir) = segment_real(
+        "cells/bbbc003_7_20_M3M1.png",
+        "cells/bbbc003_7_20_M3M1_truth.png",
+        &["--min-area", "2000"],
+    );
+    let t = &r["truth"];
+    assert!(t["dice"].as_f64().unwrap() >= 0.93, "{t}");
+    assert_eq!(
+        (t["found_cells"].as_u64(), t["truth_cells"].as_u64()),
+        (Some(1), Some(1))
+    );
+    let c = &r["cells"][0];
+    let [x, y] = [
+        c["centroid"][0].as_f64().unwrap(),
+        c["centroid"][1].as_f64().unwrap(),
+    ];
+    assert!((x - 240.0).abs() < 40.0 && (y - 300.0).abs() < 60.0, "{c}");
+}
+
+#[test]
+fn segment_of_an_empty_image_is_zero_cells_not_an_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let img = dir.path().join("flat.png");
+    image::GrayImage::from_pixel(64, 48, image::Luma([128]))
+        .save(&img)
+        .unwrap();
+    let o = dir.path().join("seg");
+    let out = run(&["segment", s(&img), "-o", s(&o)]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(String::from_utf8_lossy(&out.stdout).contains("0 cells"));
+    let r = json(&o.join("cells.json"));
+    assert_eq!(r["cells"].as_array().unwrap().len(), 0);
+    assert_eq!(r["otsu_threshold"], serde_json::Value::Null);
+}
+
+#[test]
+fn segment_bad_input_is_one_clear_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = dir.path().join("seg");
+    let missing = dir.path().join("nope.png");
+    assert_clean_failure(
+        &run(&["segment", s(&missing), "-o", s(&o)]),
+        "does not exist",
+    );
+    let img = data("cells/cho22_crop.png");
+    let other = data("cells/bbbc003_7_20_M3M1_truth.png");
+    assert_clean_failure(
+        &run(&["segment", s(&img), "-o", s(&o), "--truth", s(&other)]),
+        "give the mask of this image",
+    );
+    assert_clean_failure(
+        &run(&["segment", s(&img), "-o", s(&o), "--variance-radius", "0"]),
+        "--variance-radius 0 is out of range",
+    );
+    assert!(!o.exists(), "nothing written on error");
+}

@@ -58,7 +58,10 @@ pub fn label_where<T>(
     // Corner neighbours touch when runs overlap after widening by one column.
     let reach = usize::from(conn == Connectivity::Eight);
     for y in 1..h {
-        let (prev, cur) = (row_start[y - 1]..row_start[y], row_start[y]..row_start[y + 1]);
+        let (prev, cur) = (
+            row_start[y - 1]..row_start[y],
+            row_start[y]..row_start[y + 1],
+        );
         let mut j = prev.start;
         for i in cur {
             let r = runs[i];

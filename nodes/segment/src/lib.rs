@@ -232,14 +232,17 @@ mod tests {
             let true_area = std::f64::consts::PI * r * r;
             // The variance window widens a cell by up to M = 3 px all round.
             assert!(
-                cell.area as f64 > true_area && (cell.area as f64) < std::f64::consts::PI * (r + 3.5).powi(2),
+                cell.area as f64 > true_area
+                    && (cell.area as f64) < std::f64::consts::PI * (r + 3.5).powi(2),
                 "area {} vs {true_area}",
                 cell.area
             );
             // The contour starts at the first raster pixel and runs all round the cell.
             assert_eq!(cell.contour[0][1], cell.bbox.y0);
             let per_circle = 2.0 * std::f64::consts::PI * r;
-            assert!(cell.perimeter > 0.9 * per_circle && cell.perimeter < 1.3 * (per_circle + 22.0));
+            assert!(
+                cell.perimeter > 0.9 * per_circle && cell.perimeter < 1.3 * (per_circle + 22.0)
+            );
         }
         assert!(s.otsu.is_some());
     }

@@ -23,7 +23,13 @@ pub fn fill_holes(mask: &Mask) -> Mask {
         .data
         .iter()
         .zip(&bg.data)
-        .map(|(&m, &l)| if m != 0 || !outside[l as usize] { 255 } else { 0 })
+        .map(|(&m, &l)| {
+            if m != 0 || !outside[l as usize] {
+                255
+            } else {
+                0
+            }
+        })
         .collect();
     Plane::from_vec(w, h, data).expect("same size")
 }
@@ -38,7 +44,13 @@ pub fn remove_small(mask: &Mask, min_area: usize) -> Mask {
     let data = labels
         .data
         .iter()
-        .map(|&l| if l != 0 && area[l as usize] >= min_area { 255 } else { 0 })
+        .map(|&l| {
+            if l != 0 && area[l as usize] >= min_area {
+                255
+            } else {
+                0
+            }
+        })
         .collect();
     Plane::from_vec(mask.width, mask.height, data).expect("same size")
 }
@@ -57,7 +69,11 @@ pub fn open(mask: &Mask, radius: u8) -> Mask {
     if radius == 0 {
         return mask.clone();
     }
-    from_gray(imageproc::morphology::open(&to_gray(mask), Norm::L2, radius))
+    from_gray(imageproc::morphology::open(
+        &to_gray(mask),
+        Norm::L2,
+        radius,
+    ))
 }
 
 /// Morphological closing with a disc of `radius` (bridges small gaps in a cell's outline).
@@ -65,7 +81,11 @@ pub fn close(mask: &Mask, radius: u8) -> Mask {
     if radius == 0 {
         return mask.clone();
     }
-    from_gray(imageproc::morphology::close(&to_gray(mask), Norm::L2, radius))
+    from_gray(imageproc::morphology::close(
+        &to_gray(mask),
+        Norm::L2,
+        radius,
+    ))
 }
 
 /// Dilates with a disc of `radius`.
@@ -73,7 +93,11 @@ pub fn dilate(mask: &Mask, radius: u8) -> Mask {
     if radius == 0 {
         return mask.clone();
     }
-    from_gray(imageproc::morphology::dilate(&to_gray(mask), Norm::L2, radius))
+    from_gray(imageproc::morphology::dilate(
+        &to_gray(mask),
+        Norm::L2,
+        radius,
+    ))
 }
 
 #[cfg(test)]

@@ -143,7 +143,10 @@ mod tests {
         for i in 0..c.len() {
             let (a, b) = (c[i], c[(i + 1) % c.len()]);
             let (dx, dy) = (a[0].abs_diff(b[0]), a[1].abs_diff(b[1]));
-            assert!(dx <= 1 && dy <= 1 && (dx, dy) != (0, 0) || c.len() == 1, "{a:?} → {b:?}");
+            assert!(
+                dx <= 1 && dy <= 1 && (dx, dy) != (0, 0) || c.len() == 1,
+                "{a:?} → {b:?}"
+            );
         }
     }
 

@@ -112,7 +112,9 @@ mod tests {
 
     #[test]
     fn integral_variance_matches_the_direct_sum() {
-        let data: Vec<u8> = (0..23 * 17).map(|i| ((i * 97 + i * i) % 251) as u8).collect();
+        let data: Vec<u8> = (0..23 * 17)
+            .map(|i| ((i * 97 + i * i) % 251) as u8)
+            .collect();
         let img = Plane::from_vec(23, 17, data).unwrap();
         for r in [0, 1, 3, 9] {
             let a = local_variance(&img, r);

@@ -1,0 +1,181 @@
+//! Pictures for people: segmentation overlays, the variance histogram, label images.
+
+use crate::io::IoError;
+use image::{ImageBuffer, Luma, Rgb, RgbImage};
+use imageproc::drawing::{draw_filled_rect_mut, draw_line_segment_mut};
+use imageproc::rect::Rect;
+use schemas::{Cell, Plane};
+use std::path::Path;
+
+/// 3×5 bitmap digits, one row per byte, bit 2 = left column.
+const DIGITS: [[u8; 5]; 10] = [
+    [7, 5, 5, 5, 7],
+    [2, 6, 2, 2, 7],
+    [7, 1, 7, 4, 7],
+    [7, 1, 7, 1, 7],
+    [5, 5, 7, 1, 1],
+    [7, 4, 7, 1, 7],
+    [7, 4, 7, 5, 7],
+    [7, 1, 1, 1, 1],
+    [7, 5, 7, 5, 7],
+    [7, 5, 7, 1, 7],
+];
+
+/// Draws a decimal number with its top-left corner at `(x, y)`, each font pixel `s`×`s`,
+/// on a box of colour `bg` so it reads on any picture.
+pub fn draw_number(
+    img: &mut RgbImage,
+    (x, y): (i32, i32),
+    n: u32,
+    s: u32,
+    [colour, bg]: [[u8; 3]; 2],
+) {
+    let text = n.to_string();
+    let (cw, ch) = (4 * s, 6 * s);
+    let bw = cw * text.len() as u32 + s;
+    draw_filled_rect_mut(img, Rect::at(x, y).of_size(bw, ch + s), Rgb(bg));
+    for (k, c) in text.bytes().enumerate() {
+        let g = DIGITS[(c - b'0') as usize];
+        for (r, bits) in g.iter().enumerate() {
+            for col in 0..3 {
+                if bits & (4 >> col) != 0 {
+                    let px = x + (s + k as u32 * cw + col * s) as i32;
+                    let py = y + (s + r as u32 * s) as i32;
+                    draw_filled_rect_mut(img, Rect::at(px, py).of_size(s, s), Rgb(colour));
+                }
+            }
+        }
+    }
+}
+
+/// A distinct colour per cell id.
+pub fn cell_colour(id: u32) -> [u8; 3] {
+    let t = (id as f32 * 0.618_034).fract();
+    crate::io::colormap(0.15 + 0.85 * t)
+}
+
+/// The image with every cell's contour in its colour and its id next to its centroid.
+pub fn overlay(rgb: &Plane<[u8; 3]>, cells: &[Cell]) -> RgbImage {
+    let mut img = RgbImage::from_fn(rgb.width as u32, rgb.height as u32, |x, y| {
+        Rgb(*rgb.get(x as usize, y as usize))
+    });
+    let s = ((rgb.width.max(rgb.height) / 400) as u32).clamp(1, 4);
+    for c in cells {
+        let col = Rgb(cell_colour(c.id));
+        let n = c.contour.len();
+        for i in 0..n {
+            let (a, b) = (c.contour[i], c.contour[(i + 1) % n]);
+            draw_line_segment_mut(
+                &mut img,
+                (a[0] as f32, a[1] as f32),
+                (b[0] as f32, b[1] as f32),
+                col,
+            );
+        }
+        draw_number(
+            &mut img,
+            (
+                c.centroid[0] as i32 - 2 * s as i32,
+                c.centroid[1] as i32 - 3 * s as i32,
+            ),
+            c.id,
+            s,
+            [[255, 255, 255], [0, 0, 0]],
+        );
+    }
+    img
+}
+
+/// The histogram as a bar chart (counts on a log scale, so the few cell pixels show next to
+/// the background's peak) with the threshold as a red line, like the paper's Fig. 17.
+pub fn histogram_chart(hist: &[u64; 256], threshold: Option<u16>) -> RgbImage {
+    let (w, h, pad) = (544u32, 240u32, 10u32);
+    let mut img = RgbImage::from_pixel(w, h, Rgb([255, 255, 255]));
+    let top = hist.iter().copied().max().unwrap_or(0).max(1) as f64;
+    let plot_h = (h - 2 * pad - 20) as f64;
+    for (i, &c) in hist.iter().enumerate() {
+        if c == 0 {
+            continue;
+        }
+        let bar = ((c as f64).ln_1p() / top.ln_1p() * plot_h).round().max(1.0) as u32;
+        let x = (pad + 2 * i as u32) as i32;
+        let y = (h - pad - 20 - bar) as i32;
+        draw_filled_rect_mut(&mut img, Rect::at(x, y).of_size(2, bar), Rgb([40, 40, 40]));
+    }
+    let base = (h - pad - 20) as f32;
+    draw_line_segment_mut(
+        &mut img,
+        (pad as f32, base),
+        ((pad + 512) as f32, base),
+        Rgb([0, 0, 0]),
+    );
+    for v in [0u32, 64, 128, 192, 255] {
+        draw_number(
+            &mut img,
+            ((pad + 2 * v) as i32 - 4, base as i32 + 4),
+            v,
+            2,
+            [[0, 0, 0], [255, 255, 255]],
+        );
+    }
+    if let Some(t) = threshold.filter(|&t| t <= 255) {
+        let x = (pad + 2 * t as u32) as f32;
+        draw_line_segment_mut(&mut img, (x, pad as f32), (x, base), Rgb([220, 0, 0]));
+        draw_line_segment_mut(
+            &mut img,
+            (x + 1.0, pad as f32),
+            (x + 1.0, base),
+            Rgb([220, 0, 0]),
+        );
+        draw_number(
+            &mut img,
+            (x as i32 + 4, pad as i32),
+            t as u32,
+            2,
+            [[220, 0, 0], [255, 255, 255]],
+        );
+    }
+    img
+}
+
+/// Writes a label image as a 16-bit PNG (labels above 65535 saturate; the caller warns).
+pub fn write_labels_png(path: &Path, labels: &Plane<u32>) -> Result<(), IoError> {
+    let data: Vec<u16> = labels.data.iter().map(|&l| l.min(65535) as u16).collect();
+    ImageBuffer::<Luma<u16>, _>::from_raw(labels.width as u32, labels.height as u32, data)
+        .expect("size")
+        .save(path)
+        .map_err(|e| IoError::Write {
+            path: path.into(),
+            reason: e.to_string(),
+        })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn digits_draw_their_pixels() {
+        let mut img = RgbImage::new(20, 10);
+        draw_number(&mut img, (0, 0), 10, 1, [[255, 0, 0], [0, 0, 0]]);
+        // "1" middle column top row at x = 1 + 1, y = 1; "0" left column at x = 5.
+        assert_eq!(img.get_pixel(2, 1).0, [255, 0, 0]);
+        assert_eq!(img.get_pixel(1, 1).0, [0, 0, 0]);
+        assert_eq!(img.get_pixel(5, 3).0, [255, 0, 0]);
+        assert_eq!(img.get_pixel(6, 3).0, [0, 0, 0]);
+    }
+
+    #[test]
+    fn histogram_marks_the_threshold_in_red() {
+        let mut h = [0u64; 256];
+        h[10] = 1000;
+        h[200] = 5;
+        let img = histogram_chart(&h, Some(100));
+        assert_eq!(img.get_pixel(210, 120).0, [220, 0, 0]);
+        // Both bars are drawn, the small one shorter.
+        assert_eq!(img.get_pixel(30, 205).0, [40, 40, 40]);
+        assert_eq!(img.get_pixel(410, 205).0, [40, 40, 40]);
+        assert_eq!(img.get_pixel(410, 40).0, [255, 255, 255]);
+        assert_eq!(img.get_pixel(30, 40).0, [40, 40, 40]);
+    }
+}
