@@ -28,6 +28,8 @@ enum Command {
     Bench(BenchArgs),
     /// Segments the cells of one image: labels, overlay, variance, histogram, cells.json.
     Segment(SegmentArgs),
+    /// Renders a synthetic stereo-microscope scene (or sequence, or calibration z-stack) with ground truth.
+    Synth(crate::synthcmd::SynthArgs),
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -318,6 +320,7 @@ pub fn main() -> i32 {
         Command::Eval(a) => eval(a),
         Command::Bench(a) => bench(a),
         Command::Segment(a) => segment_cmd(a),
+        Command::Synth(a) => crate::synthcmd::synth(a),
     };
     match result {
         Ok(()) => 0,

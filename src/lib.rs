@@ -17,4 +17,5 @@ pub mod cli;
 pub mod io;
 pub mod pipeline;
 pub mod render;
+pub mod synthcmd;
 pub mod synthetic;

@@ -1,0 +1,792 @@
+//! A synthetic stereo light microscope: what its two cameras see, with exact ground truth.
+//!
+//! Geometry: two parallel-axis pinhole cameras at `X = ∓b/2` (the triangulation frame of
+//! `triangulate`), focal length `f = f_eff / pixel_pitch` pixels, the substrate at depth
+//! `Z0 = f_eff / magnification` (so one pixel spans `pixel_pitch / magnification` µm there).
+//! The sensors are shifted (`cx`, `cx_right`) so both look at the same patch of substrate
+//! and the substrate has disparity 0: a convergent microscope after rectification.
+//!
+//! Scene: cells are ellipsoidal domes standing on the substrate (footprint semi-axes `a`,
+//! `b`, rotation, height `h`), textured with procedural noise (or a real cell image) fixed
+//! to the cell and shaded by their slope like DIC relief; the substrate is smooth with an
+//! illumination gradient and a faint texture; a pipette can enter as a tapered glass tip.
+//! Every pixel is the mean of `supersample²` rays intersected exactly with the scene
+//! (ray–ellipsoid and ray–sphere quadratics), so the views are sub-pixel correct; then
+//! optional defocus blur and per-view sensor noise. Deterministic given the seed.
+//!
+//! Ground truth: the left disparity and depth at every pixel centre, the left cell labels,
+//! and per cell its centroid, area, height, volume and 3D centroid.
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
+use schemas::{Calibration, DisparityMap, LengthUnit, Plane};
+use serde::{Deserialize, Serialize};
+
+/// The optics and the sensor.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Optics {
+    /// Image columns.
+    pub width: usize,
+    /// Image rows.
+    pub height: usize,
+    /// Sensor pixel pitch, µm.
+    pub pixel_pitch: f64,
+    /// Magnification at the substrate.
+    pub magnification: f64,
+    /// Effective focal length, µm.
+    pub f_eff: f64,
+    /// Stereo baseline, µm.
+    pub baseline: f64,
+}
+
+impl Default for Optics {
+    fn default() -> Self {
+        // 1 µm per pixel at the substrate, 0.3 px of disparity per µm of height.
+        Self {
+            width: 640,
+            height: 480,
+            pixel_pitch: 5.0,
+            magnification: 5.0,
+            f_eff: 20_000.0,
+            baseline: 1_200.0,
+        }
+    }
+}
+
+impl Optics {
+    /// Focal length in pixels.
+    pub fn focal_px(&self) -> f64 {
+        self.f_eff / self.pixel_pitch
+    }
+
+    /// Depth of the substrate (stage height 0), µm.
+    pub fn working_distance(&self) -> f64 {
+        self.f_eff / self.magnification
+    }
+
+    /// Micrometres per pixel on the substrate.
+    pub fn um_per_px(&self) -> f64 {
+        self.pixel_pitch / self.magnification
+    }
+
+    /// The rectified calibration that triangulates these views exactly.
+    pub fn calibration(&self) -> Calibration {
+        let f = self.focal_px();
+        let half = 0.5 * self.baseline * f / self.working_distance();
+        let c = (self.width as f64 - 1.0) / 2.0;
+        Calibration {
+            baseline: self.baseline,
+            focal_px: f,
+            cx: c - half,
+            cy: (self.height as f64 - 1.0) / 2.0,
+            cx_right: c + half,
+            unit: LengthUnit::Um,
+        }
+    }
+
+    /// Disparity (as the matcher measures it) of a point at depth `z`.
+    pub fn disparity_at(&self, z: f64) -> f64 {
+        let c = self.calibration();
+        self.baseline * c.focal_px / z - (c.cx_right - c.cx)
+    }
+
+    /// Disparity per µm of height at the substrate.
+    pub fn px_per_um_height(&self) -> f64 {
+        let z0 = self.working_distance();
+        self.baseline * self.focal_px() / (z0 * z0)
+    }
+}
+
+/// One cell: an ellipsoidal dome on the substrate.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CellShape {
+    /// Footprint centre `[x, y]` on the substrate, µm (origin under the cameras' midpoint).
+    pub centre: [f64; 2],
+    /// Footprint semi-axes `[a, b]`, µm.
+    pub semi_axes: [f64; 2],
+    /// Rotation of the `a` axis from +x, radians.
+    pub angle: f64,
+    /// Height of the top above the substrate, µm.
+    pub height: f64,
+    /// Offset into the texture, so no two cells look alike.
+    pub texture_offset: [f64; 2],
+    /// Mean brightness relative to the substrate (grey levels).
+    pub brightness: f64,
+}
+
+/// A pipette: a tapered glass tip at a constant height above the substrate, pointing `+x`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Pipette {
+    /// Tip position `[x, y]`, µm.
+    pub tip: [f64; 2],
+    /// Height of the tip's axis above the substrate, µm.
+    pub height: f64,
+    /// Radius at the tip, µm.
+    pub tip_radius: f64,
+    /// Radius growth per µm back from the tip.
+    pub taper: f64,
+}
+
+/// Where cell texture comes from.
+#[derive(Clone, Debug, PartialEq, Default)]
+pub enum Texture {
+    /// Multi-octave value noise.
+    #[default]
+    Noise,
+    /// A real cell image (grey), tiled at one image pixel per substrate pixel.
+    Image(Plane<u8>),
+}
+
+/// How things look and how the sensor behaves.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Look {
+    /// Substrate brightness at the image centre.
+    pub substrate: f64,
+    /// Brightness change across the field of view (illumination gradient).
+    pub gradient: f64,
+    /// Amplitude of the substrate's faint texture.
+    pub substrate_texture: f64,
+    /// Amplitude of the cell texture.
+    pub cell_texture: f64,
+    /// Strength of the DIC-like relief shading.
+    pub relief: f64,
+    /// Sensor noise standard deviation, grey levels.
+    pub noise: f64,
+    /// Defocus blur (Gaussian sigma, px; 0 = sharp).
+    pub blur: f64,
+    /// Rays per pixel along each axis.
+    pub supersample: usize,
+    /// Cell texture source.
+    pub texture: Texture,
+}
+
+impl Default for Look {
+    fn default() -> Self {
+        Self {
+            substrate: 140.0,
+            gradient: 30.0,
+            substrate_texture: 1.0,
+            cell_texture: 30.0,
+            relief: 25.0,
+            noise: 1.5,
+            blur: 0.0,
+            supersample: 2,
+            texture: Texture::Noise,
+        }
+    }
+}
+
+/// A whole scene.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Scene {
+    /// Optics and sensor.
+    pub optics: Optics,
+    /// Appearance.
+    pub look: Look,
+    /// The cells.
+    pub cells: Vec<CellShape>,
+    /// An optional pipette.
+    pub pipette: Option<Pipette>,
+    /// Stage height of the substrate (µm towards the cameras; depth = Z0 − stage).
+    pub stage: f64,
+    /// Texture the whole substrate like a calibration target (for depth calibration).
+    pub target: bool,
+    /// Seed of textures and noise.
+    pub seed: u64,
+}
+
+/// How random scenes are drawn.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CellSpec {
+    /// Number of cells.
+    pub count: usize,
+    /// Footprint diameter range, µm.
+    pub diameter: [f64; 2],
+    /// Height range, µm.
+    pub height: [f64; 2],
+    /// Smallest gap between footprints, µm.
+    pub gap: f64,
+}
+
+impl Default for CellSpec {
+    fn default() -> Self {
+        Self {
+            count: 6,
+            diameter: [20.0, 100.0],
+            height: [8.0, 25.0],
+            gap: 12.0,
+        }
+    }
+}
+
+impl Scene {
+    /// A random scene: non-overlapping cells fully inside both views. Fewer cells than asked
+    /// when they do not fit (the spec is then reported by `cells.len()`).
+    pub fn random(optics: Optics, look: Look, spec: &CellSpec, seed: u64) -> Self {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_ce11);
+        let s = optics.um_per_px();
+        let (hw, hh) = (
+            0.5 * optics.width as f64 * s,
+            0.5 * optics.height as f64 * s,
+        );
+        let margin = 6.0 * s + 0.35 * spec.height[1];
+        let mut cells: Vec<CellShape> = Vec::new();
+        for _ in 0..spec.count * 200 {
+            if cells.len() == spec.count {
+                break;
+            }
+            let d = rng.random_range(spec.diameter[0]..=spec.diameter[1]);
+            let ecc = rng.random_range(0.75..=1.0);
+            let (a, b) = (0.5 * d, 0.5 * d * ecc);
+            let h = rng
+                .random_range(spec.height[0]..=spec.height[1])
+                .min(0.8 * d);
+            let r = a + margin;
+            if 2.0 * r >= 2.0 * hw.min(hh) {
+                continue;
+            }
+            let c = [
+                rng.random_range(-hw + r..hw - r),
+                rng.random_range(-hh + r..hh - r),
+            ];
+            let clear = cells.iter().all(|o| {
+                (o.centre[0] - c[0]).hypot(o.centre[1] - c[1]) > a + o.semi_axes[0] + spec.gap
+            });
+            if !clear {
+                continue;
+            }
+            cells.push(CellShape {
+                centre: c,
+                semi_axes: [a, b],
+                angle: rng.random_range(0.0..std::f64::consts::PI),
+                height: h,
+                texture_offset: [rng.random_range(0.0..1e4), rng.random_range(0.0..1e4)],
+                brightness: rng.random_range(-15.0..15.0),
+            });
+        }
+        Self {
+            optics,
+            look,
+            cells,
+            pipette: None,
+            stage: 0.0,
+            target: false,
+            seed,
+        }
+    }
+
+    /// A textured flat target at stage height `stage` µm, no cells.
+    pub fn target(optics: Optics, look: Look, stage: f64, seed: u64) -> Self {
+        Self {
+            optics,
+            look,
+            cells: Vec::new(),
+            pipette: None,
+            stage,
+            target: true,
+            seed,
+        }
+    }
+
+    /// The scene `frame` steps later: cells drift by their own velocity (µm per frame,
+    /// up to `drift`), the pipette advances by `pipette_step` µm per frame.
+    pub fn at_frame(&self, frame: usize, drift: f64, pipette_step: f64) -> Scene {
+        let mut rng = ChaCha8Rng::seed_from_u64(self.seed ^ 0xd1f7);
+        let mut s = self.clone();
+        for c in &mut s.cells {
+            let (vx, vy) = (
+                rng.random_range(-drift..=drift),
+                rng.random_range(-drift..=drift),
+            );
+            c.centre[0] += vx * frame as f64;
+            c.centre[1] += vy * frame as f64;
+        }
+        if let Some(p) = &mut s.pipette {
+            p.tip[0] += pipette_step * frame as f64;
+        }
+        s.seed = self.seed.wrapping_add(frame as u64 * 0x9e37);
+        s
+    }
+}
+
+/// Per-cell ground truth.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CellTruth {
+    /// Label in the truth mask (index + 1).
+    pub id: u32,
+    /// The shape.
+    pub shape: CellShape,
+    /// Left-image pixels where the cell is the visible surface.
+    pub area_px: u64,
+    /// Centroid of those pixels `[x, y]`.
+    pub centroid_px: [f64; 2],
+    /// Projection of the footprint centre into the left image.
+    pub footprint_centre_px: [f64; 2],
+    /// Height above the substrate, µm.
+    pub height: f64,
+    /// Volume (2/3·π·a·b·h), µm³.
+    pub volume: f64,
+    /// Centroid of the dome's volume `[X, Y, Z]`, µm, triangulation frame.
+    pub centroid: [f64; 3],
+    /// Disparity of the substrate under the cell and of its top.
+    pub disparity_base_top: [f64; 2],
+}
+
+/// A rendered pair and its ground truth.
+#[derive(Clone, Debug)]
+pub struct Rendered {
+    /// Left view.
+    pub left: Plane<u8>,
+    /// Right view.
+    pub right: Plane<u8>,
+    /// Left disparity at every pixel centre.
+    pub disparity: DisparityMap,
+    /// Left depth at every pixel centre, µm.
+    pub depth: Plane<f32>,
+    /// Left labels: 0 substrate, cell `i` = `i`, `u32::MAX` pipette.
+    pub labels: Plane<u32>,
+    /// Per-cell truth.
+    pub cells: Vec<CellTruth>,
+    /// The calibration that triangulates the pair.
+    pub calibration: Calibration,
+}
+
+/// Label of pipette pixels in [`Rendered::labels`].
+pub const PIPETTE: u32 = u32::MAX;
+
+/// What a ray hits first.
+#[derive(Clone, Copy)]
+enum Hit {
+    Substrate,
+    Cell(usize, [f64; 3]),
+    Pipette,
+}
+
+/// Smooth value noise with a hashed lattice (no tables, any coordinates).
+fn value_noise(x: f64, y: f64, seed: u64) -> f64 {
+    let hash = |i: i64, j: i64| -> f64 {
+        let mut h = (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+            ^ (j as u64).wrapping_mul(0xC2B2_AE3D_27D4_EB4F)
+            ^ seed.wrapping_mul(0x1656_67B1_9E37_79F9);
+        h ^= h >> 29;
+        h = h.wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        h ^= h >> 32;
+        (h >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+    };
+    let (fx, fy) = (x.floor(), y.floor());
+    let (tx, ty) = (x - fx, y - fy);
+    let (sx, sy) = (tx * tx * (3.0 - 2.0 * tx), ty * ty * (3.0 - 2.0 * ty));
+    let (i, j) = (fx as i64, fy as i64);
+    let top = hash(i, j) * (1.0 - sx) + hash(i + 1, j) * sx;
+    let bot = hash(i, j + 1) * (1.0 - sx) + hash(i + 1, j + 1) * sx;
+    top * (1.0 - sy) + bot * sy
+}
+
+/// Cell texture: noise at 6, 2.5 and 1 µm, or the real image.
+fn cell_texture(tex: &Texture, u: f64, v: f64, seed: u64) -> f64 {
+    match tex {
+        Texture::Noise => {
+            0.5 * value_noise(u / 6.0, v / 6.0, seed)
+                + 0.35 * value_noise(u / 2.5, v / 2.5, seed + 1)
+                + 0.3 * value_noise(u / 1.0, v / 1.0, seed + 2)
+        }
+        Texture::Image(img) => {
+            let (w, h) = (img.width as f64, img.height as f64);
+            let (x, y) = (u.rem_euclid(w - 1.0), v.rem_euclid(h - 1.0));
+            let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+            let (tx, ty) = (x - x0 as f64, y - y0 as f64);
+            let g =
+                |a: usize, b: usize| *img.get(a.min(img.width - 1), b.min(img.height - 1)) as f64;
+            let val = (g(x0, y0) * (1.0 - tx) + g(x0 + 1, y0) * tx) * (1.0 - ty)
+                + (g(x0, y0 + 1) * (1.0 - tx) + g(x0 + 1, y0 + 1) * tx) * ty;
+            (val - 128.0) / 64.0
+        }
+    }
+}
+
+impl Scene {
+    fn z0(&self) -> f64 {
+        self.optics.working_distance() - self.stage
+    }
+
+    /// The first thing a ray through pixel `(u, v)` of a view meets, and its depth.
+    fn cast(&self, right: bool, u: f64, v: f64, cal: &Calibration) -> (Hit, f64) {
+        let f = cal.focal_px;
+        let (ox, cx) = if right {
+            (0.5 * self.optics.baseline, cal.cx_right)
+        } else {
+            (-0.5 * self.optics.baseline, cal.cx)
+        };
+        let (sx, sy) = ((u - cx) / f, (v - cal.cy) / f);
+        let z0 = self.z0();
+        // The ray at height s above the substrate: x = ox + sx·(z0 − s), y = sy·(z0 − s).
+        let mut best = (Hit::Substrate, 0.0f64);
+        for (k, c) in self.cells.iter().enumerate() {
+            let (co, si) = (c.angle.cos(), c.angle.sin());
+            let (dx, dy) = (ox + sx * z0 - c.centre[0], sy * z0 - c.centre[1]);
+            let (px, py) = (co * dx + si * dy, -si * dx + co * dy);
+            let (qx, qy) = (co * sx + si * sy, -si * sx + co * sy);
+            let (a2, b2, h) = (c.semi_axes[0].powi(2), c.semi_axes[1].powi(2), c.height);
+            // |P − Q s|² over the axes + (s/h)² = 1.
+            let qa = qx * qx / a2 + qy * qy / b2 + 1.0 / (h * h);
+            let qb = -2.0 * (px * qx / a2 + py * qy / b2);
+            let qc = px * px / a2 + py * py / b2 - 1.0;
+            let disc = qb * qb - 4.0 * qa * qc;
+            if disc < 0.0 {
+                continue;
+            }
+            let s = (-qb + disc.sqrt()) / (2.0 * qa);
+            if s > best.1 {
+                let (lx, ly) = (px - qx * s, py - qy * s);
+                best = (Hit::Cell(k, [lx, ly, s]), s);
+            }
+        }
+        if let Some(p) = &self.pipette {
+            // A chain of spheres along the axis, radius growing back from the tip.
+            let step = 0.5 * p.tip_radius.max(0.5);
+            let mut t = 0.0;
+            let len = 2.0 * (self.optics.width as f64 * self.optics.um_per_px());
+            while t < len {
+                let r = p.tip_radius + p.taper * t;
+                let (ccx, ccy, ccs) = (p.tip[0] - t, p.tip[1], p.height);
+                // Ray point at height s: (ox + sx(z0−s), sy(z0−s), s).
+                let (ax, ay) = (ox + sx * z0 - ccx, sy * z0 - ccy);
+                let qa = sx * sx + sy * sy + 1.0;
+                let qb = -2.0 * (ax * sx + ay * sy + ccs);
+                let qc = ax * ax + ay * ay + ccs * ccs - r * r;
+                let disc = qb * qb - 4.0 * qa * qc;
+                if disc >= 0.0 {
+                    let s = (-qb + disc.sqrt()) / (2.0 * qa);
+                    if s > best.1 {
+                        best = (Hit::Pipette, s);
+                    }
+                }
+                t += step;
+            }
+        }
+        (best.0, z0 - best.1)
+    }
+
+    /// Brightness of what a ray hit (before blur and noise).
+    fn shade(&self, hit: Hit, u: f64, v: f64, right: bool, cal: &Calibration) -> f64 {
+        let look = &self.look;
+        let f = cal.focal_px;
+        let z0 = self.z0();
+        let (ox, cx) = if right {
+            (0.5 * self.optics.baseline, cal.cx_right)
+        } else {
+            (-0.5 * self.optics.baseline, cal.cx)
+        };
+        let x = ox + (u - cx) / f * z0;
+        let y = (v - cal.cy) / f * z0;
+        let half_w = 0.5 * self.optics.width as f64 * self.optics.um_per_px();
+        let base = look.substrate + look.gradient * 0.5 * (x / half_w + 0.3 * y / half_w);
+        match hit {
+            Hit::Substrate => {
+                let amp = if self.target {
+                    40.0
+                } else {
+                    look.substrate_texture
+                };
+                let t = if self.target {
+                    cell_texture(&Texture::Noise, x, y, self.seed)
+                } else {
+                    value_noise(x / 3.0, y / 3.0, self.seed ^ 0xbac)
+                };
+                base + amp * t
+            }
+            Hit::Cell(k, [lx, ly, s]) => {
+                let c = &self.cells[k];
+                let (a, b, h) = (c.semi_axes[0], c.semi_axes[1], c.height);
+                let t = cell_texture(
+                    &look.texture,
+                    lx + c.texture_offset[0],
+                    ly + c.texture_offset[1],
+                    self.seed ^ (k as u64 + 1) * 0x51,
+                );
+                // Slope of the dome along the DIC shear (45°): relief shading.
+                let zn = (s / h).max(0.05);
+                let (gx, gy) = (-lx / (a * a) * h / zn, -ly / (b * b) * h / zn);
+                let (co, si) = (c.angle.cos(), c.angle.sin());
+                let (wx, wy) = (co * gx - si * gy, si * gx + co * gy);
+                let slope = (wx + wy) * std::f64::consts::FRAC_1_SQRT_2;
+                base + c.brightness + look.cell_texture * t + look.relief * slope.tanh()
+            }
+            Hit::Pipette => base - 70.0,
+        }
+    }
+
+    fn view(&self, right: bool, cal: &Calibration) -> Plane<f64> {
+        let (w, h) = (self.optics.width, self.optics.height);
+        let n = self.look.supersample.max(1);
+        let rows: Vec<Vec<f64>> = (0..h)
+            .into_par_iter()
+            .map(|v| {
+                (0..w)
+                    .map(|u| {
+                        let mut acc = 0.0;
+                        for j in 0..n {
+                            for i in 0..n {
+                                let su = u as f64 + (i as f64 + 0.5) / n as f64 - 0.5;
+                                let sv = v as f64 + (j as f64 + 0.5) / n as f64 - 0.5;
+                                let (hit, _) = self.cast(right, su, sv, cal);
+                                acc += self.shade(hit, su, sv, right, cal);
+                            }
+                        }
+                        acc / (n * n) as f64
+                    })
+                    .collect()
+            })
+            .collect();
+        Plane::from_vec(w, h, rows.concat()).expect("size")
+    }
+
+    /// Renders both views and the ground truth.
+    pub fn render(&self) -> Rendered {
+        let cal = self.optics.calibration();
+        let (w, h) = (self.optics.width, self.optics.height);
+        let mut rng_l = ChaCha8Rng::seed_from_u64(self.seed ^ 0x1ef7);
+        let mut rng_r = ChaCha8Rng::seed_from_u64(self.seed ^ 0x7197);
+        let finish = |img: Plane<f64>, rng: &mut ChaCha8Rng| -> Plane<u8> {
+            let img = gaussian_blur(&img, self.look.blur);
+            let data = img
+                .data
+                .iter()
+                .map(|&v| (v + self.look.noise * gauss(rng)).round().clamp(0.0, 255.0) as u8)
+                .collect();
+            Plane::from_vec(w, h, data).expect("size")
+        };
+        let left = finish(self.view(false, &cal), &mut rng_l);
+        let right = finish(self.view(true, &cal), &mut rng_r);
+        let mut disparity = Plane::filled(w, h, 0f32);
+        let mut depth = Plane::filled(w, h, 0f32);
+        let mut labels = Plane::filled(w, h, 0u32);
+        let off = cal.cx_right - cal.cx;
+        for v in 0..h {
+            for u in 0..w {
+                let (hit, z) = self.cast(false, u as f64, v as f64, &cal);
+                *depth.get_mut(u, v) = z as f32;
+                *disparity.get_mut(u, v) = (self.optics.baseline * cal.focal_px / z - off) as f32;
+                *labels.get_mut(u, v) = match hit {
+                    Hit::Substrate => 0,
+                    Hit::Cell(k, _) => k as u32 + 1,
+                    Hit::Pipette => PIPETTE,
+                };
+            }
+        }
+        let z0 = self.z0();
+        let cells = self
+            .cells
+            .iter()
+            .enumerate()
+            .map(|(k, c)| {
+                let id = k as u32 + 1;
+                let (mut n, mut sx, mut sy) = (0u64, 0.0, 0.0);
+                for (i, &l) in labels.data.iter().enumerate() {
+                    if l == id {
+                        n += 1;
+                        sx += (i % w) as f64;
+                        sy += (i / w) as f64;
+                    }
+                }
+                let f = cal.focal_px;
+                CellTruth {
+                    id,
+                    shape: *c,
+                    area_px: n,
+                    centroid_px: [sx / n.max(1) as f64, sy / n.max(1) as f64],
+                    footprint_centre_px: [
+                        cal.cx + (c.centre[0] + 0.5 * self.optics.baseline) * f / z0,
+                        cal.cy + c.centre[1] * f / z0,
+                    ],
+                    height: c.height,
+                    volume: 2.0 / 3.0
+                        * std::f64::consts::PI
+                        * c.semi_axes[0]
+                        * c.semi_axes[1]
+                        * c.height,
+                    centroid: [c.centre[0], c.centre[1], z0 - 3.0 / 8.0 * c.height],
+                    disparity_base_top: [
+                        self.optics.baseline * f / z0 - off,
+                        self.optics.baseline * f / (z0 - c.height) - off,
+                    ],
+                }
+            })
+            .collect();
+        Rendered {
+            left,
+            right,
+            disparity,
+            depth,
+            labels,
+            cells,
+            calibration: cal,
+        }
+    }
+}
+
+/// A standard normal sample (Box–Muller).
+fn gauss(rng: &mut ChaCha8Rng) -> f64 {
+    let u1: f64 = rng.random_range(f64::EPSILON..1.0);
+    let u2: f64 = rng.random_range(0.0..1.0);
+    (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+}
+
+/// Separable Gaussian blur with clamped borders (sigma 0 = unchanged).
+pub fn gaussian_blur(img: &Plane<f64>, sigma: f64) -> Plane<f64> {
+    if sigma <= 0.0 {
+        return img.clone();
+    }
+    let r = (3.0 * sigma).ceil() as i64;
+    let k: Vec<f64> = (-r..=r)
+        .map(|i| (-(i * i) as f64 / (2.0 * sigma * sigma)).exp())
+        .collect();
+    let norm: f64 = k.iter().sum();
+    let (w, h) = (img.width as i64, img.height as i64);
+    let pass = |src: &Plane<f64>, horizontal: bool| -> Plane<f64> {
+        let mut out = Plane::filled(src.width, src.height, 0.0);
+        for y in 0..h {
+            for x in 0..w {
+                let mut acc = 0.0;
+                for (j, kv) in k.iter().enumerate() {
+                    let o = j as i64 - r;
+                    let (xx, yy) = if horizontal {
+                        ((x + o).clamp(0, w - 1), y)
+                    } else {
+                        (x, (y + o).clamp(0, h - 1))
+                    };
+                    acc += kv * src.get(xx as usize, yy as usize);
+                }
+                *out.get_mut(x as usize, y as usize) = acc / norm;
+            }
+        }
+        out
+    };
+    pass(&pass(img, true), false)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn substrate_has_zero_disparity_and_heights_give_the_designed_slope() {
+        let o = Optics::default();
+        assert!((o.disparity_at(o.working_distance())).abs() < 1e-9);
+        let d10 = o.disparity_at(o.working_distance() - 10.0);
+        assert!((d10 - 10.0 * o.px_per_um_height()).abs() < 0.01, "{d10}");
+        assert!((o.px_per_um_height() - 0.3).abs() < 1e-9);
+    }
+
+    #[test]
+    fn truth_disparity_triangulates_back_to_the_truth_depth() {
+        let o = Optics {
+            width: 160,
+            height: 120,
+            ..Optics::default()
+        };
+        let s = Scene::random(
+            o,
+            Look::default(),
+            &CellSpec {
+                count: 2,
+                diameter: [30.0, 40.0],
+                ..CellSpec::default()
+            },
+            4,
+        );
+        let r = s.render();
+        let c = r.calibration;
+        for i in (0..r.depth.len()).step_by(97) {
+            let (x, y) = ((i % 160) as f64, (i / 160) as f64);
+            let d = r.disparity.data[i] as f64;
+            let z = c.baseline * c.focal_px / (d + c.cx_right - c.cx);
+            assert!((z - r.depth.data[i] as f64).abs() < 1e-3 * z, "{x},{y}");
+        }
+    }
+
+    #[test]
+    fn each_cell_shows_its_dome_and_the_right_view_is_shifted_by_the_disparity() {
+        let o = Optics {
+            width: 200,
+            height: 160,
+            ..Optics::default()
+        };
+        let look = Look {
+            noise: 0.0,
+            ..Look::default()
+        };
+        let spec = CellSpec {
+            count: 2,
+            diameter: [40.0, 60.0],
+            height: [10.0, 20.0],
+            gap: 10.0,
+        };
+        let s = Scene::random(o, look, &spec, 9);
+        assert_eq!(s.cells.len(), 2);
+        let r = s.render();
+        for t in &r.cells {
+            // Top disparity = the largest truth disparity on the cell.
+            let top = r
+                .disparity
+                .data
+                .iter()
+                .zip(&r.labels.data)
+                .filter(|(_, l)| **l == t.id)
+                .map(|(d, _)| *d as f64)
+                .fold(0.0, f64::max);
+            assert!(
+                (top - t.disparity_base_top[1]).abs() < 0.05,
+                "{top} vs {:?}",
+                t.disparity_base_top
+            );
+            let (a, b) = (t.shape.semi_axes[0], t.shape.semi_axes[1]);
+            let footprint = std::f64::consts::PI * a * b / o.um_per_px().powi(2);
+            assert!(
+                (t.area_px as f64 / footprint - 1.0).abs() < 0.08,
+                "{} vs {footprint}",
+                t.area_px
+            );
+        }
+        // A left pixel on the top of a cell matches right pixel x − d (sub-pixel, bilinear).
+        let t = &r.cells[0];
+        let (x, y) = (
+            t.centroid_px[0].round() as usize,
+            t.centroid_px[1].round() as usize,
+        );
+        let d = *r.disparity.get(x, y) as f64;
+        let xr = x as f64 - d;
+        let (x0, fr) = (xr.floor() as usize, xr - xr.floor());
+        let mut err = 0.0;
+        for dy in 0..3 {
+            for dx in 0..3 {
+                let l = *r.left.get(x + dx - 1, y + dy - 1) as f64;
+                let rr = (1.0 - fr) * *r.right.get(x0 + dx - 1, y + dy - 1) as f64
+                    + fr * *r.right.get(x0 + dx, y + dy - 1) as f64;
+                err += (l - rr).abs();
+            }
+        }
+        assert!(err / 9.0 < 4.0, "mean photometric error {}", err / 9.0);
+    }
+
+    #[test]
+    fn same_seed_same_images() {
+        let o = Optics {
+            width: 64,
+            height: 48,
+            ..Optics::default()
+        };
+        let spec = CellSpec {
+            count: 1,
+            diameter: [20.0, 25.0],
+            ..CellSpec::default()
+        };
+        let a = Scene::random(o, Look::default(), &spec, 3).render();
+        let b = Scene::random(o, Look::default(), &spec, 3).render();
+        assert_eq!(a.left, b.left);
+        assert_eq!(a.right, b.right);
+        let c = Scene::random(o, Look::default(), &spec, 4).render();
+        assert_ne!(a.left, c.left);
+    }
+}
