@@ -92,3 +92,279 @@ pub fn write_segmentation(
     let json = serde_json::to_string_pretty(&report).expect("serialises");
     std::fs::write(&jp, json + "\n").map_err(|e| werr(&jp, &e))
 }
+
+use crate::pipeline::{self, StereoConfig, Workspace};
+use matcher::InputError;
+use runtime::StageTimes;
+use schemas::{Calibration, Cell3, DisparityMap, DisparityRange, INVALID_DISPARITY};
+
+/// Pairs each left cell with a right cell: rows overlap by half the smaller height, areas
+/// within a factor of two, the centroid offset `xl − xr` inside the disparity range (±
+/// `slack` px for segmentation jitter). Best pairs first (smallest size and row mismatch);
+/// each cell is used once. Returns `(left index, right index)` in left order.
+pub fn pair_cells(
+    left: &[Cell],
+    right: &[Cell],
+    range: DisparityRange,
+    slack: f64,
+) -> Vec<(usize, usize)> {
+    let mut cand = Vec::new();
+    for (i, l) in left.iter().enumerate() {
+        for (j, r) in right.iter().enumerate() {
+            let overlap = l.bbox.y1.min(r.bbox.y1) as i64 - l.bbox.y0.max(r.bbox.y0) as i64 + 1;
+            let hmin = (l.bbox.y1 - l.bbox.y0).min(r.bbox.y1 - r.bbox.y0) as i64 + 1;
+            let ratio = l.area as f64 / r.area.max(1) as f64;
+            let dx = l.centroid[0] - r.centroid[0];
+            if 2 * overlap < hmin
+                || !(0.5..=2.0).contains(&ratio)
+                || dx < range.min as f64 - slack
+                || dx > range.max as f64 + slack
+            {
+                continue;
+            }
+            let cost = (l.centroid[1] - r.centroid[1]).abs() + 20.0 * ratio.ln().abs();
+            cand.push((cost, i, j));
+        }
+    }
+    cand.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let (mut used_l, mut used_r) = (vec![false; left.len()], vec![false; right.len()]);
+    let mut pairs = Vec::new();
+    for (_, i, j) in cand {
+        if !used_l[i] && !used_r[j] {
+            used_l[i] = true;
+            used_r[j] = true;
+            pairs.push((i, j));
+        }
+    }
+    pairs.sort();
+    pairs
+}
+
+/// Settings of cell-only stereo.
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct CellStereoParams {
+    /// Pixels around each cell mask that are matched too (the substrate ring).
+    pub margin: u8,
+}
+
+impl Default for CellStereoParams {
+    fn default() -> Self {
+        Self { margin: 8 }
+    }
+}
+
+/// Everything cell-only stereo produces.
+#[derive(Clone, Debug)]
+pub struct CellStereo {
+    /// Left segmentation.
+    pub left_seg: Segmentation,
+    /// Right segmentation.
+    pub right_seg: Segmentation,
+    /// `(left cell index, right cell index)`.
+    pub pairs: Vec<(usize, usize)>,
+    /// Final left disparity: valid only inside the matched (dilated) cell masks.
+    pub disparity: DisparityMap,
+    /// After the LR check, before post-processing, same support.
+    pub disparity_raw: DisparityMap,
+    /// 255 where the LR check failed inside the matched regions.
+    pub occlusion_left: Mask,
+    /// Left pixels given to the matcher (the crops), summed over cells.
+    pub matched_pixels: u64,
+    /// Milliseconds per stage.
+    pub times: StageTimes,
+}
+
+fn crop<T: Copy>(p: &Plane<T>, x0: usize, y0: usize, x1: usize, y1: usize) -> Plane<T> {
+    let data = (y0..y1)
+        .flat_map(|y| p.row(y)[x0..x1].iter().copied())
+        .collect();
+    Plane::from_vec(x1 - x0, y1 - y0, data).expect("size")
+}
+
+/// Segments both views, pairs the cells and runs the stereo pipeline on each pair's crop;
+/// only pixels inside a left cell mask dilated by `margin` keep a disparity.
+pub fn cell_stereo(
+    left: &Plane<u8>,
+    right: &Plane<u8>,
+    cfg: &StereoConfig,
+    seg: &SegmentParams,
+    p: &CellStereoParams,
+) -> Result<CellStereo, InputError> {
+    matcher::check_inputs(left, right, cfg.range, cfg.window())?;
+    let mut times = StageTimes::default();
+    let (ls, rs) = times.time("segment", || {
+        rayon::join(
+            || segment::segment(left, seg),
+            || segment::segment(right, seg),
+        )
+    });
+    let pairs = pair_cells(&ls.cells, &rs.cells, cfg.range, 4.0);
+    let (w, h) = (left.width, left.height);
+    let mut disparity = Plane::filled(w, h, INVALID_DISPARITY);
+    let mut disparity_raw = Plane::filled(w, h, INVALID_DISPARITY);
+    let mut occlusion_left = Plane::filled(w, h, 0u8);
+    let mut matched_pixels = 0u64;
+    let m = p.margin as i64;
+    let (dmin, dmax) = (cfg.range.min as i64, cfg.range.max as i64);
+    let support = segment::dilate(&ls.mask, p.margin);
+    let mut ws = Workspace::default();
+    for &(i, j) in &pairs {
+        let (lb, rb) = (ls.cells[i].bbox, rs.cells[j].bbox);
+        let y0 = (lb.y0.min(rb.y0) as i64 - m).max(0) as usize;
+        let y1 = ((lb.y1.max(rb.y1) as i64 + m + 1) as usize).min(h);
+        let c0 = (lb.x0 as i64 - m - dmax)
+            .min(rb.x0 as i64 - m + dmin)
+            .max(0) as usize;
+        let c1 =
+            ((lb.x1 as i64 + m - dmin).max(rb.x1 as i64 + m + dmax) + 1).min(w as i64) as usize;
+        let (cl, cr) = (crop(left, c0, y0, c1, y1), crop(right, c0, y0, c1, y1));
+        let mut c = cfg.clone();
+        // A narrow crop cannot hold the whole range: search what fits.
+        let cw = (c1 - c0) as i32;
+        c.range = DisparityRange::new(cfg.range.min.max(-(cw - 1)), cfg.range.max.min(cw - 1));
+        if c.range.min >= c.range.max
+            || matcher::check_inputs(&cl, &cr, c.range, c.window()).is_err()
+        {
+            continue;
+        }
+        matched_pixels += cl.len() as u64;
+        let out = pipeline::run_stereo_in(&mut ws, &cl, &cr, &c)?;
+        for (n, ms) in &out.times.stages {
+            times.add(n, *ms);
+        }
+        let id = ls.cells[i].id;
+        for y in y0..y1 {
+            for x in c0..c1 {
+                // Own cell plus the ring around it (other cells get their own crop).
+                let own = *ls.labels.get(x, y) == id
+                    || (*ls.labels.get(x, y) == 0
+                        && *support.get(x, y) != 0
+                        && near(&ls.labels, x, y, id, p.margin));
+                if !own {
+                    continue;
+                }
+                *disparity.get_mut(x, y) = *out.disparity.get(x - c0, y - y0);
+                *disparity_raw.get_mut(x, y) = *out.checked.left.get(x - c0, y - y0);
+                *occlusion_left.get_mut(x, y) = *out.checked.occlusion_left.get(x - c0, y - y0);
+            }
+        }
+    }
+    Ok(CellStereo {
+        left_seg: ls,
+        right_seg: rs,
+        pairs,
+        disparity,
+        disparity_raw,
+        occlusion_left,
+        matched_pixels,
+        times,
+    })
+}
+
+/// True when a pixel of cell `id` lies within `r` px (square window) of `(x, y)`.
+fn near(labels: &Plane<u32>, x: usize, y: usize, id: u32, r: u8) -> bool {
+    let r = r as usize;
+    let (x0, y0) = (x.saturating_sub(r), y.saturating_sub(r));
+    let (x1, y1) = (
+        (x + r + 1).min(labels.width),
+        (y + r + 1).min(labels.height),
+    );
+    (y0..y1).any(|yy| labels.row(yy)[x0..x1].contains(&id))
+}
+
+fn percentile(mut v: Vec<f32>, q: f64) -> Option<f64> {
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_by(|a, b| a.total_cmp(b));
+    let k = ((v.len() - 1) as f64 * q).round() as usize;
+    Some(v[k] as f64)
+}
+
+/// Per-cell 3D figures of paired cells (see [`Cell3`]).
+pub fn measure_cells(cs: &CellStereo, calib: &Calibration, margin: u8) -> Vec<Cell3> {
+    let ls = &cs.left_seg;
+    let z_of = |d: f64| calib.baseline * calib.focal_px / (d + calib.cx_right - calib.cx);
+    let mut out = Vec::new();
+    for &(i, j) in &cs.pairs {
+        let cell = &ls.cells[i];
+        let b = cell.bbox;
+        let m = margin as usize;
+        let (x0, y0) = (
+            (b.x0 as usize).saturating_sub(m),
+            (b.y0 as usize).saturating_sub(m),
+        );
+        let x1 = (b.x1 as usize + m + 1).min(ls.labels.width);
+        let y1 = (b.y1 as usize + m + 1).min(ls.labels.height);
+        let (mut inside, mut ring, mut ring_filled) = (Vec::new(), Vec::new(), Vec::new());
+        let mut valid_raw = 0u64;
+        for y in y0..y1 {
+            for x in x0..x1 {
+                let l = *ls.labels.get(x, y);
+                let d = *cs.disparity.get(x, y);
+                if l == cell.id {
+                    valid_raw += cs.disparity_raw.get(x, y).is_finite() as u64;
+                    if d.is_finite() {
+                        inside.push((x, y, d));
+                    }
+                } else if l == 0 && d.is_finite() {
+                    // Keep off the segmented edge by 2 px: the variance window blurs it.
+                    if !near(&ls.labels, x, y, cell.id, 2) {
+                        let raw = *cs.disparity_raw.get(x, y);
+                        if raw.is_finite() {
+                            ring.push(raw);
+                        }
+                        ring_filled.push(d);
+                    }
+                }
+            }
+        }
+        let Some(d_sub) = percentile(ring, 0.5).or_else(|| percentile(ring_filled, 0.5)) else {
+            continue;
+        };
+        let Some(d_top) = percentile(inside.iter().map(|p| p.2).collect(), 0.98) else {
+            continue;
+        };
+        let z_sub = z_of(d_sub);
+        let pixel_area = (z_sub / calib.focal_px).powi(2);
+        let (mut vol, mut wx, mut wy, mut wz) = (0.0, 0.0, 0.0, 0.0);
+        for &(x, y, d) in &inside {
+            let z = z_of(d as f64);
+            let hgt = (z_sub - z).max(0.0);
+            let v = hgt * pixel_area;
+            if let Some([px, py, _]) =
+                triangulate::triangulate_pixel(x as f64, y as f64, d as f64, calib)
+            {
+                vol += v;
+                wx += v * px;
+                wy += v * py;
+                wz += v * (z_sub - 0.5 * hgt);
+            }
+        }
+        let centroid = if vol > 0.0 {
+            [wx / vol, wy / vol, wz / vol]
+        } else {
+            triangulate::triangulate_pixel(cell.centroid[0], cell.centroid[1], d_sub, calib)
+                .unwrap_or([f64::NAN; 3])
+        };
+        let contour = cell
+            .contour
+            .iter()
+            .filter_map(|c| triangulate::triangulate_pixel(c[0] as f64, c[1] as f64, d_sub, calib))
+            .collect();
+        out.push(Cell3 {
+            id: cell.id,
+            right_id: cs.right_seg.cells[j].id,
+            area_px: cell.area,
+            centroid_px: cell.centroid,
+            disparity: d_top,
+            centroid,
+            substrate_z: z_sub,
+            height: z_sub - z_of(d_top),
+            volume: vol,
+            contour,
+            valid_share: valid_raw as f64 / cell.area.max(1) as f64,
+        });
+    }
+    out
+}

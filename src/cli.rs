@@ -250,6 +250,14 @@ struct ReconstructArgs {
     /// Calibration file (TOML or JSON): baseline, focal_px or f_eff + pixel_pitch, cx, cy, unit.
     #[arg(long)]
     calibration: Option<PathBuf>,
+    /// Segment both views and match only the cells (plus `--cell-margin`); writes cells.json.
+    #[arg(long)]
+    cells: bool,
+    /// Pixels around each cell that are matched too: the substrate ring for its height.
+    #[arg(long, default_value_t = 8)]
+    cell_margin: u8,
+    #[command(flatten)]
+    seg: SegmentOpts,
 }
 
 #[derive(Args, Debug)]
@@ -499,6 +507,20 @@ fn reconstruct(a: ReconstructArgs) -> Result<(), CliError> {
     };
     // Check the pair before the (possibly long) range search.
     matcher::check_inputs(&left.grey, &right.grey, range, cfg.window())?;
+    if a.cells {
+        let Some(c) = calib else {
+            return Err(CliError::Other(
+                "--cells measures cells in 3D: give --calibration FILE or --baseline and --focal"
+                    .into(),
+            ));
+        };
+        if a.auto_range {
+            return Err(CliError::Other(
+                "--cells takes the range from --min-disparity/--max-disparity (the cells' heights), not --auto-range".into(),
+            ));
+        }
+        return reconstruct_cells(&a, &left, &right, &cfg, &c);
+    }
     let mut curve = None;
     let mut auto_ms = 0.0;
     if a.auto_range {
@@ -840,5 +862,115 @@ fn segment_cmd(a: SegmentArgs) -> Result<(), CliError> {
         );
     }
     println!("outputs in {}", a.output.display());
+    Ok(())
+}
+
+/// What `reconstruct --cells` writes to cells.json.
+#[derive(Serialize)]
+struct CellsReport<'a> {
+    left: String,
+    right: String,
+    width: usize,
+    height: usize,
+    range: DisparityRange,
+    unit: &'static str,
+    segmentation: &'a segment::SegmentParams,
+    cells_left: usize,
+    cells_right: usize,
+    pairs: usize,
+    /// Pixels handed to the matcher over the image's pixels.
+    matched_share: f64,
+    times_ms: Vec<(String, f64)>,
+    cells: &'a [schemas::Cell3],
+}
+
+fn reconstruct_cells(
+    a: &ReconstructArgs,
+    left: &io::LoadedImage,
+    right: &io::LoadedImage,
+    cfg: &StereoConfig,
+    calib: &Calibration,
+) -> Result<(), CliError> {
+    let seg = a.seg.params()?;
+    let p = crate::cells::CellStereoParams {
+        margin: a.cell_margin,
+    };
+    let mut cs = crate::cells::cell_stereo(&left.grey, &right.grey, cfg, &seg, &p)?;
+    let t = Instant::now();
+    let cells = crate::cells::measure_cells(&cs, calib, a.cell_margin);
+    cs.times.add("measure", t.elapsed().as_secs_f64() * 1e3);
+    let t = Instant::now();
+    let cloud = triangulate::triangulate(&cs.disparity, calib, &left.rgb);
+    cs.times.add("triangulate", t.elapsed().as_secs_f64() * 1e3);
+    let o = &a.output;
+    std::fs::create_dir_all(o).map_err(|e| {
+        CliError::Other(format!(
+            "cannot create output directory '{}': {e}",
+            o.display()
+        ))
+    })?;
+    io::write_pfm(&o.join("disparity.pfm"), &cs.disparity)?;
+    io::write_pfm(&o.join("disparity_raw.pfm"), &cs.disparity_raw)?;
+    io::write_disparity_png(&o.join("disparity.png"), &cs.disparity)?;
+    io::write_color_png(
+        &o.join("disparity_color.png"),
+        &io::disparity_color(&cs.disparity, cfg.range.min as f32, cfg.range.max as f32),
+    )?;
+    io::write_mask_png(&o.join("occlusion_left.png"), &cs.occlusion_left)?;
+    crate::render::write_labels_png(&o.join("labels_left.png"), &cs.left_seg.labels)?;
+    crate::render::write_labels_png(&o.join("labels_right.png"), &cs.right_seg.labels)?;
+    let ov = o.join("overlay_left.png");
+    crate::render::overlay(&left.rgb, &cs.left_seg.cells)
+        .save(&ov)
+        .map_err(|e| CliError::Other(format!("cannot write '{}': {e}", ov.display())))?;
+    io::write_ply(&o.join("points.ply"), &cloud)?;
+    let (w, h) = (left.grey.width, left.grey.height);
+    let report = CellsReport {
+        left: a.left.display().to_string(),
+        right: a.right.display().to_string(),
+        width: w,
+        height: h,
+        range: cfg.range,
+        unit: calib.unit.symbol(),
+        segmentation: &seg,
+        cells_left: cs.left_seg.cells.len(),
+        cells_right: cs.right_seg.cells.len(),
+        pairs: cs.pairs.len(),
+        matched_share: cs.matched_pixels as f64 / (w * h) as f64,
+        times_ms: cs.times.stages.clone(),
+        cells: &cells,
+    };
+    let jp = o.join("cells.json");
+    std::fs::write(
+        &jp,
+        serde_json::to_string_pretty(&report).expect("serialises") + "\n",
+    )
+    .map_err(|e| CliError::Other(format!("cannot write '{}': {e}", jp.display())))?;
+    println!(
+        "{} cells left, {} right, {} paired; matched {:.1} % of the image",
+        report.cells_left,
+        report.cells_right,
+        report.pairs,
+        100.0 * report.matched_share
+    );
+    for c in &cells {
+        println!(
+            "cell {:>3}: centroid ({:.1}, {:.1}) px, height {:.2} {u}, volume {:.0} {u}³, 3D centroid ({:.1}, {:.1}, {:.1})",
+            c.id,
+            c.centroid_px[0],
+            c.centroid_px[1],
+            c.height,
+            c.volume,
+            c.centroid[0],
+            c.centroid[1],
+            c.centroid[2],
+            u = calib.unit.symbol()
+        );
+    }
+    println!(
+        "total {:.1} ms; outputs in {}",
+        cs.times.total_ms(),
+        o.display()
+    );
     Ok(())
 }

@@ -274,7 +274,7 @@ pub struct Cell3 {
     pub area_px: u64,
     /// Left-image centroid `[x, y]` in pixels.
     pub centroid_px: [f64; 2],
-    /// Median disparity over the cell, pixels.
+    /// Disparity of the cell's top (98th percentile over the cell), pixels.
     pub disparity: f64,
     /// 3D centroid `[X, Y, Z]` of the cell's surface points.
     pub centroid: [f64; 3],
