@@ -30,6 +30,8 @@ enum Command {
     Segment(SegmentArgs),
     /// Renders a synthetic stereo-microscope scene (or sequence, or calibration z-stack) with ground truth.
     Synth(crate::synthcmd::SynthArgs),
+    /// Fits the microscope's b·f_eff and disparity offset from pairs of a target at known stage heights.
+    CalibrateDepth(crate::calibrate::CalibrateArgs),
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -329,6 +331,7 @@ pub fn main() -> i32 {
         Command::Bench(a) => bench(a),
         Command::Segment(a) => segment_cmd(a),
         Command::Synth(a) => crate::synthcmd::synth(a),
+        Command::CalibrateDepth(a) => crate::calibrate::calibrate_depth(a),
     };
     match result {
         Ok(()) => 0,

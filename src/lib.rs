@@ -12,6 +12,7 @@
 //! The algorithms live in the node crates: `matcher`, `validate`, `postprocess`,
 //! `triangulate`; the message types in `schemas`.
 
+pub mod calibrate;
 pub mod cells;
 pub mod cli;
 pub mod io;

@@ -1,0 +1,279 @@
+//! `microstereo calibrate-depth`: the microscope's b·f_eff and disparity offset from a z-stack.
+//!
+//! Each pair shows a flat textured target at a known stage height `z` (µm, towards the
+//! cameras). Its depth is `Z = W − z` (`W`: the working distance, depth at `z = 0`), and the
+//! measured disparity follows `d = B / Z − offset` with `B = b·f` (baseline × focal length in
+//! pixels). With `W` known the fit is linear least squares in `(B, offset)`; otherwise `W` is
+//! found too, by a golden-section search on the fit's residual (the curvature of `d(z)`).
+
+use crate::cli::CliError;
+use crate::io;
+use crate::pipeline::{self, StereoConfig};
+use clap::Args;
+use matcher::Mode;
+use schemas::{Calibration, DisparityRange, LengthUnit};
+use std::path::{Path, PathBuf};
+
+/// Arguments of `microstereo calibrate-depth`.
+#[derive(Args, Debug)]
+pub struct CalibrateArgs {
+    /// Directory with the pairs and `heights.csv` (columns left,right,z_um), or pairs named
+    /// `left_z<Z>.png` / `right_z<Z>.png` with Z in µm.
+    pub dir: PathBuf,
+    /// Stereo baseline, µm (splits b·f into f).
+    #[arg(long)]
+    pub baseline: f64,
+    /// Sensor pixel pitch, µm: also reports f_eff = f · pitch.
+    #[arg(long)]
+    pub pixel_pitch: Option<f64>,
+    /// Depth of the target at stage height 0, µm; fitted when not given.
+    #[arg(long)]
+    pub working_distance: Option<f64>,
+    /// Smallest disparity searched.
+    #[arg(long, default_value_t = -64, allow_hyphen_values = true)]
+    pub min_disparity: i32,
+    /// Largest disparity searched.
+    #[arg(long, default_value_t = 64, allow_hyphen_values = true)]
+    pub max_disparity: i32,
+    /// Calibration file to write (default DIR/calibration.toml).
+    #[arg(short, long)]
+    pub output: Option<PathBuf>,
+}
+
+/// The fitted model and its residuals.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DepthFit {
+    /// b·f, µm·px.
+    pub b_f: f64,
+    /// Disparity offset (`cx_right − cx`), px.
+    pub offset: f64,
+    /// Working distance used or found, µm.
+    pub working_distance: f64,
+    /// Measured minus modelled disparity per height, px.
+    pub residuals: Vec<f64>,
+}
+
+fn linear_fit(z: &[f64], d: &[f64], w: f64) -> (f64, f64, f64) {
+    // d = B·x − off with x = 1/(W − z).
+    let n = z.len() as f64;
+    let x: Vec<f64> = z.iter().map(|&z| 1.0 / (w - z)).collect();
+    let (mx, md) = (x.iter().sum::<f64>() / n, d.iter().sum::<f64>() / n);
+    let sxx: f64 = x.iter().map(|v| (v - mx) * (v - mx)).sum();
+    let sxd: f64 = x.iter().zip(d).map(|(v, e)| (v - mx) * (e - md)).sum();
+    let b = sxd / sxx;
+    let off = b * mx - md;
+    let rss = x
+        .iter()
+        .zip(d)
+        .map(|(v, e)| (b * v - off - e).powi(2))
+        .sum();
+    (b, off, rss)
+}
+
+/// Fits `d = B/(W − z) − offset` to measured `(z, d)`; `w` fixed or searched.
+pub fn fit_depth(z: &[f64], d: &[f64], w: Option<f64>) -> DepthFit {
+    let zmax = z.iter().copied().fold(f64::MIN, f64::max);
+    let w = w.unwrap_or_else(|| {
+        // Golden section on log(W − zmax) over 1 µm .. 10 m.
+        let f = |t: f64| linear_fit(z, d, zmax + t.exp()).2;
+        let (mut a, mut b) = (0f64, (1e7f64).ln());
+        let g = 0.5 * (5f64.sqrt() - 1.0);
+        let (mut c, mut e) = (b - g * (b - a), a + g * (b - a));
+        for _ in 0..200 {
+            if f(c) < f(e) {
+                b = e;
+            } else {
+                a = c;
+            }
+            c = b - g * (b - a);
+            e = a + g * (b - a);
+        }
+        zmax + (0.5 * (a + b)).exp()
+    });
+    let (b_f, offset, _) = linear_fit(z, d, w);
+    let residuals = z
+        .iter()
+        .zip(d)
+        .map(|(&z, &d)| d - (b_f / (w - z) - offset))
+        .collect();
+    DepthFit {
+        b_f,
+        offset,
+        working_distance: w,
+        residuals,
+    }
+}
+
+/// The stack's pairs `(left, right, z)`.
+fn read_stack(dir: &Path) -> Result<Vec<(PathBuf, PathBuf, f64)>, CliError> {
+    let csv = dir.join("heights.csv");
+    let err = |m: String| CliError::Other(m);
+    if !dir.is_dir() {
+        return Err(err(format!(
+            "z-stack directory '{}' does not exist",
+            dir.display()
+        )));
+    }
+    let mut out = Vec::new();
+    if csv.exists() {
+        let text = std::fs::read_to_string(&csv)
+            .map_err(|e| err(format!("'{}' cannot be read: {e}", csv.display())))?;
+        for (i, line) in text.lines().enumerate().skip(1) {
+            if line.trim().is_empty() {
+                continue;
+            }
+            let f: Vec<&str> = line.split(',').map(str::trim).collect();
+            let z = (f.len() == 3)
+                .then(|| f[2].parse::<f64>().ok())
+                .flatten()
+                .filter(|z| z.is_finite());
+            let Some(z) = z else {
+                return Err(err(format!(
+                    "{}:{}: expected 'left,right,z_um' with z a number, got '{line}'",
+                    csv.display(),
+                    i + 1
+                )));
+            };
+            out.push((dir.join(f[0]), dir.join(f[1]), z));
+        }
+    } else {
+        let entries = std::fs::read_dir(dir)
+            .map_err(|e| err(format!("'{}' cannot be listed: {e}", dir.display())))?;
+        for e in entries.flatten() {
+            let name = e.file_name().to_string_lossy().to_string();
+            let Some(rest) = name.strip_prefix("left_z") else {
+                continue;
+            };
+            let Some((zs, ext)) = rest.rsplit_once('.') else {
+                continue;
+            };
+            if let Ok(z) = zs.trim_end_matches("um").parse::<f64>() {
+                out.push((e.path(), dir.join(format!("right_z{zs}.{ext}")), z));
+            }
+        }
+        out.sort_by(|a, b| a.2.total_cmp(&b.2));
+    }
+    Ok(out)
+}
+
+/// Median of the valid LR-checked disparities in the central half of the image.
+fn target_disparity(l: &Path, r: &Path, range: DisparityRange) -> Result<f64, CliError> {
+    let left = io::load_image(l, "z-stack left image")?.grey;
+    let right = io::load_image(r, "z-stack right image")?.grey;
+    let out = pipeline::run_stereo(&left, &right, &StereoConfig::new(Mode::Quality, range))?;
+    let (w, h) = (left.width, left.height);
+    let mut v: Vec<f32> = (h / 4..3 * h / 4)
+        .flat_map(|y| out.checked.left.row(y)[w / 4..3 * w / 4].to_vec())
+        .filter(|d| d.is_finite())
+        .collect();
+    if v.len() < 100 {
+        return Err(CliError::Other(format!(
+            "'{}': the target matched at only {} pixels; check the pair and the disparity range {}..{}",
+            l.display(),
+            v.len(),
+            range.min,
+            range.max
+        )));
+    }
+    v.sort_by(|a, b| a.total_cmp(b));
+    Ok(v[v.len() / 2] as f64)
+}
+
+/// Runs `microstereo calibrate-depth`.
+pub fn calibrate_depth(a: CalibrateArgs) -> Result<(), CliError> {
+    if !(a.baseline > 0.0 && a.baseline.is_finite()) {
+        return Err(CliError::Other(format!(
+            "--baseline {} must be positive",
+            a.baseline
+        )));
+    }
+    let stack = read_stack(&a.dir)?;
+    let mut zs: Vec<f64> = stack.iter().map(|s| s.2).collect();
+    zs.sort_by(|a, b| a.total_cmp(b));
+    zs.dedup();
+    if zs.len() < 3 {
+        return Err(CliError::Other(format!(
+            "the z-stack in '{}' has {} distinct heights; the fit needs at least 3 (give pairs at three or more stage heights)",
+            a.dir.display(),
+            zs.len()
+        )));
+    }
+    if let Some(w) = a.working_distance
+        && !(w > zs[zs.len() - 1])
+    {
+        return Err(CliError::Other(format!(
+            "--working-distance {w} must exceed the highest stage height {}",
+            zs[zs.len() - 1]
+        )));
+    }
+    let range = DisparityRange::new(a.min_disparity, a.max_disparity);
+    let mut z = Vec::new();
+    let mut d = Vec::new();
+    let mut size = None;
+    for (l, r, zi) in &stack {
+        let di = target_disparity(l, r, range)?;
+        let dims = image::image_dimensions(l).ok();
+        if size.is_none() {
+            size = dims;
+        }
+        z.push(*zi);
+        d.push(di);
+    }
+    let fit = fit_depth(&z, &d, a.working_distance);
+    let (w, h) = size.map_or((0, 0), |(w, h)| (w as usize, h as usize));
+    let f_px = fit.b_f / a.baseline;
+    let cx = (w as f64 - 1.0) / 2.0;
+    let cal = Calibration {
+        baseline: a.baseline,
+        focal_px: f_px,
+        cx,
+        cy: (h as f64 - 1.0) / 2.0,
+        cx_right: cx + fit.offset,
+        unit: LengthUnit::Um,
+    };
+    let out = a
+        .output
+        .clone()
+        .unwrap_or_else(|| a.dir.join("calibration.toml"));
+    crate::synthcmd::write_calibration(&out, &cal, a.pixel_pitch.unwrap_or(1.0))?;
+    println!("{:>10} {:>12} {:>12}", "z (µm)", "d (px)", "resid (px)");
+    for ((zi, di), ri) in z.iter().zip(&d).zip(&fit.residuals) {
+        println!("{zi:>10.2} {di:>12.3} {ri:>12.4}");
+    }
+    let rms = (fit.residuals.iter().map(|r| r * r).sum::<f64>() / z.len() as f64).sqrt();
+    println!(
+        "b·f = {:.1} µm·px, f = {:.2} px{}, disparity offset {:.3} px, working distance {:.1} µm ({}); rms residual {:.4} px",
+        fit.b_f,
+        f_px,
+        a.pixel_pitch
+            .map(|p| format!(" (f_eff = {:.1} µm)", f_px * p))
+            .unwrap_or_default(),
+        fit.offset,
+        fit.working_distance,
+        if a.working_distance.is_some() {
+            "given"
+        } else {
+            "fitted"
+        },
+        rms
+    );
+    println!("calibration written to {}", out.display());
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fit_recovers_an_exact_model_with_and_without_the_working_distance() {
+        let (bf, off, w) = (4.8e6, 1200.0, 4000.0);
+        let z: Vec<f64> = (-4..=4).map(|i| 40.0 * i as f64).collect();
+        let d: Vec<f64> = z.iter().map(|z| bf / (w - z) - off).collect();
+        let f = fit_depth(&z, &d, Some(w));
+        assert!((f.b_f / bf - 1.0).abs() < 1e-9 && (f.offset - off).abs() < 1e-6);
+        let g = fit_depth(&z, &d, None);
+        assert!((g.working_distance / w - 1.0).abs() < 1e-3, "{g:?}");
+        assert!((g.b_f / bf - 1.0).abs() < 2e-3, "{g:?}");
+    }
+}
