@@ -469,3 +469,202 @@ fn segment_bad_input_is_one_clear_error() {
     );
     assert!(!o.exists(), "nothing written on error");
 }
+
+#[test]
+fn synth_then_reconstruct_cells_writes_per_cell_figures() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = dir.path().join("scene");
+    let out = run(&["synth", "-o", s(&sc), "--seed", "3", "--cells", "4"]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let truth = json(&sc.join("truth.json"));
+    assert_eq!(truth["cells"].as_array().unwrap().len(), 4);
+    let o = dir.path().join("rec");
+    let (l, r, c) = (
+        sc.join("left.png"),
+        sc.join("right.png"),
+        sc.join("calibration.toml"),
+    );
+    let out = run(&[
+        "reconstruct",
+        s(&l),
+        s(&r),
+        "-o",
+        s(&o),
+        "--cells",
+        "--calibration",
+        s(&c),
+        "--min-disparity",
+        "-4",
+        "--max-disparity",
+        "12",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let rep = json(&o.join("cells.json"));
+    assert_eq!(rep["pairs"].as_u64(), Some(4));
+    assert!(rep["matched_share"].as_f64().unwrap() < 0.5);
+    for t in truth["cells"].as_array().unwrap() {
+        let (tx, ty) = (
+            t["centroid_px"][0].as_f64().unwrap(),
+            t["centroid_px"][1].as_f64().unwrap(),
+        );
+        let m = rep["cells"].as_array().unwrap().iter().find(|c| {
+            (c["centroid_px"][0].as_f64().unwrap() - tx)
+                .hypot(c["centroid_px"][1].as_f64().unwrap() - ty)
+                < 2.0
+        });
+        let m = m.unwrap_or_else(|| panic!("no cell near ({tx}, {ty})"));
+        let (hm, ht) = (m["height"].as_f64().unwrap(), t["height"].as_f64().unwrap());
+        assert!((hm / ht - 1.0).abs() < 0.4, "height {hm} vs {ht}");
+        assert!(m["volume"].as_f64().unwrap() > 0.0);
+        assert!(!m["contour"].as_array().unwrap().is_empty());
+    }
+    // Outside the cells and their rings nothing is matched.
+    for f in [
+        "disparity.pfm",
+        "points.ply",
+        "overlay_left.png",
+        "labels_left.png",
+    ] {
+        assert!(o.join(f).exists(), "{f}");
+    }
+}
+
+#[test]
+fn calibrate_depth_recovers_f_eff_from_a_synthetic_stack() {
+    let dir = tempfile::tempdir().unwrap();
+    let st = dir.path().join("stack");
+    let out = run(&[
+        "synth",
+        "-o",
+        s(&st),
+        "--stage-heights=-120,-60,0,60,120",
+        "--f-eff",
+        "18000",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    // Working distance = f_eff / magnification = 3600 µm.
+    let out = run(&[
+        "calibrate-depth",
+        s(&st),
+        "--baseline",
+        "1200",
+        "--pixel-pitch",
+        "5",
+        "--working-distance",
+        "3600",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let text = std::fs::read_to_string(st.join("calibration.toml")).unwrap();
+    let f_eff: f64 = text
+        .lines()
+        .find_map(|l| l.strip_prefix("f_eff = "))
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!((f_eff / 18000.0 - 1.0).abs() < 0.01, "f_eff {f_eff}");
+    // Too few heights.
+    let two = dir.path().join("two");
+    std::fs::create_dir_all(&two).unwrap();
+    std::fs::write(
+        two.join("heights.csv"),
+        "left,right,z_um\nz00_left.png,z00_right.png,0\nz01_left.png,z01_right.png,5\n",
+    )
+    .unwrap();
+    assert_clean_failure(
+        &run(&["calibrate-depth", s(&two), "--baseline", "1200"]),
+        "needs at least 3",
+    );
+}
+
+#[test]
+fn cells_bad_input_and_empty_scenes() {
+    let dir = tempfile::tempdir().unwrap();
+    let flat = dir.path().join("flat.png");
+    image::GrayImage::from_pixel(96, 64, image::Luma([120]))
+        .save(&flat)
+        .unwrap();
+    let o = dir.path().join("o");
+    // All background: zero cells, not an error.
+    let out = run(&[
+        "reconstruct",
+        s(&flat),
+        s(&flat),
+        "-o",
+        s(&o),
+        "--cells",
+        "--baseline",
+        "1200",
+        "--focal",
+        "4000",
+        "--unit",
+        "um",
+        "--min-disparity",
+        "-4",
+        "--max-disparity",
+        "12",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_eq!(json(&o.join("cells.json"))["pairs"].as_u64(), Some(0));
+    // Different sizes.
+    let small = dir.path().join("small.png");
+    image::GrayImage::from_pixel(80, 64, image::Luma([120]))
+        .save(&small)
+        .unwrap();
+    let o2 = dir.path().join("o2");
+    let out = run(&[
+        "reconstruct",
+        s(&flat),
+        s(&small),
+        "-o",
+        s(&o2),
+        "--cells",
+        "--baseline",
+        "1",
+        "--focal",
+        "1",
+    ]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(!String::from_utf8_lossy(&out.stderr).contains("panicked"));
+    assert!(!o2.exists());
+    // Unreadable calibration file.
+    let bad = dir.path().join("bad.toml");
+    std::fs::write(&bad, "baseline = \"wide\"\n").unwrap();
+    assert_clean_failure(
+        &run(&[
+            "reconstruct",
+            s(&flat),
+            s(&flat),
+            "-o",
+            s(&o2),
+            "--cells",
+            "--calibration",
+            s(&bad),
+        ]),
+        "is not valid",
+    );
+    // --cells without geometry.
+    assert_clean_failure(
+        &run(&["reconstruct", s(&flat), s(&flat), "-o", s(&o2), "--cells"]),
+        "--cells measures cells in 3D",
+    );
+}
