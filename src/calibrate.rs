@@ -199,7 +199,7 @@ pub fn calibrate_depth(a: CalibrateArgs) -> Result<(), CliError> {
         )));
     }
     if let Some(w) = a.working_distance
-        && !(w > zs[zs.len() - 1])
+        && (w.is_nan() || w <= zs[zs.len() - 1])
     {
         return Err(CliError::Other(format!(
             "--working-distance {w} must exceed the highest stage height {}",

@@ -24,10 +24,10 @@ pub struct SynthArgs {
     #[arg(long, default_value_t = 6)]
     pub cells: usize,
     /// Footprint diameter range, µm (MIN,MAX).
-    #[arg(long, value_delimiter = ',', num_args = 2, default_values_t = [20.0, 100.0])]
+    #[arg(long, value_delimiter = ',', default_values_t = [20.0, 100.0])]
     pub diameter: Vec<f64>,
     /// Cell height range, µm (MIN,MAX).
-    #[arg(long, value_delimiter = ',', num_args = 2, default_values_t = [8.0, 25.0])]
+    #[arg(long, value_delimiter = ',', default_values_t = [8.0, 25.0])]
     pub cell_height: Vec<f64>,
     /// Random seed: same seed, same images.
     #[arg(long, default_value_t = 1)]
@@ -166,6 +166,12 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
     ];
     if let Some((n, v)) = positive.iter().find(|(_, v)| !(*v > 0.0 && v.is_finite())) {
         return Err(other(format!("{n} {v} must be a positive number")));
+    }
+    if a.diameter.len() != 2 || a.cell_height.len() != 2 {
+        return Err(other(
+            "--diameter and --cell-height take two numbers, MIN,MAX (e.g. --diameter 20,100)"
+                .into(),
+        ));
     }
     if a.diameter[0] <= 0.0
         || a.diameter[0] > a.diameter[1]

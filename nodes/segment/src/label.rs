@@ -82,13 +82,12 @@ pub fn label_where<T>(
     let mut out = Plane::filled(w, h, 0u32);
     let mut label_of_root = vec![0u32; runs.len()];
     let mut n = 0;
-    for i in 0..runs.len() {
+    for (i, r) in runs.iter().enumerate() {
         let root = find(&mut parent, i as u32) as usize;
         if label_of_root[root] == 0 {
             n += 1;
             label_of_root[root] = n;
         }
-        let r = runs[i];
         out.row_mut(r.y)[r.x0..r.x1].fill(label_of_root[root]);
     }
     (out, n)

@@ -55,9 +55,9 @@ mod tests {
     #[test]
     fn bimodal_threshold_lies_between_the_modes() {
         let mut h = [0u64; 256];
-        for i in 0..256usize {
+        for (i, hv) in h.iter_mut().enumerate() {
             let g = |m: f64, s: f64| (-(i as f64 - m).powi(2) / (2.0 * s * s)).exp();
-            h[i] = (1000.0 * g(40.0, 8.0) + 400.0 * g(160.0, 15.0)).round() as u64;
+            *hv = (1000.0 * g(40.0, 8.0) + 400.0 * g(160.0, 15.0)).round() as u64;
         }
         let t = otsu_threshold(&h).unwrap() as usize;
         // The rounded modes leave an empty valley; every t in it splits equally well.

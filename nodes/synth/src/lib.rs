@@ -503,7 +503,7 @@ impl Scene {
                     &look.texture,
                     lx + c.texture_offset[0],
                     ly + c.texture_offset[1],
-                    self.seed ^ (k as u64 + 1) * 0x51,
+                    self.seed ^ ((k as u64 + 1) * 0x51),
                 );
                 // Slope of the dome along the DIC shear (45°): relief shading.
                 let zn = (s / h).max(0.05);
