@@ -7,7 +7,10 @@
 //!   used by every command and test;
 //! - [`io`]: images in; PFM, 16-bit PNG, colour PNG, masks and PLY out;
 //! - [`synthetic`]: textured pairs with exact ground truth for tests and benchmarks;
-//! - [`cli`]: the `microstereo` commands (`reconstruct`, `eval`, `bench`).
+//! - [`cli`]: the `microstereo` commands (`reconstruct`, `eval`, `bench`, `segment`,
+//!   `synth`, `calibrate-depth`);
+//! - [`cells`]: segmentation outputs and cell-only stereo; [`render`]: overlays and charts;
+//! - [`synthcmd`], [`calibrate`]: the `synth` and `calibrate-depth` commands.
 //!
 //! The algorithms live in the node crates: `matcher`, `validate`, `postprocess`,
 //! `triangulate`; the message types in `schemas`.
