@@ -445,9 +445,31 @@ impl Scene {
         if let Some(p) = &self.pipette {
             // A chain of spheres along the axis, radius growing back from the tip.
             let step = 0.5 * p.tip_radius.max(0.5);
-            let mut t = 0.0;
             let len = 2.0 * (self.optics.width as f64 * self.optics.um_per_px());
-            while t < len {
+            let hmax = p.height + p.tip_radius + p.taper * len;
+            // Only spheres the ray can reach: where it passes the heights 0..hmax its x and
+            // y span these intervals, and a sphere at t reaches r(t) around its centre.
+            let span = |a: f64, b: f64| (a.min(b), a.max(b));
+            let (xlo, xhi) = span(ox + sx * z0, ox + sx * (z0 - hmax));
+            let (ylo, yhi) = span(sy * z0, sy * (z0 - hmax));
+            let dy = (ylo - p.tip[1]).max(p.tip[1] - yhi).max(0.0);
+            let mut t_lo = ((p.tip[0] - xhi - p.tip_radius) / (1.0 + p.taper)).max(0.0);
+            if dy > p.tip_radius {
+                t_lo = t_lo.max(if p.taper > 0.0 {
+                    (dy - p.tip_radius) / p.taper
+                } else {
+                    len
+                });
+            }
+            let t_hi = if p.taper < 1.0 {
+                ((p.tip[0] - xlo + p.tip_radius) / (1.0 - p.taper)).min(len)
+            } else {
+                len
+            };
+            let mut k = (t_lo / step).floor().max(0.0) as u64;
+            while (k as f64) * step < t_hi {
+                let t = k as f64 * step;
+                k += 1;
                 let r = p.tip_radius + p.taper * t;
                 let (ccx, ccy, ccs) = (p.tip[0] - t, p.tip[1], p.height);
                 // Ray point at height s: (ox + sx(z0−s), sy(z0−s), s).
@@ -462,7 +484,6 @@ impl Scene {
                         best = (Hit::Pipette, s);
                     }
                 }
-                t += step;
             }
         }
         (best.0, z0 - best.1)
