@@ -101,15 +101,7 @@ pub fn label(mask: &Mask, conn: Connectivity) -> (Plane<u32>, u32) {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn mask(rows: &[&str]) -> Mask {
-        let w = rows[0].len();
-        let data = rows
-            .iter()
-            .flat_map(|r| r.bytes().map(|b| if b == b'#' { 255 } else { 0 }))
-            .collect();
-        Plane::from_vec(w, rows.len(), data).unwrap()
-    }
+    use crate::testutil::mask;
 
     #[test]
     fn corner_contact_joins_only_with_eight_connectivity() {

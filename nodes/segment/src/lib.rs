@@ -195,6 +195,21 @@ pub fn dice(a: &Mask, b: &Mask) -> f64 {
     }
 }
 
+/// Test masks drawn as text: `#` on, anything else off.
+#[cfg(test)]
+mod testutil {
+    use schemas::{Mask, Plane};
+
+    pub fn mask(rows: &[&str]) -> Mask {
+        let w = rows[0].len();
+        let data = rows
+            .iter()
+            .flat_map(|r| r.bytes().map(|b| if b == b'#' { 255 } else { 0 }))
+            .collect();
+        Plane::from_vec(w, rows.len(), data).unwrap()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

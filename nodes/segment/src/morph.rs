@@ -55,63 +55,35 @@ pub fn remove_small(mask: &Mask, min_area: usize) -> Mask {
     Plane::from_vec(mask.width, mask.height, data).expect("same size")
 }
 
-fn to_gray(mask: &Mask) -> GrayImage {
-    GrayImage::from_raw(mask.width as u32, mask.height as u32, mask.data.clone()).expect("size")
-}
-
-fn from_gray(img: GrayImage) -> Mask {
-    let (w, h) = (img.width() as usize, img.height() as usize);
-    Plane::from_vec(w, h, img.into_raw()).expect("size")
+/// Applies an imageproc binary morphology operation with a disc of `radius` (0 = none).
+fn disc_op(mask: &Mask, radius: u8, op: fn(&GrayImage, Norm, u8) -> GrayImage) -> Mask {
+    if radius == 0 {
+        return mask.clone();
+    }
+    let g = GrayImage::from_raw(mask.width as u32, mask.height as u32, mask.data.clone())
+        .expect("size");
+    Plane::from_vec(mask.width, mask.height, op(&g, Norm::L2, radius).into_raw()).expect("size")
 }
 
 /// Morphological opening with a disc of `radius` (removes specks and thin spurs).
 pub fn open(mask: &Mask, radius: u8) -> Mask {
-    if radius == 0 {
-        return mask.clone();
-    }
-    from_gray(imageproc::morphology::open(
-        &to_gray(mask),
-        Norm::L2,
-        radius,
-    ))
+    disc_op(mask, radius, imageproc::morphology::open)
 }
 
 /// Morphological closing with a disc of `radius` (bridges small gaps in a cell's outline).
 pub fn close(mask: &Mask, radius: u8) -> Mask {
-    if radius == 0 {
-        return mask.clone();
-    }
-    from_gray(imageproc::morphology::close(
-        &to_gray(mask),
-        Norm::L2,
-        radius,
-    ))
+    disc_op(mask, radius, imageproc::morphology::close)
 }
 
 /// Dilates with a disc of `radius`.
 pub fn dilate(mask: &Mask, radius: u8) -> Mask {
-    if radius == 0 {
-        return mask.clone();
-    }
-    from_gray(imageproc::morphology::dilate(
-        &to_gray(mask),
-        Norm::L2,
-        radius,
-    ))
+    disc_op(mask, radius, imageproc::morphology::dilate)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn mask(rows: &[&str]) -> Mask {
-        let w = rows[0].len();
-        let data = rows
-            .iter()
-            .flat_map(|r| r.bytes().map(|b| if b == b'#' { 255 } else { 0 }))
-            .collect();
-        Plane::from_vec(w, rows.len(), data).unwrap()
-    }
+    use crate::testutil::mask;
 
     #[test]
     fn holes_fill_but_bays_open_to_the_border_stay() {

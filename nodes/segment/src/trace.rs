@@ -94,18 +94,10 @@ mod tests {
     use super::*;
     use crate::label::{Connectivity, label};
     use crate::morph::fill_holes;
+    use crate::testutil::mask;
     use proptest::prelude::*;
     use schemas::Mask;
     use std::collections::BTreeSet;
-
-    fn mask(rows: &[&str]) -> Mask {
-        let w = rows[0].len();
-        let data = rows
-            .iter()
-            .flat_map(|r| r.bytes().map(|b| if b == b'#' { 255 } else { 0 }))
-            .collect();
-        Plane::from_vec(w, rows.len(), data).unwrap()
-    }
 
     fn first_pixel(labels: &Plane<u32>, id: u32) -> [u32; 2] {
         let i = labels.data.iter().position(|&l| l == id).unwrap();
@@ -150,6 +142,19 @@ mod tests {
         }
     }
 
+    /// Traces a one-region mask and checks the chain is closed and visits exactly the
+    /// region's boundary pixels.
+    fn trace_whole_boundary(m: &Mask) -> Vec<[u32; 2]> {
+        let c = trace_only(m);
+        assert_closed_chain(&c);
+        let (l, _) = label(m, Connectivity::Eight);
+        assert_eq!(
+            c.iter().copied().collect::<BTreeSet<_>>(),
+            boundary_set(&l, 1)
+        );
+        c
+    }
+
     #[test]
     fn single_pixel() {
         let c = trace_only(&mask(&["...", ".#.", "..."]));
@@ -191,29 +196,15 @@ mod tests {
 
     #[test]
     fn concave_shape_follows_every_notch() {
-        let m = mask(&[
+        let c = trace_whole_boundary(&mask(&[
             "#.#.#..", "#.#.#..", "#####..", "..#....", "..####.", ".....#.",
-        ]);
-        let c = trace_only(&m);
-        assert_closed_chain(&c);
-        let (l, _) = label(&m, Connectivity::Eight);
-        assert_eq!(
-            c.iter().copied().collect::<BTreeSet<_>>(),
-            boundary_set(&l, 1)
-        );
+        ]));
         assert_eq!(c[..4], [[0, 0], [0, 1], [0, 2], [1, 2]]);
     }
 
     #[test]
     fn blob_touching_the_border() {
-        let m = mask(&["###..", "####.", "###..", "##..."]);
-        let c = trace_only(&m);
-        assert_closed_chain(&c);
-        let (l, _) = label(&m, Connectivity::Eight);
-        assert_eq!(
-            c.iter().copied().collect::<BTreeSet<_>>(),
-            boundary_set(&l, 1)
-        );
+        let c = trace_whole_boundary(&mask(&["###..", "####.", "###..", "##..."]));
         assert_eq!(c[0], [0, 0]);
     }
 
