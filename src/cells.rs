@@ -233,13 +233,14 @@ pub fn cell_stereo(
             times.add(n, *ms);
         }
         let id = ls.cells[i].id;
+        let dist = distance_to_cell(&ls.labels, id, (c0, y0), (c1, y1));
         for y in y0..y1 {
             for x in c0..c1 {
                 // Own cell plus the ring around it (other cells get their own crop).
                 let own = *ls.labels.get(x, y) == id
                     || (*ls.labels.get(x, y) == 0
                         && *support.get(x, y) != 0
-                        && near(&ls.labels, x, y, id, p.margin));
+                        && dist.get_pixel((x - c0) as u32, (y - y0) as u32).0[0] <= p.margin);
                 if !own {
                     continue;
                 }
@@ -261,15 +262,23 @@ pub fn cell_stereo(
     })
 }
 
-/// True when a pixel of cell `id` lies within `r` px (square window) of `(x, y)`.
-fn near(labels: &Plane<u32>, x: usize, y: usize, id: u32, r: u8) -> bool {
-    let r = r as usize;
-    let (x0, y0) = (x.saturating_sub(r), y.saturating_sub(r));
-    let (x1, y1) = (
-        (x + r + 1).min(labels.width),
-        (y + r + 1).min(labels.height),
-    );
-    (y0..y1).any(|yy| labels.row(yy)[x0..x1].contains(&id))
+/// Chebyshev distance (px, capped at 255) from each pixel of the window `[x0, x1) × [y0, y1)`
+/// to the nearest pixel of cell `id`, which must lie wholly inside the window.
+fn distance_to_cell(
+    labels: &Plane<u32>,
+    id: u32,
+    (x0, y0): (usize, usize),
+    (x1, y1): (usize, usize),
+) -> image::GrayImage {
+    let cell = image::GrayImage::from_fn((x1 - x0) as u32, (y1 - y0) as u32, |x, y| {
+        image::Luma([u8::from(
+            *labels.get(x0 + x as usize, y0 + y as usize) == id,
+        )])
+    });
+    imageproc::distance_transform::distance_transform(
+        &cell,
+        imageproc::distance_transform::Norm::LInf,
+    )
 }
 
 fn percentile(mut v: Vec<f32>, q: f64) -> Option<f64> {
@@ -297,6 +306,7 @@ pub fn measure_cells(cs: &CellStereo, calib: &Calibration, margin: u8) -> Vec<Ce
         let x1 = (b.x1 as usize + m + 1).min(ls.labels.width);
         let y1 = (b.y1 as usize + m + 1).min(ls.labels.height);
         let (mut inside, mut ring, mut ring_filled) = (Vec::new(), Vec::new(), Vec::new());
+        let dist = distance_to_cell(&ls.labels, cell.id, (x0, y0), (x1, y1));
         let mut valid_raw = 0u64;
         for y in y0..y1 {
             for x in x0..x1 {
@@ -309,7 +319,7 @@ pub fn measure_cells(cs: &CellStereo, calib: &Calibration, margin: u8) -> Vec<Ce
                     }
                 } else if l == 0 && d.is_finite() {
                     // Keep off the segmented edge by 2 px: the variance window blurs it.
-                    if !near(&ls.labels, x, y, cell.id, 2) {
+                    if dist.get_pixel((x - x0) as u32, (y - y0) as u32).0[0] > 2 {
                         let raw = *cs.disparity_raw.get(x, y);
                         if raw.is_finite() {
                             ring.push(raw);
