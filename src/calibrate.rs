@@ -156,8 +156,13 @@ fn read_stack(dir: &Path) -> Result<Vec<(PathBuf, PathBuf, f64)>, CliError> {
     Ok(out)
 }
 
-/// Median of the valid LR-checked disparities in the central half of the image.
-fn target_disparity(l: &Path, r: &Path, range: DisparityRange) -> Result<f64, CliError> {
+/// Median of the valid LR-checked disparities in the central half of the image, and the
+/// image size.
+fn target_disparity(
+    l: &Path,
+    r: &Path,
+    range: DisparityRange,
+) -> Result<(f64, (usize, usize)), CliError> {
     let left = io::load_image(l, "z-stack left image")?.grey;
     let right = io::load_image(r, "z-stack right image")?.grey;
     let out = pipeline::run_stereo(&left, &right, &StereoConfig::new(Mode::Quality, range))?;
@@ -176,7 +181,7 @@ fn target_disparity(l: &Path, r: &Path, range: DisparityRange) -> Result<f64, Cl
         )));
     }
     v.sort_by(|a, b| a.total_cmp(b));
-    Ok(v[v.len() / 2] as f64)
+    Ok((v[v.len() / 2] as f64, (w, h)))
 }
 
 /// Runs `microstereo calibrate-depth`.
@@ -211,16 +216,13 @@ pub fn calibrate_depth(a: CalibrateArgs) -> Result<(), CliError> {
     let mut d = Vec::new();
     let mut size = None;
     for (l, r, zi) in &stack {
-        let di = target_disparity(l, r, range)?;
-        let dims = image::image_dimensions(l).ok();
-        if size.is_none() {
-            size = dims;
-        }
+        let (di, dims) = target_disparity(l, r, range)?;
+        size.get_or_insert(dims);
         z.push(*zi);
         d.push(di);
     }
     let fit = fit_depth(&z, &d, a.working_distance);
-    let (w, h) = size.map_or((0, 0), |(w, h)| (w as usize, h as usize));
+    let (w, h) = size.unwrap_or((0, 0));
     let f_px = fit.b_f / a.baseline;
     let cx = (w as f64 - 1.0) / 2.0;
     let cal = Calibration {
@@ -235,7 +237,7 @@ pub fn calibrate_depth(a: CalibrateArgs) -> Result<(), CliError> {
         .output
         .clone()
         .unwrap_or_else(|| a.dir.join("calibration.toml"));
-    crate::synthcmd::write_calibration(&out, &cal, a.pixel_pitch.unwrap_or(1.0))?;
+    crate::cli::write_calibration(&out, &cal, a.pixel_pitch.unwrap_or(1.0))?;
     println!("{:>10} {:>12} {:>12}", "z (µm)", "d (px)", "resid (px)");
     for ((zi, di), ri) in z.iter().zip(&d).zip(&fit.residuals) {
         println!("{zi:>10.2} {di:>12.3} {ri:>12.4}");

@@ -399,6 +399,30 @@ fn load_calibration(path: &Path, w: usize, h: usize) -> Result<Calibration, CliE
     Ok(c)
 }
 
+/// Writes the calibration in the format `reconstruct --calibration` reads.
+pub fn write_calibration(
+    path: &Path,
+    c: &schemas::Calibration,
+    pitch: f64,
+) -> Result<(), CliError> {
+    let text = format!(
+        "# Written by microstereo: rectified parallel-axis geometry.\nbaseline = {}\nf_eff = {}\npixel_pitch = {}\ncx = {}\ncy = {}\ncx_right = {}\nunit = \"{}\"\n",
+        c.baseline,
+        c.focal_px * pitch,
+        pitch,
+        c.cx,
+        c.cy,
+        c.cx_right,
+        match c.unit {
+            schemas::LengthUnit::Um => "um",
+            schemas::LengthUnit::Mm => "mm",
+            schemas::LengthUnit::M => "m",
+        }
+    );
+    std::fs::write(path, text)
+        .map_err(|e| CliError::Other(format!("cannot write '{}': {e}", path.display())))
+}
+
 fn check_calibration(c: &Calibration, source: &str) -> Result<(), CliError> {
     if !(c.baseline > 0.0 && c.baseline.is_finite() && c.focal_px > 0.0 && c.focal_px.is_finite()) {
         return Err(CliError::Other(format!(

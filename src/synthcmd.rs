@@ -88,29 +88,6 @@ fn save_grey(path: &Path, p: &Plane<u8>) -> Result<(), CliError> {
     io::write_mask_png(path, p).map_err(CliError::from)
 }
 
-/// Writes the calibration in the format `reconstruct --calibration` reads.
-pub fn write_calibration(
-    path: &Path,
-    c: &schemas::Calibration,
-    pitch: f64,
-) -> Result<(), CliError> {
-    let text = format!(
-        "# Written by microstereo: rectified parallel-axis geometry.\nbaseline = {}\nf_eff = {}\npixel_pitch = {}\ncx = {}\ncy = {}\ncx_right = {}\nunit = \"{}\"\n",
-        c.baseline,
-        c.focal_px * pitch,
-        pitch,
-        c.cx,
-        c.cy,
-        c.cx_right,
-        match c.unit {
-            schemas::LengthUnit::Um => "um",
-            schemas::LengthUnit::Mm => "mm",
-            schemas::LengthUnit::M => "m",
-        }
-    );
-    std::fs::write(path, text).map_err(|e| other(format!("cannot write '{}': {e}", path.display())))
-}
-
 fn write_scene(dir: &Path, scene: &Scene, prefix: &str) -> Result<synth::Rendered, CliError> {
     let r = scene.render();
     save_grey(&dir.join(format!("{prefix}left.png")), &r.left)?;
@@ -208,7 +185,7 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
         ))
     })?;
     let cal = optics.calibration();
-    write_calibration(&a.output.join("calibration.toml"), &cal, optics.pixel_pitch)?;
+    crate::cli::write_calibration(&a.output.join("calibration.toml"), &cal, optics.pixel_pitch)?;
     if let Some(zs) = &a.stage_heights {
         let mut csv = String::from("left,right,z_um\n");
         for (i, &z) in zs.iter().enumerate() {

@@ -526,7 +526,7 @@ fn synth_then_reconstruct_cells_writes_per_cell_figures() {
         assert!(m["volume"].as_f64().unwrap() > 0.0);
         assert!(!m["contour"].as_array().unwrap().is_empty());
     }
-    // Outside the cells and their rings nothing is matched.
+    // The outputs of a cell run are all there.
     for f in [
         "disparity.pfm",
         "points.ply",

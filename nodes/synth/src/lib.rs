@@ -597,20 +597,23 @@ impl Scene {
             }
         }
         let z0 = self.z0();
+        // Pixel count and coordinate sums per label, in one pass.
+        let mut sums = vec![(0u64, 0f64, 0f64); self.cells.len() + 1];
+        for (i, &l) in labels.data.iter().enumerate() {
+            if l != 0 && l != PIPETTE {
+                let s = &mut sums[l as usize];
+                s.0 += 1;
+                s.1 += (i % w) as f64;
+                s.2 += (i / w) as f64;
+            }
+        }
         let cells = self
             .cells
             .iter()
             .enumerate()
             .map(|(k, c)| {
                 let id = k as u32 + 1;
-                let (mut n, mut sx, mut sy) = (0u64, 0.0, 0.0);
-                for (i, &l) in labels.data.iter().enumerate() {
-                    if l == id {
-                        n += 1;
-                        sx += (i % w) as f64;
-                        sy += (i / w) as f64;
-                    }
-                }
+                let (n, sx, sy) = sums[id as usize];
                 let f = cal.focal_px;
                 CellTruth {
                     id,
