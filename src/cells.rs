@@ -94,7 +94,7 @@ pub fn write_segmentation(
 }
 
 use crate::pipeline::{self, StereoConfig, Workspace};
-use matcher::InputError;
+use matcher::{DisparityPlane, InputError, PeakFit};
 use runtime::StageTimes;
 use schemas::{Calibration, Cell3, DisparityMap, DisparityRange, INVALID_DISPARITY};
 
@@ -170,6 +170,14 @@ pub struct CellStereo {
     pub occlusion_left: Mask,
     /// Left pixels given to the matcher (the crops), summed over cells.
     pub matched_pixels: u64,
+    /// The substrate's disparity plane fitted to the background around all cells (`None`
+    /// when the background is too textureless to fix it; the rings then decide).
+    pub substrate: Option<DisparityPlane>,
+    /// Per pair: the substrate's disparity under the cell (the plane at its centroid, or
+    /// the median on its ring when there is no plane).
+    pub bases: Vec<Option<f64>>,
+    /// Per pair: the cell's top refined by a photometric dome fit.
+    pub tops: Vec<Option<PeakFit>>,
     /// Milliseconds per stage.
     pub times: StageTimes,
 }
@@ -207,7 +215,23 @@ pub fn cell_stereo(
     let m = p.margin as i64;
     let (dmin, dmax) = (cfg.range.min as i64, cfg.range.max as i64);
     let support = segment::dilate(&ls.mask, p.margin);
+    let substrate = times.time("substrate", || {
+        let reach = p.margin as usize
+            + cfg
+                .range
+                .min
+                .unsigned_abs()
+                .max(cfg.range.max.unsigned_abs()) as usize;
+        let mut cells = ls.mask.clone();
+        for (c, r) in cells.data.iter_mut().zip(&rs.mask.data) {
+            *c |= *r;
+        }
+        let usable = clear_of(&cells, reach);
+        matcher::fit_disparity_plane(left, right, &usable, cfg.range, SUBSTRATE_MAX_STD)
+    });
     let mut ws = Workspace::default();
+    let mut tops = Vec::with_capacity(pairs.len());
+    let mut bases = Vec::with_capacity(pairs.len());
     for &(i, j) in &pairs {
         let (lb, rb) = (ls.cells[i].bbox, rs.cells[j].bbox);
         let y0 = (lb.y0.min(rb.y0) as i64 - m).max(0) as usize;
@@ -225,6 +249,8 @@ pub fn cell_stereo(
         if c.range.min >= c.range.max
             || matcher::check_inputs(&cl, &cr, c.range, c.window()).is_err()
         {
+            tops.push(None);
+            bases.push(None);
             continue;
         }
         matched_pixels += cl.len() as u64;
@@ -249,6 +275,17 @@ pub fn cell_stereo(
                 *occlusion_left.get_mut(x, y) = *out.checked.occlusion_left.get(x - c0, y - y0);
             }
         }
+        let cell = &ls.cells[i];
+        let base = match &substrate {
+            Some(s) => Some(s.at(cell.centroid[0], cell.centroid[1])),
+            None => ring_disparity(&ls.labels, cell, &disparity_raw, &disparity, p.margin),
+        };
+        bases.push(base);
+        tops.push(base.and_then(|base| {
+            times.time("refine", || {
+                top_of_cell(left, right, &ls.labels, cell, &disparity, base)
+            })
+        }));
     }
     Ok(CellStereo {
         left_seg: ls,
@@ -258,8 +295,70 @@ pub fn cell_stereo(
         disparity_raw,
         occlusion_left,
         matched_pixels,
+        substrate,
+        bases,
+        tops,
         times,
     })
+}
+
+/// 255 where no non-zero pixel of `mask` lies within the `(2r+1)²` square around.
+fn clear_of(mask: &Mask, r: usize) -> Mask {
+    let (w, h) = (mask.width, mask.height);
+    let mut sat = vec![0u32; (w + 1) * (h + 1)];
+    for y in 0..h {
+        let mut acc = 0u32;
+        for x in 0..w {
+            acc += u32::from(*mask.get(x, y) != 0);
+            sat[(y + 1) * (w + 1) + x + 1] = sat[y * (w + 1) + x + 1] + acc;
+        }
+    }
+    let data = (0..h)
+        .flat_map(|y| (0..w).map(move |x| (x, y)))
+        .map(|(x, y)| {
+            let (x0, x1) = (x.saturating_sub(r), (x + r + 1).min(w));
+            let (y0, y1) = (y.saturating_sub(r), (y + r + 1).min(h));
+            let n = sat[y1 * (w + 1) + x1] + sat[y0 * (w + 1) + x0]
+                - sat[y0 * (w + 1) + x1]
+                - sat[y1 * (w + 1) + x0];
+            if n == 0 { 255 } else { 0 }
+        })
+        .collect();
+    Plane::from_vec(w, h, data).expect("size")
+}
+
+/// The largest formal error (px) a background plane may have to stand for the substrate.
+const SUBSTRATE_MAX_STD: f64 = 0.05;
+
+/// Refines the top of cell `cell` with the dome model over its upper part: the pixels whose
+/// matched height above `base` (the substrate's disparity) is at least 70 % of the cell's
+/// (its 98th percentile). Lower down, flanks steepen and the matcher's map is least sure.
+fn top_of_cell(
+    left: &Plane<u8>,
+    right: &Plane<u8>,
+    labels: &Plane<u32>,
+    cell: &Cell,
+    disparity: &DisparityMap,
+    base: f64,
+) -> Option<PeakFit> {
+    let b = cell.bbox;
+    let mut inside = Vec::new();
+    for y in b.y0 as usize..=b.y1 as usize {
+        for x in b.x0 as usize..=b.x1 as usize {
+            let d = *disparity.get(x, y);
+            if *labels.get(x, y) == cell.id && d.is_finite() {
+                inside.push(([x, y], d));
+            }
+        }
+    }
+    let top = percentile(inside.iter().map(|p| p.1).collect(), 0.98)?;
+    if top <= base {
+        return None;
+    }
+    let level = (base + 0.7 * (top - base)) as f32;
+    let (pixels, init): (Vec<[usize; 2]>, Vec<f32>) =
+        inside.into_iter().filter(|(_, d)| *d >= level).unzip();
+    matcher::refine_peak(left, right, &pixels, &init, Some(base))
 }
 
 /// Chebyshev distance (px, capped at 255) from each pixel of the window `[x0, x1) × [y0, y1)`
@@ -281,6 +380,41 @@ fn distance_to_cell(
     )
 }
 
+/// Median disparity on the ring of cell `cell` (2 px off its segmented edge, which the
+/// variance window blurs, out to `margin`): after the LR check where that has values,
+/// otherwise after post-processing.
+fn ring_disparity(
+    labels: &Plane<u32>,
+    cell: &Cell,
+    raw: &DisparityMap,
+    filled: &DisparityMap,
+    margin: u8,
+) -> Option<f64> {
+    let (b, m) = (cell.bbox, margin as usize);
+    let (x0, y0) = (
+        (b.x0 as usize).saturating_sub(m),
+        (b.y0 as usize).saturating_sub(m),
+    );
+    let x1 = (b.x1 as usize + m + 1).min(labels.width);
+    let y1 = (b.y1 as usize + m + 1).min(labels.height);
+    let dist = distance_to_cell(labels, cell.id, (x0, y0), (x1, y1));
+    let (mut ring, mut ring_filled) = (Vec::new(), Vec::new());
+    for y in y0..y1 {
+        for x in x0..x1 {
+            let d = *filled.get(x, y);
+            let off = dist.get_pixel((x - x0) as u32, (y - y0) as u32).0[0];
+            if *labels.get(x, y) == 0 && d.is_finite() && off > 2 && off <= margin {
+                let r = *raw.get(x, y);
+                if r.is_finite() {
+                    ring.push(r);
+                }
+                ring_filled.push(d);
+            }
+        }
+    }
+    percentile(ring, 0.5).or_else(|| percentile(ring_filled, 0.5))
+}
+
 fn percentile(mut v: Vec<f32>, q: f64) -> Option<f64> {
     if v.is_empty() {
         return None;
@@ -291,48 +425,31 @@ fn percentile(mut v: Vec<f32>, q: f64) -> Option<f64> {
 }
 
 /// Per-cell 3D figures of paired cells (see [`Cell3`]).
-pub fn measure_cells(cs: &CellStereo, calib: &Calibration, margin: u8) -> Vec<Cell3> {
+pub fn measure_cells(cs: &CellStereo, calib: &Calibration) -> Vec<Cell3> {
     let ls = &cs.left_seg;
     let z_of = |d: f64| calib.baseline * calib.focal_px / (d + calib.cx_right - calib.cx);
     let mut out = Vec::new();
-    for &(i, j) in &cs.pairs {
+    for (k, &(i, j)) in cs.pairs.iter().enumerate() {
         let cell = &ls.cells[i];
         let b = cell.bbox;
-        let m = margin as usize;
-        let (x0, y0) = (
-            (b.x0 as usize).saturating_sub(m),
-            (b.y0 as usize).saturating_sub(m),
-        );
-        let x1 = (b.x1 as usize + m + 1).min(ls.labels.width);
-        let y1 = (b.y1 as usize + m + 1).min(ls.labels.height);
-        let (mut inside, mut ring, mut ring_filled) = (Vec::new(), Vec::new(), Vec::new());
-        let dist = distance_to_cell(&ls.labels, cell.id, (x0, y0), (x1, y1));
+        let mut inside = Vec::new();
         let mut valid_raw = 0u64;
-        for y in y0..y1 {
-            for x in x0..x1 {
-                let l = *ls.labels.get(x, y);
-                let d = *cs.disparity.get(x, y);
-                if l == cell.id {
+        for y in b.y0 as usize..=b.y1 as usize {
+            for x in b.x0 as usize..=b.x1 as usize {
+                if *ls.labels.get(x, y) == cell.id {
                     valid_raw += cs.disparity_raw.get(x, y).is_finite() as u64;
+                    let d = *cs.disparity.get(x, y);
                     if d.is_finite() {
                         inside.push((x, y, d));
-                    }
-                } else if l == 0 && d.is_finite() {
-                    // Keep off the segmented edge by 2 px: the variance window blurs it.
-                    if dist.get_pixel((x - x0) as u32, (y - y0) as u32).0[0] > 2 {
-                        let raw = *cs.disparity_raw.get(x, y);
-                        if raw.is_finite() {
-                            ring.push(raw);
-                        }
-                        ring_filled.push(d);
                     }
                 }
             }
         }
-        let Some(d_sub) = percentile(ring, 0.5).or_else(|| percentile(ring_filled, 0.5)) else {
-            continue;
-        };
-        let Some(d_top) = percentile(inside.iter().map(|p| p.2).collect(), 0.98) else {
+        let Some(d_sub) = cs.bases[k] else { continue };
+        let Some(d_top) = cs.tops[k]
+            .map(|t| t.peak)
+            .or_else(|| percentile(inside.iter().map(|p| p.2).collect(), 0.98))
+        else {
             continue;
         };
         let z_sub = z_of(d_sub);

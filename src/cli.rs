@@ -907,6 +907,9 @@ struct CellsReport<'a> {
     pairs: usize,
     /// Pixels handed to the matcher over the image's pixels.
     matched_share: f64,
+    /// The substrate's disparity plane over the background (absent: each cell's ring
+    /// median stood in).
+    substrate_plane: Option<matcher::DisparityPlane>,
     times_ms: Vec<(String, f64)>,
     cells: &'a [schemas::Cell3],
 }
@@ -924,7 +927,7 @@ fn reconstruct_cells(
     };
     let mut cs = crate::cells::cell_stereo(&left.grey, &right.grey, cfg, &seg, &p)?;
     let t = Instant::now();
-    let cells = crate::cells::measure_cells(&cs, calib, a.cell_margin);
+    let cells = crate::cells::measure_cells(&cs, calib);
     cs.times.add("measure", t.elapsed().as_secs_f64() * 1e3);
     let t = Instant::now();
     let cloud = triangulate::triangulate(&cs.disparity, calib, &left.rgb);
@@ -964,6 +967,7 @@ fn reconstruct_cells(
         cells_right: cs.right_seg.cells.len(),
         pairs: cs.pairs.len(),
         matched_share: cs.matched_pixels as f64 / (w * h) as f64,
+        substrate_plane: cs.substrate,
         times_ms: cs.times.stages.clone(),
         cells: &cells,
     };

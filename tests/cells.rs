@@ -32,7 +32,7 @@ fn evaluate(w: usize, h: usize, seed: u64) -> Errors {
     let seg = SegmentParams::default();
     let p = CellStereoParams::default();
     let cs = cell_stereo(&r.left, &r.right, &cfg, &seg, &p).unwrap();
-    let cells = measure_cells(&cs, &r.calibration, p.margin);
+    let cells = measure_cells(&cs, &r.calibration);
     let mut e = Errors {
         cells: r.cells.len(),
         found: 0,

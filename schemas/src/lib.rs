@@ -274,11 +274,13 @@ pub struct Cell3 {
     pub area_px: u64,
     /// Left-image centroid `[x, y]` in pixels.
     pub centroid_px: [f64; 2],
-    /// Disparity of the cell's top (98th percentile over the cell), pixels.
+    /// Disparity of the cell's top, pixels: a photometric dome fit over the cell's upper
+    /// part (the 98th percentile of the matched map where the fit fails).
     pub disparity: f64,
     /// 3D centroid `[X, Y, Z]` of the cell's surface points.
     pub centroid: [f64; 3],
-    /// Depth of the substrate under the cell, from the disparity on a ring around it.
+    /// Depth of the substrate under the cell: the background's disparity plane at the cell
+    /// (the median on a ring around the cell when the background is too smooth to fit).
     pub substrate_z: f64,
     /// Height of the cell's top above the substrate.
     pub height: f64,

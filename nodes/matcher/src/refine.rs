@@ -1,0 +1,667 @@
+//! Photometric sub-pixel refinement of parametric disparity surfaces.
+//!
+//! Window matchers (census, SGM paths, the median filter) are biased exactly where a
+//! microscope needs precision: on the nearly textureless substrate, aggregation drags the
+//! disparity towards the neighbouring cell; on the top of a small dome, every window averages
+//! the peak down. Here a surface model is warped pixel by pixel instead — no window — and
+//! its parameters are fitted by robust Gauss–Newton on the intensity residual
+//! `L(x, y) − R(x − d(x, y), y)` (Lucas–Kanade along the epipolar row):
+//!
+//! - [`fit_disparity_plane`]: one plane `d = a + b·u + c·v` over every usable background
+//!   pixel of the frame (high-passed, so illumination gradients and view gains cancel);
+//! - [`refine_peak`]: a quadratic `d(u, v)` with a view gain and offset over the top of one
+//!   cell, and the quadratic's maximum.
+
+use nalgebra::{DMatrix, DVector};
+use rayon::prelude::*;
+use schemas::{DisparityRange, Mask, Plane};
+use serde::Serialize;
+
+/// A disparity plane `d(x, y) = d0 + dx·(x − centre.x) + dy·(y − centre.y)`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct DisparityPlane {
+    /// Disparity at `centre`, px.
+    pub d0: f64,
+    /// Change per pixel along x.
+    pub dx: f64,
+    /// Change per pixel along y.
+    pub dy: f64,
+    /// Where `d0` applies `[x, y]`.
+    pub centre: [f64; 2],
+    /// Formal standard error of `d0` (px); neighbouring residuals correlate, so the real one
+    /// is larger.
+    pub std: f64,
+    /// Pixels used.
+    pub pixels: u64,
+}
+
+impl DisparityPlane {
+    /// The plane's disparity at `(x, y)`.
+    pub fn at(&self, x: f64, y: f64) -> f64 {
+        self.d0 + self.dx * (x - self.centre[0]) + self.dy * (y - self.centre[1])
+    }
+}
+
+/// Value and x-gradient of a row at fractional `x` (linear interpolation of the samples and
+/// of their central differences); `None` outside `[1, len − 2]`.
+fn sample(row: &[f32], x: f64) -> Option<(f64, f64)> {
+    if !(x >= 1.0 && x <= (row.len() - 2) as f64) {
+        return None;
+    }
+    let i = (x.floor() as usize).min(row.len() - 3);
+    let t = x - i as f64;
+    let v = row[i] as f64 * (1.0 - t) + row[i + 1] as f64 * t;
+    let g0 = 0.5 * (row[i + 1] - row[i - 1]) as f64;
+    let g1 = 0.5 * (row[i + 2] - row[i]) as f64;
+    Some((v, g0 * (1.0 - t) + g1 * t))
+}
+
+/// Band-pass for sub-pixel alignment of faint texture: a `[1 4 6 4 1]/16` binomial
+/// (σ = 1 px) minus the box mean over a `(2r+1)²` window (edges clamp). The binomial keeps
+/// interpolation from lowering the noise at fractional shifts (which would pull a noisy
+/// fit towards half pixels); the box mean removes illumination gradients and view gains.
+fn band_pass(img: &Plane<u8>, r: usize) -> Plane<f32> {
+    let (w, h) = (img.width, img.height);
+    const K: [f32; 5] = [1.0, 4.0, 6.0, 4.0, 1.0];
+    let clamp = |i: isize, n: usize| i.clamp(0, n as isize - 1) as usize;
+    let mut tmp = vec![0f32; w * h];
+    tmp.par_chunks_mut(w).enumerate().for_each(|(y, trow)| {
+        let row = img.row(y);
+        for (x, t) in trow.iter_mut().enumerate() {
+            *t = (0..5)
+                .map(|k| K[k] * row[clamp(x as isize + k as isize - 2, w)] as f32)
+                .sum::<f32>()
+                / 16.0;
+        }
+    });
+    let mut sat = vec![0u64; (w + 1) * (h + 1)];
+    for y in 0..h {
+        let mut acc = 0u64;
+        for x in 0..w {
+            acc += *img.get(x, y) as u64;
+            sat[(y + 1) * (w + 1) + x + 1] = sat[y * (w + 1) + x + 1] + acc;
+        }
+    }
+    let mut out = vec![0f32; w * h];
+    out.par_chunks_mut(w).enumerate().for_each(|(y, orow)| {
+        for (x, o) in orow.iter_mut().enumerate() {
+            let smooth = (0..5)
+                .map(|k| K[k] * tmp[clamp(y as isize + k as isize - 2, h) * w + x])
+                .sum::<f32>()
+                / 16.0;
+            let (x0, x1) = (x.saturating_sub(r), (x + r + 1).min(w));
+            let (y0, y1) = (y.saturating_sub(r), (y + r + 1).min(h));
+            let s = sat[y1 * (w + 1) + x1] + sat[y0 * (w + 1) + x0]
+                - sat[y0 * (w + 1) + x1]
+                - sat[y1 * (w + 1) + x0];
+            *o = smooth - s as f32 / ((x1 - x0) * (y1 - y0)) as f32;
+        }
+    });
+    Plane::from_vec(w, h, out).expect("size")
+}
+
+/// Huber weight of a residual for scale `k`.
+fn huber(e: f64, k: f64) -> f64 {
+    if e.abs() <= k { 1.0 } else { k / e.abs() }
+}
+
+/// Median absolute value, scaled to a Gaussian standard deviation.
+fn robust_scale(mut res: Vec<f64>) -> f64 {
+    if res.is_empty() {
+        return 0.0;
+    }
+    let k = res.len() / 2;
+    let (_, m, _) = res.select_nth_unstable_by(k, |a, b| a.abs().total_cmp(&b.abs()));
+    1.4826 * m.abs()
+}
+
+/// Fewest usable pixels a plane is fitted on.
+const PLANE_MIN_PIXELS: u64 = 2000;
+/// Most pixels a plane is fitted on (an even sample of the usable ones).
+const PLANE_MAX_PIXELS: usize = 300_000;
+
+/// Fits one disparity plane to the pixels where `usable` is non-zero (the background, well
+/// clear of cells in both views): an integer search over `range` on band-passed images,
+/// then robust Gauss–Newton on the plane. `None` when there are too few usable pixels or the
+/// images hold too little texture there to fix the plane to `max_std` px.
+///
+/// Every iteration samples the right image at whole pixels only (the plane rounded per
+/// pixel) and linearises the rest with the mean gradient of both views: interpolating noisy
+/// samples would lower their noise at fractional shifts and pull a faint-texture fit away
+/// from the truth by a tenth of a pixel.
+pub fn fit_disparity_plane(
+    left: &Plane<u8>,
+    right: &Plane<u8>,
+    usable: &Mask,
+    range: DisparityRange,
+    max_std: f64,
+) -> Option<DisparityPlane> {
+    let (w, h) = (left.width, left.height);
+    let (hl, hr) = rayon::join(|| band_pass(left, 4), || band_pass(right, 4));
+    let all: Vec<[usize; 2]> = (0..h)
+        .flat_map(|y| (1..w.saturating_sub(1)).map(move |x| [x, y]))
+        .filter(|&[x, y]| *usable.get(x, y) != 0)
+        .collect();
+    if (all.len() as u64) < PLANE_MIN_PIXELS {
+        return None;
+    }
+    // A few hundred thousand pixels fix a plane to a few thousandths of a pixel; more only
+    // cost time.
+    let pixels: Vec<[usize; 2]> = all
+        .iter()
+        .copied()
+        .step_by(all.len().div_ceil(PLANE_MAX_PIXELS))
+        .collect();
+    // Integer start: the disparity with the smallest mean squared difference (a sparse
+    // sample is plenty for one number).
+    let sparse = pixels.len().div_ceil(PLANE_MAX_PIXELS / 8);
+    let d_start = (range.min..=range.max)
+        .map(|d| {
+            let (s, n) = pixels
+                .par_iter()
+                .step_by(sparse)
+                .filter_map(|&[x, y]| {
+                    let xr = x as i64 - d as i64;
+                    (xr >= 0 && xr < w as i64).then(|| {
+                        let e = hl.get(x, y) - hr.get(xr as usize, y);
+                        (e as f64 * e as f64, 1u64)
+                    })
+                })
+                .reduce(|| (0.0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
+            (if n > 0 { s / n as f64 } else { f64::INFINITY }, d)
+        })
+        .min_by(|a, b| a.0.total_cmp(&b.0))?
+        .1;
+    let n = pixels.len() as f64;
+    let centre = pixels.iter().fold([0.0, 0.0], |a, p| {
+        [a[0] + p[0] as f64 / n, a[1] + p[1] as f64 / n]
+    });
+    let s = 0.5 * w.max(h) as f64;
+    let mut p = [d_start as f64, 0.0, 0.0];
+    // Residual after linearising at the rounded shift, r = e + g·(d − k), is linear in p
+    // with Jacobian g·[1, u, v].
+    let term = |p: &[f64; 3], x: usize, y: usize| -> Option<(f64, [f64; 3])> {
+        let (u, v) = ((x as f64 - centre[0]) / s, (y as f64 - centre[1]) / s);
+        let d = p[0] + p[1] * u + p[2] * v;
+        let k = d.round();
+        let xr = x as f64 - k;
+        if !(xr >= 1.0 && xr <= (w - 2) as f64) {
+            return None;
+        }
+        let (lrow, rrow) = (hl.row(y), hr.row(y));
+        let xr = xr as usize;
+        let e = (lrow[x] - rrow[xr]) as f64;
+        let g = 0.25 * ((lrow[x + 1] - lrow[x - 1]) + (rrow[xr + 1] - rrow[xr - 1])) as f64;
+        Some((e + g * (d - k), [g, g * u, g * v]))
+    };
+    // The robust scale from a sparse sample of the residuals.
+    let scale_at = |p: &[f64; 3]| {
+        robust_scale(
+            pixels
+                .iter()
+                .step_by(7)
+                .filter_map(|&[x, y]| term(p, x, y).map(|t| t.0))
+                .collect(),
+        )
+        .max(1e-6)
+    };
+    let mut k_huber = 1.5 * scale_at(&p);
+    let mut solved = None;
+    for it in 1..=80 {
+        let (jtj, jte, used) = pixels
+            .par_iter()
+            .fold(
+                || ([[0.0f64; 3]; 3], [0.0f64; 3], 0u64),
+                |(mut a, mut b, n), &[x, y]| {
+                    if let Some((r, j)) = term(&p, x, y) {
+                        let wt = huber(r, k_huber);
+                        for i in 0..3 {
+                            b[i] += wt * j[i] * r;
+                            for c in 0..3 {
+                                a[i][c] += wt * j[i] * j[c];
+                            }
+                        }
+                        (a, b, n + 1)
+                    } else {
+                        (a, b, n)
+                    }
+                },
+            )
+            .reduce(
+                || ([[0.0f64; 3]; 3], [0.0f64; 3], 0u64),
+                |(mut a, mut b, n), (a2, b2, n2)| {
+                    for i in 0..3 {
+                        b[i] += b2[i];
+                        for c in 0..3 {
+                            a[i][c] += a2[i][c];
+                        }
+                    }
+                    (a, b, n + n2)
+                },
+            );
+        if used < PLANE_MIN_PIXELS {
+            return None;
+        }
+        let jtj = DMatrix::from_fn(3, 3, |r, c| jtj[r][c]);
+        let step = jtj
+            .clone()
+            .lu()
+            .solve(&(-DVector::from_column_slice(&jte)))?;
+        for i in 0..3 {
+            p[i] += step[i];
+        }
+        if p[0] < range.min as f64 - 2.0 || p[0] > range.max as f64 + 2.0 {
+            return None;
+        }
+        let done = step.amax() < 1e-4;
+        if it % 10 == 0 || done {
+            k_huber = 1.5 * scale_at(&p);
+        }
+        solved = Some((jtj, k_huber / 1.5));
+        if done {
+            break;
+        }
+    }
+    let (info, sigma) = solved?;
+    let cov = info.try_inverse()?;
+    let std = sigma * cov[(0, 0)].max(0.0).sqrt();
+    if std.is_nan() || std > max_std {
+        return None;
+    }
+    Some(DisparityPlane {
+        d0: p[0],
+        dx: p[1] / s,
+        dy: p[2] / s,
+        centre,
+        std,
+        pixels: pixels.len() as u64,
+    })
+}
+
+/// `JᵀWJ` and `JᵀWe` of residuals `e` with Jacobian rows `j` (∂e/∂p = +j convention: the
+/// step that lowers the cost is `−(JᵀWJ)⁻¹JᵀWe`), Huber-weighted at `k`.
+fn normal_equations<const N: usize>(
+    terms: &[(f64, [f64; N])],
+    k: f64,
+) -> (DMatrix<f64>, DVector<f64>) {
+    let (a, b) = terms
+        .par_iter()
+        .fold(
+            || ([[0.0f64; N]; N], [0.0f64; N]),
+            |(mut a, mut b), (e, j)| {
+                let wt = huber(*e, k);
+                for r in 0..N {
+                    b[r] += wt * j[r] * e;
+                    for c in r..N {
+                        a[r][c] += wt * j[r] * j[c];
+                    }
+                }
+                (a, b)
+            },
+        )
+        .reduce(
+            || ([[0.0f64; N]; N], [0.0f64; N]),
+            |(mut a, mut b), (a2, b2)| {
+                for r in 0..N {
+                    b[r] += b2[r];
+                    for c in 0..N {
+                        a[r][c] += a2[r][c];
+                    }
+                }
+                (a, b)
+            },
+        );
+    let m = DMatrix::from_fn(N, N, |r, c| if r <= c { a[r][c] } else { a[c][r] });
+    (m, DVector::from_column_slice(&b))
+}
+
+/// The top of a surface found by [`refine_peak`].
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct PeakFit {
+    /// Largest disparity of the fitted quadratic inside the patch, px.
+    pub peak: f64,
+    /// Where it lies `[x, y]`.
+    pub at: [f64; 2],
+    /// Robust scale of the intensity residual (grey levels).
+    pub residual: f64,
+    /// Pixels used.
+    pub pixels: usize,
+}
+
+/// Fewest pixels a quadratic top is fitted on.
+const PEAK_MIN_PIXELS: usize = 24;
+
+/// Fits a quadratic `Q = c0 + c1·u + c2·v + c3·u² + c4·u·v + c5·v²` (u, v about the
+/// patch's mean pixel) together with a gain and offset between the views to the patch
+/// `pixels`, starting from their disparities `init` (any matcher's output; NaN = unknown),
+/// and returns the surface's maximum over the patch. Without a `base` the surface is
+/// `d = Q`; with the base's disparity it is the dome `d = base + √Q` — the height squared is
+/// quadratic, exact for an ellipsoidal cap standing on its equator and close for any
+/// rounded cell, so the whole upper part of a cell can be used, not only the tip. `None`
+/// when the patch is too small or the fit does not converge.
+pub fn refine_peak(
+    left: &Plane<u8>,
+    right: &Plane<u8>,
+    pixels: &[[usize; 2]],
+    init: &[f32],
+    base: Option<f64>,
+) -> Option<PeakFit> {
+    if pixels.len() < PEAK_MIN_PIXELS || pixels.len() != init.len() {
+        return None;
+    }
+    let n = pixels.len() as f64;
+    let centre = pixels.iter().fold([0.0, 0.0], |a, p| {
+        [a[0] + p[0] as f64 / n, a[1] + p[1] as f64 / n]
+    });
+    let radius = pixels
+        .iter()
+        .map(|p| (p[0] as f64 - centre[0]).hypot(p[1] as f64 - centre[1]))
+        .fold(1.0, f64::max);
+    let basis = |p: &[usize; 2]| {
+        let (u, v) = (
+            (p[0] as f64 - centre[0]) / radius,
+            (p[1] as f64 - centre[1]) / radius,
+        );
+        [1.0, u, v, u * u, u * v, v * v]
+    };
+    // d and ∂d/∂Q of a quadratic's value.
+    let surface = |q: f64| match base {
+        None => (q, 1.0),
+        Some(b) => {
+            let r = q.max(1e-6).sqrt();
+            (b + r, 0.5 / r)
+        }
+    };
+    // Start: least squares on the matcher's disparities.
+    let known: Vec<(f64, [f64; 6])> = pixels
+        .iter()
+        .zip(init)
+        .filter(|(_, d)| d.is_finite())
+        .filter_map(|(p, &d)| match base {
+            None => Some((-(d as f64), basis(p))),
+            Some(b) => (d as f64 > b).then(|| (-(d as f64 - b).powi(2), basis(p))),
+        })
+        .collect();
+    if known.len() < PEAK_MIN_PIXELS {
+        return None;
+    }
+    let (a, b) = normal_equations(&known, f64::INFINITY);
+    let c0 = a.lu().solve(&(-b))?;
+    let rows: Vec<Vec<f32>> = {
+        let conv = |img: &Plane<u8>, y: usize| img.row(y).iter().map(|&v| v as f32).collect();
+        let mut ys: Vec<usize> = pixels.iter().map(|p| p[1]).collect();
+        ys.sort_unstable();
+        ys.dedup();
+        let mut rows = vec![Vec::new(); left.height];
+        for y in ys {
+            rows[y] = conv(right, y);
+        }
+        rows
+    };
+    // Parameters: c0..c5, gain, offset.
+    let mut p = [c0[0], c0[1], c0[2], c0[3], c0[4], c0[5], 1.0, 0.0];
+    let terms_at = |p: &[f64; 8]| -> Vec<(f64, [f64; 8])> {
+        pixels
+            .iter()
+            .filter_map(|q| {
+                let f = basis(q);
+                let (d, dq) = surface((0..6).map(|i| p[i] * f[i]).sum());
+                let (rv, rg) = sample(&rows[q[1]], q[0] as f64 - d)?;
+                let e = *left.get(q[0], q[1]) as f64 - (p[6] * rv + p[7]);
+                let g = p[6] * rg * dq;
+                Some((
+                    e,
+                    [
+                        g * f[0],
+                        g * f[1],
+                        g * f[2],
+                        g * f[3],
+                        g * f[4],
+                        g * f[5],
+                        -rv,
+                        -1.0,
+                    ],
+                ))
+            })
+            .collect()
+    };
+    let cost = |t: &[(f64, [f64; 8])], k: f64| -> f64 {
+        t.iter()
+            .map(|(e, _)| {
+                let a = e.abs();
+                if a <= k {
+                    0.5 * a * a
+                } else {
+                    k * (a - 0.5 * k)
+                }
+            })
+            .sum::<f64>()
+            / t.len().max(1) as f64
+    };
+    let mut lambda = 1e-3;
+    let mut terms = terms_at(&p);
+    let mut scale = 0.0;
+    for _ in 0..50 {
+        if terms.len() < PEAK_MIN_PIXELS {
+            return None;
+        }
+        scale = robust_scale(terms.iter().map(|t| t.0).collect()).max(0.5);
+        let k = 1.5 * scale;
+        let c_now = cost(&terms, k);
+        let (jtj, jte) = normal_equations(&terms, k);
+        let mut accepted = false;
+        for _ in 0..8 {
+            let mut damped = jtj.clone();
+            for i in 0..8 {
+                damped[(i, i)] *= 1.0 + lambda;
+            }
+            let Some(step) = damped.lu().solve(&(-&jte)) else {
+                lambda *= 10.0;
+                continue;
+            };
+            let mut q = p;
+            for i in 0..8 {
+                q[i] += step[i];
+            }
+            let t = terms_at(&q);
+            if t.len() >= PEAK_MIN_PIXELS && cost(&t, k) <= c_now {
+                let small = step.iter().take(6).all(|s| s.abs() < 1e-4);
+                p = q;
+                terms = t;
+                lambda = (lambda * 0.3).max(1e-7);
+                accepted = true;
+                if small {
+                    return Some(peak_of(&p, pixels, &basis, centre, radius, scale, &surface));
+                }
+                break;
+            }
+            lambda *= 10.0;
+        }
+        if !accepted {
+            break;
+        }
+    }
+    Some(peak_of(&p, pixels, &basis, centre, radius, scale, &surface))
+}
+
+/// The maximum of the fitted quadratic: its stationary point when that is a maximum inside
+/// the patch, otherwise the best patch pixel.
+fn peak_of(
+    p: &[f64; 8],
+    pixels: &[[usize; 2]],
+    basis: &dyn Fn(&[usize; 2]) -> [f64; 6],
+    centre: [f64; 2],
+    radius: f64,
+    residual: f64,
+    surface: &dyn Fn(f64) -> (f64, f64),
+) -> PeakFit {
+    let eval =
+        |u: f64, v: f64| p[0] + p[1] * u + p[2] * v + p[3] * u * u + p[4] * u * v + p[5] * v * v;
+    let (a, b, c) = (2.0 * p[3], p[4], 2.0 * p[5]);
+    let det = a * c - b * b;
+    let mut best = None;
+    if a < 0.0 && det > 0.0 {
+        let u = (-p[1] * c + p[2] * b) / det;
+        let v = (-p[2] * a + p[1] * b) / det;
+        if u.hypot(v) <= 1.0 {
+            best = Some((eval(u, v), u, v));
+        }
+    }
+    let (peak, u, v) = best.unwrap_or_else(|| {
+        pixels
+            .iter()
+            .map(|q| {
+                let f = basis(q);
+                (eval(f[1], f[2]), f[1], f[2])
+            })
+            .max_by(|x, y| x.0.total_cmp(&y.0))
+            .expect("non-empty patch")
+    });
+    PeakFit {
+        peak: surface(peak).0,
+        at: [centre[0] + u * radius, centre[1] + v * radius],
+        residual,
+        pixels: pixels.len(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    /// A smooth random texture: a sum of sinusoids with 4–12 px wavelengths.
+    fn texture(seed: u64, amp: f64) -> impl Fn(f64, f64) -> f64 {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let waves: Vec<[f64; 3]> = (0..12)
+            .map(|_| {
+                let (l, a) = (
+                    rng.random_range(4.0..12.0),
+                    rng.random_range(0.0..std::f64::consts::TAU),
+                );
+                let k = std::f64::consts::TAU / l;
+                [
+                    k * a.cos(),
+                    k * a.sin(),
+                    rng.random_range(0.0..std::f64::consts::TAU),
+                ]
+            })
+            .collect();
+        move |x, y| {
+            128.0
+                + amp / 3.0
+                    * waves
+                        .iter()
+                        .map(|w| (w[0] * x + w[1] * y + w[2]).sin())
+                        .sum::<f64>()
+        }
+    }
+
+    /// Renders a pair where left `(x, y)` matches right `(x − d(x, y), y)`; the right view is
+    /// found by fixed-point iteration (fine while |∂d/∂x| < 1), noise of `sigma` on both.
+    fn pair(
+        w: usize,
+        h: usize,
+        t: &dyn Fn(f64, f64) -> f64,
+        d: &dyn Fn(f64, f64) -> f64,
+        sigma: f64,
+        seed: u64,
+    ) -> (Plane<u8>, Plane<u8>) {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let mut noise = || {
+            // Sum of uniforms: close enough to Gaussian for a test.
+            sigma * ((0..12).map(|_| rng.random::<f64>()).sum::<f64>() - 6.0)
+        };
+        let q = |v: f64| v.round().clamp(0.0, 255.0) as u8;
+        let mut l = Plane::filled(w, h, 0u8);
+        let mut r = Plane::filled(w, h, 0u8);
+        for y in 0..h {
+            for x in 0..w {
+                let (xf, yf) = (x as f64, y as f64);
+                *l.get_mut(x, y) = q(t(xf, yf) + noise());
+                let mut xl = xf;
+                for _ in 0..30 {
+                    xl = xf + d(xl, yf);
+                }
+                *r.get_mut(x, y) = q(t(xl, yf) + noise());
+            }
+        }
+        (l, r)
+    }
+
+    #[test]
+    fn plane_of_a_faint_texture_under_noise() {
+        // Texture amplitude 2 grey levels against noise 1.5: the microscope's substrate.
+        let t = texture(3, 2.0);
+        let plane = |x: f64, y: f64| 1.37 + 0.002 * (x - 160.0) - 0.0015 * (y - 120.0);
+        let (l, r) = pair(320, 240, &t, &plane, 1.5, 4);
+        let usable = Plane::filled(320, 240, 255u8);
+        let p = fit_disparity_plane(&l, &r, &usable, DisparityRange::new(-3, 6), 0.05)
+            .expect("a plane");
+        for (x, y) in [
+            (20.0, 20.0),
+            (300.0, 20.0),
+            (160.0, 120.0),
+            (20.0, 220.0),
+            (300.0, 220.0),
+        ] {
+            assert!(
+                (p.at(x, y) - plane(x, y)).abs() < 0.03,
+                "at ({x}, {y}): {} vs {}",
+                p.at(x, y),
+                plane(x, y)
+            );
+        }
+        assert!(p.std > 0.0 && p.std < 0.02, "{}", p.std);
+    }
+
+    #[test]
+    fn plane_refuses_flat_images_and_tiny_regions() {
+        let flat = Plane::filled(200, 100, 120u8);
+        let all = Plane::filled(200, 100, 255u8);
+        let range = DisparityRange::new(0, 4);
+        assert_eq!(fit_disparity_plane(&flat, &flat, &all, range, 0.05), None);
+        let t = texture(5, 20.0);
+        let (l, r) = pair(200, 100, &t, &|_, _| 2.0, 0.5, 6);
+        let mut few = Plane::filled(200, 100, 0u8);
+        for x in 10..40 {
+            *few.get_mut(x, 50) = 255;
+        }
+        assert_eq!(fit_disparity_plane(&l, &r, &few, range, 0.05), None);
+        // The same pair with every pixel usable gives the shift.
+        let p = fit_disparity_plane(&l, &r, &all, range, 0.05).expect("a plane");
+        assert!((p.d0 - 2.0).abs() < 0.01, "{}", p.d0);
+    }
+
+    #[test]
+    fn dome_top_without_window_bias() {
+        // An ellipsoidal cap: 4.2 px of disparity above a substrate at 0.6 px.
+        let (cx, cy, a, b, top, base) = (60.0, 50.0, 22.0, 16.0, 4.2, 0.6);
+        let q = move |x: f64, y: f64| 1.0 - ((x - cx) / a).powi(2) - ((y - cy) / b).powi(2);
+        let d = move |x: f64, y: f64| base + top * q(x, y).max(0.0).sqrt();
+        let t = texture(7, 30.0);
+        let (l, r) = pair(120, 100, &t, &d, 1.5, 8);
+        // The upper part, as the cells step picks it, with a biased start (the peak 0.4 low).
+        let (pixels, init): (Vec<[usize; 2]>, Vec<f32>) = (0..100)
+            .flat_map(|y| (0..120).map(move |x| [x, y]))
+            .filter(|p| q(p[0] as f64, p[1] as f64) >= 0.49)
+            .map(|p| (p, (d(p[0] as f64, p[1] as f64) - 0.4) as f32))
+            .unzip();
+        let fit = refine_peak(&l, &r, &pixels, &init, Some(base)).expect("a fit");
+        assert!((fit.peak - (base + top)).abs() < 0.05, "{}", fit.peak);
+        assert!(
+            (fit.at[0] - cx).abs() < 1.0 && (fit.at[1] - cy).abs() < 1.0,
+            "{:?}",
+            fit.at
+        );
+        // Without a base the surface is a plain quadratic: close, not exact, on a cap.
+        let quad = refine_peak(&l, &r, &pixels, &init, None).expect("a fit");
+        assert!((quad.peak - (base + top)).abs() < 0.15, "{}", quad.peak);
+        // Too few pixels: no answer.
+        assert_eq!(
+            refine_peak(&l, &r, &pixels[..10], &init[..10], Some(base)),
+            None
+        );
+    }
+}
