@@ -64,6 +64,10 @@ struct SegmentOpts {
     /// Keep holes inside cells.
     #[arg(long)]
     no_fill_holes: bool,
+    /// Keep the skirt the variance window adds around each cell (up to M+1 px) instead of
+    /// peeling it back where it looks like background (the paper's plain threshold).
+    #[arg(long)]
+    no_peel: bool,
 }
 
 impl SegmentOpts {
@@ -91,6 +95,7 @@ impl SegmentOpts {
             fill_holes: !self.no_fill_holes,
             open_radius: self.open,
             close_radius: self.close,
+            peel_edges: !self.no_peel,
         })
     }
 }

@@ -56,8 +56,8 @@ fn evaluate(w: usize, h: usize, seed: u64) -> Errors {
             e.height_rel.push(m.height / t.height - 1.0);
         }
     }
-    // Segmented pixels farther than twice the variance radius from every true cell: the
-    // variance window lets texture leak up to M px out, relief shading a little more.
+    // Segmented pixels more than 1 px from every true cell (truth labels are taken at pixel
+    // centres; a pixel the cell's edge crosses may go either way).
     let truth_near = segment::dilate(
         &schemas::Plane::from_vec(
             w,
@@ -69,7 +69,7 @@ fn evaluate(w: usize, h: usize, seed: u64) -> Errors {
                 .collect(),
         )
         .unwrap(),
-        (2 * seg.variance_radius) as u8,
+        1,
     );
     e.stray_px = cs
         .left_seg
@@ -85,7 +85,7 @@ fn evaluate(w: usize, h: usize, seed: u64) -> Errors {
 #[test]
 fn synthetic_scenes_every_cell_found_centroids_and_heights() {
     let mut all = Vec::new();
-    for (w, h, seeds) in [(640, 480, 1..=5u64), (1280, 1024, 1..=2u64)] {
+    for (w, h, seeds) in [(640, 480, 1..=5u64), (1280, 1024, 1..=5u64)] {
         for seed in seeds {
             let e = evaluate(w, h, seed);
             eprintln!(
@@ -100,9 +100,12 @@ fn synthetic_scenes_every_cell_found_centroids_and_heights() {
                 e.stray_px
             );
             assert_eq!(e.found, e.cells, "{w}×{h} seed {seed}: every cell found");
-            assert_eq!(
-                e.stray_px, 0,
-                "{w}×{h} seed {seed}: no background reported as cell"
+            // Peeled masks keep a few dozen pixels more than 1 px outside the truth per scene
+            // (0.1–0.2 % of the cell pixels; unpeeled, thousands): a guard, not zero yet.
+            assert!(
+                e.stray_px < 60,
+                "{w}×{h} seed {seed}: {} background pixels reported as cell",
+                e.stray_px
             );
             all.push(e);
         }
@@ -119,9 +122,13 @@ fn synthetic_scenes_every_cell_found_centroids_and_heights() {
         100.0 * sorted[sorted.len() / 2],
         100.0 * sorted[sorted.len() - 1]
     );
-    // Regression guards at today's level, NOT the bars (centroid ≤ 1 px, height
-    // ≤ 5 %), which are not met yet: small domes lose 10–30 % of their height because the
-    // substrate ring's disparity leans ~1 px towards the cell.
-    assert!(worst_c < 3.0, "centroid error {worst_c}");
-    assert!(sorted[sorted.len() / 2] < 0.15 && sorted[sorted.len() - 1] < 0.40);
+    // The height bar (≤ 5 % on every cell) holds. The centroid bar (≤ 1 px) does not yet on
+    // every cell: where a cell's relief and brightness nearly cancel on one side, that side
+    // looks like background and is peeled too far (worst 1.27 px); guarded at 1.5 px.
+    assert!(
+        sorted[sorted.len() - 1] <= 0.05,
+        "height error {:?}",
+        sorted.last()
+    );
+    assert!(worst_c < 1.5, "centroid error {worst_c}");
 }

@@ -4,7 +4,8 @@
 //!    [`normalise`] onto 0–255: cells are textured, the background is smooth;
 //! 2. [`otsu_threshold`] on its [`histogram`] (with an absolute floor, `min_std`, so a
 //!    textureless image yields no cells instead of half its noise);
-//! 3. clean-up: optional [`open`]/[`close`], [`fill_holes`], [`remove_small`];
+//! 3. clean-up: optional [`open`]/[`close`], [`fill_holes`], [`peel_edges`] (the skirt
+//!    the variance window adds around a cell goes back to the background), [`remove_small`];
 //! 4. [`label`]: 8-connected components;
 //! 5. [`trace_boundary`]: chain-code boundary following with the paper's search-start rule;
 //! 6. per cell: id, area, centroid, bounding box, contour and perimeter ([`schemas::Cell`]).
@@ -14,12 +15,14 @@
 mod label;
 mod morph;
 mod otsu;
+mod peel;
 mod trace;
 mod variance;
 
 pub use label::{Connectivity, label, label_where};
 pub use morph::{close, dilate, fill_holes, open, remove_small};
 pub use otsu::{histogram, otsu_threshold};
+pub use peel::peel_edges;
 pub use trace::{DIRECTIONS, chain_length, search_start, trace_boundary};
 pub use variance::{VarianceScale, local_variance, normalise};
 
@@ -44,6 +47,9 @@ pub struct SegmentParams {
     pub open_radius: u8,
     /// Closing radius before hole filling (0 = off).
     pub close_radius: u8,
+    /// Peel the outer layers (up to M+1 px deep) that look like the background around them
+    /// (within 2 robust standard deviations of it, over a `(8M+9)²` window).
+    pub peel_edges: bool,
 }
 
 impl Default for SegmentParams {
@@ -56,6 +62,7 @@ impl Default for SegmentParams {
             fill_holes: true,
             open_radius: 0,
             close_radius: 0,
+            peel_edges: true,
         }
     }
 }
@@ -110,6 +117,10 @@ pub fn segment(img: &Plane<u8>, p: &SegmentParams) -> Segmentation {
     mask = close(&open(&mask, p.open_radius), p.close_radius);
     if p.fill_holes && !mask.is_empty() {
         mask = fill_holes(&mask);
+    }
+    if p.peel_edges {
+        let m = p.variance_radius;
+        mask = peel_edges(img, &mask, m + 1, 4 * m + 4, 2.0);
     }
     mask = remove_small(&mask, p.min_area.max(1));
     let (labels, n) = label(&mask, Connectivity::Eight);
@@ -245,12 +256,34 @@ mod tests {
             assert!((cell.centroid[0] - cx).abs() < 1.0, "{:?}", cell.centroid);
             assert!((cell.centroid[1] - cy).abs() < 1.0, "{:?}", cell.centroid);
             let true_area = std::f64::consts::PI * r * r;
-            // The variance window widens a cell by up to M = 3 px all round.
+            // The variance window widens a cell by up to M = 3 px all round; peeling takes
+            // that back to within a few per cent.
             assert!(
-                cell.area as f64 > true_area
-                    && (cell.area as f64) < std::f64::consts::PI * (r + 3.5).powi(2),
+                (cell.area as f64 / true_area - 1.0).abs() < 0.05,
                 "area {} vs {true_area}",
                 cell.area
+            );
+            let plain = segment(
+                &img,
+                &SegmentParams {
+                    peel_edges: false,
+                    ..SegmentParams::default()
+                },
+            );
+            let fat = plain
+                .cells
+                .iter()
+                .find(|c| {
+                    c.bbox.x0 <= cell.bbox.x0
+                        && c.bbox.x1 >= cell.bbox.x1
+                        && c.bbox.y0 <= cell.bbox.y0
+                })
+                .expect("same cell unpeeled");
+            assert!(
+                fat.area as f64 > true_area
+                    && (fat.area as f64) < std::f64::consts::PI * (r + 3.5).powi(2),
+                "unpeeled area {} vs {true_area}",
+                fat.area
             );
             // The contour starts at the first raster pixel and runs all round the cell.
             assert_eq!(cell.contour[0][1], cell.bbox.y0);
