@@ -38,6 +38,7 @@ enum Command {
 enum ScaleArg {
     StdDev,
     Variance,
+    LogStdDev,
 }
 
 /// Segmentation settings shared by `segment` and `reconstruct --cells`.
@@ -53,7 +54,7 @@ struct SegmentOpts {
     #[arg(long, default_value_t = 4.0)]
     min_std: f32,
     /// How the variance maps onto 0–255 before Otsu.
-    #[arg(long, value_enum, default_value = "std-dev")]
+    #[arg(long, value_enum, default_value = "log-std-dev")]
     variance_scale: ScaleArg,
     /// Opening radius (px) before hole filling; 0 = off.
     #[arg(long, default_value_t = 0)]
@@ -89,6 +90,7 @@ impl SegmentOpts {
             scale: match self.variance_scale {
                 ScaleArg::StdDev => segment::VarianceScale::StdDev,
                 ScaleArg::Variance => segment::VarianceScale::Variance,
+                ScaleArg::LogStdDev => segment::VarianceScale::LogStdDev,
             },
             min_std: self.min_std,
             min_area: self.min_area,

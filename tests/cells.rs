@@ -132,3 +132,91 @@ fn synthetic_scenes_every_cell_found_centroids_and_heights() {
     );
     assert!(worst_c < 1.5, "centroid error {worst_c}");
 }
+
+#[test]
+fn sequence_cells_drift_the_pipette_advances_and_cells_stay_measured() {
+    let optics = Optics::default();
+    let spec = CellSpec {
+        count: 4,
+        ..CellSpec::default()
+    };
+    let mut scene = Scene::random(optics, Look::default(), &spec, 11);
+    let s = optics.um_per_px();
+    scene.pipette = Some(synth::Pipette {
+        tip: [-0.5 * optics.width as f64 * s + 20.0 * s, 0.0],
+        height: 30.0,
+        tip_radius: 1.5,
+        taper: 0.08,
+    });
+    let (drift, step) = (1.5, 40.0);
+    let frames: Vec<_> = (0..3)
+        .map(|f| scene.at_frame(f, drift, step).render())
+        .collect();
+    // Deterministic: the same frame renders to the same bytes.
+    let again = scene.at_frame(2, drift, step).render();
+    assert_eq!(again.left.data, frames[2].left.data);
+    assert_eq!(again.right.data, frames[2].right.data);
+    // Each cell moves at its own constant velocity, at most `drift` µm per frame per axis.
+    for (k, c0) in frames[0].cells.iter().enumerate() {
+        let (c1, c2) = (&frames[1].cells[k], &frames[2].cells[k]);
+        for a in 0..2 {
+            let v = c1.shape.centre[a] - c0.shape.centre[a];
+            assert!(v.abs() <= drift + 1e-9, "cell {k} moves {v} µm per frame");
+            assert!((c2.shape.centre[a] - c0.shape.centre[a] - 2.0 * v).abs() < 1e-9);
+        }
+        assert_eq!(c0.height, c2.height);
+    }
+    // The pipette's tip advances `step` µm per frame, and its disparity is its height's.
+    let tip_x = |r: &synth::Rendered| {
+        (0..r.labels.height)
+            .flat_map(|y| (0..r.labels.width).map(move |x| (x, y)))
+            .filter(|&(x, y)| *r.labels.get(x, y) == synth::PIPETTE)
+            .max_by_key(|p| p.0)
+            .expect("pipette in view")
+    };
+    let tips: Vec<_> = frames.iter().map(tip_x).collect();
+    for f in 1..3 {
+        let moved = (tips[f].0 as f64 - tips[f - 1].0 as f64) * s;
+        assert!((moved - step).abs() <= 1.5 * s, "tip moved {moved} µm");
+    }
+    let (tx, ty) = tips[2];
+    let d_tip = *frames[2].disparity.get(tx, ty) as f64;
+    let k = optics.px_per_um_height();
+    assert!(
+        (d_tip - 30.0 * k).abs() <= 2.0 * k,
+        "tip disparity {d_tip} vs {}",
+        30.0 * k
+    );
+    // With the pipette over the dish, every cell is still found and measured: its edges,
+    // several times the cells' contrast, would draw Otsu's threshold above the cells on a
+    // linear scale (ln(1 + σ), the default, keeps them apart).
+    let r = &frames[2];
+    let cfg = StereoConfig::new(Mode::Quality, DisparityRange::new(-4, 16));
+    let cs = cell_stereo(
+        &r.left,
+        &r.right,
+        &cfg,
+        &SegmentParams::default(),
+        &CellStereoParams::default(),
+    )
+    .unwrap();
+    let cells = measure_cells(&cs, &r.calibration);
+    for t in &r.cells {
+        let m = cells
+            .iter()
+            .find(|m| {
+                (m.centroid_px[0] - t.centroid_px[0]).hypot(m.centroid_px[1] - t.centroid_px[1])
+                    < 2.0
+            })
+            .unwrap_or_else(|| panic!("cell {} not found with the pipette in view", t.id));
+        assert!(
+            (m.height / t.height - 1.0).abs() <= 0.05,
+            "cell {}: height {} vs {}",
+            t.id,
+            m.height,
+            t.height
+        );
+    }
+    // The pipette is segmented and paired too: one blob more than the cells.
+    assert_eq!(cells.len(), r.cells.len() + 1);
+}

@@ -56,7 +56,7 @@ impl Default for SegmentParams {
     fn default() -> Self {
         Self {
             variance_radius: 3,
-            scale: VarianceScale::StdDev,
+            scale: VarianceScale::LogStdDev,
             min_std: 4.0,
             min_area: 200,
             fill_holes: true,
@@ -72,7 +72,7 @@ impl Default for SegmentParams {
 pub struct Segmentation {
     /// The normalised variance image (0–255).
     pub variance: Plane<u8>,
-    /// Largest value before normalisation (standard deviation or variance, grey levels).
+    /// Largest value before normalisation (on the scale's own terms: ln(1 + σ), σ or σ²).
     pub variance_max: f32,
     /// Histogram of `variance`.
     pub histogram: [u64; 256],
@@ -96,6 +96,7 @@ fn floor_level(std: f32, max: f32, scale: VarianceScale) -> u16 {
     let v = match scale {
         VarianceScale::StdDev => std,
         VarianceScale::Variance => std * std,
+        VarianceScale::LogStdDev => std.ln_1p(),
     };
     (v / max * 255.0).ceil().clamp(0.0, 256.0) as u16
 }

@@ -10,10 +10,14 @@ pub enum VarianceScale {
     /// The standard deviation (√variance) scaled so the largest is 255. The variance's heavy
     /// tail (a few edge pixels hundreds of times the cell interior) otherwise crowds every
     /// cell pixel into the lowest bins, where Otsu cannot separate them.
-    #[default]
     StdDev,
     /// The variance itself scaled so the largest is 255, as printed in the paper.
     Variance,
+    /// `ln(1 + standard deviation)` scaled so the largest is 255: a pipette or a dark
+    /// debris edge, several times the cells' contrast, then no longer draws Otsu's
+    /// threshold up between the cells and itself (the default).
+    #[default]
+    LogStdDev,
 }
 
 /// Summed-area table with one extra zero row and column: `at(x, y)` sums `[0, x) × [0, y)`.
@@ -74,6 +78,7 @@ pub fn normalise(var: &Plane<f32>, scale: VarianceScale) -> (Plane<u8>, f32) {
     let f = |v: f32| match scale {
         VarianceScale::StdDev => v.sqrt(),
         VarianceScale::Variance => v,
+        VarianceScale::LogStdDev => v.sqrt().ln_1p(),
     };
     let max = var.data.iter().map(|&v| f(v)).fold(0f32, f32::max);
     let k = if max > 0.0 { 255.0 / max } else { 0.0 };
@@ -143,5 +148,9 @@ mod tests {
         assert_eq!(s.data, vec![0, 64, 128, 255]);
         let (l, _) = normalise(&v, VarianceScale::Variance);
         assert_eq!(l.data, vec![0, 16, 64, 255]);
+        // ln(1 + σ) for σ = 0, 2, 4, 8: 0, 1.0986, 1.6094, 2.1972 of 2.1972.
+        let (g, max) = normalise(&v, VarianceScale::LogStdDev);
+        assert!((max - 9f32.ln()).abs() < 1e-6);
+        assert_eq!(g.data, vec![0, 128, 187, 255]);
     }
 }
