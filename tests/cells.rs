@@ -13,6 +13,8 @@ struct Errors {
     worst_centroid_px: f64,
     height_rel: Vec<f64>,
     stray_px: u64,
+    /// Cells measured (segmented and paired) in all.
+    measured: usize,
 }
 
 /// Renders a scene, runs cell-only stereo and compares every cell with its truth.
@@ -39,6 +41,7 @@ fn evaluate(w: usize, h: usize, seed: u64) -> Errors {
         worst_centroid_px: 0.0,
         height_rel: Vec::new(),
         stray_px: 0,
+        measured: cells.len(),
     };
     for t in &r.cells {
         let m = cells.iter().min_by(|a, b| {
@@ -100,6 +103,10 @@ fn synthetic_scenes_every_cell_found_centroids_and_heights() {
                 e.stray_px
             );
             assert_eq!(e.found, e.cells, "{w}×{h} seed {seed}: every cell found");
+            assert_eq!(
+                e.measured, e.cells,
+                "{w}×{h} seed {seed}: no blob of background"
+            );
             // Peeled masks keep a few dozen pixels more than 1 px outside the truth per scene
             // (0.1–0.2 % of the cell pixels; unpeeled, thousands): a guard, not zero yet.
             assert!(

@@ -6,27 +6,48 @@
 
 use schemas::{Mask, Plane};
 
-/// Box sums over `(2r+1)²` windows (clamped at the edges) of `f(x, y)`.
-fn box_sums(w: usize, h: usize, r: usize, f: impl Fn(usize, usize) -> f64) -> Vec<f64> {
-    let mut sat = vec![0f64; (w + 1) * (h + 1)];
-    for y in 0..h {
-        let mut acc = 0.0;
-        for x in 0..w {
-            acc += f(x, y);
-            sat[(y + 1) * (w + 1) + x + 1] = sat[y * (w + 1) + x + 1] + acc;
+/// Whether a boundary pixel `(x, y)` goes to the background.
+type PeelTest<'a> = &'a dyn Fn(usize, usize) -> bool;
+
+/// Summed-area table of integer values; `sum` adds a `(2r+1)²` window clamped to the image.
+struct Sat {
+    w1: usize,
+    h: usize,
+    t: Vec<u64>,
+}
+
+impl Sat {
+    fn new(w: usize, h: usize, f: impl Fn(usize, usize) -> u64) -> Self {
+        let w1 = w + 1;
+        let mut t = vec![0u64; w1 * (h + 1)];
+        for y in 0..h {
+            let mut acc = 0;
+            for x in 0..w {
+                acc += f(x, y);
+                t[(y + 1) * w1 + x + 1] = t[y * w1 + x + 1] + acc;
+            }
         }
+        Self { w1, h, t }
     }
-    let mut out = vec![0f64; w * h];
-    for y in 0..h {
-        let (y0, y1) = (y.saturating_sub(r), (y + r + 1).min(h));
-        for x in 0..w {
-            let (x0, x1) = (x.saturating_sub(r), (x + r + 1).min(w));
-            out[y * w + x] = sat[y1 * (w + 1) + x1] + sat[y0 * (w + 1) + x0]
-                - sat[y0 * (w + 1) + x1]
-                - sat[y1 * (w + 1) + x0];
-        }
+
+    fn sum(&self, x: usize, y: usize, r: usize) -> u64 {
+        let (x0, x1) = (x.saturating_sub(r), (x + r + 1).min(self.w1 - 1));
+        let (y0, y1) = (y.saturating_sub(r), (y + r + 1).min(self.h));
+        let w1 = self.w1;
+        self.t[y1 * w1 + x1] + self.t[y0 * w1 + x0] - self.t[y0 * w1 + x1] - self.t[y1 * w1 + x0]
     }
-    out
+}
+
+/// The 4-neighbours of `(x, y)` inside a `w × h` image.
+fn neighbours4(x: usize, y: usize, w: usize, h: usize) -> impl Iterator<Item = (usize, usize)> {
+    [
+        (x.wrapping_sub(1), y),
+        (x + 1, y),
+        (x, y.wrapping_sub(1)),
+        (x, y + 1),
+    ]
+    .into_iter()
+    .filter(move |&(u, v)| u < w && v < h)
 }
 
 /// Removes up to `layers` outer layers of `mask` where they look like background. With `r`
@@ -44,23 +65,25 @@ pub fn peel_edges(img: &Plane<u8>, mask: &Mask, layers: usize, bg_radius: usize,
         return out;
     }
     let is_bg = |x: usize, y: usize| *mask.get(x, y) == 0;
-    let n = box_sums(w, h, bg_radius, |x, y| f64::from(u8::from(is_bg(x, y))));
-    let s = box_sums(w, h, bg_radius, |x, y| {
+    let n = Sat::new(w, h, |x, y| u64::from(is_bg(x, y)));
+    let s = Sat::new(w, h, |x, y| {
         if is_bg(x, y) {
-            *img.get(x, y) as f64
+            *img.get(x, y) as u64
         } else {
-            0.0
+            0
         }
     });
-    let mean = |x: usize, y: usize| {
-        let i = y * w + x;
-        (n[i] > 0.0).then(|| s[i] / n[i])
+    let r = |x: usize, y: usize| {
+        let c = n.sum(x, y, bg_radius);
+        (c > 0).then(|| *img.get(x, y) as f64 - s.sum(x, y, bg_radius) as f64 / c as f64)
     };
-    // Spread of the background about its local mean (median absolute deviation).
+    // Spread of the background about its local mean (median absolute deviation), from
+    // every third pixel along both axes: plenty for one number.
     let mut dev: Vec<f64> = (0..h)
-        .flat_map(|y| (0..w).map(move |x| (x, y)))
+        .step_by(3)
+        .flat_map(|y| (0..w).step_by(3).map(move |x| (x, y)))
         .filter(|&(x, y)| is_bg(x, y))
-        .filter_map(|(x, y)| mean(x, y).map(|m| (*img.get(x, y) as f64 - m).abs()))
+        .filter_map(|(x, y)| r(x, y).map(f64::abs))
         .collect();
     if dev.is_empty() {
         return out;
@@ -68,48 +91,45 @@ pub fn peel_edges(img: &Plane<u8>, mask: &Mask, layers: usize, bg_radius: usize,
     let mid = dev.len() / 2;
     let (_, m, _) = dev.select_nth_unstable_by(mid, f64::total_cmp);
     let tol = k * 1.4826 * m.max(0.5);
-    let r = |x: usize, y: usize| mean(x, y).map(|m| *img.get(x, y) as f64 - m);
-    // No background around: as far from it as a grey level can be (finite, for the sums).
-    let energy = box_sums(w, h, 1, |x, y| r(x, y).map_or(255.0 * 255.0, |v| v * v));
-    let cells = box_sums(w, h, 1, |_, _| 1.0);
     // The neighbourhood test averages nine pixels, so it can be tighter.
     let quiet_tol = 0.75 * tol;
-    let quiet = |x: usize, y: usize| energy[y * w + x] / cells[y * w + x] <= quiet_tol * quiet_tol;
-    let alone = |x: usize, y: usize| r(x, y).is_some_and(|v| v.abs() <= tol);
-    // The pixels next to the cell form a band one pixel wide in the chessboard sense: two
-    // 4-connected layers deep where the edge runs diagonally.
-    for _ in 0..2 * layers {
-        if peel_round(&mut out, &quiet) == 0 {
-            break;
+    let quiet = |x: usize, y: usize| {
+        let (mut e, mut c) = (0.0, 0.0);
+        for v in y.saturating_sub(1)..(y + 2).min(h) {
+            for u in x.saturating_sub(1)..(x + 2).min(w) {
+                // No background around: as far from it as a grey level can be.
+                e += r(u, v).map_or(255.0 * 255.0, |d| d * d);
+                c += 1.0;
+            }
         }
-    }
-    for _ in 0..2 {
-        if peel_round(&mut out, &alone) == 0 {
-            break;
+        e / c <= quiet_tol * quiet_tol
+    };
+    let alone = |x: usize, y: usize| r(x, y).is_some_and(|v| v.abs() <= tol);
+    let mut boundary: Vec<(usize, usize)> = (0..h)
+        .flat_map(|y| (0..w).map(move |x| (x, y)))
+        .filter(|&(x, y)| *mask.get(x, y) != 0 && neighbours4(x, y, w, h).any(|(u, v)| is_bg(u, v)))
+        .collect();
+    let test_rounds: [(PeelTest, usize); 2] = [(&quiet, 2 * layers), (&alone, 2)];
+    for (test, rounds) in test_rounds {
+        for _ in 0..rounds {
+            let (gone, kept): (Vec<_>, Vec<_>) = boundary.iter().partition(|&&(x, y)| test(x, y));
+            if gone.is_empty() {
+                break;
+            }
+            for &(x, y) in &gone {
+                *out.get_mut(x, y) = 0;
+            }
+            // Exposed now: mask pixels next to what went.
+            let mut next = kept;
+            for &(x, y) in &gone {
+                next.extend(neighbours4(x, y, w, h).filter(|&(u, v)| *out.get(u, v) != 0));
+            }
+            next.sort_unstable_by_key(|&(x, y)| (y, x));
+            next.dedup();
+            boundary = next;
         }
     }
     out
-}
-
-/// Hands to the background every mask pixel 4-adjacent to it that passes `test`; returns
-/// how many went.
-fn peel_round(out: &mut Mask, test: &dyn Fn(usize, usize) -> bool) -> usize {
-    let (w, h) = (out.width, out.height);
-    let peel: Vec<(usize, usize)> = (0..h)
-        .flat_map(|y| (0..w).map(move |x| (x, y)))
-        .filter(|&(x, y)| {
-            *out.get(x, y) != 0
-                && ((x > 0 && *out.get(x - 1, y) == 0)
-                    || (x + 1 < w && *out.get(x + 1, y) == 0)
-                    || (y > 0 && *out.get(x, y - 1) == 0)
-                    || (y + 1 < h && *out.get(x, y + 1) == 0))
-                && test(x, y)
-        })
-        .collect();
-    for &(x, y) in &peel {
-        *out.get_mut(x, y) = 0;
-    }
-    peel.len()
 }
 
 #[cfg(test)]

@@ -80,12 +80,31 @@ pub fn normalise(var: &Plane<f32>, scale: VarianceScale) -> (Plane<u8>, f32) {
         VarianceScale::Variance => v,
         VarianceScale::LogStdDev => v.sqrt().ln_1p(),
     };
-    let max = var.data.iter().map(|&v| f(v)).fold(0f32, f32::max);
+    let f_inv = |y: f32| match scale {
+        VarianceScale::StdDev => y * y,
+        VarianceScale::Variance => y,
+        VarianceScale::LogStdDev => y.exp_m1().powi(2),
+    };
+    // Every scale grows with the variance: the largest maps from the largest, and each
+    // output level from a range of variances, so one search among 255 bounds replaces a
+    // square root and a logarithm per pixel.
+    let max = f(var.data.iter().copied().fold(0f32, f32::max));
     let k = if max > 0.0 { 255.0 / max } else { 0.0 };
+    let bounds: Vec<f32> = if k > 0.0 {
+        (1..=255).map(|i| f_inv((i as f32 - 0.5) / k)).collect()
+    } else {
+        Vec::new()
+    };
     let data = var
         .data
         .iter()
-        .map(|&v| (f(v) * k).round().clamp(0.0, 255.0) as u8)
+        .map(|&v| {
+            if k > 0.0 {
+                bounds.partition_point(|&b| b <= v) as u8
+            } else {
+                0
+            }
+        })
         .collect();
     (
         Plane::from_vec(var.width, var.height, data).expect("same size"),
