@@ -454,11 +454,28 @@ pub fn measure_cells(cs: &CellStereo, calib: &Calibration) -> Vec<Cell3> {
         };
         let z_sub = z_of(d_sub);
         let pixel_area = (z_sub / calib.focal_px).powi(2);
+        let xy = |x: usize, y: usize| {
+            let d = *cs.disparity.get(x, y) as f64;
+            triangulate::triangulate_pixel(x as f64, y as f64, d, calib).map(|p| [p[0], p[1]])
+        };
         let (mut vol, mut wx, mut wy, mut wz) = (0.0, 0.0, 0.0, 0.0);
         for &(x, y, d) in &inside {
             let z = z_of(d as f64);
             let hgt = (z_sub - z).max(0.0);
-            let v = hgt * pixel_area;
+            // The ground each pixel covers: one camera sees a slope facing it with more
+            // pixels than the slope facing away, so equal weights would pull the centroid
+            // towards that camera (by up to 2 µm on a 100 µm dome).
+            let inner = x + 1 < cs.disparity.width && y + 1 < cs.disparity.height;
+            let next = |dx: usize, dy: usize| if inner { xy(x + dx, y + dy) } else { None };
+            let footprint = match (xy(x, y), next(1, 0), next(0, 1)) {
+                (Some(p), Some(px), Some(py)) => {
+                    let a =
+                        ((px[0] - p[0]) * (py[1] - p[1]) - (py[0] - p[0]) * (px[1] - p[1])).abs();
+                    a.clamp(0.25 * pixel_area, 4.0 * pixel_area)
+                }
+                _ => pixel_area,
+            };
+            let v = hgt * footprint;
             if let Some([px, py, _]) =
                 triangulate::triangulate_pixel(x as f64, y as f64, d as f64, calib)
             {

@@ -11,6 +11,10 @@ struct Errors {
     cells: usize,
     found: usize,
     worst_centroid_px: f64,
+    /// Worst lateral error of the volume-weighted 3D centroid, in pixels at the substrate.
+    worst_centroid3_px: f64,
+    /// Worst depth error of the 3D centroid, µm.
+    worst_centroid3_dz: f64,
     height_rel: Vec<f64>,
     stray_px: u64,
     /// Cells measured (segmented and paired) in all.
@@ -39,6 +43,8 @@ fn evaluate(w: usize, h: usize, seed: u64) -> Errors {
         cells: r.cells.len(),
         found: 0,
         worst_centroid_px: 0.0,
+        worst_centroid3_px: 0.0,
+        worst_centroid3_dz: 0.0,
         height_rel: Vec::new(),
         stray_px: 0,
         measured: cells.len(),
@@ -56,6 +62,11 @@ fn evaluate(w: usize, h: usize, seed: u64) -> Errors {
         if dist < 5.0 {
             e.found += 1;
             e.worst_centroid_px = e.worst_centroid_px.max(dist);
+            let lat = (m.centroid[0] - t.centroid[0]).hypot(m.centroid[1] - t.centroid[1]);
+            e.worst_centroid3_px = e.worst_centroid3_px.max(lat / optics.um_per_px());
+            e.worst_centroid3_dz = e
+                .worst_centroid3_dz
+                .max((m.centroid[2] - t.centroid[2]).abs());
             e.height_rel.push(m.height / t.height - 1.0);
         }
     }
@@ -92,10 +103,12 @@ fn synthetic_scenes_every_cell_found_centroids_and_heights() {
         for seed in seeds {
             let e = evaluate(w, h, seed);
             eprintln!(
-                "{w}×{h} seed {seed}: {}/{} cells, worst centroid {:.2} px, height errors {:?} %, stray px {}",
+                "{w}×{h} seed {seed}: {}/{} cells, worst centroid {:.2} px (3D: {:.2} px across, {:.2} µm deep), height errors {:?} %, stray px {}",
                 e.found,
                 e.cells,
                 e.worst_centroid_px,
+                e.worst_centroid3_px,
+                e.worst_centroid3_dz,
                 e.height_rel
                     .iter()
                     .map(|v| (v * 1000.0).round() / 10.0)
