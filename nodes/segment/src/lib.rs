@@ -48,7 +48,7 @@ pub struct SegmentParams {
     /// Closing radius before hole filling (0 = off).
     pub close_radius: u8,
     /// Peel the outer layers (up to M+1 px deep) that look like the background around them
-    /// (within 2 robust standard deviations of it, over a `(8M+9)²` window).
+    /// (within 2.25 robust standard deviations of it, over a `(8M+9)²` window).
     pub peel_edges: bool,
 }
 
@@ -121,7 +121,7 @@ pub fn segment(img: &Plane<u8>, p: &SegmentParams) -> Segmentation {
     }
     if p.peel_edges {
         let m = p.variance_radius;
-        mask = peel_edges(img, &mask, m + 1, 4 * m + 4, 2.0);
+        mask = peel_edges(img, &mask, m + 1, 4 * m + 4, 2.25);
     }
     mask = remove_small(&mask, p.min_area.max(1));
     let (labels, n) = label(&mask, Connectivity::Eight);

@@ -55,9 +55,10 @@ fn neighbours4(x: usize, y: usize, w: usize, h: usize) -> impl Iterator<Item = (
 /// `(2·bg_radius+1)²` window) and σ the background's robust spread: for up to `layers`
 /// layers, a mask pixel 4-adjacent to the background goes when the mean of `r²` over its
 /// 3×3 neighbourhood is at most `(0.75kσ)²` — a whole neighbourhood of background, so texture
-/// at the true edge stops it — and then up to two more layers go where `|r| ≤ kσ` on its
-/// own: the pixels right against the cell. Last, spurs and one-pixel lines left of the
-/// skirt (pixels with at most one 4-neighbour in the mask) go. Pixels with no background in
+/// at the true edge stops it — and then one more layer goes where `|r| ≤ kσ` on its own:
+/// the pixels right against the cell. Last, what is left of the skirt goes where it sticks
+/// out: pixels with at most one 4-neighbour or three 8-neighbours in the mask, and pixels
+/// with four that lie within 1.5kσ of the background. Pixels with no background in
 /// their window are kept.
 pub fn peel_edges(img: &Plane<u8>, mask: &Mask, layers: usize, bg_radius: usize, k: f64) -> Mask {
     let (w, h) = (img.width, img.height);
@@ -110,7 +111,7 @@ pub fn peel_edges(img: &Plane<u8>, mask: &Mask, layers: usize, bg_radius: usize,
         .flat_map(|y| (0..w).map(move |x| (x, y)))
         .filter(|&(x, y)| *mask.get(x, y) != 0 && neighbours4(x, y, w, h).any(|(u, v)| is_bg(u, v)))
         .collect();
-    let test_rounds: [(PeelTest, usize); 2] = [(&quiet, 2 * layers), (&alone, 2)];
+    let test_rounds: [(PeelTest, usize); 2] = [(&quiet, 2 * layers), (&alone, 1)];
     for (test, rounds) in test_rounds {
         for _ in 0..rounds {
             let (gone, kept): (Vec<_>, Vec<_>) = boundary.iter().partition(|&&(x, y)| test(x, y));
@@ -119,14 +120,20 @@ pub fn peel_edges(img: &Plane<u8>, mask: &Mask, layers: usize, bg_radius: usize,
             }
         }
     }
-    // What is left of the skirt can hang on by a corner: pixels with at most one
-    // 4-neighbour in the mask are a line's or a spur's end, never a cell's rounded edge.
+    // What is left of the skirt can hang on by a corner: a pixel with at most one
+    // 4-neighbour or three 8-neighbours in the mask ends a line or a spur, and one with four
+    // sticks out (on a cell's rounded edge every pixel has five) — gone if it is within
+    // 1.5 kσ of the background.
     for _ in 0..2 * layers {
         let (gone, kept): (Vec<_>, Vec<_>) = boundary.iter().partition(|&&(x, y)| {
-            neighbours4(x, y, w, h)
+            let n4 = neighbours4(x, y, w, h)
                 .filter(|&(u, v)| *out.get(u, v) != 0)
-                .count()
-                <= 1
+                .count();
+            let n8 = (y.saturating_sub(1)..(y + 2).min(h))
+                .flat_map(|v| (x.saturating_sub(1)..(x + 2).min(w)).map(move |u| (u, v)))
+                .filter(|&(u, v)| (u, v) != (x, y) && *out.get(u, v) != 0)
+                .count();
+            n4 <= 1 || n8 <= 3 || (n8 <= 4 && r(x, y).is_some_and(|v| v.abs() <= 1.5 * tol))
         });
         if !peel_boundary(&mut out, &mut boundary, gone, kept) {
             break;
