@@ -305,24 +305,10 @@ pub fn cell_stereo(
 /// 255 where no non-zero pixel of `mask` lies within the `(2r+1)²` square around.
 fn clear_of(mask: &Mask, r: usize) -> Mask {
     let (w, h) = (mask.width, mask.height);
-    let mut sat = vec![0u32; (w + 1) * (h + 1)];
-    for y in 0..h {
-        let mut acc = 0u32;
-        for x in 0..w {
-            acc += u32::from(*mask.get(x, y) != 0);
-            sat[(y + 1) * (w + 1) + x + 1] = sat[y * (w + 1) + x + 1] + acc;
-        }
-    }
+    let sums = segment::BoxSums::new(w, h, |x, y| u64::from(*mask.get(x, y) != 0));
     let data = (0..h)
         .flat_map(|y| (0..w).map(move |x| (x, y)))
-        .map(|(x, y)| {
-            let (x0, x1) = (x.saturating_sub(r), (x + r + 1).min(w));
-            let (y0, y1) = (y.saturating_sub(r), (y + r + 1).min(h));
-            let n = sat[y1 * (w + 1) + x1] + sat[y0 * (w + 1) + x0]
-                - sat[y0 * (w + 1) + x1]
-                - sat[y1 * (w + 1) + x0];
-            if n == 0 { 255 } else { 0 }
-        })
+        .map(|(x, y)| if sums.around(x, y, r).0 == 0 { 255 } else { 0 })
         .collect();
     Plane::from_vec(w, h, data).expect("size")
 }

@@ -12,6 +12,7 @@
 //!
 //! [`segment`] runs them all and keeps every intermediate image for the CLI to write.
 
+mod boxsum;
 mod label;
 mod morph;
 mod otsu;
@@ -19,6 +20,7 @@ mod peel;
 mod trace;
 mod variance;
 
+pub use boxsum::BoxSums;
 pub use label::{Connectivity, label, label_where};
 pub use morph::{close, dilate, fill_holes, open, remove_small};
 pub use otsu::{histogram, otsu_threshold};

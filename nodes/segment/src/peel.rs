@@ -4,39 +4,11 @@
 //! [`peel_edges`] takes back that skirt: mask pixels on the outside of the mask that look
 //! like the smooth background around them are removed, layer by layer.
 
+use crate::BoxSums;
 use schemas::{Mask, Plane};
 
 /// Whether a boundary pixel `(x, y)` goes to the background.
 type PeelTest<'a> = &'a dyn Fn(usize, usize) -> bool;
-
-/// Summed-area table of integer values; `sum` adds a `(2r+1)²` window clamped to the image.
-struct Sat {
-    w1: usize,
-    h: usize,
-    t: Vec<u64>,
-}
-
-impl Sat {
-    fn new(w: usize, h: usize, f: impl Fn(usize, usize) -> u64) -> Self {
-        let w1 = w + 1;
-        let mut t = vec![0u64; w1 * (h + 1)];
-        for y in 0..h {
-            let mut acc = 0;
-            for x in 0..w {
-                acc += f(x, y);
-                t[(y + 1) * w1 + x + 1] = t[y * w1 + x + 1] + acc;
-            }
-        }
-        Self { w1, h, t }
-    }
-
-    fn sum(&self, x: usize, y: usize, r: usize) -> u64 {
-        let (x0, x1) = (x.saturating_sub(r), (x + r + 1).min(self.w1 - 1));
-        let (y0, y1) = (y.saturating_sub(r), (y + r + 1).min(self.h));
-        let w1 = self.w1;
-        self.t[y1 * w1 + x1] + self.t[y0 * w1 + x0] - self.t[y0 * w1 + x1] - self.t[y1 * w1 + x0]
-    }
-}
 
 /// The 4-neighbours of `(x, y)` inside a `w × h` image.
 fn neighbours4(x: usize, y: usize, w: usize, h: usize) -> impl Iterator<Item = (usize, usize)> {
@@ -67,8 +39,8 @@ pub fn peel_edges(img: &Plane<u8>, mask: &Mask, layers: usize, bg_radius: usize,
         return out;
     }
     let is_bg = |x: usize, y: usize| *mask.get(x, y) == 0;
-    let n = Sat::new(w, h, |x, y| u64::from(is_bg(x, y)));
-    let s = Sat::new(w, h, |x, y| {
+    let n = BoxSums::new(w, h, |x, y| u64::from(is_bg(x, y)));
+    let s = BoxSums::new(w, h, |x, y| {
         if is_bg(x, y) {
             *img.get(x, y) as u64
         } else {
@@ -76,8 +48,8 @@ pub fn peel_edges(img: &Plane<u8>, mask: &Mask, layers: usize, bg_radius: usize,
         }
     });
     let r = |x: usize, y: usize| {
-        let c = n.sum(x, y, bg_radius);
-        (c > 0).then(|| *img.get(x, y) as f64 - s.sum(x, y, bg_radius) as f64 / c as f64)
+        let c = n.around(x, y, bg_radius).0;
+        (c > 0).then(|| *img.get(x, y) as f64 - s.around(x, y, bg_radius).0 as f64 / c as f64)
     };
     // Spread of the background about its local mean (median absolute deviation), from
     // every third pixel along both axes: plenty for one number.

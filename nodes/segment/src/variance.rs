@@ -1,5 +1,6 @@
 //! Local variance over a `(2M+1)²` window in O(1) per pixel from integral images of I and I².
 
+use crate::BoxSums;
 use schemas::Plane;
 use serde::{Deserialize, Serialize};
 
@@ -20,51 +21,16 @@ pub enum VarianceScale {
     LogStdDev,
 }
 
-/// Summed-area table with one extra zero row and column: `at(x, y)` sums `[0, x) × [0, y)`.
-struct Integral {
-    w1: usize,
-    s: Vec<u64>,
-    s2: Vec<u64>,
-}
-
-impl Integral {
-    fn new(img: &Plane<u8>) -> Self {
-        let (w, h) = (img.width, img.height);
-        let w1 = w + 1;
-        let mut s = vec![0u64; w1 * (h + 1)];
-        let mut s2 = vec![0u64; w1 * (h + 1)];
-        for y in 0..h {
-            let (mut row, mut row2) = (0u64, 0u64);
-            for (x, &v) in img.row(y).iter().enumerate() {
-                row += v as u64;
-                row2 += (v as u64) * (v as u64);
-                s[(y + 1) * w1 + x + 1] = s[y * w1 + x + 1] + row;
-                s2[(y + 1) * w1 + x + 1] = s2[y * w1 + x + 1] + row2;
-            }
-        }
-        Self { w1, s, s2 }
-    }
-
-    /// Sums of I and I² over `[x0, x1) × [y0, y1)`.
-    fn rect(&self, x0: usize, y0: usize, x1: usize, y1: usize) -> (u64, u64) {
-        let w1 = self.w1;
-        let f = |t: &[u64]| t[y1 * w1 + x1] + t[y0 * w1 + x0] - t[y0 * w1 + x1] - t[y1 * w1 + x0];
-        (f(&self.s), f(&self.s2))
-    }
-}
-
 /// Variance of the `(2·radius+1)²` window around every pixel; at the borders the window is
 /// clipped to the image (the variance of the pixels that exist).
 pub fn local_variance(img: &Plane<u8>, radius: usize) -> Plane<f32> {
     let (w, h) = (img.width, img.height);
-    let ii = Integral::new(img);
+    let s1 = BoxSums::new(w, h, |x, y| *img.get(x, y) as u64);
+    let s2 = BoxSums::new(w, h, |x, y| (*img.get(x, y) as u64).pow(2));
     let mut out = Plane::filled(w, h, 0f32);
     for y in 0..h {
-        let (y0, y1) = (y.saturating_sub(radius), (y + radius + 1).min(h));
         for x in 0..w {
-            let (x0, x1) = (x.saturating_sub(radius), (x + radius + 1).min(w));
-            let n = ((x1 - x0) * (y1 - y0)) as u64;
-            let (s, s2) = ii.rect(x0, y0, x1, y1);
+            let ((s, n), (s2, _)) = (s1.around(x, y, radius), s2.around(x, y, radius));
             // Exact in integers: n·ΣI² − (ΣI)² ≥ 0, so no cancellation below zero.
             let num = n * s2 - s * s;
             *out.get_mut(x, y) = (num as f64 / (n * n) as f64) as f32;
