@@ -6,7 +6,11 @@
 //! [`INVALID_DISPARITY`] (+inf, as in Middlebury PFM files) marks "no value", and
 //! [`Calibration`] carries what triangulation needs in explicit units.
 
+pub mod wire;
+
 use serde::{Deserialize, Serialize};
+
+pub use wire::{FrameHeader, MessageKind, PixelFormat};
 
 /// Marker for "no disparity here": +inf, the Middlebury PFM convention.
 pub const INVALID_DISPARITY: f32 = f32::INFINITY;

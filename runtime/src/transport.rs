@@ -1,0 +1,463 @@
+//! Zero-copy edges over iceoryx2 shared memory.
+//!
+//! An edge is one iceoryx2 publish-subscribe service carrying a [`FrameHeader`] as user
+//! header and a byte slice of any length (allocated by powers of two, so a frame may grow),
+//! plus an event service of the same name whose notification wakes the readers: a node
+//! sleeps in a WaitSet until one of its inputs has data — no busy loop, no polling.
+//!
+//! The writer loans a sample in shared memory and fills it in place; readers get a view of
+//! that same memory. Per edge, the queue depth and what happens when it is full come from
+//! the launch file ([`EdgeConfig`]): drop the oldest frame (default, for live video) or make
+//! the writer wait (lossless edges). Readers count frames they never saw from gaps in the
+//! header's sequence numbers.
+
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::notifier::Notifier;
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::prelude::*;
+use iceoryx2::sample::Sample;
+use schemas::FrameHeader;
+use serde::{Deserialize, Serialize};
+use std::cell::Cell;
+use std::time::Duration;
+
+/// The iceoryx2 service flavour: inter-process shared memory.
+pub type Service = ipc::Service;
+
+/// A received message: header and payload live in shared memory until it is dropped.
+pub type Message = Sample<Service, [u8], FrameHeader>;
+
+/// What a full input queue does to the next frame.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Overflow {
+    /// The oldest queued frame is dropped (live edges).
+    #[default]
+    DropOldest,
+    /// The writer waits until the reader has taken a frame (lossless edges).
+    Block,
+}
+
+/// Queue settings of one edge; every port of the edge must use the same.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct EdgeConfig {
+    /// Frames a reader may have queued.
+    pub depth: usize,
+    /// What a full queue does.
+    pub overflow: Overflow,
+}
+
+impl Default for EdgeConfig {
+    fn default() -> Self {
+        Self {
+            depth: 2,
+            overflow: Overflow::DropOldest,
+        }
+    }
+}
+
+/// Why an edge cannot be opened or used.
+#[derive(Debug, thiserror::Error)]
+pub enum TransportError {
+    /// The edge name is not a valid iceoryx2 service name.
+    #[error("'{0}' is not a valid edge name")]
+    Name(String),
+    /// iceoryx2 refused an operation.
+    #[error("edge '{edge}': {what} failed: {reason}")]
+    Iceoryx {
+        /// The edge.
+        edge: String,
+        /// The operation.
+        what: &'static str,
+        /// iceoryx2's reason.
+        reason: String,
+    },
+}
+
+fn fail(edge: &str, what: &'static str) -> impl FnOnce(&dyn std::fmt::Debug) -> TransportError {
+    let edge = edge.to_string();
+    move |e| TransportError::Iceoryx {
+        edge,
+        what,
+        reason: format!("{e:?}"),
+    }
+}
+
+/// One process's handle on the transport (an iceoryx2 node).
+#[derive(Debug)]
+pub struct Transport {
+    node: Node<Service>,
+}
+
+/// The publish-subscribe half of an edge.
+type EdgeData =
+    iceoryx2::service::port_factory::publish_subscribe::PortFactory<Service, [u8], FrameHeader>;
+/// The wake-up half of an edge.
+type EdgeEvents = iceoryx2::service::port_factory::event::PortFactory<Service>;
+
+/// Largest number of readers of one edge.
+const MAX_READERS: usize = 16;
+
+impl Transport {
+    /// Joins the transport as `name` (shown by iceoryx2's tools).
+    pub fn new(name: &str) -> Result<Self, TransportError> {
+        // iceoryx2 warns on stderr that it runs on its default configuration, which is
+        // what the graph wants; IOX2_LOG_LEVEL still overrides.
+        set_log_level_from_env_or(LogLevel::Error);
+        let node_name = NodeName::new(name).map_err(|_| TransportError::Name(name.into()))?;
+        let node = NodeBuilder::new()
+            .name(&node_name)
+            .create::<Service>()
+            .map_err(|e| fail(name, "creating the iceoryx2 node")(&e))?;
+        Ok(Self { node })
+    }
+
+    fn services(
+        &self,
+        edge: &str,
+        cfg: &EdgeConfig,
+    ) -> Result<(EdgeData, EdgeEvents), TransportError> {
+        let name = ServiceName::new(edge).map_err(|_| TransportError::Name(edge.into()))?;
+        let pubsub = self
+            .node
+            .service_builder(&name)
+            .publish_subscribe::<[u8]>()
+            .user_header::<FrameHeader>()
+            .subscriber_max_buffer_size(cfg.depth.max(1))
+            .enable_safe_overflow(cfg.overflow == Overflow::DropOldest)
+            .max_subscribers(MAX_READERS)
+            .history_size(0)
+            .open_or_create()
+            .map_err(|e| fail(edge, "opening the publish-subscribe service")(&e))?;
+        let event = self
+            .node
+            .service_builder(&name)
+            .event()
+            .max_listeners(MAX_READERS)
+            .open_or_create()
+            .map_err(|e| fail(edge, "opening the event service")(&e))?;
+        Ok((pubsub, event))
+    }
+
+    /// The writing end of `edge`.
+    pub fn publisher(&self, edge: &str, cfg: &EdgeConfig) -> Result<EdgePublisher, TransportError> {
+        let (pubsub, event) = self.services(edge, cfg)?;
+        let publisher = pubsub
+            .publisher_builder()
+            .initial_max_slice_len(4096)
+            .allocation_strategy(AllocationStrategy::PowerOfTwo)
+            .backpressure_strategy(match cfg.overflow {
+                Overflow::DropOldest => {
+                    iceoryx2::port::backpressure_strategy::BackpressureStrategy::DiscardData
+                }
+                Overflow::Block => {
+                    iceoryx2::port::backpressure_strategy::BackpressureStrategy::RetryUntilDelivered
+                }
+            })
+            .create()
+            .map_err(|e| fail(edge, "creating the publisher")(&e))?;
+        let notifier = event
+            .notifier_builder()
+            .create()
+            .map_err(|e| fail(edge, "creating the notifier")(&e))?;
+        Ok(EdgePublisher {
+            edge: edge.into(),
+            publisher,
+            notifier,
+        })
+    }
+
+    /// The reading end of `edge`.
+    pub fn subscriber(
+        &self,
+        edge: &str,
+        cfg: &EdgeConfig,
+    ) -> Result<EdgeSubscriber, TransportError> {
+        let (pubsub, event) = self.services(edge, cfg)?;
+        let subscriber = pubsub
+            .subscriber_builder()
+            .buffer_size(cfg.depth.max(1))
+            .create()
+            .map_err(|e| fail(edge, "creating the subscriber")(&e))?;
+        let listener = event
+            .listener_builder()
+            .create()
+            .map_err(|e| fail(edge, "creating the listener")(&e))?;
+        Ok(EdgeSubscriber {
+            edge: edge.into(),
+            subscriber,
+            listener,
+            last: Cell::new(None),
+            received: Cell::new(0),
+            dropped: Cell::new(0),
+        })
+    }
+}
+
+/// The writing end of an edge.
+#[derive(Debug)]
+pub struct EdgePublisher {
+    edge: String,
+    publisher: Publisher<Service, [u8], FrameHeader>,
+    notifier: Notifier<Service>,
+}
+
+impl EdgePublisher {
+    /// Loans `len` bytes of shared memory, lets `fill` write the payload in place, sends it
+    /// with `header` and wakes the readers.
+    pub fn send(
+        &self,
+        header: FrameHeader,
+        len: usize,
+        fill: impl FnOnce(&mut [u8]),
+    ) -> Result<(), TransportError> {
+        let mut sample = self
+            .publisher
+            .loan_slice_uninit(len)
+            .map_err(|e| fail(&self.edge, "loaning a sample")(&e))?;
+        *sample.user_header_mut() = header;
+        let mut sample = sample.write_from_fn(|_| 0u8);
+        fill(sample.payload_mut());
+        sample.send().map_err(|e| fail(&self.edge, "sending")(&e))?;
+        self.notifier
+            .notify()
+            .map_err(|e| fail(&self.edge, "notifying the readers")(&e))?;
+        Ok(())
+    }
+
+    /// The edge's name.
+    pub fn edge(&self) -> &str {
+        &self.edge
+    }
+}
+
+/// The reading end of an edge.
+#[derive(Debug)]
+pub struct EdgeSubscriber {
+    edge: String,
+    subscriber: Subscriber<Service, [u8], FrameHeader>,
+    listener: Listener<Service>,
+    last: Cell<Option<u64>>,
+    received: Cell<u64>,
+    dropped: Cell<u64>,
+}
+
+impl EdgeSubscriber {
+    /// The next queued message, if any (oldest first).
+    pub fn receive(&self) -> Result<Option<Message>, TransportError> {
+        let m = self
+            .subscriber
+            .receive()
+            .map_err(|e| fail(&self.edge, "receiving")(&e))?;
+        if let Some(m) = &m {
+            let seq = m.user_header().sequence;
+            if let Some(last) = self.last.get()
+                && seq > last + 1
+            {
+                self.dropped.set(self.dropped.get() + seq - last - 1);
+            }
+            self.last.set(Some(seq));
+            self.received.set(self.received.get() + 1);
+        }
+        Ok(m)
+    }
+
+    /// Clears the wake-up events that brought the reader here.
+    fn drain_events(&self) {
+        let _ = self.listener.try_wait(|_| {});
+    }
+
+    /// Messages received so far.
+    pub fn received(&self) -> u64 {
+        self.received.get()
+    }
+
+    /// Frames that never reached this reader (gaps in the sequence numbers).
+    pub fn dropped(&self) -> u64 {
+        self.dropped.get()
+    }
+
+    /// The edge's name.
+    pub fn edge(&self) -> &str {
+        &self.edge
+    }
+}
+
+/// Why waiting ended.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Wake {
+    /// These inputs (indices into the slice given) may have data.
+    Ready,
+    /// The timeout passed with no data.
+    Timeout,
+    /// The process was asked to stop (SIGINT / SIGTERM).
+    Stop,
+}
+
+/// Sleeps until one of `inputs` is notified, `timeout` passes, or a stop is requested; marks
+/// in `ready` which inputs were notified.
+pub fn wait_any(
+    inputs: &[&EdgeSubscriber],
+    timeout: Duration,
+    ready: &mut Vec<bool>,
+) -> Result<Wake, TransportError> {
+    ready.clear();
+    ready.resize(inputs.len(), false);
+    let waitset = WaitSetBuilder::new()
+        .create::<Service>()
+        .map_err(|e| fail("waitset", "creating the waitset")(&e))?;
+    let guards = inputs
+        .iter()
+        .map(|s| waitset.attach_notification(&s.listener))
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| fail("waitset", "attaching an input")(&e))?;
+    let mut any = false;
+    let result = waitset
+        .wait_and_process_once_with_timeout(
+            |id| {
+                for (i, g) in guards.iter().enumerate() {
+                    if id.has_event_from(g) {
+                        ready[i] = true;
+                        any = true;
+                    }
+                }
+                CallbackProgression::Continue
+            },
+            timeout,
+        )
+        .map_err(|e| fail("waitset", "waiting")(&e))?;
+    for (i, s) in inputs.iter().enumerate() {
+        if ready[i] {
+            s.drain_events();
+        }
+    }
+    Ok(match result {
+        iceoryx2::waitset::WaitSetRunResult::TerminationRequest
+        | iceoryx2::waitset::WaitSetRunResult::Interrupt => Wake::Stop,
+        _ if any => Wake::Ready,
+        _ => Wake::Timeout,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use schemas::{MessageKind, PixelFormat};
+
+    fn edge_name(test: &str) -> String {
+        format!("microstereo/test/{}/{test}", std::process::id())
+    }
+
+    fn header(seq: u64, len: usize) -> FrameHeader {
+        FrameHeader {
+            sequence: seq,
+            ..FrameHeader::image(MessageKind::Image, PixelFormat::Mono8, len, 1, 1)
+        }
+    }
+
+    #[test]
+    fn frames_of_growing_size_arrive_bit_exact_and_wake_the_reader() {
+        let edge = edge_name("grow");
+        let cfg = EdgeConfig {
+            depth: 4,
+            overflow: Overflow::Block,
+        };
+        let t = Transport::new("reader").unwrap();
+        let sub = t.subscriber(&edge, &cfg).unwrap();
+        // A publisher that goes away takes the samples nobody has read yet with it (its
+        // memory is unmapped): the writer stays until the reader is done.
+        let (done_tx, done_rx) = std::sync::mpsc::channel::<()>();
+        let writer = {
+            let edge = edge.clone();
+            std::thread::spawn(move || {
+                let t = Transport::new("writer").unwrap();
+                let p = t.publisher(&edge, &cfg).unwrap();
+                // 1 KiB to 4 MiB: the publisher's memory must grow on the way.
+                for (seq, len) in [1024usize, 70_000, 1 << 20, 4 << 20, 3]
+                    .into_iter()
+                    .enumerate()
+                {
+                    p.send(header(seq as u64, len), len, |b| {
+                        for (i, v) in b.iter_mut().enumerate() {
+                            *v = ((i * 31 + seq * 7) % 251) as u8;
+                        }
+                    })
+                    .unwrap();
+                }
+                done_rx.recv().unwrap();
+            })
+        };
+        let mut got = Vec::new();
+        let mut ready = Vec::new();
+        while got.len() < 5 {
+            let w = wait_any(&[&sub], Duration::from_secs(10), &mut ready).unwrap();
+            assert_eq!(
+                w,
+                Wake::Ready,
+                "woken by data, not by the timeout; got {got:?}"
+            );
+            while let Some(m) = sub.receive().unwrap() {
+                let seq = m.user_header().sequence as usize;
+                let ok = m
+                    .payload()
+                    .iter()
+                    .enumerate()
+                    .all(|(i, &v)| v == ((i * 31 + seq * 7) % 251) as u8);
+                got.push((seq, m.payload().len(), ok));
+            }
+        }
+        done_tx.send(()).unwrap();
+        writer.join().unwrap();
+        assert_eq!(
+            got,
+            vec![
+                (0, 1024, true),
+                (1, 70_000, true),
+                (2, 1 << 20, true),
+                (3, 4 << 20, true),
+                (4, 3, true)
+            ]
+        );
+        assert_eq!((sub.received(), sub.dropped()), (5, 0));
+    }
+
+    #[test]
+    fn a_full_drop_oldest_queue_keeps_the_newest_and_counts_the_rest() {
+        let edge = edge_name("drop");
+        let cfg = EdgeConfig {
+            depth: 2,
+            overflow: Overflow::DropOldest,
+        };
+        let t = Transport::new("both").unwrap();
+        let sub = t.subscriber(&edge, &cfg).unwrap();
+        let p = t.publisher(&edge, &cfg).unwrap();
+        for seq in 0..10u64 {
+            p.send(header(seq, 8), 8, |b| b.fill(seq as u8)).unwrap();
+        }
+        let mut seqs = Vec::new();
+        while let Some(m) = sub.receive().unwrap() {
+            assert!(
+                m.payload()
+                    .iter()
+                    .all(|&v| v as u64 == m.user_header().sequence)
+            );
+            seqs.push(m.user_header().sequence);
+        }
+        assert_eq!(seqs, vec![8, 9]);
+        // The first frame seen was 8: frames before the reader's first are not counted.
+        assert_eq!((sub.received(), sub.dropped()), (2, 0));
+        for seq in 10..15u64 {
+            p.send(header(seq, 8), 8, |b| b.fill(seq as u8)).unwrap();
+        }
+        while sub.receive().unwrap().is_some() {}
+        assert_eq!((sub.received(), sub.dropped()), (4, 3));
+        let mut ready = Vec::new();
+        // Nothing new: the wait ends by its timeout.
+        let _ = wait_any(&[&sub], Duration::from_millis(1), &mut ready).unwrap();
+        assert_eq!(
+            wait_any(&[&sub], Duration::from_millis(20), &mut ready).unwrap(),
+            Wake::Timeout
+        );
+    }
+}

@@ -1,0 +1,171 @@
+//! What travels on an edge of the process graph: a fixed `#[repr(C)]` [`FrameHeader`] and a
+//! byte payload of any length, both in shared memory. The header says how to read the
+//! payload ([`PixelFormat`], [`MessageKind`]); images travel row by row, `stride` bytes per
+//! row, little-endian for multi-byte pixels.
+
+use iceoryx2::prelude::ZeroCopySend;
+use serde::{Deserialize, Serialize};
+
+/// How the pixels of an image payload are laid out.
+#[repr(u32)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum PixelFormat {
+    /// Not an image (cell lists, point clouds, targets).
+    None = 0,
+    /// 8-bit grey.
+    Mono8 = 1,
+    /// 32-bit float, one channel (disparity; NaN = invalid).
+    F32 = 2,
+    /// 32-bit unsigned labels.
+    U32 = 3,
+    /// 8-bit RGB.
+    Rgb8 = 4,
+}
+
+impl PixelFormat {
+    /// Bytes per pixel (0 for non-images).
+    pub fn bytes_per_pixel(self) -> usize {
+        match self {
+            Self::None => 0,
+            Self::Mono8 => 1,
+            Self::F32 | Self::U32 => 4,
+            Self::Rgb8 => 3,
+        }
+    }
+
+    /// The format with this wire value.
+    pub fn from_u32(v: u32) -> Option<Self> {
+        Some(match v {
+            0 => Self::None,
+            1 => Self::Mono8,
+            2 => Self::F32,
+            3 => Self::U32,
+            4 => Self::Rgb8,
+            _ => return None,
+        })
+    }
+}
+
+/// What a message on an edge is; an input accepts only the kind its node expects.
+#[repr(u32)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum MessageKind {
+    /// A rectified or raw stereo pair: the left image, then the right, same format and size.
+    StereoFrame = 1,
+    /// One image.
+    Image = 2,
+    /// A disparity map (F32).
+    Disparity = 3,
+    /// Left and right label images (U32), left first.
+    Labels = 4,
+    /// Cells of both views and their pairing (JSON).
+    CellList = 5,
+    /// Points `[x, y, z]` as F32 and colours as RGB8 (see [`crate::PointCloud`]).
+    PointCloud = 6,
+    /// Per-cell 3D targets for the manipulator (JSON).
+    Targets = 7,
+    /// Left- and right-based disparity maps after matching (F32), left first.
+    DisparityPair = 8,
+}
+
+impl MessageKind {
+    /// The kind with this wire value.
+    pub fn from_u32(v: u32) -> Option<Self> {
+        Some(match v {
+            1 => Self::StereoFrame,
+            2 => Self::Image,
+            3 => Self::Disparity,
+            4 => Self::Labels,
+            5 => Self::CellList,
+            6 => Self::PointCloud,
+            7 => Self::Targets,
+            8 => Self::DisparityPair,
+            _ => return None,
+        })
+    }
+}
+
+/// The header in front of every payload on an edge.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ZeroCopySend)]
+pub struct FrameHeader {
+    /// Frame number from the capture node; every derived message keeps its frame's number.
+    pub sequence: u64,
+    /// Capture time, nanoseconds since the Unix epoch.
+    pub capture_ns: u64,
+    /// Image width in pixels (0 for non-images).
+    pub width: u32,
+    /// Image height in pixels (0 for non-images).
+    pub height: u32,
+    /// Bytes per image row in the payload.
+    pub stride: u32,
+    /// [`PixelFormat`] as its wire value.
+    pub format: u32,
+    /// [`MessageKind`] as its wire value.
+    pub kind: u32,
+    /// Images in the payload (2 for a stereo frame or a pair of maps).
+    pub images: u32,
+}
+
+impl Default for FrameHeader {
+    fn default() -> Self {
+        Self {
+            sequence: 0,
+            capture_ns: 0,
+            width: 0,
+            height: 0,
+            stride: 0,
+            format: PixelFormat::None as u32,
+            kind: MessageKind::Image as u32,
+            images: 0,
+        }
+    }
+}
+
+impl FrameHeader {
+    /// A header for `images` images of `width × height` in `format`, rows packed.
+    pub fn image(
+        kind: MessageKind,
+        format: PixelFormat,
+        width: usize,
+        height: usize,
+        images: u32,
+    ) -> Self {
+        Self {
+            width: width as u32,
+            height: height as u32,
+            stride: (width * format.bytes_per_pixel()) as u32,
+            format: format as u32,
+            kind: kind as u32,
+            images,
+            ..Self::default()
+        }
+    }
+
+    /// Payload bytes the header describes for images (0 for non-images).
+    pub fn image_bytes(&self) -> usize {
+        self.stride as usize * self.height as usize * self.images as usize
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn header_is_plain_old_data_of_a_fixed_layout() {
+        assert_eq!(core::mem::size_of::<FrameHeader>(), 40);
+        assert_eq!(core::mem::align_of::<FrameHeader>(), 8);
+        let h = FrameHeader::image(MessageKind::StereoFrame, PixelFormat::Mono8, 640, 480, 2);
+        assert_eq!(h.image_bytes(), 2 * 640 * 480);
+        assert_eq!(
+            MessageKind::from_u32(h.kind),
+            Some(MessageKind::StereoFrame)
+        );
+        assert_eq!(PixelFormat::from_u32(h.format), Some(PixelFormat::Mono8));
+        assert_eq!(PixelFormat::from_u32(99), None);
+        assert_eq!(MessageKind::from_u32(0), None);
+    }
+}
