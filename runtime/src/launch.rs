@@ -1,0 +1,753 @@
+//! `launch.toml`: the graph as a file, checked whole before anything starts.
+//!
+//! ```toml
+//! [[node]]
+//! id = "capture"
+//! kind = "capture"                       # a built-in kind, or exec = "path/to/binary"
+//! params = { source = "synthetic", width = 1280, height = 1024 }
+//! restart = { policy = "on-failure", max = 3, backoff_ms = 500 }
+//!
+//! [[node]]
+//! id = "segment"
+//! kind = "segment"
+//! inputs = { frame = "capture/frame" }   # or { from = "capture/frame", depth = 4, overflow = "block" }
+//! ```
+//!
+//! [`LaunchFile::parse`] reads it; [`LaunchFile::validate`] checks it against the kinds the
+//! binary knows ([`KindSpec`]): unknown kinds, unknown or duplicate ids, inputs from unknown
+//! nodes or outputs, message-type mismatches, missing inputs, cycles and bad parameters —
+//! each reported as `file:line: what; how to fix`.
+
+use crate::transport::{EdgeConfig, Overflow};
+use schemas::MessageKind;
+use serde::Deserialize;
+use std::collections::{BTreeMap, HashMap};
+use std::path::{Path, PathBuf};
+use toml::Spanned;
+
+/// One problem in a launch file, with where it is.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("{file}:{line}: {message}")]
+pub struct LaunchError {
+    /// The launch file.
+    pub file: String,
+    /// 1-based line (0 when the whole file is at fault).
+    pub line: usize,
+    /// What is wrong and how to fix it.
+    pub message: String,
+}
+
+/// Every problem found in a launch file, in file order.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct LaunchErrors(pub Vec<LaunchError>);
+
+impl std::fmt::Display for LaunchErrors {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        for (i, e) in self.0.iter().enumerate() {
+            if i > 0 {
+                writeln!(f)?;
+            }
+            write!(f, "{e}")?;
+        }
+        Ok(())
+    }
+}
+
+impl std::error::Error for LaunchErrors {}
+
+/// When a node that ended is started again.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum RestartPolicy {
+    /// Never (the default): the graph stops when a node fails.
+    #[default]
+    Never,
+    /// When it exits with an error or a signal.
+    OnFailure,
+    /// Whenever it exits.
+    Always,
+}
+
+/// A node's restart settings.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Restart {
+    /// When to restart.
+    #[serde(default)]
+    pub policy: RestartPolicy,
+    /// Most restarts before the graph gives up on the node.
+    #[serde(default = "default_max_restarts")]
+    pub max: u32,
+    /// Wait before a restart, doubled after each one.
+    #[serde(default = "default_backoff_ms")]
+    pub backoff_ms: u64,
+}
+
+fn default_max_restarts() -> u32 {
+    3
+}
+
+fn default_backoff_ms() -> u64 {
+    200
+}
+
+impl Default for Restart {
+    fn default() -> Self {
+        Self {
+            policy: RestartPolicy::Never,
+            max: default_max_restarts(),
+            backoff_ms: default_backoff_ms(),
+        }
+    }
+}
+
+/// An input as written: a source, or a source with queue settings.
+#[derive(Clone, Debug, Deserialize)]
+#[serde(untagged)]
+enum InputDecl {
+    Source(String),
+    Full {
+        from: String,
+        #[serde(default)]
+        depth: Option<usize>,
+        #[serde(default)]
+        overflow: Option<Overflow>,
+    },
+}
+
+/// Ports of an `exec` node, which the binary cannot know.
+#[derive(Clone, Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct PortsDecl {
+    #[serde(default)]
+    inputs: BTreeMap<String, MessageKind>,
+    #[serde(default)]
+    outputs: BTreeMap<String, MessageKind>,
+}
+
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct NodeDecl {
+    id: Spanned<String>,
+    #[serde(default)]
+    kind: Option<Spanned<String>>,
+    #[serde(default)]
+    exec: Option<Spanned<String>>,
+    #[serde(default)]
+    inputs: BTreeMap<String, Spanned<InputDecl>>,
+    #[serde(default)]
+    params: Option<Spanned<toml::Table>>,
+    #[serde(default)]
+    restart: Option<Spanned<Restart>>,
+    #[serde(default)]
+    ports: Option<Spanned<PortsDecl>>,
+}
+
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct FileDecl {
+    #[serde(default)]
+    node: Vec<Spanned<NodeDecl>>,
+}
+
+/// What a built-in node kind consumes, produces and accepts as parameters.
+#[derive(Clone, Debug)]
+pub struct KindSpec {
+    /// Input ports and the message each expects; all are required.
+    pub inputs: Vec<(&'static str, MessageKind)>,
+    /// Output ports and the message each carries.
+    pub outputs: Vec<(&'static str, MessageKind)>,
+    /// Checks the `params` table; `Err` says what is wrong.
+    pub check_params: fn(&toml::Table) -> Result<(), String>,
+}
+
+/// How a node runs.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Runner {
+    /// `microstereo node KIND …`.
+    Builtin(String),
+    /// A custom binary speaking the same protocol.
+    Exec(PathBuf),
+}
+
+/// One input after validation.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Input {
+    /// Input port name.
+    pub port: String,
+    /// Producing node id.
+    pub node: String,
+    /// Producing output port.
+    pub output: String,
+    /// Queue settings.
+    pub edge: EdgeConfig,
+}
+
+/// One node after validation.
+#[derive(Clone, Debug, PartialEq)]
+pub struct NodeSpec {
+    /// Unique id.
+    pub id: String,
+    /// How it runs.
+    pub runner: Runner,
+    /// Its inputs.
+    pub inputs: Vec<Input>,
+    /// Its output ports and their messages.
+    pub outputs: Vec<(String, MessageKind)>,
+    /// Its parameters.
+    pub params: toml::Table,
+    /// Restart settings.
+    pub restart: Restart,
+}
+
+/// A launch file that passed validation: nodes in an order where every producer comes
+/// before its consumers.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Graph {
+    /// Where it was read from.
+    pub file: PathBuf,
+    /// Nodes, producers first.
+    pub nodes: Vec<NodeSpec>,
+}
+
+impl Graph {
+    /// The shared-memory name of output `port` of node `id`.
+    pub fn edge_name(id: &str, port: &str) -> String {
+        format!("microstereo/{id}/{port}")
+    }
+
+    /// The node with this id.
+    pub fn node(&self, id: &str) -> Option<&NodeSpec> {
+        self.nodes.iter().find(|n| n.id == id)
+    }
+}
+
+/// A node's inputs as `(NODE/OUTPUT, message expected, byte offset in the file)`.
+type Wanted = Vec<(String, MessageKind, usize)>;
+
+/// A parsed, not yet validated, launch file.
+#[derive(Clone, Debug)]
+pub struct LaunchFile {
+    path: PathBuf,
+    text: String,
+    decl: FileDecl,
+}
+
+fn line_of(text: &str, offset: usize) -> usize {
+    text[..offset.min(text.len())]
+        .bytes()
+        .filter(|&b| b == b'\n')
+        .count()
+        + 1
+}
+
+impl LaunchFile {
+    /// Reads and parses `path`.
+    pub fn read(path: &Path) -> Result<Self, LaunchErrors> {
+        let text = std::fs::read_to_string(path).map_err(|e| {
+            LaunchErrors(vec![LaunchError {
+                file: path.display().to_string(),
+                line: 0,
+                message: format!("cannot read the launch file: {e}"),
+            }])
+        })?;
+        Self::parse(path, &text)
+    }
+
+    /// Parses launch-file text (`path` names it in errors).
+    pub fn parse(path: &Path, text: &str) -> Result<Self, LaunchErrors> {
+        let decl: FileDecl = toml::from_str(text).map_err(|e| {
+            LaunchErrors(vec![LaunchError {
+                file: path.display().to_string(),
+                line: e.span().map_or(0, |s| line_of(text, s.start)),
+                message: format!(
+                    "{}; see the launch.toml format in runtime/src/launch.rs",
+                    e.message()
+                ),
+            }])
+        })?;
+        Ok(Self {
+            path: path.into(),
+            text: text.into(),
+            decl,
+        })
+    }
+
+    /// Checks the whole graph against the built-in `kinds`; every problem is reported.
+    pub fn validate(
+        &self,
+        kinds: &dyn Fn(&str) -> Option<KindSpec>,
+        known_kinds: &[&str],
+    ) -> Result<Graph, LaunchErrors> {
+        let mut errs = Vec::new();
+        let file = self.path.display().to_string();
+        let err = |errs: &mut Vec<LaunchError>, at: usize, message: String| {
+            errs.push(LaunchError {
+                file: file.clone(),
+                line: line_of(&self.text, at),
+                message,
+            })
+        };
+        let mut nodes: Vec<(NodeSpec, Wanted)> = Vec::new();
+        let mut seen: HashMap<String, usize> = HashMap::new();
+        for n in &self.decl.node {
+            let at = n.span().start;
+            let n = n.get_ref();
+            let id = n.id.get_ref().clone();
+            let id_at = n.id.span().start;
+            if id.is_empty()
+                || !id
+                    .chars()
+                    .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_')
+            {
+                err(
+                    &mut errs,
+                    id_at,
+                    format!("node id '{id}' must be letters, digits, '-' or '_'"),
+                );
+            }
+            if let Some(first) = seen.insert(id.clone(), id_at) {
+                err(
+                    &mut errs,
+                    id_at,
+                    format!(
+                        "duplicate node id '{id}' (first at line {}); give every node its own id",
+                        line_of(&self.text, first)
+                    ),
+                );
+                continue;
+            }
+            let (runner, spec_inputs, outputs) = match (&n.kind, &n.exec) {
+                (Some(k), None) => match kinds(k.get_ref()) {
+                    Some(spec) => {
+                        let params = n.params.as_ref().map(|p| p.get_ref().clone());
+                        let check = (spec.check_params)(&params.unwrap_or_default());
+                        if let Err(m) = &check {
+                            let pat = n.params.as_ref().map_or(at, |p| p.span().start);
+                            err(&mut errs, pat, format!("node '{id}': bad params: {m}"));
+                        }
+                        (
+                            Runner::Builtin(k.get_ref().clone()),
+                            spec.inputs
+                                .iter()
+                                .map(|(p, m)| (p.to_string(), *m))
+                                .collect::<Vec<_>>(),
+                            spec.outputs
+                                .iter()
+                                .map(|(p, m)| (p.to_string(), *m))
+                                .collect::<Vec<_>>(),
+                        )
+                    }
+                    None => {
+                        err(
+                            &mut errs,
+                            k.span().start,
+                            format!(
+                                "node '{id}': unknown kind '{}'; known kinds: {}, or use exec = \"path\"",
+                                k.get_ref(),
+                                known_kinds.join(", ")
+                            ),
+                        );
+                        continue;
+                    }
+                },
+                (None, Some(e)) => {
+                    let ports = n
+                        .ports
+                        .as_ref()
+                        .map(|p| p.get_ref().clone())
+                        .unwrap_or_default();
+                    (
+                        Runner::Exec(PathBuf::from(e.get_ref())),
+                        ports.inputs.into_iter().collect(),
+                        ports.outputs.into_iter().collect(),
+                    )
+                }
+                _ => {
+                    err(
+                        &mut errs,
+                        at,
+                        format!("node '{id}': give exactly one of kind = \"…\" or exec = \"…\""),
+                    );
+                    continue;
+                }
+            };
+            let mut inputs = Vec::new();
+            let mut wanted = Vec::new();
+            for (port, decl) in &n.inputs {
+                let iat = decl.span().start;
+                let Some((_, kind)) = spec_inputs.iter().find(|(p, _)| p == port) else {
+                    err(
+                        &mut errs,
+                        iat,
+                        format!(
+                            "node '{id}' has no input '{port}'; its inputs: {}",
+                            names(&spec_inputs)
+                        ),
+                    );
+                    continue;
+                };
+                let (from, depth, overflow) = match decl.get_ref() {
+                    InputDecl::Source(s) => (s.clone(), None, None),
+                    InputDecl::Full {
+                        from,
+                        depth,
+                        overflow,
+                    } => (from.clone(), *depth, *overflow),
+                };
+                let Some((src, out)) = from.split_once('/') else {
+                    err(
+                        &mut errs,
+                        iat,
+                        format!("node '{id}' input '{port}': '{from}' must be NODE/OUTPUT"),
+                    );
+                    continue;
+                };
+                let mut edge = EdgeConfig::default();
+                if let Some(d) = depth {
+                    if d == 0 || d > 64 {
+                        err(
+                            &mut errs,
+                            iat,
+                            format!("node '{id}' input '{port}': depth {d} must be 1..=64"),
+                        );
+                    }
+                    edge.depth = d;
+                }
+                if let Some(o) = overflow {
+                    edge.overflow = o;
+                }
+                wanted.push((format!("{src}/{out}"), *kind, iat));
+                inputs.push(Input {
+                    port: port.clone(),
+                    node: src.into(),
+                    output: out.into(),
+                    edge,
+                });
+            }
+            for (p, _) in &spec_inputs {
+                if !n.inputs.contains_key(p) {
+                    err(
+                        &mut errs,
+                        at,
+                        format!(
+                            "node '{id}': input '{p}' is not connected; add inputs = {{ {p} = \"NODE/OUTPUT\" }}"
+                        ),
+                    );
+                }
+            }
+            nodes.push((
+                NodeSpec {
+                    id,
+                    runner,
+                    inputs,
+                    outputs,
+                    params: n
+                        .params
+                        .as_ref()
+                        .map(|p| p.get_ref().clone())
+                        .unwrap_or_default(),
+                    restart: n.restart.as_ref().map(|r| *r.get_ref()).unwrap_or_default(),
+                },
+                wanted,
+            ));
+        }
+        // Every input names an existing output of the right message type.
+        for (node, wanted) in &nodes {
+            for (from, kind, iat) in wanted {
+                let (src, out) = from.split_once('/').expect("checked");
+                let Some((producer, _)) = nodes.iter().find(|(n, _)| n.id == src) else {
+                    err(
+                        &mut errs,
+                        *iat,
+                        format!(
+                            "node '{}' reads '{from}' but there is no node '{src}'",
+                            node.id
+                        ),
+                    );
+                    continue;
+                };
+                match producer.outputs.iter().find(|(p, _)| p == out) {
+                    None => err(
+                        &mut errs,
+                        *iat,
+                        format!(
+                            "node '{}' reads '{from}' but '{src}' has no output '{out}'; its outputs: {}",
+                            node.id,
+                            names(&producer.outputs)
+                        ),
+                    ),
+                    Some((_, m)) if m != kind => err(
+                        &mut errs,
+                        *iat,
+                        format!(
+                            "node '{}' reads '{from}', which carries {m:?}, but expects {kind:?}",
+                            node.id
+                        ),
+                    ),
+                    Some(_) => {}
+                }
+            }
+        }
+        // Producers first; what remains sits on a cycle.
+        let mut order: Vec<usize> = Vec::new();
+        let mut placed = vec![false; nodes.len()];
+        loop {
+            let before = order.len();
+            for (i, (n, _)) in nodes.iter().enumerate() {
+                if !placed[i]
+                    && n.inputs.iter().all(|inp| {
+                        nodes
+                            .iter()
+                            .position(|(m, _)| m.id == inp.node)
+                            .is_none_or(|j| placed[j])
+                    })
+                {
+                    placed[i] = true;
+                    order.push(i);
+                }
+            }
+            if order.len() == before {
+                break;
+            }
+        }
+        if order.len() < nodes.len() {
+            let on_cycle: Vec<&str> = nodes
+                .iter()
+                .enumerate()
+                .filter(|(i, _)| !placed[*i])
+                .map(|(_, (n, _))| n.id.as_str())
+                .collect();
+            let at = seen.get(on_cycle[0]).copied().unwrap_or(0);
+            err(
+                &mut errs,
+                at,
+                format!(
+                    "the graph has a cycle through {}; an edge must not lead back to its own producer",
+                    on_cycle.join(", ")
+                ),
+            );
+        }
+        if self.decl.node.is_empty() {
+            errs.push(LaunchError {
+                file: file.clone(),
+                line: 0,
+                message: "no [[node]] in the launch file".into(),
+            });
+        }
+        if !errs.is_empty() {
+            errs.sort_by_key(|e| e.line);
+            return Err(LaunchErrors(errs));
+        }
+        let mut slots: Vec<Option<NodeSpec>> = nodes.into_iter().map(|(n, _)| Some(n)).collect();
+        Ok(Graph {
+            file: self.path.clone(),
+            nodes: order
+                .into_iter()
+                .map(|i| slots[i].take().expect("once"))
+                .collect(),
+        })
+    }
+}
+
+fn names(ports: &[(String, MessageKind)]) -> String {
+    if ports.is_empty() {
+        "none".into()
+    } else {
+        ports
+            .iter()
+            .map(|(p, _)| p.as_str())
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn no_params(t: &toml::Table) -> Result<(), String> {
+        match t.keys().next() {
+            Some(k) => Err(format!("unknown parameter '{k}'")),
+            None => Ok(()),
+        }
+    }
+
+    fn seed_param(t: &toml::Table) -> Result<(), String> {
+        for (k, v) in t {
+            match (k.as_str(), v) {
+                ("seed", toml::Value::Integer(_)) => {}
+                ("seed", _) => return Err("'seed' must be an integer".into()),
+                _ => return Err(format!("unknown parameter '{k}'")),
+            }
+        }
+        Ok(())
+    }
+
+    fn kinds(k: &str) -> Option<KindSpec> {
+        Some(match k {
+            "source" => KindSpec {
+                inputs: vec![],
+                outputs: vec![("frame", MessageKind::StereoFrame)],
+                check_params: seed_param,
+            },
+            "filter" => KindSpec {
+                inputs: vec![("frame", MessageKind::StereoFrame)],
+                outputs: vec![("frame", MessageKind::StereoFrame)],
+                check_params: no_params,
+            },
+            "sink" => KindSpec {
+                inputs: vec![("disparity", MessageKind::Disparity)],
+                outputs: vec![],
+                check_params: no_params,
+            },
+            _ => return None,
+        })
+    }
+
+    const KNOWN: &[&str] = &["source", "filter", "sink"];
+
+    fn check(text: &str) -> Result<Graph, LaunchErrors> {
+        LaunchFile::parse(Path::new("g.toml"), text)?.validate(&kinds, KNOWN)
+    }
+
+    #[test]
+    fn a_chain_validates_producers_first_with_queue_settings() {
+        let g = check(
+            r#"
+[[node]]
+id = "b"
+kind = "filter"
+inputs = { frame = { from = "a/frame", depth = 4, overflow = "block" } }
+restart = { policy = "on-failure", max = 2 }
+
+[[node]]
+id = "a"
+kind = "source"
+params = { seed = 7 }
+
+[[node]]
+id = "c"
+exec = "/opt/my-node"
+inputs = { frame = "b/frame" }
+ports = { inputs = { frame = "stereo-frame" }, outputs = { cloud = "point-cloud" } }
+"#,
+        )
+        .unwrap();
+        let ids: Vec<&str> = g.nodes.iter().map(|n| n.id.as_str()).collect();
+        assert_eq!(ids, ["a", "b", "c"]);
+        let b = g.node("b").unwrap();
+        assert_eq!(
+            b.inputs,
+            vec![Input {
+                port: "frame".into(),
+                node: "a".into(),
+                output: "frame".into(),
+                edge: EdgeConfig {
+                    depth: 4,
+                    overflow: Overflow::Block
+                }
+            }]
+        );
+        assert_eq!(b.restart.policy, RestartPolicy::OnFailure);
+        assert_eq!((b.restart.max, b.restart.backoff_ms), (2, 200));
+        assert_eq!(
+            g.node("c").unwrap().runner,
+            Runner::Exec("/opt/my-node".into())
+        );
+        assert_eq!(g.node("c").unwrap().inputs[0].edge, EdgeConfig::default());
+        assert_eq!(Graph::edge_name("a", "frame"), "microstereo/a/frame");
+    }
+
+    fn messages(text: &str) -> Vec<String> {
+        check(text)
+            .unwrap_err()
+            .0
+            .iter()
+            .map(|e| e.to_string())
+            .collect()
+    }
+
+    #[test]
+    fn every_problem_is_reported_with_its_line() {
+        let m = messages(
+            r#"[[node]]
+id = "a"
+kind = "source"
+params = { seed = "x" }
+
+[[node]]
+id = "a"
+kind = "source"
+
+[[node]]
+id = "f"
+kind = "fliter"
+
+[[node]]
+id = "s"
+kind = "sink"
+inputs = { disparity = "a/frame" }
+
+[[node]]
+id = "t"
+kind = "sink"
+inputs = { disparity = "ghost/out", extra = "a/frame" }
+
+[[node]]
+id = "u"
+kind = "sink"
+"#,
+        );
+        assert_eq!(
+            m,
+            vec![
+                "g.toml:4: node 'a': bad params: 'seed' must be an integer",
+                "g.toml:7: duplicate node id 'a' (first at line 2); give every node its own id",
+                "g.toml:12: node 'f': unknown kind 'fliter'; known kinds: source, filter, sink, or use exec = \"path\"",
+                "g.toml:17: node 's' reads 'a/frame', which carries StereoFrame, but expects Disparity",
+                "g.toml:22: node 't' has no input 'extra'; its inputs: disparity",
+                "g.toml:22: node 't' reads 'ghost/out' but there is no node 'ghost'",
+                "g.toml:24: node 'u': input 'disparity' is not connected; add inputs = { disparity = \"NODE/OUTPUT\" }",
+            ]
+        );
+    }
+
+    #[test]
+    fn cycles_syntax_and_empty_files_are_refused() {
+        let m = messages(
+            r#"[[node]]
+id = "x"
+kind = "filter"
+inputs = { frame = "y/frame" }
+
+[[node]]
+id = "y"
+kind = "filter"
+inputs = { frame = "x/frame" }
+"#,
+        );
+        assert_eq!(
+            m,
+            vec![
+                "g.toml:2: the graph has a cycle through x, y; an edge must not lead back to its own producer"
+            ]
+        );
+        let e = check("[[node]]\nid = \"a\"\nkind = 3\n").unwrap_err();
+        assert_eq!(e.0.len(), 1);
+        assert_eq!(e.0[0].line, 3, "{e}");
+        let e = check("[[node]]\nid = \"a\"\nkidn = \"source\"\n").unwrap_err();
+        assert!(e.0[0].message.contains("kidn"), "{e}");
+        assert_eq!(
+            messages(""),
+            vec!["g.toml:0: no [[node]] in the launch file"]
+        );
+        let m = messages(
+            "[[node]]\nid = \"a\"\nkind = \"filter\"\ninputs = { frame = { from = \"a-frame\", depth = 0 } }\n",
+        );
+        assert_eq!(
+            m,
+            vec!["g.toml:4: node 'a' input 'frame': 'a-frame' must be NODE/OUTPUT"]
+        );
+    }
+}
