@@ -32,6 +32,10 @@ enum Command {
     Synth(crate::synthcmd::SynthArgs),
     /// Fits the microscope's b·f_eff and disparity offset from pairs of a target at known stage heights.
     CalibrateDepth(crate::calibrate::CalibrateArgs),
+    /// Runs a launch file's graph, one process per node, and prints a summary at the end.
+    Run(crate::graph::RunArgs),
+    /// Runs one node of a launch file as this process (started by `run`).
+    Node(crate::graph::NodeArgs),
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -339,6 +343,8 @@ pub fn main() -> i32 {
         Command::Segment(a) => segment_cmd(a),
         Command::Synth(a) => crate::synthcmd::synth(a),
         Command::CalibrateDepth(a) => crate::calibrate::calibrate_depth(a),
+        Command::Run(a) => crate::graph::run_cmd(a),
+        Command::Node(a) => crate::graph::node_cmd(a),
     };
     match result {
         Ok(()) => 0,

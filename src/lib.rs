@@ -18,6 +18,7 @@
 pub mod calibrate;
 pub mod cells;
 pub mod cli;
+pub mod graph;
 pub mod io;
 pub mod pipeline;
 pub mod render;

@@ -216,6 +216,22 @@ impl Graph {
         format!("microstereo/{id}/{port}")
     }
 
+    /// Queue settings of output `port` of node `id`, the same for every port of the edge:
+    /// the deepest queue any reader asks for, and blocking if any reader asks for it.
+    pub fn edge_config(&self, id: &str, port: &str) -> EdgeConfig {
+        let mut cfg: Option<EdgeConfig> = None;
+        for i in self.nodes.iter().flat_map(|n| &n.inputs) {
+            if i.node == id && i.output == port {
+                let c = cfg.get_or_insert(i.edge);
+                c.depth = c.depth.max(i.edge.depth);
+                if i.edge.overflow == Overflow::Block {
+                    c.overflow = Overflow::Block;
+                }
+            }
+        }
+        cfg.unwrap_or_default()
+    }
+
     /// The node with this id.
     pub fn node(&self, id: &str) -> Option<&NodeSpec> {
         self.nodes.iter().find(|n| n.id == id)

@@ -6,6 +6,8 @@
 //! lands, inside a node process behind the shared-memory transport.
 
 pub mod launch;
+pub mod process;
+pub mod step;
 pub mod transport;
 
 use serde::Serialize;

@@ -125,6 +125,8 @@ impl Transport {
             .publish_subscribe::<[u8]>()
             .user_header::<FrameHeader>()
             .subscriber_max_buffer_size(cfg.depth.max(1))
+            // A reader holds frames while it waits for the same frame on its other inputs.
+            .subscriber_max_borrowed_samples(cfg.depth.max(1) + 2)
             .enable_safe_overflow(cfg.overflow == Overflow::DropOldest)
             .max_subscribers(MAX_READERS)
             .history_size(0)

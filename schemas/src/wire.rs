@@ -168,4 +168,145 @@ mod tests {
         assert_eq!(PixelFormat::from_u32(99), None);
         assert_eq!(MessageKind::from_u32(0), None);
     }
+
+    #[test]
+    fn planes_round_trip_and_mismatches_are_refused() {
+        let a =
+            crate::Plane::from_vec(3, 2, vec![1.5f32, -2.0, f32::NAN, 0.0, 7.25, 1e-3]).unwrap();
+        let b = crate::Plane::from_vec(3, 2, vec![9f32; 6]).unwrap();
+        let (h, len) = planes_header(MessageKind::DisparityPair, &[&a, &b]);
+        assert_eq!(len, 2 * 6 * 4);
+        let mut buf = vec![0u8; len];
+        write_planes(&[&a, &b], &mut buf);
+        let back: Vec<crate::Plane<f32>> = read_planes(&h, &buf).unwrap();
+        assert_eq!(back.len(), 2);
+        let bits = |p: &crate::Plane<f32>| p.data.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+        assert_eq!((bits(&back[0]), bits(&back[1])), (bits(&a), bits(&b)));
+        assert!(read_planes::<u8>(&h, &buf).is_err());
+        assert!(read_planes::<f32>(&h, &buf[..len - 1]).is_err());
+    }
+}
+
+/// Why a payload cannot be read as the message its header announces.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("bad {kind:?} message: {reason}")]
+pub struct WireError {
+    /// The kind announced.
+    pub kind: Option<MessageKind>,
+    /// What does not fit.
+    pub reason: String,
+}
+
+/// A pixel type that travels as little-endian bytes.
+pub trait WirePixel: Copy + Default {
+    /// Its format.
+    const FORMAT: PixelFormat;
+    /// Writes one pixel.
+    fn put(self, out: &mut [u8]);
+    /// Reads one pixel.
+    fn get(b: &[u8]) -> Self;
+}
+
+impl WirePixel for u8 {
+    const FORMAT: PixelFormat = PixelFormat::Mono8;
+    fn put(self, out: &mut [u8]) {
+        out[0] = self;
+    }
+    fn get(b: &[u8]) -> Self {
+        b[0]
+    }
+}
+
+impl WirePixel for f32 {
+    const FORMAT: PixelFormat = PixelFormat::F32;
+    fn put(self, out: &mut [u8]) {
+        out[..4].copy_from_slice(&self.to_le_bytes());
+    }
+    fn get(b: &[u8]) -> Self {
+        f32::from_le_bytes([b[0], b[1], b[2], b[3]])
+    }
+}
+
+impl WirePixel for u32 {
+    const FORMAT: PixelFormat = PixelFormat::U32;
+    fn put(self, out: &mut [u8]) {
+        out[..4].copy_from_slice(&self.to_le_bytes());
+    }
+    fn get(b: &[u8]) -> Self {
+        u32::from_le_bytes([b[0], b[1], b[2], b[3]])
+    }
+}
+
+/// The header for `planes` (all the same size) as message `kind`, and their byte length.
+pub fn planes_header<T: WirePixel>(
+    kind: MessageKind,
+    planes: &[&crate::Plane<T>],
+) -> (FrameHeader, usize) {
+    let (w, h) = planes.first().map_or((0, 0), |p| (p.width, p.height));
+    let hd = FrameHeader::image(kind, T::FORMAT, w, h, planes.len() as u32);
+    (hd, hd.image_bytes())
+}
+
+/// Writes `planes` row by row into `out` (sized by [`planes_header`]).
+pub fn write_planes<T: WirePixel>(planes: &[&crate::Plane<T>], out: &mut [u8]) {
+    let bpp = T::FORMAT.bytes_per_pixel();
+    let mut i = 0;
+    for p in planes {
+        for &v in &p.data {
+            v.put(&mut out[i..i + bpp]);
+            i += bpp;
+        }
+    }
+}
+
+/// Reads the planes of a message whose header says `T`'s format.
+pub fn read_planes<T: WirePixel>(
+    header: &FrameHeader,
+    payload: &[u8],
+) -> Result<Vec<crate::Plane<T>>, WireError> {
+    let kind = MessageKind::from_u32(header.kind);
+    let bad = |reason: String| WireError { kind, reason };
+    if PixelFormat::from_u32(header.format) != Some(T::FORMAT) {
+        return Err(bad(format!(
+            "pixel format {} where {:?} was expected",
+            header.format,
+            T::FORMAT
+        )));
+    }
+    let bpp = T::FORMAT.bytes_per_pixel();
+    let (w, h) = (header.width as usize, header.height as usize);
+    if header.stride as usize != w * bpp || payload.len() != header.image_bytes() {
+        return Err(bad(format!(
+            "{} payload bytes for {} image(s) of {w}×{h} (stride {})",
+            payload.len(),
+            header.images,
+            header.stride
+        )));
+    }
+    Ok(payload
+        .chunks_exact((w * h * bpp).max(1))
+        .take(header.images as usize)
+        .map(|c| {
+            let data = c.chunks_exact(bpp).map(T::get).collect();
+            crate::Plane::from_vec(w, h, data).expect("size")
+        })
+        .collect())
+}
+
+/// The header of a JSON message of `kind` (cell lists, targets).
+pub fn json_header(kind: MessageKind) -> FrameHeader {
+    FrameHeader {
+        kind: kind as u32,
+        format: PixelFormat::None as u32,
+        ..FrameHeader::default()
+    }
+}
+
+/// The cells both views hold, as the segment node sends them.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CellLists {
+    /// Cells of the left view.
+    pub left: Vec<crate::Cell>,
+    /// Cells of the right view.
+    pub right: Vec<crate::Cell>,
 }

@@ -18,6 +18,7 @@
 // chains over four zipped slices would hide the arithmetic.
 #![allow(clippy::needless_range_loop)]
 
+pub mod node;
 pub mod paper;
 pub mod quality;
 pub mod refine;

@@ -10,6 +10,7 @@
 //!    and below with the same rule, so the result is dense whenever anything was matched.
 
 mod median;
+pub mod node;
 
 use rayon::prelude::*;
 

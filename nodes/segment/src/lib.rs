@@ -15,6 +15,7 @@
 mod boxsum;
 mod label;
 mod morph;
+pub mod node;
 mod otsu;
 mod peel;
 mod trace;

@@ -13,6 +13,7 @@
 #![allow(clippy::needless_range_loop)]
 
 pub mod eval;
+pub mod node;
 
 pub use eval::{ErrorStats, EvalFigures, evaluate, occlusion_from_gt};
 

@@ -1,0 +1,136 @@
+//! The capture node's synthetic source: one rendered stereo-microscope frame per step, the
+//! cells drifting and an optional pipette advancing from frame to frame.
+
+use crate::{CellSpec, Look, Optics, Pipette, Scene};
+use runtime::process::now_ns;
+use runtime::step::{GraphNode, Outputs, params};
+use schemas::MessageKind;
+use schemas::wire::{planes_header, write_planes};
+use serde::Deserialize;
+
+/// `params` of a `capture` node.
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CaptureParams {
+    /// Where frames come from: `synthetic`.
+    #[serde(default = "synthetic")]
+    pub source: String,
+    /// Frame width, px.
+    #[serde(default = "default_width")]
+    pub width: usize,
+    /// Frame height, px.
+    #[serde(default = "default_height")]
+    pub height: usize,
+    /// Number of cells.
+    #[serde(default = "default_cells")]
+    pub cells: usize,
+    /// Scene seed.
+    #[serde(default = "default_seed")]
+    pub seed: u64,
+    /// Largest cell drift, µm per frame.
+    #[serde(default = "default_drift")]
+    pub drift: f64,
+    /// Pipette height above the substrate, µm (none without it).
+    #[serde(default)]
+    pub pipette: Option<f64>,
+    /// Frames per second (as fast as possible without it).
+    #[serde(default)]
+    pub fps: Option<f64>,
+}
+
+fn synthetic() -> String {
+    "synthetic".into()
+}
+fn default_width() -> usize {
+    1280
+}
+fn default_height() -> usize {
+    1024
+}
+fn default_cells() -> usize {
+    10
+}
+fn default_seed() -> u64 {
+    1
+}
+fn default_drift() -> f64 {
+    1.0
+}
+
+impl CaptureParams {
+    /// Reads and checks a `params` table.
+    pub fn from_table(t: &toml::Table) -> Result<Self, String> {
+        let p: Self = params(t)?;
+        if p.source != "synthetic" {
+            return Err(format!(
+                "source '{}' is not available; use source = \"synthetic\"",
+                p.source
+            ));
+        }
+        if !(16..=8192).contains(&p.width) || !(16..=8192).contains(&p.height) {
+            return Err(format!(
+                "{}×{} is not a frame size (16..8192)",
+                p.width, p.height
+            ));
+        }
+        if p.fps.is_some_and(|f| f.is_nan() || f <= 0.0) {
+            return Err("fps must be positive".into());
+        }
+        Ok(p)
+    }
+}
+
+/// Renders the frames of one synthetic scene.
+#[derive(Debug)]
+pub struct SyntheticCapture {
+    scene: Scene,
+    drift: f64,
+    step: f64,
+}
+
+impl SyntheticCapture {
+    /// The scene the parameters describe.
+    pub fn new(p: &CaptureParams) -> Self {
+        let optics = Optics {
+            width: p.width,
+            height: p.height,
+            ..Optics::default()
+        };
+        let spec = CellSpec {
+            count: p.cells,
+            ..CellSpec::default()
+        };
+        let mut scene = Scene::random(optics, Look::default(), &spec, p.seed);
+        let s = optics.um_per_px();
+        scene.pipette = p.pipette.map(|h| Pipette {
+            tip: [-0.5 * p.width as f64 * s + 20.0 * s, 0.0],
+            height: h,
+            tip_radius: 1.5,
+            taper: 0.08,
+        });
+        Self {
+            scene,
+            drift: p.drift,
+            step: 4.0 * s,
+        }
+    }
+
+    /// The calibration that triangulates the frames.
+    pub fn calibration(&self) -> schemas::Calibration {
+        self.scene.optics.calibration()
+    }
+}
+
+impl GraphNode for SyntheticCapture {
+    fn produce(&mut self, seq: u64, out: &mut dyn Outputs) -> Result<bool, String> {
+        let r = self
+            .scene
+            .at_frame(seq as usize, self.drift, self.step)
+            .render();
+        let (mut h, len) = planes_header(MessageKind::StereoFrame, &[&r.left, &r.right]);
+        h.sequence = seq;
+        h.capture_ns = now_ns();
+        out.send(0, h, len, &mut |b| write_planes(&[&r.left, &r.right], b))?;
+        Ok(true)
+    }
+}

@@ -1,0 +1,241 @@
+//! One node as its own process: inputs and outputs on shared memory, one step per frame.
+//!
+//! A source produces frames (paced by `fps`, or as fast as it can) and then stays until it
+//! is told to stop, so that its last frames remain readable. Any other node sleeps in a
+//! WaitSet until an input has data, joins its inputs by frame number (frames present on
+//! every input, oldest first; a frame some input never got is dropped), steps, and
+//! publishes its outputs
+//! in loaned shared memory under the same frame number. Given a frame count, it ends after
+//! the last frame. On exit it prints one [`NodeStats`] line for the supervisor.
+
+use crate::launch::Graph;
+use crate::step::{GraphNode, Msg, Outputs};
+use crate::transport::{EdgePublisher, EdgeSubscriber, Message, Transport, Wake, wait_any};
+use iceoryx2::prelude::*;
+use schemas::FrameHeader;
+use serde::{Deserialize, Serialize};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+/// The line prefix of a node's final statistics on its stdout.
+pub const STATS_PREFIX: &str = "MICROSTEREO-STATS ";
+
+/// What one node did, reported when it ends.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct NodeStats {
+    /// Node id.
+    pub id: String,
+    /// Frames consumed (steps taken; frames produced for a source).
+    pub frames_in: u64,
+    /// Messages published.
+    pub frames_out: u64,
+    /// Mean step time, ms.
+    pub mean_ms: f64,
+    /// 99th-percentile step time, ms.
+    pub p99_ms: f64,
+    /// Per input `(port, frames that never arrived)`.
+    pub drops: Vec<(String, u64)>,
+    /// Mean time from capture to this node's outputs, ms.
+    pub latency_ms: f64,
+    /// The last frame number handled.
+    pub last_frame: Option<u64>,
+}
+
+/// Nanoseconds since the Unix epoch (capture timestamps).
+pub fn now_ns() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64)
+}
+
+struct ShmOutputs<'a> {
+    pubs: &'a [EdgePublisher],
+    sent: u64,
+    latency_sum_ms: f64,
+}
+
+impl Outputs for ShmOutputs<'_> {
+    fn send(
+        &mut self,
+        port: usize,
+        header: FrameHeader,
+        len: usize,
+        fill: &mut dyn FnMut(&mut [u8]),
+    ) -> Result<(), String> {
+        let p = self
+            .pubs
+            .get(port)
+            .ok_or_else(|| format!("no output port {port}"))?;
+        p.send(header, len, |b| fill(b))
+            .map_err(|e| e.to_string())?;
+        self.sent += 1;
+        self.latency_sum_ms += now_ns().saturating_sub(header.capture_ns) as f64 / 1e6;
+        Ok(())
+    }
+}
+
+fn percentile(v: &mut [f64], q: f64) -> f64 {
+    if v.is_empty() {
+        return 0.0;
+    }
+    v.sort_by(f64::total_cmp);
+    v[((v.len() - 1) as f64 * q).round() as usize]
+}
+
+/// Runs node `id` of `graph` until its frames are done or it is told to stop.
+pub fn run_node(
+    graph: &Graph,
+    id: &str,
+    node: &mut dyn GraphNode,
+    frames: Option<u64>,
+    fps: Option<f64>,
+) -> Result<NodeStats, String> {
+    let spec = graph
+        .node(id)
+        .ok_or_else(|| format!("no node '{id}' in {}", graph.file.display()))?;
+    let transport = Transport::new(id).map_err(|e| e.to_string())?;
+    let pubs = spec
+        .outputs
+        .iter()
+        .map(|(port, _)| {
+            transport.publisher(&Graph::edge_name(id, port), &graph.edge_config(id, port))
+        })
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| e.to_string())?;
+    let subs = spec
+        .inputs
+        .iter()
+        .map(|i| {
+            transport.subscriber(
+                &Graph::edge_name(&i.node, &i.output),
+                &graph.edge_config(&i.node, &i.output),
+            )
+        })
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| e.to_string())?;
+    let mut out = ShmOutputs {
+        pubs: &pubs,
+        sent: 0,
+        latency_sum_ms: 0.0,
+    };
+    let mut times = Vec::new();
+    let mut last_frame = None;
+    if subs.is_empty() {
+        let period = fps
+            .filter(|f| *f > 0.0)
+            .map(|f| Duration::from_secs_f64(1.0 / f));
+        let iox = NodeBuilder::new()
+            .create::<crate::transport::Service>()
+            .map_err(|e| format!("{e:?}"))?;
+        let start = Instant::now();
+        let mut seq = 0u64;
+        while frames.is_none_or(|n| seq < n) {
+            if let Some(p) = period {
+                let due = start + p * seq as u32;
+                let wait = due.saturating_duration_since(Instant::now());
+                if iox.wait(wait).is_err() {
+                    break;
+                }
+            }
+            let t = Instant::now();
+            if !node.produce(seq, &mut out)? {
+                break;
+            }
+            times.push(t.elapsed().as_secs_f64() * 1e3);
+            last_frame = Some(seq);
+            seq += 1;
+        }
+        // Stay until told to stop: a publisher that leaves takes its unread frames along.
+        while iox.wait(Duration::from_secs(3600)).is_ok() {}
+    } else {
+        let refs: Vec<&EdgeSubscriber> = subs.iter().collect();
+        let mut pending: Vec<Vec<Message>> = subs.iter().map(|_| Vec::new()).collect();
+        let mut ready = Vec::new();
+        'outer: loop {
+            match wait_any(&refs, Duration::from_secs(1), &mut ready).map_err(|e| e.to_string())? {
+                Wake::Stop => break,
+                Wake::Timeout | Wake::Ready => {}
+            }
+            for (i, s) in subs.iter().enumerate() {
+                while let Some(m) = s.receive().map_err(|e| e.to_string())? {
+                    pending[i].push(m);
+                }
+            }
+            // The oldest frame every input has; frames older than it can no longer be joined.
+            loop {
+                let newest = pending
+                    .iter()
+                    .map(|p| {
+                        p.iter()
+                            .map(|m| m.user_header().sequence)
+                            .collect::<Vec<_>>()
+                    })
+                    .reduce(|a, b| a.into_iter().filter(|s| b.contains(s)).collect())
+                    .and_then(|common| common.into_iter().min());
+                let Some(seq) = newest else { break };
+                let msgs: Vec<Msg<'_>> = pending
+                    .iter()
+                    .map(|p| {
+                        let m = p
+                            .iter()
+                            .find(|m| m.user_header().sequence == seq)
+                            .expect("common");
+                        Msg {
+                            header: *m.user_header(),
+                            payload: m.payload(),
+                        }
+                    })
+                    .collect();
+                let t = Instant::now();
+                node.step(&msgs, &mut out)?;
+                times.push(t.elapsed().as_secs_f64() * 1e3);
+                last_frame = Some(seq);
+                for p in &mut pending {
+                    p.retain(|m| m.user_header().sequence > seq);
+                }
+                if frames.is_some_and(|n| seq + 1 >= n) {
+                    break 'outer;
+                }
+            }
+        }
+    }
+    let steps = times.len() as u64;
+    let mean_ms = if times.is_empty() {
+        0.0
+    } else {
+        times.iter().sum::<f64>() / times.len() as f64
+    };
+    Ok(NodeStats {
+        id: id.into(),
+        frames_in: steps,
+        frames_out: out.sent,
+        mean_ms,
+        p99_ms: percentile(&mut times, 0.99),
+        drops: spec
+            .inputs
+            .iter()
+            .zip(&subs)
+            .map(|(i, s)| (i.port.clone(), s.dropped()))
+            .collect(),
+        latency_ms: if out.sent > 0 {
+            out.latency_sum_ms / out.sent as f64
+        } else {
+            0.0
+        },
+        last_frame,
+    })
+}
+
+/// Removes the shared-memory resources of graph nodes that died without cleaning up.
+pub fn remove_stale_resources() -> usize {
+    set_log_level_from_env_or(LogLevel::Error);
+    let mut removed = 0;
+    let _ = Node::<crate::transport::Service>::list(Config::global_config(), |state| {
+        if let NodeState::Dead(view) = state
+            && view.try_remove_stale_resources().is_ok()
+        {
+            removed += 1;
+        }
+        CallbackProgression::Continue
+    });
+    removed
+}

@@ -1,0 +1,459 @@
+//! The process graph from the command line: the built-in node kinds, `microstereo node`
+//! (one node as a process) and `microstereo run` (the supervisor).
+
+use crate::cli::CliError;
+use clap::Args;
+use runtime::launch::{Graph, KindSpec, LaunchFile, Runner};
+use runtime::process::{NodeStats, STATS_PREFIX};
+use runtime::step::GraphNode;
+use schemas::MessageKind as M;
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::process::Stdio;
+use std::time::{Duration, Instant};
+use tokio::io::{AsyncBufReadExt, BufReader};
+
+/// The built-in node kinds, in pipeline order.
+pub const KINDS: &[&str] = &[
+    "capture",
+    "segment",
+    "match-lr",
+    "match-rl",
+    "validate",
+    "postprocess",
+];
+
+fn ok_capture(t: &toml::Table) -> Result<(), String> {
+    synth::node::CaptureParams::from_table(t).map(|_| ())
+}
+fn ok_segment(t: &toml::Table) -> Result<(), String> {
+    segment::node::params_from_table(t).map(|_| ())
+}
+fn ok_match(t: &toml::Table) -> Result<(), String> {
+    matcher::node::MatchParams::from_table(t).map(|_| ())
+}
+fn ok_validate(t: &toml::Table) -> Result<(), String> {
+    validate::node::ValidateParams::from_table(t).map(|_| ())
+}
+fn ok_post(t: &toml::Table) -> Result<(), String> {
+    postprocess::node::params_from_table(t).map(|_| ())
+}
+
+/// Ports and parameter check of a built-in kind.
+pub fn kind_spec(kind: &str) -> Option<KindSpec> {
+    let spec = |inputs: Vec<(&'static str, M)>,
+                outputs: Vec<(&'static str, M)>,
+                check_params: fn(&toml::Table) -> Result<(), String>| KindSpec {
+        inputs,
+        outputs,
+        check_params,
+    };
+    Some(match kind {
+        "capture" => spec(vec![], vec![("frame", M::StereoFrame)], ok_capture),
+        "segment" => spec(
+            vec![("frame", M::StereoFrame)],
+            vec![("labels", M::Labels), ("cells", M::CellList)],
+            ok_segment,
+        ),
+        "match-lr" | "match-rl" => spec(
+            vec![("frame", M::StereoFrame)],
+            vec![("disparity", M::Disparity)],
+            ok_match,
+        ),
+        "validate" => spec(
+            vec![("left", M::Disparity), ("right", M::Disparity)],
+            vec![("disparity", M::Disparity), ("occlusion", M::Image)],
+            ok_validate,
+        ),
+        "postprocess" => spec(
+            vec![("disparity", M::Disparity)],
+            vec![("disparity", M::Disparity)],
+            ok_post,
+        ),
+        _ => return None,
+    })
+}
+
+/// Builds the node value of a built-in kind from its (validated) parameters.
+pub fn build(kind: &str, params: &toml::Table) -> Result<Box<dyn GraphNode>, String> {
+    Ok(match kind {
+        "capture" => Box::new(synth::node::SyntheticCapture::new(
+            &synth::node::CaptureParams::from_table(params)?,
+        )),
+        "segment" => Box::new(segment::node::SegmentNode {
+            params: segment::node::params_from_table(params)?,
+        }),
+        "match-lr" | "match-rl" => Box::new(matcher::node::MatchNode::new(
+            matcher::node::MatchParams::from_table(params)?,
+            kind == "match-rl",
+        )),
+        "validate" => Box::new(validate::node::ValidateNode {
+            params: validate::node::ValidateParams::from_table(params)?,
+        }),
+        "postprocess" => Box::new(postprocess::node::PostprocessNode {
+            params: postprocess::node::params_from_table(params)?,
+        }),
+        other => return Err(format!("unknown kind '{other}'")),
+    })
+}
+
+/// Reads and validates a launch file; every problem becomes one error.
+pub fn load(path: &Path) -> Result<Graph, CliError> {
+    LaunchFile::read(path)
+        .and_then(|f| f.validate(&kind_spec, KINDS))
+        .map_err(|e| {
+            CliError::Other(format!(
+                "{e}\n({} problem(s) in the launch file)",
+                e.0.len()
+            ))
+        })
+}
+
+/// The node values of a graph, in its order (exec nodes cannot run in-process).
+pub fn build_all(graph: &Graph) -> Result<Vec<Box<dyn GraphNode>>, CliError> {
+    graph
+        .nodes
+        .iter()
+        .map(|n| match &n.runner {
+            Runner::Builtin(k) => build(k, &n.params).map_err(CliError::Other),
+            Runner::Exec(p) => Err(CliError::Other(format!(
+                "node '{}' runs '{}', which cannot run in-process",
+                n.id,
+                p.display()
+            ))),
+        })
+        .collect()
+}
+
+/// Arguments of `microstereo node`.
+#[derive(Args, Debug)]
+pub struct NodeArgs {
+    /// The launch file the node belongs to.
+    #[arg(long)]
+    pub launch: PathBuf,
+    /// The node's id in it.
+    #[arg(long)]
+    pub id: String,
+    /// Stop after this many frames.
+    #[arg(long)]
+    pub frames: Option<u64>,
+}
+
+/// Runs one node as this process.
+pub fn node_cmd(a: NodeArgs) -> Result<(), CliError> {
+    set_parent_death_signal();
+    let graph = load(&a.launch)?;
+    let spec = graph
+        .node(&a.id)
+        .ok_or_else(|| CliError::Other(format!("no node '{}' in {}", a.id, a.launch.display())))?;
+    let Runner::Builtin(kind) = &spec.runner else {
+        return Err(CliError::Other(format!(
+            "node '{}' is not a built-in kind",
+            a.id
+        )));
+    };
+    let mut node = build(kind, &spec.params).map_err(CliError::Other)?;
+    let fps = spec
+        .params
+        .get("fps")
+        .and_then(|v| v.as_float().or(v.as_integer().map(|i| i as f64)));
+    let stats = runtime::process::run_node(&graph, &a.id, node.as_mut(), a.frames, fps)
+        .map_err(|e| CliError::Other(format!("node '{}': {e}", a.id)))?;
+    println!(
+        "{STATS_PREFIX}{}",
+        serde_json::to_string(&stats).expect("serialises")
+    );
+    Ok(())
+}
+
+/// A child dies with its parent, even when the parent is killed with SIGKILL.
+fn set_parent_death_signal() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: prctl with PR_SET_PDEATHSIG only sets a flag of this process.
+    unsafe {
+        libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL);
+    }
+}
+
+/// Arguments of `microstereo run`.
+#[derive(Args, Debug)]
+pub struct RunArgs {
+    /// The launch file.
+    #[arg(default_value = concat!(env!("CARGO_MANIFEST_DIR"), "/launch.toml"))]
+    pub launch: PathBuf,
+    /// Stop after this many frames (run until Ctrl-C without it).
+    #[arg(long)]
+    pub frames: Option<u64>,
+    /// Seconds a node gets to end after SIGTERM before it is killed.
+    #[arg(long, default_value_t = 3.0)]
+    pub grace: f64,
+}
+
+/// Runs the graph: one process per node, logs prefixed, restarts, clean stop, summary.
+pub fn run_cmd(a: RunArgs) -> Result<(), CliError> {
+    let graph = load(&a.launch)?;
+    let stale = runtime::process::remove_stale_resources();
+    if stale > 0 {
+        eprintln!("removed the shared memory of {stale} dead node(s)");
+    }
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .map_err(|e| CliError::Other(format!("cannot start the supervisor: {e}")))?;
+    let (stats, wall) = rt.block_on(supervise(&graph, &a))?;
+    print_summary(&graph, &stats, wall, a.frames);
+    Ok(())
+}
+
+struct Child {
+    id: String,
+    proc: tokio::process::Child,
+    restarts: u32,
+}
+
+fn spawn(graph: &Graph, id: &str, frames: Option<u64>) -> Result<tokio::process::Child, CliError> {
+    let spec = graph.node(id).expect("validated");
+    let mut cmd = match &spec.runner {
+        Runner::Builtin(_) => {
+            let exe = std::env::current_exe()
+                .map_err(|e| CliError::Other(format!("cannot find this program: {e}")))?;
+            let mut c = tokio::process::Command::new(exe);
+            c.arg("node");
+            c
+        }
+        Runner::Exec(p) => tokio::process::Command::new(p),
+    };
+    cmd.arg("--launch").arg(&graph.file).arg("--id").arg(id);
+    if let Some(n) = frames {
+        cmd.arg("--frames").arg(n.to_string());
+    }
+    cmd.stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .kill_on_drop(true);
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: only async-signal-safe prctl between fork and exec.
+    unsafe {
+        cmd.pre_exec(|| {
+            libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL);
+            Ok(())
+        });
+    }
+    cmd.spawn()
+        .map_err(|e| CliError::Other(format!("cannot start node '{id}': {e}")))
+}
+
+type StatsSink = std::sync::Arc<std::sync::Mutex<HashMap<String, NodeStats>>>;
+
+fn forward_logs(id: &str, child: &mut tokio::process::Child, stats: &StatsSink) {
+    if let Some(out) = child.stdout.take() {
+        let (id, stats) = (id.to_string(), stats.clone());
+        tokio::spawn(async move {
+            let mut lines = BufReader::new(out).lines();
+            while let Ok(Some(l)) = lines.next_line().await {
+                match l.strip_prefix(STATS_PREFIX) {
+                    Some(j) => {
+                        if let Ok(s) = serde_json::from_str::<NodeStats>(j) {
+                            stats.lock().expect("stats").insert(id.clone(), s);
+                        }
+                    }
+                    None => println!("[{id}] {l}"),
+                }
+            }
+        });
+    }
+    if let Some(err) = child.stderr.take() {
+        let id = id.to_string();
+        tokio::spawn(async move {
+            let mut lines = BufReader::new(err).lines();
+            while let Ok(Some(l)) = lines.next_line().await {
+                eprintln!("[{id}] {l}");
+            }
+        });
+    }
+}
+
+fn terminate(children: &[Child]) {
+    for c in children {
+        if let Some(pid) = c.proc.id() {
+            // SAFETY: kill(2) on our own child's pid.
+            unsafe {
+                libc::kill(pid as i32, libc::SIGTERM);
+            }
+        }
+    }
+}
+
+async fn supervise(
+    graph: &Graph,
+    a: &RunArgs,
+) -> Result<(HashMap<String, NodeStats>, Duration), CliError> {
+    use tokio::signal::unix::{SignalKind, signal};
+    let stats: StatsSink = Default::default();
+    let start = Instant::now();
+    let mut children = Vec::new();
+    for n in &graph.nodes {
+        let mut proc = spawn(graph, &n.id, a.frames)?;
+        forward_logs(&n.id, &mut proc, &stats);
+        children.push(Child {
+            id: n.id.clone(),
+            proc,
+            restarts: 0,
+        });
+    }
+    let mut sigterm = signal(SignalKind::terminate())
+        .map_err(|e| CliError::Other(format!("cannot watch SIGTERM: {e}")))?;
+    let is_source = |id: &str| graph.node(id).is_some_and(|n| n.inputs.is_empty());
+    let mut failure: Option<String> = None;
+    let mut stopping = false;
+    loop {
+        if children.is_empty() {
+            break;
+        }
+        // Every node that consumes is done: the sources may go.
+        if !stopping && children.iter().all(|c| is_source(&c.id)) {
+            stopping = true;
+            terminate(&children);
+        }
+        let exited = {
+            let waits = children
+                .iter_mut()
+                .enumerate()
+                .map(|(i, c)| Box::pin(async move { (i, c.proc.wait().await) }));
+            tokio::select! {
+                (r, _, _) = futures_select(waits) => Some(r),
+                _ = tokio::signal::ctrl_c() => None,
+                _ = sigterm.recv() => None,
+                _ = tokio::time::sleep(Duration::from_secs_f64(a.grace)), if stopping => {
+                    for c in &mut children {
+                        let _ = c.proc.start_kill();
+                    }
+                    None
+                }
+            }
+        };
+        let Some((i, status)) = exited else {
+            if !stopping {
+                eprintln!("stopping the graph");
+                stopping = true;
+                terminate(&children);
+            }
+            continue;
+        };
+        let status = status.map_err(|e| CliError::Other(format!("waiting for a node: {e}")))?;
+        let c = children.remove(i);
+        let spec = graph.node(&c.id).expect("validated");
+        let failed = !status.success();
+        let restart = !stopping
+            && match spec.restart.policy {
+                runtime::launch::RestartPolicy::Never => false,
+                runtime::launch::RestartPolicy::OnFailure => failed,
+                runtime::launch::RestartPolicy::Always => true,
+            }
+            && c.restarts < spec.restart.max;
+        if restart {
+            let wait = Duration::from_millis(spec.restart.backoff_ms << c.restarts.min(10));
+            eprintln!(
+                "[{}] exited ({status}); restart {} of {} in {:?}",
+                c.id,
+                c.restarts + 1,
+                spec.restart.max,
+                wait
+            );
+            tokio::time::sleep(wait).await;
+            let mut proc = spawn(graph, &c.id, a.frames)?;
+            forward_logs(&c.id, &mut proc, &stats);
+            children.push(Child {
+                id: c.id,
+                proc,
+                restarts: c.restarts + 1,
+            });
+        } else if failed && !stopping {
+            failure = Some(format!("node '{}' failed ({status})", c.id));
+            stopping = true;
+            terminate(&children);
+        }
+    }
+    // Give the log forwarders a moment to flush the last lines.
+    tokio::time::sleep(Duration::from_millis(50)).await;
+    let wall = start.elapsed();
+    let stats = stats.lock().expect("stats").clone();
+    match failure {
+        Some(f) => Err(CliError::Other(f)),
+        None => Ok((stats, wall)),
+    }
+}
+
+/// The first of several futures to finish, with its index.
+async fn futures_select<F, T>(futs: impl Iterator<Item = F>) -> (T, usize, ())
+where
+    F: std::future::Future<Output = T> + Unpin,
+{
+    let mut futs: Vec<F> = futs.collect();
+    std::future::poll_fn(move |cx| {
+        for (i, f) in futs.iter_mut().enumerate() {
+            if let std::task::Poll::Ready(v) = std::pin::Pin::new(f).poll(cx) {
+                return std::task::Poll::Ready((v, i, ()));
+            }
+        }
+        std::task::Poll::Pending
+    })
+    .await
+}
+
+fn print_summary(
+    graph: &Graph,
+    stats: &HashMap<String, NodeStats>,
+    wall: Duration,
+    frames: Option<u64>,
+) {
+    println!();
+    println!(
+        "{:<14} {:>9} {:>9} {:>10} {:>10} {:>12}",
+        "node", "frames in", "out", "mean ms", "p99 ms", "latency ms"
+    );
+    for n in &graph.nodes {
+        match stats.get(&n.id) {
+            Some(s) => println!(
+                "{:<14} {:>9} {:>9} {:>10.2} {:>10.2} {:>12.1}",
+                n.id, s.frames_in, s.frames_out, s.mean_ms, s.p99_ms, s.latency_ms
+            ),
+            None => println!("{:<14} (no report)", n.id),
+        }
+    }
+    let mut drops = Vec::new();
+    for n in &graph.nodes {
+        if let Some(s) = stats.get(&n.id) {
+            for ((port, d), i) in s.drops.iter().zip(&n.inputs) {
+                drops.push(format!("{}/{} → {}.{port}: {d}", i.node, i.output, n.id));
+            }
+        }
+    }
+    println!(
+        "dropped frames per edge: {}",
+        if drops.is_empty() {
+            "none".into()
+        } else {
+            drops.join(", ")
+        }
+    );
+    let sinks: Vec<&NodeStats> = graph
+        .nodes
+        .iter()
+        .filter(|n| {
+            !graph
+                .nodes
+                .iter()
+                .any(|m| m.inputs.iter().any(|i| i.node == n.id))
+        })
+        .filter_map(|n| stats.get(&n.id))
+        .collect();
+    let done = sinks.iter().map(|s| s.frames_in).min().unwrap_or(0);
+    println!(
+        "{done} frame(s){} in {:.2} s: {:.2} frames/s; capture → last output latency {:.1} ms",
+        frames.map_or(String::new(), |n| format!(" of {n}")),
+        wall.as_secs_f64(),
+        done as f64 / wall.as_secs_f64().max(1e-9),
+        sinks.iter().map(|s| s.latency_ms).fold(0.0, f64::max)
+    );
+}

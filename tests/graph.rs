@@ -1,0 +1,133 @@
+//! The process graph: real processes on real shared memory compute exactly what the same
+//! nodes compute in one process.
+
+use microstereo::graph::{build_all, load};
+use runtime::launch::Graph;
+use runtime::step::run_in_process;
+use runtime::transport::Transport;
+use std::path::Path;
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+fn bin() -> &'static str {
+    env!("CARGO_BIN_EXE_microstereo")
+}
+
+#[test]
+fn graph_of_processes_equals_the_in_process_pipeline_bit_for_bit() {
+    let file = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/graph/small.toml");
+    let graph = load(&file).unwrap();
+    let frames = 4u64;
+    // Read the final edges from this test process too, subscribed before anything runs.
+    let watched = [
+        ("postprocess", "disparity"),
+        ("segment", "labels"),
+        ("segment", "cells"),
+    ];
+    let t = Transport::new("graph-test").unwrap();
+    let subs: Vec<_> = watched
+        .iter()
+        .map(|(n, p)| {
+            t.subscriber(&Graph::edge_name(n, p), &graph.edge_config(n, p))
+                .unwrap()
+        })
+        .collect();
+    let run = Command::new(bin())
+        .args([
+            "run",
+            file.to_str().unwrap(),
+            "--frames",
+            &frames.to_string(),
+        ])
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut got: Vec<Vec<(u64, Vec<u8>)>> = vec![Vec::new(); watched.len()];
+    let start = Instant::now();
+    while got.iter().any(|g| (g.len() as u64) < frames) {
+        assert!(
+            start.elapsed() < Duration::from_secs(120),
+            "graph too slow: {got:?}"
+        );
+        let mut ready = Vec::new();
+        let refs: Vec<_> = subs.iter().collect();
+        runtime::transport::wait_any(&refs, Duration::from_millis(200), &mut ready).unwrap();
+        for (i, s) in subs.iter().enumerate() {
+            while let Some(m) = s.receive().unwrap() {
+                got[i].push((m.user_header().sequence, m.payload().to_vec()));
+            }
+        }
+    }
+    let out = run.wait_with_output().unwrap();
+    let summary = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{summary}");
+    assert!(summary.contains("4 frame(s) of 4"), "{summary}");
+    // The same nodes, in this process.
+    let mut nodes = build_all(&graph).unwrap();
+    let log = run_in_process(&graph, &mut nodes, frames).unwrap();
+    for ((n, p), g) in watched.iter().zip(&got) {
+        let want = &log[&(n.to_string(), p.to_string())];
+        assert_eq!(want.len() as u64, frames);
+        for (k, (seq, bytes)) in g.iter().enumerate() {
+            assert_eq!(*seq, k as u64, "{n}/{p}: frames in order");
+            assert!(
+                *bytes == want[k].1,
+                "{n}/{p} frame {k}: {} bytes from the graph, {} in-process, equal: false",
+                bytes.len(),
+                want[k].1.len()
+            );
+        }
+    }
+    // Every node ran as its own process and reported.
+    for id in [
+        "capture",
+        "segment",
+        "match-lr",
+        "match-rl",
+        "validate",
+        "postprocess",
+    ] {
+        assert!(
+            summary
+                .lines()
+                .any(|l| l.starts_with(id) && !l.contains("no report")),
+            "{id}: {summary}"
+        );
+    }
+}
+
+#[test]
+fn bad_launch_files_are_refused_with_file_and_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let f = dir.path().join("bad.toml");
+    std::fs::write(
+        &f,
+        "[[node]]\nid = \"capture\"\nkind = \"capture\"\nparams = { source = \"camera\" }\n\n[[node]]\nid = \"m\"\nkind = \"match-lr\"\ninputs = { frame = \"capture/frame\" }\nparams = { min_disparity = 5, max_disparity = 1 }\n",
+    )
+    .unwrap();
+    let out = Command::new(bin())
+        .args(["run", f.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    let name = f.display().to_string();
+    assert!(
+        err.contains(&format!(
+            "{name}:4: node 'capture': bad params: source 'camera' is not available"
+        )),
+        "{err}"
+    );
+    assert!(
+        err.contains(&format!(
+            "{name}:10: node 'm': bad params: min_disparity 5 must be below max_disparity 1"
+        )),
+        "{err}"
+    );
+    let out = Command::new(bin())
+        .args(["run", dir.path().join("missing.toml").to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("cannot read the launch file"));
+}
