@@ -137,6 +137,9 @@ pub struct NodeArgs {
     /// Stop after this many frames.
     #[arg(long)]
     pub frames: Option<u64>,
+    /// The running graph this node belongs to (names its shared memory).
+    #[arg(long, default_value = "default")]
+    pub instance: String,
 }
 
 /// Runs one node as this process.
@@ -157,8 +160,9 @@ pub fn node_cmd(a: NodeArgs) -> Result<(), CliError> {
         .params
         .get("fps")
         .and_then(|v| v.as_float().or(v.as_integer().map(|i| i as f64)));
-    let stats = runtime::process::run_node(&graph, &a.id, node.as_mut(), a.frames, fps)
-        .map_err(|e| CliError::Other(format!("node '{}': {e}", a.id)))?;
+    let stats =
+        runtime::process::run_node(&graph, &a.instance, &a.id, node.as_mut(), a.frames, fps)
+            .map_err(|e| CliError::Other(format!("node '{}': {e}", a.id)))?;
     println!(
         "{STATS_PREFIX}{}",
         serde_json::to_string(&stats).expect("serialises")
@@ -187,6 +191,10 @@ pub struct RunArgs {
     /// Seconds a node gets to end after SIGTERM before it is killed.
     #[arg(long, default_value_t = 3.0)]
     pub grace: f64,
+    /// Names this run's shared memory (default: the supervisor's process id), so that
+    /// graphs running side by side do not share edges; readers outside the graph use it.
+    #[arg(long)]
+    pub instance: Option<String>,
 }
 
 /// Runs the graph: one process per node, logs prefixed, restarts, clean stop, summary.
@@ -212,7 +220,12 @@ struct Child {
     restarts: u32,
 }
 
-fn spawn(graph: &Graph, id: &str, frames: Option<u64>) -> Result<tokio::process::Child, CliError> {
+fn spawn(
+    graph: &Graph,
+    instance: &str,
+    id: &str,
+    frames: Option<u64>,
+) -> Result<tokio::process::Child, CliError> {
     let spec = graph.node(id).expect("validated");
     let mut cmd = match &spec.runner {
         Runner::Builtin(_) => {
@@ -224,7 +237,12 @@ fn spawn(graph: &Graph, id: &str, frames: Option<u64>) -> Result<tokio::process:
         }
         Runner::Exec(p) => tokio::process::Command::new(p),
     };
-    cmd.arg("--launch").arg(&graph.file).arg("--id").arg(id);
+    cmd.arg("--launch")
+        .arg(&graph.file)
+        .arg("--id")
+        .arg(id)
+        .arg("--instance")
+        .arg(instance);
     if let Some(n) = frames {
         cmd.arg("--frames").arg(n.to_string());
     }
@@ -290,10 +308,14 @@ async fn supervise(
 ) -> Result<(HashMap<String, NodeStats>, Duration), CliError> {
     use tokio::signal::unix::{SignalKind, signal};
     let stats: StatsSink = Default::default();
+    let instance = a
+        .instance
+        .clone()
+        .unwrap_or_else(|| format!("run{}", std::process::id()));
     let start = Instant::now();
     let mut children = Vec::new();
     for n in &graph.nodes {
-        let mut proc = spawn(graph, &n.id, a.frames)?;
+        let mut proc = spawn(graph, &instance, &n.id, a.frames)?;
         forward_logs(&n.id, &mut proc, &stats);
         children.push(Child {
             id: n.id.clone(),
@@ -361,7 +383,7 @@ async fn supervise(
                 wait
             );
             tokio::time::sleep(wait).await;
-            let mut proc = spawn(graph, &c.id, a.frames)?;
+            let mut proc = spawn(graph, &instance, &c.id, a.frames)?;
             forward_logs(&c.id, &mut proc, &stats);
             children.push(Child {
                 id: c.id,

@@ -24,11 +24,12 @@ fn graph_of_processes_equals_the_in_process_pipeline_bit_for_bit() {
         ("segment", "labels"),
         ("segment", "cells"),
     ];
+    let instance = format!("test{}", std::process::id());
     let t = Transport::new("graph-test").unwrap();
     let subs: Vec<_> = watched
         .iter()
         .map(|(n, p)| {
-            t.subscriber(&Graph::edge_name(n, p), &graph.edge_config(n, p))
+            t.subscriber(&Graph::edge_name(&instance, n, p), &graph.edge_config(n, p))
                 .unwrap()
         })
         .collect();
@@ -39,16 +40,21 @@ fn graph_of_processes_equals_the_in_process_pipeline_bit_for_bit() {
             "--frames",
             &frames.to_string(),
         ])
+        .args(["--instance", &instance])
         .stdout(std::process::Stdio::piped())
         .spawn()
         .unwrap();
     let mut got: Vec<Vec<(u64, Vec<u8>)>> = vec![Vec::new(); watched.len()];
     let start = Instant::now();
     while got.iter().any(|g| (g.len() as u64) < frames) {
-        assert!(
-            start.elapsed() < Duration::from_secs(120),
-            "graph too slow: {got:?}"
-        );
+        if start.elapsed() > Duration::from_secs(120) {
+            let out = run.wait_with_output().unwrap();
+            panic!(
+                "{:?} frames per watched edge after 120 s; the run said:\n{}",
+                got.iter().map(Vec::len).collect::<Vec<_>>(),
+                String::from_utf8_lossy(&out.stdout)
+            );
+        }
         let mut ready = Vec::new();
         let refs: Vec<_> = subs.iter().collect();
         runtime::transport::wait_any(&refs, Duration::from_millis(200), &mut ready).unwrap();
@@ -130,4 +136,66 @@ fn bad_launch_files_are_refused_with_file_and_line() {
         .unwrap();
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("cannot read the launch file"));
+}
+
+/// Pids whose parent is `ppid` (from /proc).
+fn children_of(ppid: u32) -> Vec<u32> {
+    std::fs::read_dir("/proc")
+        .unwrap()
+        .filter_map(|e| e.ok()?.file_name().to_str()?.parse::<u32>().ok())
+        .filter(|pid| {
+            std::fs::read_to_string(format!("/proc/{pid}/stat"))
+                .ok()
+                .and_then(|s| {
+                    // "pid (comm) state ppid ...": the command may hold spaces.
+                    let rest = &s[s.rfind(')')? + 2..];
+                    rest.split(' ').nth(1)?.parse::<u32>().ok()
+                })
+                == Some(ppid)
+        })
+        .collect()
+}
+
+#[test]
+fn one_process_per_node_and_none_left_when_the_supervisor_is_killed() {
+    let file = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/graph/small.toml");
+    let mut sup = Command::new(bin())
+        .args(["run", file.to_str().unwrap()])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let start = Instant::now();
+    let mut kids = Vec::new();
+    while kids.len() < 6 && start.elapsed() < Duration::from_secs(20) {
+        std::thread::sleep(Duration::from_millis(50));
+        kids = children_of(sup.id());
+    }
+    assert_eq!(kids.len(), 6, "one process per node");
+    sup.kill().unwrap(); // SIGKILL: no chance to clean up.
+    sup.wait().unwrap();
+    let gone = |pid: &u32| {
+        !Path::new(&format!("/proc/{pid}")).exists()
+            || std::fs::read_to_string(format!("/proc/{pid}/stat"))
+                .is_ok_and(|s| s.contains(") Z "))
+    };
+    let start = Instant::now();
+    while !kids.iter().all(gone) {
+        assert!(
+            start.elapsed() < Duration::from_secs(5),
+            "orphans left: {kids:?}"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    // The next run cleans up what the killed nodes left in shared memory and works.
+    let out = Command::new(bin())
+        .args(["run", file.to_str().unwrap(), "--frames", "2"])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(String::from_utf8_lossy(&out.stdout).contains("2 frame(s) of 2"));
 }

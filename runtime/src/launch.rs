@@ -211,9 +211,10 @@ pub struct Graph {
 }
 
 impl Graph {
-    /// The shared-memory name of output `port` of node `id`.
-    pub fn edge_name(id: &str, port: &str) -> String {
-        format!("microstereo/{id}/{port}")
+    /// The shared-memory name of output `port` of node `id` in the running graph
+    /// `instance` (two graphs on one machine do not share edges).
+    pub fn edge_name(instance: &str, id: &str, port: &str) -> String {
+        format!("microstereo/{instance}/{id}/{port}")
     }
 
     /// Queue settings of output `port` of node `id`, the same for every port of the edge:
@@ -672,7 +673,10 @@ ports = { inputs = { frame = "stereo-frame" }, outputs = { cloud = "point-cloud"
             Runner::Exec("/opt/my-node".into())
         );
         assert_eq!(g.node("c").unwrap().inputs[0].edge, EdgeConfig::default());
-        assert_eq!(Graph::edge_name("a", "frame"), "microstereo/a/frame");
+        assert_eq!(
+            Graph::edge_name("run1", "a", "frame"),
+            "microstereo/run1/a/frame"
+        );
     }
 
     fn messages(text: &str) -> Vec<String> {

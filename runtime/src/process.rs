@@ -84,6 +84,7 @@ fn percentile(v: &mut [f64], q: f64) -> f64 {
 /// Runs node `id` of `graph` until its frames are done or it is told to stop.
 pub fn run_node(
     graph: &Graph,
+    instance: &str,
     id: &str,
     node: &mut dyn GraphNode,
     frames: Option<u64>,
@@ -97,7 +98,10 @@ pub fn run_node(
         .outputs
         .iter()
         .map(|(port, _)| {
-            transport.publisher(&Graph::edge_name(id, port), &graph.edge_config(id, port))
+            transport.publisher(
+                &Graph::edge_name(instance, id, port),
+                &graph.edge_config(id, port),
+            )
         })
         .collect::<Result<Vec<_>, _>>()
         .map_err(|e| e.to_string())?;
@@ -106,7 +110,7 @@ pub fn run_node(
         .iter()
         .map(|i| {
             transport.subscriber(
-                &Graph::edge_name(&i.node, &i.output),
+                &Graph::edge_name(instance, &i.node, &i.output),
                 &graph.edge_config(&i.node, &i.output),
             )
         })
@@ -128,13 +132,15 @@ pub fn run_node(
             .map_err(|e| format!("{e:?}"))?;
         let start = Instant::now();
         let mut seq = 0u64;
+        let mut stopped = false;
         while frames.is_none_or(|n| seq < n) {
-            if let Some(p) = period {
-                let due = start + p * seq as u32;
-                let wait = due.saturating_duration_since(Instant::now());
-                if iox.wait(wait).is_err() {
-                    break;
-                }
+            // Also the place where a stop request is noticed between frames.
+            let wait = period.map_or(Duration::ZERO, |p| {
+                (start + p * seq as u32).saturating_duration_since(Instant::now())
+            });
+            if iox.wait(wait).is_err() {
+                stopped = true;
+                break;
             }
             let t = Instant::now();
             if !node.produce(seq, &mut out)? {
@@ -145,7 +151,7 @@ pub fn run_node(
             seq += 1;
         }
         // Stay until told to stop: a publisher that leaves takes its unread frames along.
-        while iox.wait(Duration::from_secs(3600)).is_ok() {}
+        while !stopped && iox.wait(Duration::from_secs(3600)).is_ok() {}
     } else {
         let refs: Vec<&EdgeSubscriber> = subs.iter().collect();
         let mut pending: Vec<Vec<Message>> = subs.iter().map(|_| Vec::new()).collect();
