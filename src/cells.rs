@@ -215,23 +215,7 @@ pub fn cell_stereo(
     let m = p.margin as i64;
     let (dmin, dmax) = (cfg.range.min as i64, cfg.range.max as i64);
     let support = segment::dilate(&ls.mask, p.margin);
-    let substrate = times.time("substrate", || {
-        let reach = p.margin as usize
-            + cfg
-                .range
-                .min
-                .unsigned_abs()
-                .max(cfg.range.max.unsigned_abs()) as usize;
-        let mut cells = ls.mask.clone();
-        for (c, r) in cells.data.iter_mut().zip(&rs.mask.data) {
-            *c |= *r;
-        }
-        let usable = clear_of(&cells, reach);
-        matcher::fit_disparity_plane(left, right, &usable, cfg.range, SUBSTRATE_MAX_STD)
-    });
     let mut ws = Workspace::default();
-    let mut tops = Vec::with_capacity(pairs.len());
-    let mut bases = Vec::with_capacity(pairs.len());
     for &(i, j) in &pairs {
         let (lb, rb) = (ls.cells[i].bbox, rs.cells[j].bbox);
         let y0 = (lb.y0.min(rb.y0) as i64 - m).max(0) as usize;
@@ -249,8 +233,6 @@ pub fn cell_stereo(
         if c.range.min >= c.range.max
             || matcher::check_inputs(&cl, &cr, c.range, c.window()).is_err()
         {
-            tops.push(None);
-            bases.push(None);
             continue;
         }
         matched_pixels += cl.len() as u64;
@@ -275,18 +257,17 @@ pub fn cell_stereo(
                 *occlusion_left.get_mut(x, y) = *out.checked.occlusion_left.get(x - c0, y - y0);
             }
         }
-        let cell = &ls.cells[i];
-        let base = match &substrate {
-            Some(s) => Some(s.at(cell.centroid[0], cell.centroid[1])),
-            None => ring_disparity(&ls.labels, cell, &disparity_raw, &disparity, p.margin),
-        };
-        bases.push(base);
-        tops.push(base.and_then(|base| {
-            times.time("refine", || {
-                top_of_cell(left, right, &ls.labels, cell, &disparity, base)
-            })
-        }));
     }
+    let (substrate, bases, tops) = cell_heights(
+        (left, right),
+        (&ls.labels, &ls.mask, &rs.mask),
+        &ls.cells,
+        &pairs,
+        (&disparity, &disparity_raw),
+        cfg.range,
+        p.margin,
+        &mut times,
+    );
     Ok(CellStereo {
         left_seg: ls,
         right_seg: rs,
@@ -300,6 +281,47 @@ pub fn cell_stereo(
         tops,
         times,
     })
+}
+
+/// The substrate's disparity plane over the background clear of every cell (in both views'
+/// masks), and per pair the substrate's disparity under the left cell (the plane, or the
+/// ring median without one) and its refined top.
+#[allow(clippy::too_many_arguments)]
+pub fn cell_heights(
+    (left, right): (&Plane<u8>, &Plane<u8>),
+    (labels, left_mask, right_mask): (&Plane<u32>, &Mask, &Mask),
+    cells: &[Cell],
+    pairs: &[(usize, usize)],
+    (disparity, disparity_raw): (&DisparityMap, &DisparityMap),
+    range: DisparityRange,
+    margin: u8,
+    times: &mut StageTimes,
+) -> (Option<DisparityPlane>, Vec<Option<f64>>, Vec<Option<PeakFit>>) {
+    let substrate = times.time("substrate", || {
+        let reach =
+            margin as usize + range.min.unsigned_abs().max(range.max.unsigned_abs()) as usize;
+        let mut both = left_mask.clone();
+        for (c, r) in both.data.iter_mut().zip(&right_mask.data) {
+            *c |= *r;
+        }
+        let usable = clear_of(&both, reach);
+        matcher::fit_disparity_plane(left, right, &usable, range, SUBSTRATE_MAX_STD)
+    });
+    let (mut bases, mut tops) = (Vec::new(), Vec::new());
+    for &(i, _) in pairs {
+        let cell = &cells[i];
+        let base = match &substrate {
+            Some(s) => Some(s.at(cell.centroid[0], cell.centroid[1])),
+            None => ring_disparity(labels, cell, disparity_raw, disparity, margin),
+        };
+        bases.push(base);
+        tops.push(base.and_then(|base| {
+            times.time("refine", || {
+                top_of_cell(left, right, labels, cell, disparity, base)
+            })
+        }));
+    }
+    (substrate, bases, tops)
 }
 
 /// 255 where no non-zero pixel of `mask` lies within the `(2r+1)²` square around.
@@ -412,27 +434,44 @@ fn percentile(mut v: Vec<f32>, q: f64) -> Option<f64> {
 
 /// Per-cell 3D figures of paired cells (see [`Cell3`]).
 pub fn measure_cells(cs: &CellStereo, calib: &Calibration) -> Vec<Cell3> {
-    let ls = &cs.left_seg;
+    measure(
+        (&cs.left_seg.labels, &cs.left_seg.cells, &cs.right_seg.cells),
+        &cs.pairs,
+        (&cs.disparity, &cs.disparity_raw),
+        (&cs.bases, &cs.tops),
+        calib,
+    )
+}
+
+/// Per-cell 3D figures from the left labels and cells, the right cells, their pairing, the
+/// final and LR-checked disparity maps and [`cell_heights`]' bases and tops.
+pub fn measure(
+    (labels, left_cells, right_cells): (&Plane<u32>, &[Cell], &[Cell]),
+    pairs: &[(usize, usize)],
+    (disparity, disparity_raw): (&DisparityMap, &DisparityMap),
+    (bases, tops): (&[Option<f64>], &[Option<PeakFit>]),
+    calib: &Calibration,
+) -> Vec<Cell3> {
     let z_of = |d: f64| calib.baseline * calib.focal_px / (d + calib.cx_right - calib.cx);
     let mut out = Vec::new();
-    for (k, &(i, j)) in cs.pairs.iter().enumerate() {
-        let cell = &ls.cells[i];
+    for (k, &(i, j)) in pairs.iter().enumerate() {
+        let cell = &left_cells[i];
         let b = cell.bbox;
         let mut inside = Vec::new();
         let mut valid_raw = 0u64;
         for y in b.y0 as usize..=b.y1 as usize {
             for x in b.x0 as usize..=b.x1 as usize {
-                if *ls.labels.get(x, y) == cell.id {
-                    valid_raw += cs.disparity_raw.get(x, y).is_finite() as u64;
-                    let d = *cs.disparity.get(x, y);
+                if *labels.get(x, y) == cell.id {
+                    valid_raw += disparity_raw.get(x, y).is_finite() as u64;
+                    let d = *disparity.get(x, y);
                     if d.is_finite() {
                         inside.push((x, y, d));
                     }
                 }
             }
         }
-        let Some(d_sub) = cs.bases[k] else { continue };
-        let Some(d_top) = cs.tops[k]
+        let Some(d_sub) = bases[k] else { continue };
+        let Some(d_top) = tops[k]
             .map(|t| t.peak)
             .or_else(|| percentile(inside.iter().map(|p| p.2).collect(), 0.98))
         else {
@@ -441,7 +480,7 @@ pub fn measure_cells(cs: &CellStereo, calib: &Calibration) -> Vec<Cell3> {
         let z_sub = z_of(d_sub);
         let pixel_area = (z_sub / calib.focal_px).powi(2);
         let xy = |x: usize, y: usize| {
-            let d = *cs.disparity.get(x, y) as f64;
+            let d = *disparity.get(x, y) as f64;
             triangulate::triangulate_pixel(x as f64, y as f64, d, calib).map(|p| [p[0], p[1]])
         };
         let (mut vol, mut wx, mut wy, mut wz) = (0.0, 0.0, 0.0, 0.0);
@@ -451,7 +490,7 @@ pub fn measure_cells(cs: &CellStereo, calib: &Calibration) -> Vec<Cell3> {
             // The ground each pixel covers: one camera sees a slope facing it with more
             // pixels than the slope facing away, so equal weights would pull the centroid
             // towards that camera (by up to 2 µm on a 100 µm dome).
-            let inner = x + 1 < cs.disparity.width && y + 1 < cs.disparity.height;
+            let inner = x + 1 < disparity.width && y + 1 < disparity.height;
             let next = |dx: usize, dy: usize| if inner { xy(x + dx, y + dy) } else { None };
             let footprint = match (xy(x, y), next(1, 0), next(0, 1)) {
                 (Some(p), Some(px), Some(py)) => {
@@ -484,7 +523,7 @@ pub fn measure_cells(cs: &CellStereo, calib: &Calibration) -> Vec<Cell3> {
             .collect();
         out.push(Cell3 {
             id: cell.id,
-            right_id: cs.right_seg.cells[j].id,
+            right_id: right_cells[j].id,
             area_px: cell.area,
             centroid_px: cell.centroid,
             disparity: d_top,
