@@ -296,7 +296,11 @@ pub fn cell_heights(
     range: DisparityRange,
     margin: u8,
     times: &mut StageTimes,
-) -> (Option<DisparityPlane>, Vec<Option<f64>>, Vec<Option<PeakFit>>) {
+) -> (
+    Option<DisparityPlane>,
+    Vec<Option<f64>>,
+    Vec<Option<PeakFit>>,
+) {
     let substrate = times.time("substrate", || {
         let reach =
             margin as usize + range.min.unsigned_abs().max(range.max.unsigned_abs()) as usize;

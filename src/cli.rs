@@ -370,7 +370,8 @@ struct CalibrationFile {
     unit: Option<UnitArg>,
 }
 
-fn load_calibration(path: &Path, w: usize, h: usize) -> Result<Calibration, CliError> {
+/// Reads a calibration file for images of `w × h`.
+pub(crate) fn load_calibration(path: &Path, w: usize, h: usize) -> Result<Calibration, CliError> {
     let text = std::fs::read_to_string(path).map_err(|e| {
         CliError::Other(format!(
             "calibration file '{}' cannot be read: {e}",

@@ -21,6 +21,8 @@ pub const KINDS: &[&str] = &[
     "match-rl",
     "validate",
     "postprocess",
+    "triangulate",
+    "manipulator-bridge",
 ];
 
 fn ok_capture(t: &toml::Table) -> Result<(), String> {
@@ -37,6 +39,12 @@ fn ok_validate(t: &toml::Table) -> Result<(), String> {
 }
 fn ok_post(t: &toml::Table) -> Result<(), String> {
     postprocess::node::params_from_table(t).map(|_| ())
+}
+fn ok_triangulate(t: &toml::Table) -> Result<(), String> {
+    crate::nodes::TriangulateParams::from_table(t).map(|_| ())
+}
+fn ok_bridge(t: &toml::Table) -> Result<(), String> {
+    crate::nodes::BridgeParams::from_table(t).map(|_| ())
 }
 
 /// Ports and parameter check of a built-in kind.
@@ -70,6 +78,18 @@ pub fn kind_spec(kind: &str) -> Option<KindSpec> {
             vec![("disparity", M::Disparity)],
             ok_post,
         ),
+        "triangulate" => spec(
+            vec![
+                ("frame", M::StereoFrame),
+                ("labels", M::Labels),
+                ("cells", M::CellList),
+                ("disparity", M::Disparity),
+                ("checked", M::Disparity),
+            ],
+            vec![("cloud", M::PointCloud), ("targets", M::Targets)],
+            ok_triangulate,
+        ),
+        "manipulator-bridge" => spec(vec![("targets", M::Targets)], vec![], ok_bridge),
         _ => return None,
     })
 }
@@ -93,6 +113,12 @@ pub fn build(kind: &str, params: &toml::Table) -> Result<Box<dyn GraphNode>, Str
         "postprocess" => Box::new(postprocess::node::PostprocessNode {
             params: postprocess::node::params_from_table(params)?,
         }),
+        "triangulate" => Box::new(crate::nodes::TriangulateNode::new(
+            crate::nodes::TriangulateParams::from_table(params)?,
+        )),
+        "manipulator-bridge" => Box::new(crate::nodes::BridgeNode::new(
+            &crate::nodes::BridgeParams::from_table(params)?,
+        )?),
         other => return Err(format!("unknown kind '{other}'")),
     })
 }
@@ -431,16 +457,16 @@ fn print_summary(
 ) {
     println!();
     println!(
-        "{:<14} {:>9} {:>9} {:>10} {:>10} {:>12}",
+        "{:<20} {:>9} {:>9} {:>10} {:>10} {:>12}",
         "node", "frames in", "out", "mean ms", "p99 ms", "latency ms"
     );
     for n in &graph.nodes {
         match stats.get(&n.id) {
             Some(s) => println!(
-                "{:<14} {:>9} {:>9} {:>10.2} {:>10.2} {:>12.1}",
+                "{:<20} {:>9} {:>9} {:>10.2} {:>10.2} {:>12.1}",
                 n.id, s.frames_in, s.frames_out, s.mean_ms, s.p99_ms, s.latency_ms
             ),
-            None => println!("{:<14} (no report)", n.id),
+            None => println!("{:<20} (no report)", n.id),
         }
     }
     let mut drops = Vec::new();

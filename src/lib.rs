@@ -20,6 +20,7 @@ pub mod cells;
 pub mod cli;
 pub mod graph;
 pub mod io;
+pub mod nodes;
 pub mod pipeline;
 pub mod render;
 pub mod synthcmd;

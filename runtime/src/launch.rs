@@ -190,7 +190,7 @@ pub struct NodeSpec {
     pub id: String,
     /// How it runs.
     pub runner: Runner,
-    /// Its inputs.
+    /// Its inputs, in the order its kind declares its input ports.
     pub inputs: Vec<Input>,
     /// Its output ports and their messages.
     pub outputs: Vec<(String, MessageKind)>,
@@ -442,6 +442,8 @@ impl LaunchFile {
                     edge,
                 });
             }
+            // A node reads its inputs in the order its kind declares them.
+            inputs.sort_by_key(|i| spec_inputs.iter().position(|(p, _)| *p == i.port));
             for (p, _) in &spec_inputs {
                 if !n.inputs.contains_key(p) {
                     err(

@@ -34,7 +34,7 @@ pub struct NodeStats {
     pub p99_ms: f64,
     /// Per input `(port, frames that never arrived)`.
     pub drops: Vec<(String, u64)>,
-    /// Mean time from capture to this node's outputs, ms.
+    /// Mean time from capture to the end of this node's step, ms.
     pub latency_ms: f64,
     /// The last frame number handled.
     pub last_frame: Option<u64>,
@@ -50,7 +50,6 @@ pub fn now_ns() -> u64 {
 struct ShmOutputs<'a> {
     pubs: &'a [EdgePublisher],
     sent: u64,
-    latency_sum_ms: f64,
 }
 
 impl Outputs for ShmOutputs<'_> {
@@ -68,7 +67,6 @@ impl Outputs for ShmOutputs<'_> {
         p.send(header, len, |b| fill(b))
             .map_err(|e| e.to_string())?;
         self.sent += 1;
-        self.latency_sum_ms += now_ns().saturating_sub(header.capture_ns) as f64 / 1e6;
         Ok(())
     }
 }
@@ -119,9 +117,9 @@ pub fn run_node(
     let mut out = ShmOutputs {
         pubs: &pubs,
         sent: 0,
-        latency_sum_ms: 0.0,
     };
     let mut times = Vec::new();
+    let mut latencies = Vec::new();
     let mut last_frame = None;
     if subs.is_empty() {
         let period = fps
@@ -142,11 +140,12 @@ pub fn run_node(
                 stopped = true;
                 break;
             }
-            let t = Instant::now();
+            let (t, t_ns) = (Instant::now(), now_ns());
             if !node.produce(seq, &mut out)? {
                 break;
             }
             times.push(t.elapsed().as_secs_f64() * 1e3);
+            latencies.push(now_ns().saturating_sub(t_ns) as f64 / 1e6);
             last_frame = Some(seq);
             seq += 1;
         }
@@ -194,6 +193,7 @@ pub fn run_node(
                 let t = Instant::now();
                 node.step(&msgs, &mut out)?;
                 times.push(t.elapsed().as_secs_f64() * 1e3);
+                latencies.push(now_ns().saturating_sub(msgs[0].header.capture_ns) as f64 / 1e6);
                 last_frame = Some(seq);
                 for p in &mut pending {
                     p.retain(|m| m.user_header().sequence > seq);
@@ -222,10 +222,10 @@ pub fn run_node(
             .zip(&subs)
             .map(|(i, s)| (i.port.clone(), s.dropped()))
             .collect(),
-        latency_ms: if out.sent > 0 {
-            out.latency_sum_ms / out.sent as f64
-        } else {
+        latency_ms: if latencies.is_empty() {
             0.0
+        } else {
+            latencies.iter().sum::<f64>() / latencies.len() as f64
         },
         last_frame,
     })

@@ -155,19 +155,25 @@ pub fn fit_disparity_plane(
     // Integer start: the disparity with the smallest mean squared difference (a sparse
     // sample is plenty for one number).
     let sparse = pixels.len().div_ceil(PLANE_MAX_PIXELS / 8);
+    let sample: Vec<[usize; 2]> = pixels.iter().step_by(sparse).copied().collect();
     let d_start = (range.min..=range.max)
         .map(|d| {
-            let (s, n) = pixels
-                .par_iter()
-                .step_by(sparse)
-                .filter_map(|&[x, y]| {
+            let (s, n) = ordered_sum(
+                &sample,
+                || (0.0f64, 0u64),
+                |a, &[x, y]| {
                     let xr = x as i64 - d as i64;
-                    (xr >= 0 && xr < w as i64).then(|| {
-                        let e = hl.get(x, y) - hr.get(xr as usize, y);
-                        (e as f64 * e as f64, 1u64)
-                    })
-                })
-                .reduce(|| (0.0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
+                    if xr >= 0 && xr < w as i64 {
+                        let e = (hl.get(x, y) - hr.get(xr as usize, y)) as f64;
+                        a.0 += e * e;
+                        a.1 += 1;
+                    }
+                },
+                |a, b| {
+                    a.0 += b.0;
+                    a.1 += b.1;
+                },
+            );
             (if n > 0 { s / n as f64 } else { f64::INFINITY }, d)
         })
         .min_by(|a, b| a.0.total_cmp(&b.0))?
@@ -208,37 +214,31 @@ pub fn fit_disparity_plane(
     let mut k_huber = 1.5 * scale_at(&p);
     let mut solved = None;
     for it in 1..=80 {
-        let (jtj, jte, used) = pixels
-            .par_iter()
-            .fold(
-                || ([[0.0f64; 3]; 3], [0.0f64; 3], 0u64),
-                |(mut a, mut b, n), &[x, y]| {
-                    if let Some((r, j)) = term(&p, x, y) {
-                        let wt = huber(r, k_huber);
-                        for i in 0..3 {
-                            b[i] += wt * j[i] * r;
-                            for c in 0..3 {
-                                a[i][c] += wt * j[i] * j[c];
-                            }
-                        }
-                        (a, b, n + 1)
-                    } else {
-                        (a, b, n)
-                    }
-                },
-            )
-            .reduce(
-                || ([[0.0f64; 3]; 3], [0.0f64; 3], 0u64),
-                |(mut a, mut b, n), (a2, b2, n2)| {
+        let (jtj, jte, used) = ordered_sum(
+            &pixels,
+            || ([[0.0f64; 3]; 3], [0.0f64; 3], 0u64),
+            |(a, b, n), &[x, y]| {
+                if let Some((r, j)) = term(&p, x, y) {
+                    let wt = huber(r, k_huber);
                     for i in 0..3 {
-                        b[i] += b2[i];
+                        b[i] += wt * j[i] * r;
                         for c in 0..3 {
-                            a[i][c] += a2[i][c];
+                            a[i][c] += wt * j[i] * j[c];
                         }
                     }
-                    (a, b, n + n2)
-                },
-            );
+                    *n += 1;
+                }
+            },
+            |(a, b, n), (a2, b2, n2)| {
+                for i in 0..3 {
+                    b[i] += b2[i];
+                    for c in 0..3 {
+                        a[i][c] += a2[i][c];
+                    }
+                }
+                *n += n2;
+            },
+        );
         if used < PLANE_MIN_PIXELS {
             return None;
         }
@@ -278,39 +278,59 @@ pub fn fit_disparity_plane(
     })
 }
 
+/// Adds `add` over `items` in fixed chunks on all cores, then the chunk sums in order: the
+/// result does not depend on how the work was scheduled, so a graph node and its in-process
+/// twin (and two runs) agree to the bit.
+fn ordered_sum<T: Sync, A: Send>(
+    items: &[T],
+    zero: impl Fn() -> A + Sync,
+    add: impl Fn(&mut A, &T) + Sync,
+    merge: impl Fn(&mut A, A),
+) -> A {
+    let parts: Vec<A> = items
+        .par_chunks(4096)
+        .map(|c| {
+            let mut a = zero();
+            for t in c {
+                add(&mut a, t);
+            }
+            a
+        })
+        .collect();
+    let mut total = zero();
+    for p in parts {
+        merge(&mut total, p);
+    }
+    total
+}
+
 /// `JᵀWJ` and `JᵀWe` of residuals `e` with Jacobian rows `j` (∂e/∂p = +j convention: the
 /// step that lowers the cost is `−(JᵀWJ)⁻¹JᵀWe`), Huber-weighted at `k`.
 fn normal_equations<const N: usize>(
     terms: &[(f64, [f64; N])],
     k: f64,
 ) -> (DMatrix<f64>, DVector<f64>) {
-    let (a, b) = terms
-        .par_iter()
-        .fold(
-            || ([[0.0f64; N]; N], [0.0f64; N]),
-            |(mut a, mut b), (e, j)| {
-                let wt = huber(*e, k);
-                for r in 0..N {
-                    b[r] += wt * j[r] * e;
-                    for c in r..N {
-                        a[r][c] += wt * j[r] * j[c];
-                    }
+    let (a, b) = ordered_sum(
+        terms,
+        || ([[0.0f64; N]; N], [0.0f64; N]),
+        |(a, b), (e, j)| {
+            let wt = huber(*e, k);
+            for r in 0..N {
+                b[r] += wt * j[r] * e;
+                for c in r..N {
+                    a[r][c] += wt * j[r] * j[c];
                 }
-                (a, b)
-            },
-        )
-        .reduce(
-            || ([[0.0f64; N]; N], [0.0f64; N]),
-            |(mut a, mut b), (a2, b2)| {
-                for r in 0..N {
-                    b[r] += b2[r];
-                    for c in 0..N {
-                        a[r][c] += a2[r][c];
-                    }
+            }
+        },
+        |(a, b), (a2, b2)| {
+            for r in 0..N {
+                b[r] += b2[r];
+                for c in 0..N {
+                    a[r][c] += a2[r][c];
                 }
-                (a, b)
-            },
-        );
+            }
+        },
+    );
     let m = DMatrix::from_fn(N, N, |r, c| if r <= c { a[r][c] } else { a[c][r] });
     (m, DVector::from_column_slice(&b))
 }

@@ -1,0 +1,273 @@
+//! Graph nodes whose work spans several node libraries: `triangulate` (point cloud and
+//! per-cell 3D targets, with the cells code `reconstruct --cells` uses) and
+//! `manipulator-bridge` (the targets served over TCP as newline-delimited JSON).
+
+use crate::cells::{cell_heights, measure, pair_cells};
+use runtime::step::{GraphNode, Msg, Outputs, params};
+use schemas::wire::{CellLists, json_header, read_planes};
+use schemas::{Calibration, Cell3, DisparityRange, FrameHeader, MessageKind, Plane};
+use serde::{Deserialize, Serialize};
+use std::io::Write;
+use std::net::{TcpListener, TcpStream};
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+
+/// `params` of a triangulate node.
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TriangulateParams {
+    /// A calibration file (as `reconstruct --calibration` reads), or `synthetic` for the
+    /// synthetic capture's optics.
+    #[serde(default = "synthetic")]
+    pub calibration: String,
+    /// Disparities the match nodes search (cells are paired within it).
+    pub min_disparity: i32,
+    /// Largest disparity searched.
+    pub max_disparity: i32,
+    /// Pixels around each cell that count as its substrate ring.
+    #[serde(default = "default_margin")]
+    pub margin: u8,
+}
+
+fn synthetic() -> String {
+    "synthetic".into()
+}
+
+fn default_margin() -> u8 {
+    8
+}
+
+impl TriangulateParams {
+    /// Reads and checks a `params` table.
+    pub fn from_table(t: &toml::Table) -> Result<Self, String> {
+        let p: Self = params(t)?;
+        if p.min_disparity >= p.max_disparity {
+            return Err(format!(
+                "min_disparity {} must be below max_disparity {}",
+                p.min_disparity, p.max_disparity
+            ));
+        }
+        if p.calibration != "synthetic" && !PathBuf::from(&p.calibration).is_file() {
+            return Err(format!(
+                "calibration '{}' is not a file; give a calibration file or \"synthetic\"",
+                p.calibration
+            ));
+        }
+        Ok(p)
+    }
+}
+
+/// What the triangulate node sends on `targets` and the bridge serves: one scene per frame.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Scene {
+    /// Frame number.
+    pub frame: u64,
+    /// Capture time, ns since the Unix epoch.
+    pub capture_ns: u64,
+    /// Unit of every coordinate.
+    pub unit: String,
+    /// Per-cell 3D figures.
+    pub cells: Vec<Cell3>,
+}
+
+/// Triangulates each frame's final map and measures its cells.
+#[derive(Debug)]
+pub struct TriangulateNode {
+    params: TriangulateParams,
+    calibration: Option<Calibration>,
+}
+
+impl TriangulateNode {
+    /// A node with checked parameters.
+    pub fn new(params: TriangulateParams) -> Self {
+        Self {
+            params,
+            calibration: None,
+        }
+    }
+
+    /// The calibration for frames of `w × h` (read once; a file's missing principal point
+    /// defaults to the image centre).
+    fn calibration(&mut self, w: usize, h: usize) -> Result<Calibration, String> {
+        if let Some(c) = self.calibration {
+            return Ok(c);
+        }
+        let c = if self.params.calibration == "synthetic" {
+            synth::Optics {
+                width: w,
+                height: h,
+                ..synth::Optics::default()
+            }
+            .calibration()
+        } else {
+            crate::cli::load_calibration(&PathBuf::from(&self.params.calibration), w, h)
+                .map_err(|e| e.to_string())?
+        };
+        self.calibration = Some(c);
+        Ok(c)
+    }
+}
+
+fn one_map(m: &Msg<'_>) -> Result<Plane<f32>, String> {
+    read_planes::<f32>(&m.header, m.payload)
+        .map_err(|e| e.to_string())?
+        .pop()
+        .ok_or_else(|| "an empty disparity message".into())
+}
+
+impl GraphNode for TriangulateNode {
+    fn step(&mut self, inputs: &[Msg<'_>], out: &mut dyn Outputs) -> Result<(), String> {
+        let [frame, labels, cells, disparity, raw] = inputs else {
+            return Err(format!("triangulate takes 5 inputs, not {}", inputs.len()));
+        };
+        let views = read_planes::<u8>(&frame.header, frame.payload).map_err(|e| e.to_string())?;
+        let [left, right] = views.as_slice() else {
+            return Err("a stereo frame has 2 images".into());
+        };
+        let labels =
+            read_planes::<u32>(&labels.header, labels.payload).map_err(|e| e.to_string())?;
+        let [ll, rl] = labels.as_slice() else {
+            return Err("a label message has 2 images".into());
+        };
+        let lists: CellLists =
+            serde_json::from_slice(cells.payload).map_err(|e| format!("cell list: {e}"))?;
+        let (disp, raw) = (one_map(disparity)?, one_map(raw)?);
+        let calib = self.calibration(left.width, left.height)?;
+        let range = DisparityRange::new(self.params.min_disparity, self.params.max_disparity);
+        let pairs = pair_cells(&lists.left, &lists.right, range, 4.0);
+        let mask = |l: &Plane<u32>| {
+            Plane::from_vec(
+                l.width,
+                l.height,
+                l.data
+                    .iter()
+                    .map(|&v| if v > 0 { 255 } else { 0 })
+                    .collect(),
+            )
+            .expect("size")
+        };
+        let mut times = runtime::StageTimes::default();
+        let (_, bases, tops) = cell_heights(
+            (left, right),
+            (ll, &mask(ll), &mask(rl)),
+            &lists.left,
+            &pairs,
+            (&disp, &raw),
+            range,
+            self.params.margin,
+            &mut times,
+        );
+        let measured = measure(
+            (ll, &lists.left, &lists.right),
+            &pairs,
+            (&disp, &raw),
+            (&bases, &tops),
+            &calib,
+        );
+        // The cloud: xyz as f32 for every valid pixel, then its grey level as RGB.
+        let rgb = Plane::from_vec(
+            left.width,
+            left.height,
+            left.data.iter().map(|&g| [g, g, g]).collect(),
+        )
+        .expect("size");
+        let cloud = triangulate::triangulate(&disp, &calib, &rgb);
+        let n = cloud.points.len();
+        let h = FrameHeader {
+            sequence: frame.header.sequence,
+            capture_ns: frame.header.capture_ns,
+            width: n as u32,
+            height: 1,
+            stride: 15,
+            format: schemas::PixelFormat::F32 as u32,
+            kind: MessageKind::PointCloud as u32,
+            images: 0,
+        };
+        out.send(0, h, n * 15, &mut |b| {
+            for (k, p) in cloud.points.iter().enumerate() {
+                let o = &mut b[k * 15..k * 15 + 15];
+                o[0..4].copy_from_slice(&(p.x as f32).to_le_bytes());
+                o[4..8].copy_from_slice(&(p.y as f32).to_le_bytes());
+                o[8..12].copy_from_slice(&(p.z as f32).to_le_bytes());
+                o[12..15].copy_from_slice(&p.rgb);
+            }
+        })?;
+        let scene = serde_json::to_vec(&Scene {
+            frame: frame.header.sequence,
+            capture_ns: frame.header.capture_ns,
+            unit: calib.unit.symbol().into(),
+            cells: measured,
+        })
+        .map_err(|e| e.to_string())?;
+        let h = FrameHeader {
+            sequence: frame.header.sequence,
+            capture_ns: frame.header.capture_ns,
+            ..json_header(MessageKind::Targets)
+        };
+        out.send(1, h, scene.len(), &mut |b| b.copy_from_slice(&scene))
+    }
+}
+
+/// `params` of a manipulator-bridge node.
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BridgeParams {
+    /// Address to listen on for controllers.
+    #[serde(default = "default_listen")]
+    pub listen: String,
+}
+
+fn default_listen() -> String {
+    "127.0.0.1:7878".into()
+}
+
+impl BridgeParams {
+    /// Reads and checks a `params` table.
+    pub fn from_table(t: &toml::Table) -> Result<Self, String> {
+        let p: Self = params(t)?;
+        p.listen
+            .parse::<std::net::SocketAddr>()
+            .map_err(|e| format!("listen '{}' is not an address: {e}", p.listen))?;
+        Ok(p)
+    }
+}
+
+/// Serves each frame's scene to every connected controller as one JSON line.
+#[derive(Debug)]
+pub struct BridgeNode {
+    clients: Arc<Mutex<Vec<TcpStream>>>,
+    /// Where it listens (the port is chosen by the system when the address says 0).
+    pub addr: std::net::SocketAddr,
+}
+
+impl BridgeNode {
+    /// Starts listening; controllers may connect at any time.
+    pub fn new(p: &BridgeParams) -> Result<Self, String> {
+        let listener = TcpListener::bind(&p.listen)
+            .map_err(|e| format!("cannot listen on {}: {e}", p.listen))?;
+        let addr = listener.local_addr().map_err(|e| e.to_string())?;
+        let clients: Arc<Mutex<Vec<TcpStream>>> = Arc::default();
+        let c = clients.clone();
+        std::thread::spawn(move || {
+            for s in listener.incoming().flatten() {
+                let _ = s.set_nodelay(true);
+                c.lock().expect("clients").push(s);
+            }
+        });
+        Ok(Self { clients, addr })
+    }
+}
+
+impl GraphNode for BridgeNode {
+    fn step(&mut self, inputs: &[Msg<'_>], _out: &mut dyn Outputs) -> Result<(), String> {
+        let scene = &inputs[0];
+        let mut line = scene.payload.to_vec();
+        line.push(b'\n');
+        // A controller that went away is dropped; the others keep their feed.
+        self.clients
+            .lock()
+            .expect("clients")
+            .retain_mut(|s| s.write_all(&line).is_ok());
+        Ok(())
+    }
+}
