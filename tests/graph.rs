@@ -214,3 +214,61 @@ fn one_process_per_node_and_none_left_when_the_supervisor_is_killed() {
     );
     assert!(String::from_utf8_lossy(&out.stdout).contains("2 frame(s) of 2"));
 }
+
+#[test]
+fn the_bridge_serves_one_json_scene_per_frame_to_a_tcp_controller() {
+    use std::io::BufRead;
+    // A free port for the bridge.
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let dir = tempfile::tempdir().unwrap();
+    let small = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/graph/small.toml"),
+    )
+    .unwrap()
+    .replace("127.0.0.1:0", &format!("127.0.0.1:{port}"))
+    // The capture paces itself so that the controller connects before the last frame.
+    .replace("drift = 2.0 }", "drift = 2.0, fps = 10.0 }");
+    let file = dir.path().join("bridge.toml");
+    std::fs::write(&file, small).unwrap();
+    let run = Command::new(bin())
+        .args(["run", file.to_str().unwrap(), "--frames", "6"])
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let start = Instant::now();
+    let stream = loop {
+        match std::net::TcpStream::connect(("127.0.0.1", port)) {
+            Ok(s) => break s,
+            Err(_) if start.elapsed() < Duration::from_secs(20) => {
+                std::thread::sleep(Duration::from_millis(20))
+            }
+            Err(e) => panic!("no bridge on port {port}: {e}"),
+        }
+    };
+    stream
+        .set_read_timeout(Some(Duration::from_secs(30)))
+        .unwrap();
+    let mut frames = Vec::new();
+    for line in std::io::BufReader::new(stream).lines() {
+        let Ok(line) = line else { break };
+        let scene: serde_json::Value = serde_json::from_str(&line).unwrap();
+        assert_eq!(scene["unit"], "µm");
+        let cells = scene["cells"].as_array().unwrap();
+        assert_eq!(cells.len(), 3, "{line}");
+        for c in cells {
+            assert!(c["height"].as_f64().unwrap() > 5.0);
+            assert_eq!(c["centroid"].as_array().unwrap().len(), 3);
+            assert!(!c["contour"].as_array().unwrap().is_empty());
+        }
+        frames.push(scene["frame"].as_u64().unwrap());
+    }
+    let out = run.wait_with_output().unwrap();
+    assert!(out.status.success());
+    // Frames arrive in order, the last one included; the first may pass before we connect.
+    assert!(frames.windows(2).all(|w| w[1] == w[0] + 1), "{frames:?}");
+    assert_eq!(frames.last(), Some(&5), "{frames:?}");
+}
