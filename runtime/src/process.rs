@@ -114,6 +114,28 @@ pub fn run_node(
         })
         .collect::<Result<Vec<_>, _>>()
         .map_err(|e| e.to_string())?;
+    // A frame sent before a reader connects never reaches it (edges keep no history): wait
+    // until every reader the graph names is there. Only at start, so a short sleep is fine.
+    let expected: Vec<usize> = spec
+        .outputs
+        .iter()
+        .map(|(port, _)| {
+            graph
+                .nodes
+                .iter()
+                .flat_map(|n| &n.inputs)
+                .filter(|i| i.node == id && i.output == *port)
+                .count()
+        })
+        .collect();
+    let t0 = Instant::now();
+    while pubs.iter().zip(&expected).any(|(p, &e)| p.readers() < e) {
+        if t0.elapsed() > Duration::from_secs(30) {
+            eprintln!("warning: not every reader connected within 30 s; sending anyway");
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(2));
+    }
     let mut out = ShmOutputs {
         pubs: &pubs,
         sent: 0,

@@ -167,6 +167,7 @@ impl Transport {
             edge: edge.into(),
             publisher,
             notifier,
+            service: pubsub,
         })
     }
 
@@ -203,6 +204,7 @@ pub struct EdgePublisher {
     edge: String,
     publisher: Publisher<Service, [u8], FrameHeader>,
     notifier: Notifier<Service>,
+    service: EdgeData,
 }
 
 impl EdgePublisher {
@@ -231,6 +233,12 @@ impl EdgePublisher {
     /// The edge's name.
     pub fn edge(&self) -> &str {
         &self.edge
+    }
+
+    /// Readers connected to the edge now.
+    pub fn readers(&self) -> usize {
+        use iceoryx2::service::port_factory::PortFactory;
+        self.service.dynamic_config().number_of_subscribers()
     }
 }
 
