@@ -26,7 +26,7 @@ pub const KINDS: &[&str] = &[
 ];
 
 fn ok_capture(t: &toml::Table) -> Result<(), String> {
-    synth::node::CaptureParams::from_table(t).map(|_| ())
+    capture::check_params(t)
 }
 fn ok_segment(t: &toml::Table) -> Result<(), String> {
     segment::node::params_from_table(t).map(|_| ())
@@ -97,9 +97,7 @@ pub fn kind_spec(kind: &str) -> Option<KindSpec> {
 /// Builds the node value of a built-in kind from its (validated) parameters.
 pub fn build(kind: &str, params: &toml::Table) -> Result<Box<dyn GraphNode>, String> {
     Ok(match kind {
-        "capture" => Box::new(synth::node::SyntheticCapture::new(
-            &synth::node::CaptureParams::from_table(params)?,
-        )),
+        "capture" => capture::build(params)?,
         "segment" => Box::new(segment::node::SegmentNode {
             params: segment::node::params_from_table(params)?,
         }),

@@ -17,8 +17,6 @@
 //! Ground truth: the left disparity and depth at every pixel centre, the left cell labels,
 //! and per cell its centroid, area, height, volume and 3D centroid.
 
-pub mod node;
-
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;

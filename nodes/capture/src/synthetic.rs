@@ -1,18 +1,18 @@
 //! The capture node's synthetic source: one rendered stereo-microscope frame per step, the
 //! cells drifting and an optional pipette advancing from frame to frame.
 
-use crate::{CellSpec, Look, Optics, Pipette, Scene};
 use runtime::process::now_ns;
 use runtime::step::{GraphNode, Outputs, params};
 use schemas::MessageKind;
 use schemas::wire::{planes_header, write_planes};
 use serde::Deserialize;
+use synth::{CellSpec, Look, Optics, Pipette, Scene};
 
-/// `params` of a `capture` node.
+/// `params` of a `capture` node with `source = "synthetic"`.
 #[derive(Clone, Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
-pub struct CaptureParams {
-    /// Where frames come from: `synthetic`.
+pub struct SyntheticParams {
+    /// `synthetic`.
     #[serde(default = "synthetic")]
     pub source: String,
     /// Frame width, px.
@@ -57,16 +57,10 @@ fn default_drift() -> f64 {
     1.0
 }
 
-impl CaptureParams {
+impl SyntheticParams {
     /// Reads and checks a `params` table.
     pub fn from_table(t: &toml::Table) -> Result<Self, String> {
         let p: Self = params(t)?;
-        if p.source != "synthetic" {
-            return Err(format!(
-                "source '{}' is not available; use source = \"synthetic\"",
-                p.source
-            ));
-        }
         if !(16..=8192).contains(&p.width) || !(16..=8192).contains(&p.height) {
             return Err(format!(
                 "{}×{} is not a frame size (16..8192)",
@@ -90,7 +84,7 @@ pub struct SyntheticCapture {
 
 impl SyntheticCapture {
     /// The scene the parameters describe.
-    pub fn new(p: &CaptureParams) -> Self {
+    pub fn new(p: &SyntheticParams) -> Self {
         let optics = Optics {
             width: p.width,
             height: p.height,

@@ -1,0 +1,41 @@
+//! The capture node: where the graph's stereo frames come from.
+//!
+//! - `source = "synthetic"` ([`synthetic`]): the synthetic stereo microscope, cells drifting
+//!   and an optional pipette advancing from frame to frame (the embedded default);
+//! - `source = "files"` ([`files`]): rectified image pairs on disk, named by two glob
+//!   patterns (`*` and `?` in the file name), paired in sorted order, optionally looped.
+
+pub mod files;
+pub mod synthetic;
+
+use runtime::step::GraphNode;
+
+/// Checks a capture node's `params`.
+pub fn check_params(t: &toml::Table) -> Result<(), String> {
+    build(t).map(|_| ())
+}
+
+/// The capture node its `params` describe.
+pub fn build(t: &toml::Table) -> Result<Box<dyn GraphNode>, String> {
+    match t
+        .get("source")
+        .and_then(|v| v.as_str())
+        .unwrap_or("synthetic")
+    {
+        "synthetic" => Ok(Box::new(synthetic::SyntheticCapture::new(
+            &synthetic::SyntheticParams::from_table(t)?,
+        ))),
+        "files" => Ok(Box::new(files::FileCapture::new(
+            files::FileParams::from_table(t)?,
+        )?)),
+        other => Err(format!(
+            "source '{other}' is not available; use \"synthetic\" or \"files\""
+        )),
+    }
+}
+
+/// Frames per second a capture node's `params` ask for, if any.
+pub fn fps(t: &toml::Table) -> Option<f64> {
+    t.get("fps")
+        .and_then(|v| v.as_float().or(v.as_integer().map(|i| i as f64)))
+}
