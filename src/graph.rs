@@ -194,6 +194,47 @@ pub fn node_cmd(a: NodeArgs) -> Result<(), CliError> {
     Ok(())
 }
 
+/// The command line the supervisor gives an `exec` node.
+#[derive(clap::Parser, Debug)]
+struct ExecCli {
+    #[command(flatten)]
+    args: NodeArgs,
+}
+
+/// The whole `main` of a custom node binary (an `exec` node in a launch file): reads the
+/// arguments the supervisor passes (`--launch`, `--id`, `--instance`, `--frames`), builds the
+/// node with `make` from its launch-file entry, runs it on the graph's shared memory and
+/// prints its statistics for the summary. Returns the process exit code.
+pub fn exec_main(
+    make: impl FnOnce(&runtime::launch::NodeSpec) -> Result<Box<dyn GraphNode>, String>,
+) -> i32 {
+    use clap::Parser;
+    set_parent_death_signal();
+    let a = ExecCli::parse().args;
+    let run = || -> Result<NodeStats, CliError> {
+        let graph = load(&a.launch)?;
+        let spec = graph.node(&a.id).ok_or_else(|| {
+            CliError::Other(format!("no node '{}' in {}", a.id, a.launch.display()))
+        })?;
+        let mut node = make(spec).map_err(CliError::Other)?;
+        runtime::process::run_node(&graph, &a.instance, &a.id, node.as_mut(), a.frames, None)
+            .map_err(|e| CliError::Other(format!("node '{}': {e}", a.id)))
+    };
+    match run() {
+        Ok(stats) => {
+            println!(
+                "{STATS_PREFIX}{}",
+                serde_json::to_string(&stats).expect("serialises")
+            );
+            0
+        }
+        Err(e) => {
+            eprintln!("error: {e}");
+            2
+        }
+    }
+}
+
 /// A child dies with its parent, even when the parent is killed with SIGKILL.
 fn set_parent_death_signal() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
