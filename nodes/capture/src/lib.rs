@@ -3,8 +3,12 @@
 //! - `source = "synthetic"` ([`synthetic`]): the synthetic stereo microscope, cells drifting
 //!   and an optional pipette advancing from frame to frame (the embedded default);
 //! - `source = "files"` ([`files`]): rectified image pairs on disk, named by two glob
-//!   patterns (`*` and `?` in the file name), paired in sorted order, optionally looped.
+//!   patterns (`*` and `?` in the file name), paired in sorted order, optionally looped;
+//! - `source = "v4l"` (`camera`, cargo feature `v4l`): two V4L2 cameras, paired by driver
+//!   timestamp.
 
+#[cfg(feature = "v4l")]
+pub mod camera;
 pub mod files;
 pub mod synthetic;
 
@@ -28,8 +32,14 @@ pub fn build(t: &toml::Table) -> Result<Box<dyn GraphNode>, String> {
         "files" => Ok(Box::new(files::FileCapture::new(
             files::FileParams::from_table(t)?,
         )?)),
+        #[cfg(feature = "v4l")]
+        "v4l" => Ok(Box::new(camera::CameraCapture::new(
+            &camera::CameraParams::from_table(t)?,
+        )?)),
+        #[cfg(not(feature = "v4l"))]
+        "v4l" => Err("this build has no camera support; build with --features v4l".into()),
         other => Err(format!(
-            "source '{other}' is not available; use \"synthetic\" or \"files\""
+            "source '{other}' is not available; use \"synthetic\", \"files\" or \"v4l\""
         )),
     }
 }
