@@ -19,6 +19,8 @@ for i in list(range(1,10))+list(range(11,15)):
     if not(ok1 and ok2): continue
     crit=(cv2.TERM_CRITERIA_EPS+cv2.TERM_CRITERIA_MAX_ITER,30,1e-3)
     c1=cv2.cornerSubPix(l,c1,(11,11),(-1,-1),crit); c2=cv2.cornerSubPix(r,c2,(11,11),(-1,-1),crit)
+    # The detector may list one view's corners from the other end of the board.
+    if np.dot((c1[8]-c1[0]).ravel(),(c2[8]-c2[0]).ravel())<0: c2=c2[::-1].copy()
     O.append(objp);L.append(c1);R.append(c2);names.append(i)
 sz=(640,480)
 _,K1,D1,_,_=cv2.calibrateCamera(O,L,sz,None,None)
