@@ -16,6 +16,7 @@ use tokio::io::{AsyncBufReadExt, BufReader};
 /// The built-in node kinds, in pipeline order.
 pub const KINDS: &[&str] = &[
     "capture",
+    "rectify",
     "segment",
     "match-lr",
     "match-rl",
@@ -27,6 +28,9 @@ pub const KINDS: &[&str] = &[
 
 fn ok_capture(t: &toml::Table) -> Result<(), String> {
     capture::check_params(t)
+}
+fn ok_rectify(t: &toml::Table) -> Result<(), String> {
+    rectify::node::RectifyNode::from_table(t).map(|_| ())
 }
 fn ok_segment(t: &toml::Table) -> Result<(), String> {
     segment::node::params_from_table(t).map(|_| ())
@@ -58,6 +62,11 @@ pub fn kind_spec(kind: &str) -> Option<KindSpec> {
     };
     Some(match kind {
         "capture" => spec(vec![], vec![("frame", M::StereoFrame)], ok_capture),
+        "rectify" => spec(
+            vec![("frame", M::StereoFrame)],
+            vec![("frame", M::StereoFrame)],
+            ok_rectify,
+        ),
         "segment" => spec(
             vec![("frame", M::StereoFrame)],
             vec![("labels", M::Labels), ("cells", M::CellList)],
@@ -98,6 +107,7 @@ pub fn kind_spec(kind: &str) -> Option<KindSpec> {
 pub fn build(kind: &str, params: &toml::Table) -> Result<Box<dyn GraphNode>, String> {
     Ok(match kind {
         "capture" => capture::build(params)?,
+        "rectify" => Box::new(rectify::node::RectifyNode::from_table(params)?),
         "segment" => Box::new(segment::node::SegmentNode {
             params: segment::node::params_from_table(params)?,
         }),

@@ -1,0 +1,291 @@
+//! Stereo rectification for microstereo: Bouguet's method, as OpenCV's `stereoRectify`.
+//!
+//! [`StereoCalibration::from_opencv_yaml`] reads K1, D1, K2, D2, R, T (OpenCV's
+//! `FileStorage` YAML); [`Rectification::bouguet`] turns both cameras by half the relative
+//! rotation and then onto the baseline, so that epipolar lines become image rows, with one
+//! new camera matrix for both views; [`Rectification::point`] maps a pixel; [`RemapLut`]
+//! resamples whole images (bilinear) from a table built once.
+
+pub mod node;
+
+use nalgebra::{Matrix3, Rotation3, Vector3};
+
+/// Intrinsics, distortion and relative pose of a stereo pair.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StereoCalibration {
+    /// Left camera matrix.
+    pub k1: Matrix3<f64>,
+    /// Left distortion `k1 k2 p1 p2 [k3]`.
+    pub d1: Vec<f64>,
+    /// Right camera matrix.
+    pub k2: Matrix3<f64>,
+    /// Right distortion.
+    pub d2: Vec<f64>,
+    /// Rotation from the left camera's frame to the right's.
+    pub r: Matrix3<f64>,
+    /// Translation from the left camera's frame to the right's.
+    pub t: Vector3<f64>,
+    /// Image size `(width, height)`.
+    pub size: (usize, usize),
+}
+
+/// The numbers of an `!!opencv-matrix` named `key` in OpenCV YAML text.
+fn opencv_matrix(text: &str, key: &str) -> Result<Vec<f64>, String> {
+    let start = text
+        .find(&format!("\n{key}:"))
+        .ok_or_else(|| format!("no '{key}' matrix"))?;
+    let rest = &text[start..];
+    let data = rest
+        .find("data:")
+        .ok_or_else(|| format!("'{key}' has no data"))?;
+    let open = rest[data..]
+        .find('[')
+        .ok_or_else(|| format!("'{key}': no '['"))?
+        + data;
+    let close = rest[open..]
+        .find(']')
+        .ok_or_else(|| format!("'{key}': no ']'"))?
+        + open;
+    rest[open + 1..close]
+        .split(',')
+        .map(|v| {
+            v.trim()
+                .parse::<f64>()
+                .map_err(|e| format!("'{key}': '{}' is not a number: {e}", v.trim()))
+        })
+        .collect()
+}
+
+fn scalar(text: &str, key: &str) -> Result<usize, String> {
+    text.lines()
+        .find_map(|l| l.strip_prefix(&format!("{key}:")))
+        .ok_or_else(|| format!("no '{key}'"))?
+        .trim()
+        .parse()
+        .map_err(|e| format!("'{key}': {e}"))
+}
+
+impl StereoCalibration {
+    /// Reads OpenCV `FileStorage` YAML with K1, D1, K2, D2, R, T, image_width, image_height.
+    pub fn from_opencv_yaml(text: &str) -> Result<Self, String> {
+        let text = format!("\n{text}");
+        let m3 = |k: &str| -> Result<Matrix3<f64>, String> {
+            let v = opencv_matrix(&text, k)?;
+            if v.len() != 9 {
+                return Err(format!("'{k}' has {} numbers, a 3×3 matrix 9", v.len()));
+            }
+            Ok(Matrix3::from_row_slice(&v))
+        };
+        let dist = |k: &str| -> Result<Vec<f64>, String> {
+            let v = opencv_matrix(&text, k)?;
+            if !(4..=5).contains(&v.len()) {
+                return Err(format!(
+                    "'{k}' has {} coefficients; 4 or 5 are read",
+                    v.len()
+                ));
+            }
+            Ok(v)
+        };
+        let (k1, d1, k2, d2, r) = (m3("K1")?, dist("D1")?, m3("K2")?, dist("D2")?, m3("R")?);
+        let t = opencv_matrix(&text, "T")?;
+        if t.len() != 3 {
+            return Err(format!("'T' has {} numbers, not 3", t.len()));
+        }
+        Ok(Self {
+            k1,
+            d1,
+            k2,
+            d2,
+            r,
+            t: Vector3::new(t[0], t[1], t[2]),
+            size: (
+                scalar(&text, "image_width")?,
+                scalar(&text, "image_height")?,
+            ),
+        })
+    }
+}
+
+/// Applies radial-tangential distortion to normalised coordinates.
+fn distort(d: &[f64], x: f64, y: f64) -> (f64, f64) {
+    let (k1, k2, p1, p2) = (d[0], d[1], d[2], d[3]);
+    let k3 = d.get(4).copied().unwrap_or(0.0);
+    let r2 = x * x + y * y;
+    let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
+    (
+        x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
+        y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y,
+    )
+}
+
+/// Inverts [`distort`] by fixed-point iteration (as OpenCV's `undistortPoints`).
+fn undistort(d: &[f64], xd: f64, yd: f64) -> (f64, f64) {
+    let (mut x, mut y) = (xd, yd);
+    for _ in 0..20 {
+        let (dx, dy) = distort(d, x, y);
+        x += xd - dx;
+        y += yd - dy;
+    }
+    (x, y)
+}
+
+/// Both views' rectifying rotations and the shared new camera.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Rectification {
+    /// Rotation applied to the left camera.
+    pub r1: Matrix3<f64>,
+    /// Rotation applied to the right camera.
+    pub r2: Matrix3<f64>,
+    /// Focal length of the rectified views, px.
+    pub f: f64,
+    /// Principal point of the rectified views `[cx, cy]`.
+    pub c: [f64; 2],
+    /// Baseline along the rectified x axis (`T` turned by `r2`), calibration units.
+    pub baseline: f64,
+    calib: StereoCalibration,
+}
+
+impl Rectification {
+    /// Bouguet's rectification of `calib`.
+    pub fn bouguet(calib: &StereoCalibration) -> Self {
+        // Half of the relative rotation each, in opposite senses.
+        let om = Rotation3::from_matrix_unchecked(calib.r).scaled_axis();
+        let r_r = Rotation3::new(-0.5 * om);
+        let t = r_r * calib.t;
+        // Then both onto the baseline (horizontal).
+        let uu = Vector3::new(t.x.signum(), 0.0, 0.0);
+        let ww = t.cross(&uu);
+        let nw = ww.norm();
+        let w_r = if nw > 0.0 {
+            Rotation3::new(ww * ((t.x.abs() / t.norm()).acos() / nw))
+        } else {
+            Rotation3::identity()
+        };
+        let r1 = (w_r * r_r.inverse()).into_inner();
+        let r2 = (w_r * r_r).into_inner();
+        // One camera for both: the smaller vertical focal length (no view is enlarged), the
+        // mean principal point.
+        let f = calib.k1[(1, 1)].min(calib.k2[(1, 1)]);
+        let c = [
+            0.5 * (calib.k1[(0, 2)] + calib.k2[(0, 2)]),
+            0.5 * (calib.k1[(1, 2)] + calib.k2[(1, 2)]),
+        ];
+        Self {
+            r1,
+            r2,
+            f,
+            c,
+            baseline: (r2 * calib.t).x.abs(),
+            calib: calib.clone(),
+        }
+    }
+
+    /// Where pixel `(x, y)` of the original left (`right == false`) or right view lands in
+    /// the rectified view.
+    pub fn point(&self, right: bool, x: f64, y: f64) -> (f64, f64) {
+        let (k, d, r) = if right {
+            (&self.calib.k2, &self.calib.d2, &self.r2)
+        } else {
+            (&self.calib.k1, &self.calib.d1, &self.r1)
+        };
+        let xd = (x - k[(0, 2)] - k[(0, 1)] / k[(1, 1)] * (y - k[(1, 2)])) / k[(0, 0)];
+        let yd = (y - k[(1, 2)]) / k[(1, 1)];
+        let (xu, yu) = undistort(d, xd, yd);
+        let p = r * Vector3::new(xu, yu, 1.0);
+        (
+            self.c[0] + self.f * p.x / p.z,
+            self.c[1] + self.f * p.y / p.z,
+        )
+    }
+
+    /// Where rectified pixel `(u, v)` comes from in the original view.
+    pub fn source(&self, right: bool, u: f64, v: f64) -> (f64, f64) {
+        let (k, d, r) = if right {
+            (&self.calib.k2, &self.calib.d2, &self.r2)
+        } else {
+            (&self.calib.k1, &self.calib.d1, &self.r1)
+        };
+        let ray =
+            r.transpose() * Vector3::new((u - self.c[0]) / self.f, (v - self.c[1]) / self.f, 1.0);
+        let (x, y) = distort(d, ray.x / ray.z, ray.y / ray.z);
+        (
+            k[(0, 0)] * x + k[(0, 1)] * y + k[(0, 2)],
+            k[(1, 1)] * y + k[(1, 2)],
+        )
+    }
+}
+
+/// A precomputed resampling table for one view.
+#[derive(Clone, Debug)]
+pub struct RemapLut {
+    width: usize,
+    height: usize,
+    /// Per output pixel: source `(x, y)`, or NaN outside the image.
+    map: Vec<(f32, f32)>,
+}
+
+impl RemapLut {
+    /// The table of view `right` for output images of `width × height`.
+    pub fn new(rect: &Rectification, right: bool, width: usize, height: usize) -> Self {
+        let map = (0..height)
+            .flat_map(|v| (0..width).map(move |u| (u, v)))
+            .map(|(u, v)| {
+                let (x, y) = rect.source(right, u as f64, v as f64);
+                (x as f32, y as f32)
+            })
+            .collect();
+        Self { width, height, map }
+    }
+
+    /// Resamples `img` (bilinear; 0 outside the source).
+    pub fn apply(&self, img: &schemas::Plane<u8>) -> schemas::Plane<u8> {
+        let (w, h) = (img.width as f32, img.height as f32);
+        let data = self
+            .map
+            .iter()
+            .map(|&(x, y)| {
+                if !(x >= 0.0 && y >= 0.0 && x <= w - 1.0 && y <= h - 1.0) {
+                    return 0;
+                }
+                let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+                let (x1, y1) = ((x0 + 1).min(img.width - 1), (y0 + 1).min(img.height - 1));
+                let (fx, fy) = (x - x0 as f32, y - y0 as f32);
+                let g = |xx, yy| *img.get(xx, yy) as f32;
+                let top = g(x0, y0) * (1.0 - fx) + g(x1, y0) * fx;
+                let bot = g(x0, y1) * (1.0 - fx) + g(x1, y1) * fx;
+                (top * (1.0 - fy) + bot * fy).round().clamp(0.0, 255.0) as u8
+            })
+            .collect();
+        schemas::Plane::from_vec(self.width, self.height, data).expect("size")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn distortion_round_trips_and_an_aligned_pair_is_left_alone() {
+        let d = [-0.27, 0.1, 0.001, -0.0005, -0.02];
+        for (x, y) in [(0.0, 0.0), (0.3, -0.2), (-0.5, 0.4)] {
+            let (xd, yd) = distort(&d, x, y);
+            let (xu, yu) = undistort(&d, xd, yd);
+            assert!((xu - x).abs() < 1e-9 && (yu - y).abs() < 1e-9, "{x} {y}");
+        }
+        let k = Matrix3::new(500.0, 0.0, 320.0, 0.0, 500.0, 240.0, 0.0, 0.0, 1.0);
+        let cal = StereoCalibration {
+            k1: k,
+            d1: vec![0.0; 5],
+            k2: k,
+            d2: vec![0.0; 5],
+            r: Matrix3::identity(),
+            t: Vector3::new(-60.0, 0.0, 0.0),
+            size: (640, 480),
+        };
+        let rect = Rectification::bouguet(&cal);
+        assert!((rect.r1 - Matrix3::identity()).norm() < 1e-12);
+        assert!((rect.r2 - Matrix3::identity()).norm() < 1e-12);
+        assert_eq!(rect.point(true, 100.0, 50.0), (100.0, 50.0));
+        assert!((rect.baseline - 60.0).abs() < 1e-12);
+    }
+}

@@ -1,0 +1,72 @@
+//! The rectify node: a stereo frame in, the rectified frame out (the same frame when no
+//! calibration is given: the input is already rectified).
+
+use crate::{Rectification, RemapLut, StereoCalibration};
+use runtime::step::{GraphNode, Msg, Outputs, params};
+use schemas::MessageKind;
+use schemas::wire::{planes_header, read_planes, write_planes};
+use serde::Deserialize;
+
+/// `params` of a rectify node.
+#[derive(Clone, Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RectifyParams {
+    /// OpenCV YAML with K1, D1, K2, D2, R, T (none: pass frames through).
+    #[serde(default)]
+    pub calibration: Option<String>,
+}
+
+/// Rectifies each frame with tables built once.
+#[derive(Debug)]
+pub struct RectifyNode {
+    luts: Option<(RemapLut, RemapLut, (usize, usize))>,
+}
+
+impl RectifyNode {
+    /// Reads the calibration (if any) and builds both tables.
+    pub fn from_table(t: &toml::Table) -> Result<Self, String> {
+        let p: RectifyParams = params(t)?;
+        let luts = match &p.calibration {
+            None => None,
+            Some(path) => {
+                let text = std::fs::read_to_string(path)
+                    .map_err(|e| format!("cannot read calibration '{path}': {e}"))?;
+                let cal = StereoCalibration::from_opencv_yaml(&text)
+                    .map_err(|e| format!("calibration '{path}': {e}"))?;
+                let rect = Rectification::bouguet(&cal);
+                let (w, h) = cal.size;
+                Some((
+                    RemapLut::new(&rect, false, w, h),
+                    RemapLut::new(&rect, true, w, h),
+                    (w, h),
+                ))
+            }
+        };
+        Ok(Self { luts })
+    }
+}
+
+impl GraphNode for RectifyNode {
+    fn step(&mut self, inputs: &[Msg<'_>], out: &mut dyn Outputs) -> Result<(), String> {
+        let m = &inputs[0];
+        let Some((ll, rl, size)) = &self.luts else {
+            return out.send(0, m.header, m.payload.len(), &mut |b| {
+                b.copy_from_slice(m.payload)
+            });
+        };
+        let views = read_planes::<u8>(&m.header, m.payload).map_err(|e| e.to_string())?;
+        let [l, r] = views.as_slice() else {
+            return Err("a stereo frame has 2 images".into());
+        };
+        if (l.width, l.height) != *size {
+            return Err(format!(
+                "frames are {}×{} but the calibration is for {}×{}",
+                l.width, l.height, size.0, size.1
+            ));
+        }
+        let (lo, ro) = (ll.apply(l), rl.apply(r));
+        let (mut h, len) = planes_header(MessageKind::StereoFrame, &[&lo, &ro]);
+        (h.sequence, h.capture_ns) = (m.header.sequence, m.header.capture_ns);
+        out.send(0, h, len, &mut |b| write_planes(&[&lo, &ro], b))
+    }
+}

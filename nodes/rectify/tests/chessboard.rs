@@ -1,0 +1,122 @@
+//! Bouguet rectification on a real calibration (OpenCV's chessboard pairs, computed once by
+//! scripts/stereo_calibration_fixture.py): the rotations agree with OpenCV's, and the corners
+//! of every pair land on the same rows.
+
+use rectify::{Rectification, StereoCalibration};
+
+fn data(name: &str) -> String {
+    std::fs::read_to_string(format!(
+        "{}/../../tests/data/calibration/{name}",
+        env!("CARGO_MANIFEST_DIR")
+    ))
+    .unwrap()
+}
+
+fn matrix(text: &str, key: &str) -> Vec<f64> {
+    let i = text.find(&format!("{key}:")).unwrap();
+    let rest = &text[i..];
+    let (a, b) = (rest.find('[').unwrap(), rest.find(']').unwrap());
+    rest[a + 1..b]
+        .split(',')
+        .map(|v| v.trim().parse().unwrap())
+        .collect()
+}
+
+#[test]
+fn rotations_match_opencv_and_corners_share_rows() {
+    let yaml = data("opencv_chessboard_stereo.yaml");
+    let cal = StereoCalibration::from_opencv_yaml(&yaml).unwrap();
+    assert_eq!(cal.size, (640, 480));
+    let rect = Rectification::bouguet(&cal);
+    for (ours, key) in [(&rect.r1, "R1"), (&rect.r2, "R2")] {
+        let cv = matrix(&yaml, key);
+        for r in 0..3 {
+            for c in 0..3 {
+                assert!(
+                    (ours[(r, c)] - cv[r * 3 + c]).abs() < 1e-9,
+                    "{key} ({r},{c})"
+                );
+            }
+        }
+    }
+    assert!((rect.baseline - 83.6).abs() < 0.1, "{}", rect.baseline);
+    let pairs: Vec<serde_json::Value> =
+        serde_json::from_str(&data("opencv_chessboard_corners.json")).unwrap();
+    let mut all = Vec::new();
+    for p in &pairs {
+        let (l, r) = (
+            p["left"].as_array().unwrap(),
+            p["right"].as_array().unwrap(),
+        );
+        let mut worst: f64 = 0.0;
+        for (a, b) in l.iter().zip(r) {
+            let (_, yl) = rect.point(false, a[0].as_f64().unwrap(), a[1].as_f64().unwrap());
+            let (_, yr) = rect.point(true, b[0].as_f64().unwrap(), b[1].as_f64().unwrap());
+            worst = worst.max((yl - yr).abs());
+            all.push((yl - yr).abs());
+        }
+        // As close as OpenCV's own rectification of the same corners gets (its new camera
+        // differs a little from ours, so within 10 %).
+        let cv = p["opencv_dy_max"].as_f64().unwrap();
+        assert!(
+            worst <= 1.1 * cv + 0.02,
+            "pair {}: {worst:.3} px vs OpenCV {cv:.3}",
+            p["pair"]
+        );
+    }
+    all.sort_by(f64::total_cmp);
+    let median = all[all.len() / 2];
+    let p90 = all[all.len() * 9 / 10];
+    eprintln!(
+        "row differences: median {median:.3} px, 90th percentile {p90:.3} px, worst {:.3}",
+        all[all.len() - 1]
+    );
+    assert!(median < 0.2 && p90 < 0.5, "median {median}, p90 {p90}");
+}
+
+#[test]
+fn bad_calibration_files_say_what_is_missing() {
+    let e =
+        StereoCalibration::from_opencv_yaml("%YAML 1.2\nK1: !!opencv-matrix\n   data: [ 1, 2 ]\n")
+            .unwrap_err();
+    assert!(e.contains("'K1' has 2 numbers"), "{e}");
+    let e = StereoCalibration::from_opencv_yaml("image_width: 10\n").unwrap_err();
+    assert!(e.contains("no 'K1'"), "{e}");
+}
+
+#[test]
+fn the_resampling_table_inverts_the_point_map() {
+    let cal = StereoCalibration::from_opencv_yaml(&data("opencv_chessboard_stereo.yaml")).unwrap();
+    let rect = Rectification::bouguet(&cal);
+    for right in [false, true] {
+        for y in (40..440).step_by(50) {
+            for x in (40..600).step_by(70) {
+                let (u, v) = rect.point(right, x as f64, y as f64);
+                let (xs, ys) = rect.source(right, u, v);
+                assert!(
+                    (xs - x as f64).abs() < 1e-6 && (ys - y as f64).abs() < 1e-6,
+                    "{right} ({x}, {y}) → ({u}, {v}) → ({xs}, {ys})"
+                );
+            }
+        }
+    }
+    // The table samples the source where the map says: a ramp image comes back as the
+    // source x coordinate of every rectified pixel.
+    let ramp = schemas::Plane::from_vec(
+        640,
+        480,
+        (0..480)
+            .flat_map(|_| (0..640).map(|x| (x / 3) as u8))
+            .collect(),
+    )
+    .unwrap();
+    let lut = rectify::RemapLut::new(&rect, false, 640, 480);
+    let out = lut.apply(&ramp);
+    let (xs, _) = rect.source(false, 320.0, 240.0);
+    assert!(
+        (*out.get(320, 240) as f64 - xs / 3.0).abs() <= 1.0,
+        "{} vs {}",
+        out.get(320, 240),
+        xs / 3.0
+    );
+}
