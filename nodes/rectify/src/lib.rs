@@ -56,6 +56,11 @@ fn opencv_matrix(text: &str, key: &str) -> Result<Vec<f64>, String> {
         .collect()
 }
 
+/// The `data: [...]` list under `key` in ROS camera_info YAML.
+fn yaml_data(text: &str, key: &str) -> Result<Vec<f64>, String> {
+    opencv_matrix(text, key)
+}
+
 fn scalar(text: &str, key: &str) -> Result<usize, String> {
     text.lines()
         .find_map(|l| l.strip_prefix(&format!("{key}:")))
@@ -138,8 +143,10 @@ pub struct Rectification {
     pub r2: Matrix3<f64>,
     /// Focal length of the rectified views, px.
     pub f: f64,
-    /// Principal point of the rectified views `[cx, cy]`.
+    /// Principal point of the rectified views `[cx, cy]` (the left view's cx).
     pub c: [f64; 2],
+    /// The right rectified view's cx (differs from the left's in shifted set-ups).
+    pub cx_right: f64,
     /// Baseline along the rectified x axis (`T` turned by `r2`), calibration units.
     pub baseline: f64,
     calib: StereoCalibration,
@@ -175,9 +182,81 @@ impl Rectification {
             r2,
             f,
             c,
+            cx_right: c[0],
             baseline: (r2 * calib.t).x.abs(),
             calib: calib.clone(),
         }
+    }
+
+    /// The rectification two ROS `camera_info` YAML files already hold (camera_matrix,
+    /// distortion_coefficients, rectification_matrix, projection_matrix).
+    pub fn from_camera_info(left: &str, right: &str) -> Result<Self, String> {
+        let read = |text: &str, side: &str| -> Result<_, String> {
+            let text = format!("\n{text}");
+            let field = |k: &str, n: usize| -> Result<Vec<f64>, String> {
+                let v = yaml_data(&text, k).map_err(|e| format!("{side} camera_info: {e}"))?;
+                if v.len() != n {
+                    return Err(format!(
+                        "{side} camera_info: '{k}' has {} numbers, not {n}",
+                        v.len()
+                    ));
+                }
+                Ok(v)
+            };
+            let d = yaml_data(&text, "distortion_coefficients")
+                .map_err(|e| format!("{side} camera_info: {e}"))?;
+            if !(4..=5).contains(&d.len()) {
+                return Err(format!(
+                    "{side} camera_info: {} distortion coefficients; 4 or 5 are read",
+                    d.len()
+                ));
+            }
+            let size = (
+                scalar(&text, "image_width").map_err(|e| format!("{side} camera_info: {e}"))?,
+                scalar(&text, "image_height").map_err(|e| format!("{side} camera_info: {e}"))?,
+            );
+            Ok((
+                Matrix3::from_row_slice(&field("camera_matrix", 9)?),
+                d,
+                Matrix3::from_row_slice(&field("rectification_matrix", 9)?),
+                field("projection_matrix", 12)?,
+                size,
+            ))
+        };
+        let (k1, d1, r1, p1, s1) = read(left, "left")?;
+        let (k2, d2, r2, p2, s2) = read(right, "right")?;
+        if s1 != s2 {
+            return Err(format!("left camera_info is {s1:?} but right is {s2:?}"));
+        }
+        if (p1[0] - p2[0]).abs() > 1e-6 * p1[0] || (p1[6] - p2[6]).abs() > 1e-6 {
+            return Err(
+                "the two projection matrices differ in focal length or cy: not a rectified pair"
+                    .into(),
+            );
+        }
+        let baseline = (p2[3] / p2[0]).abs();
+        Ok(Self {
+            r1,
+            r2,
+            f: p1[0],
+            c: [p1[2], p1[6]],
+            cx_right: p2[2],
+            baseline,
+            calib: StereoCalibration {
+                k1,
+                d1,
+                k2,
+                d2,
+                r: r2 * r1.transpose(),
+                t: r2.transpose() * Vector3::new(-baseline, 0.0, 0.0),
+                size: s1,
+            },
+        })
+    }
+
+    /// The image size the calibration is for.
+    pub fn size(&self) -> (usize, usize) {
+        self.calib.size
     }
 
     /// Where pixel `(x, y)` of the original left (`right == false`) or right view lands in
@@ -192,10 +271,8 @@ impl Rectification {
         let yd = (y - k[(1, 2)]) / k[(1, 1)];
         let (xu, yu) = undistort(d, xd, yd);
         let p = r * Vector3::new(xu, yu, 1.0);
-        (
-            self.c[0] + self.f * p.x / p.z,
-            self.c[1] + self.f * p.y / p.z,
-        )
+        let cx = if right { self.cx_right } else { self.c[0] };
+        (cx + self.f * p.x / p.z, self.c[1] + self.f * p.y / p.z)
     }
 
     /// Where rectified pixel `(u, v)` comes from in the original view.

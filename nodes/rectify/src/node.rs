@@ -14,6 +14,9 @@ pub struct RectifyParams {
     /// OpenCV YAML with K1, D1, K2, D2, R, T (none: pass frames through).
     #[serde(default)]
     pub calibration: Option<String>,
+    /// Or two ROS camera_info YAML files, left and right, that hold the rectification.
+    #[serde(default)]
+    pub camera_info: Option<[String; 2]>,
 }
 
 /// Rectifies each frame with tables built once.
@@ -26,22 +29,33 @@ impl RectifyNode {
     /// Reads the calibration (if any) and builds both tables.
     pub fn from_table(t: &toml::Table) -> Result<Self, String> {
         let p: RectifyParams = params(t)?;
-        let luts = match &p.calibration {
-            None => None,
-            Some(path) => {
-                let text = std::fs::read_to_string(path)
-                    .map_err(|e| format!("cannot read calibration '{path}': {e}"))?;
-                let cal = StereoCalibration::from_opencv_yaml(&text)
+        let read = |path: &str| {
+            std::fs::read_to_string(path)
+                .map_err(|e| format!("cannot read calibration '{path}': {e}"))
+        };
+        let rect = match (&p.calibration, &p.camera_info) {
+            (None, None) => None,
+            (Some(path), None) => {
+                let cal = StereoCalibration::from_opencv_yaml(&read(path)?)
                     .map_err(|e| format!("calibration '{path}': {e}"))?;
-                let rect = Rectification::bouguet(&cal);
-                let (w, h) = cal.size;
-                Some((
-                    RemapLut::new(&rect, false, w, h),
-                    RemapLut::new(&rect, true, w, h),
-                    (w, h),
-                ))
+                Some((Rectification::bouguet(&cal), cal.size))
+            }
+            (None, Some([l, r])) => {
+                let rect = Rectification::from_camera_info(&read(l)?, &read(r)?)?;
+                let size = rect.size();
+                Some((rect, size))
+            }
+            (Some(_), Some(_)) => {
+                return Err("give calibration or camera_info, not both".into());
             }
         };
+        let luts = rect.map(|(rect, (w, h))| {
+            (
+                RemapLut::new(&rect, false, w, h),
+                RemapLut::new(&rect, true, w, h),
+                (w, h),
+            )
+        });
         Ok(Self { luts })
     }
 }

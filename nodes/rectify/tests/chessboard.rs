@@ -120,3 +120,40 @@ fn the_resampling_table_inverts_the_point_map() {
         xs / 3.0
     );
 }
+
+#[test]
+fn ros_camera_info_pairs_rectify_like_opencv() {
+    let rect = Rectification::from_camera_info(
+        &data("opencv_chessboard_left_camera_info.yaml"),
+        &data("opencv_chessboard_right_camera_info.yaml"),
+    )
+    .unwrap();
+    assert_eq!(rect.size(), (640, 480));
+    assert!((rect.baseline - 83.6).abs() < 0.1, "{}", rect.baseline);
+    let pairs: Vec<serde_json::Value> =
+        serde_json::from_str(&data("opencv_chessboard_corners.json")).unwrap();
+    for p in &pairs {
+        let (l, r) = (
+            p["left"].as_array().unwrap(),
+            p["right"].as_array().unwrap(),
+        );
+        let worst = l
+            .iter()
+            .zip(r)
+            .map(|(a, b)| {
+                let (_, yl) = rect.point(false, a[0].as_f64().unwrap(), a[1].as_f64().unwrap());
+                let (_, yr) = rect.point(true, b[0].as_f64().unwrap(), b[1].as_f64().unwrap());
+                (yl - yr).abs()
+            })
+            .fold(0.0, f64::max);
+        // The same rectification as OpenCV's: the same rows to within rounding.
+        let cv = p["opencv_dy_max"].as_f64().unwrap();
+        assert!(
+            (worst - cv).abs() < 0.01,
+            "pair {}: {worst} vs {cv}",
+            p["pair"]
+        );
+    }
+    let e = Rectification::from_camera_info("image_width: 1\n", "").unwrap_err();
+    assert!(e.starts_with("left camera_info:"), "{e}");
+}
