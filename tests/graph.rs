@@ -202,7 +202,9 @@ fn one_process_per_node_and_none_left_when_the_supervisor_is_killed() {
         );
         std::thread::sleep(Duration::from_millis(20));
     }
-    // The next run cleans up what the killed nodes left in shared memory and works.
+    // The killed nodes left their shared memory; the next run removes it and works.
+    let dead_before = runtime::process::dead_nodes();
+    assert!(dead_before > 0, "SIGKILL leaves stale resources");
     let out = Command::new(bin())
         .args(["run", file.to_str().unwrap(), "--frames", "2"])
         .output()
@@ -213,6 +215,86 @@ fn one_process_per_node_and_none_left_when_the_supervisor_is_killed() {
         String::from_utf8_lossy(&out.stderr)
     );
     assert!(String::from_utf8_lossy(&out.stdout).contains("2 frame(s) of 2"));
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("removed the shared memory of"),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(runtime::process::dead_nodes() < dead_before);
+}
+
+#[test]
+fn a_failing_node_is_restarted_by_its_policy() {
+    let dir = tempfile::tempdir().unwrap();
+    // Fails on its first start, then runs the example custom node.
+    let script = dir.path().join("flaky.sh");
+    std::fs::write(
+        &script,
+        format!(
+            "#!/bin/sh\nif [ ! -e '{m}' ]; then touch '{m}'; echo 'first start fails' >&2; exit 3; fi\nexec '{b}' \"$@\"\n",
+            m = dir.path().join("started").display(),
+            b = env!("CARGO_BIN_EXE_microstereo-invert")
+        ),
+    )
+    .unwrap();
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::set_permissions(&script, std::fs::Permissions::from_mode(0o755)).unwrap();
+    let file = dir.path().join("restart.toml");
+    std::fs::write(
+        &file,
+        format!(
+            r#"
+[[node]]
+id = "capture"
+kind = "capture"
+params = {{ width = 160, height = 120, cells = 2, seed = 3 }}
+
+[[node]]
+id = "flaky"
+exec = "{}"
+inputs = {{ frame = "capture/frame" }}
+ports = {{ inputs = {{ frame = "stereo-frame" }}, outputs = {{ frame = "stereo-frame" }} }}
+restart = {{ policy = "on-failure", max = 2, backoff_ms = 50 }}
+"#,
+            script.display()
+        ),
+    )
+    .unwrap();
+    let out = Command::new(bin())
+        .args(["run", file.to_str().unwrap(), "--frames", "3"])
+        .output()
+        .unwrap();
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr),
+    );
+    assert!(out.status.success(), "{stdout}\n{stderr}");
+    assert!(stderr.contains("[flaky] first start fails"), "{stderr}");
+    assert!(
+        stderr.contains("[flaky] exited (exit status: 3); restart 1 of 2"),
+        "{stderr}"
+    );
+    assert!(
+        stdout
+            .lines()
+            .any(|l| l.starts_with("flaky") && l.contains(" 3 ")),
+        "{stdout}"
+    );
+    // Without a restart policy the same failure stops the graph with an error.
+    std::fs::remove_file(dir.path().join("started")).unwrap();
+    std::fs::write(
+        &file,
+        std::fs::read_to_string(&file)
+            .unwrap()
+            .replace("restart = {", "# restart = {"),
+    )
+    .unwrap();
+    let out = Command::new(bin())
+        .args(["run", file.to_str().unwrap(), "--frames", "3"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("node 'flaky' failed (exit status: 3)"));
 }
 
 #[test]

@@ -253,6 +253,19 @@ pub fn run_node(
     })
 }
 
+/// Nodes on this machine that died without removing their shared memory.
+pub fn dead_nodes() -> usize {
+    set_log_level_from_env_or(LogLevel::Error);
+    let mut dead = 0;
+    let _ = Node::<crate::transport::Service>::list(Config::global_config(), |state| {
+        if let NodeState::Dead(_) = state {
+            dead += 1;
+        }
+        CallbackProgression::Continue
+    });
+    dead
+}
+
 /// Removes the shared-memory resources of graph nodes that died without cleaning up.
 pub fn remove_stale_resources() -> usize {
     set_log_level_from_env_or(LogLevel::Error);
