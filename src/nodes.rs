@@ -3,8 +3,8 @@
 //! `manipulator-bridge` (the targets served over TCP as newline-delimited JSON).
 
 use crate::cells::{cell_heights, measure, pair_cells};
-use runtime::step::{GraphNode, Msg, Outputs, params};
-use schemas::wire::{CellLists, json_header, read_planes};
+use runtime::step::{GraphNode, Msg, Outputs, params, send_json};
+use schemas::wire::CellLists;
 use schemas::{Calibration, Cell3, DisparityRange, FrameHeader, MessageKind, Plane};
 use serde::{Deserialize, Serialize};
 use std::io::Write;
@@ -108,30 +108,16 @@ impl TriangulateNode {
     }
 }
 
-fn one_map(m: &Msg<'_>) -> Result<Plane<f32>, String> {
-    read_planes::<f32>(&m.header, m.payload)
-        .map_err(|e| e.to_string())?
-        .pop()
-        .ok_or_else(|| "an empty disparity message".into())
-}
-
 impl GraphNode for TriangulateNode {
     fn step(&mut self, inputs: &[Msg<'_>], out: &mut dyn Outputs) -> Result<(), String> {
         let [frame, labels, cells, disparity, raw] = inputs else {
             return Err(format!("triangulate takes 5 inputs, not {}", inputs.len()));
         };
-        let views = read_planes::<u8>(&frame.header, frame.payload).map_err(|e| e.to_string())?;
-        let [left, right] = views.as_slice() else {
-            return Err("a stereo frame has 2 images".into());
-        };
-        let labels =
-            read_planes::<u32>(&labels.header, labels.payload).map_err(|e| e.to_string())?;
-        let [ll, rl] = labels.as_slice() else {
-            return Err("a label message has 2 images".into());
-        };
+        let [left, right] = &frame.planes_n::<u8, 2>()?;
+        let [ll, rl] = &labels.planes_n::<u32, 2>()?;
         let lists: CellLists =
             serde_json::from_slice(cells.payload).map_err(|e| format!("cell list: {e}"))?;
-        let (disp, raw) = (one_map(disparity)?, one_map(raw)?);
+        let ([disp], [raw]) = (disparity.planes_n::<f32, 1>()?, raw.planes_n::<f32, 1>()?);
         let calib = self.calibration(left.width, left.height)?;
         let range = DisparityRange::new(self.params.min_disparity, self.params.max_disparity);
         let pairs = pair_cells(&lists.left, &lists.right, range, 4.0);
@@ -199,12 +185,7 @@ impl GraphNode for TriangulateNode {
             cells: measured,
         })
         .map_err(|e| e.to_string())?;
-        let h = FrameHeader {
-            sequence: frame.header.sequence,
-            capture_ns: frame.header.capture_ns,
-            ..json_header(MessageKind::Targets)
-        };
-        out.send(1, h, scene.len(), &mut |b| b.copy_from_slice(&scene))
+        send_json(out, 1, MessageKind::Targets, frame.stamp(), &scene)
     }
 }
 

@@ -4,7 +4,8 @@
 //! ([`run_in_process`]), so a graph and its in-process twin compute the same bytes.
 
 use crate::launch::Graph;
-use schemas::FrameHeader;
+use schemas::wire::{WirePixel, json_header, planes_header, read_planes, write_planes};
+use schemas::{FrameHeader, MessageKind, Plane};
 use std::collections::HashMap;
 
 /// A message as a node reads it.
@@ -14,6 +15,67 @@ pub struct Msg<'a> {
     pub header: FrameHeader,
     /// Its payload.
     pub payload: &'a [u8],
+}
+
+/// Which frame a message belongs to: `(sequence, capture time)`, carried by everything
+/// derived from it.
+pub type Stamp = (u64, u64);
+
+impl Msg<'_> {
+    /// Its frame's stamp.
+    pub fn stamp(&self) -> Stamp {
+        (self.header.sequence, self.header.capture_ns)
+    }
+
+    /// Its images, which must hold pixels of type `T`.
+    pub fn planes<T: WirePixel>(&self) -> Result<Vec<Plane<T>>, String> {
+        read_planes(&self.header, self.payload).map_err(|e| e.to_string())
+    }
+
+    /// Its images when there must be exactly `N` (a stereo frame, a pair of label images).
+    pub fn planes_n<T: WirePixel, const N: usize>(&self) -> Result<[Plane<T>; N], String> {
+        let v = self.planes::<T>()?;
+        let n = v.len();
+        v.try_into().map_err(|_| {
+            format!(
+                "a {:?} message with {n} image(s), not {N}",
+                MessageKind::from_u32(self.header.kind)
+            )
+        })
+    }
+}
+
+/// Sends `planes` as one message of `kind` on output `port`, stamped with `stamp`.
+pub fn send_planes<T: WirePixel>(
+    out: &mut dyn Outputs,
+    port: usize,
+    kind: MessageKind,
+    (sequence, capture_ns): Stamp,
+    planes: &[&Plane<T>],
+) -> Result<(), String> {
+    let (h, len) = planes_header(kind, planes);
+    let h = FrameHeader {
+        sequence,
+        capture_ns,
+        ..h
+    };
+    out.send(port, h, len, &mut |b| write_planes(planes, b))
+}
+
+/// Sends `bytes` (JSON) as one message of `kind` on output `port`, stamped with `stamp`.
+pub fn send_json(
+    out: &mut dyn Outputs,
+    port: usize,
+    kind: MessageKind,
+    (sequence, capture_ns): Stamp,
+    bytes: &[u8],
+) -> Result<(), String> {
+    let h = FrameHeader {
+        sequence,
+        capture_ns,
+        ..json_header(kind)
+    };
+    out.send(port, h, bytes.len(), &mut |b| b.copy_from_slice(bytes))
 }
 
 /// Where a step writes its outputs.
@@ -73,6 +135,25 @@ pub fn params<T: serde::de::DeserializeOwned>(t: &toml::Table) -> Result<T, Stri
     toml::Value::Table(t.clone())
         .try_into()
         .map_err(|e: toml::de::Error| e.message().to_string())
+}
+
+/// Reads a node's `params` table over the settings `defaults`: every key must be one of
+/// theirs (for settings types that already serialise, so have no `deny_unknown_fields`).
+pub fn params_over<T: serde::Serialize + serde::de::DeserializeOwned>(
+    defaults: &T,
+    t: &toml::Table,
+) -> Result<T, String> {
+    let mut full = toml::Table::try_from(defaults).map_err(|e| e.to_string())?;
+    for (k, v) in t {
+        if !full.contains_key(k) {
+            return Err(format!(
+                "unknown parameter '{k}'; known: {}",
+                full.keys().cloned().collect::<Vec<_>>().join(", ")
+            ));
+        }
+        full.insert(k.clone(), v.clone());
+    }
+    params(&full)
 }
 
 /// Every message of every edge, keyed by `(node id, output port)`, in frame order.

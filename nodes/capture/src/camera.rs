@@ -2,8 +2,7 @@
 //! grey images whose driver timestamps lie closest, within `max_skew_ms`.
 
 use runtime::process::now_ns;
-use runtime::step::{GraphNode, Outputs, params};
-use schemas::wire::{planes_header, write_planes};
+use runtime::step::{GraphNode, Outputs, params, send_planes};
 use schemas::{MessageKind, Plane};
 use serde::Deserialize;
 use v4l::buffer::Type;
@@ -174,10 +173,7 @@ impl GraphNode for CameraCapture {
                 (tl - tr).abs() as f64 / 1000.0
             ));
         }
-        let (mut h, len) = planes_header(MessageKind::StereoFrame, &[&l, &r]);
-        h.sequence = seq;
-        h.capture_ns = now_ns();
-        out.send(0, h, len, &mut |b| write_planes(&[&l, &r], b))?;
+        send_planes(out, 0, MessageKind::StereoFrame, (seq, now_ns()), &[&l, &r])?;
         Ok(true)
     }
 }

@@ -1,8 +1,7 @@
 //! Image pairs on disk as a frame source.
 
 use runtime::process::now_ns;
-use runtime::step::{GraphNode, Outputs, params};
-use schemas::wire::{planes_header, write_planes};
+use runtime::step::{GraphNode, Outputs, params, send_planes};
 use schemas::{MessageKind, Plane};
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
@@ -126,10 +125,7 @@ impl GraphNode for FileCapture {
                 r.height
             ));
         }
-        let (mut h, len) = planes_header(MessageKind::StereoFrame, &[&l, &r]);
-        h.sequence = seq;
-        h.capture_ns = now_ns();
-        out.send(0, h, len, &mut |b| write_planes(&[&l, &r], b))?;
+        send_planes(out, 0, MessageKind::StereoFrame, (seq, now_ns()), &[&l, &r])?;
         Ok(true)
     }
 }

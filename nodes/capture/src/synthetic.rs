@@ -2,9 +2,8 @@
 //! cells drifting and an optional pipette advancing from frame to frame.
 
 use runtime::process::now_ns;
-use runtime::step::{GraphNode, Outputs, params};
+use runtime::step::{GraphNode, Outputs, params, send_planes};
 use schemas::MessageKind;
-use schemas::wire::{planes_header, write_planes};
 use serde::Deserialize;
 use synth::{CellSpec, Look, Optics, Pipette, Scene};
 
@@ -121,10 +120,13 @@ impl GraphNode for SyntheticCapture {
             .scene
             .at_frame(seq as usize, self.drift, self.step)
             .render();
-        let (mut h, len) = planes_header(MessageKind::StereoFrame, &[&r.left, &r.right]);
-        h.sequence = seq;
-        h.capture_ns = now_ns();
-        out.send(0, h, len, &mut |b| write_planes(&[&r.left, &r.right], b))?;
+        send_planes(
+            out,
+            0,
+            MessageKind::StereoFrame,
+            (seq, now_ns()),
+            &[&r.left, &r.right],
+        )?;
         Ok(true)
     }
 }

@@ -2,8 +2,7 @@
 //! Both run the same matcher on the same pair; each keeps its own direction.
 
 use crate::{Directions, Mode, PaperParams, QualityParams, QualityWorkspace};
-use runtime::step::{GraphNode, Msg, Outputs, params};
-use schemas::wire::{planes_header, read_planes, write_planes};
+use runtime::step::{GraphNode, Msg, Outputs, params, send_planes};
 use schemas::{DisparityRange, MessageKind};
 use serde::Deserialize;
 
@@ -57,11 +56,7 @@ impl MatchNode {
 
 impl GraphNode for MatchNode {
     fn step(&mut self, inputs: &[Msg<'_>], out: &mut dyn Outputs) -> Result<(), String> {
-        let frame = &inputs[0];
-        let views = read_planes::<u8>(&frame.header, frame.payload).map_err(|e| e.to_string())?;
-        let [l, r] = views.as_slice() else {
-            return Err(format!("a stereo frame has 2 images, not {}", views.len()));
-        };
+        let [l, r] = &inputs[0].planes_n::<u8, 2>()?;
         let range = DisparityRange::new(self.params.min_disparity, self.params.max_disparity);
         let map = match self.params.mode {
             Mode::Quality => {
@@ -88,9 +83,6 @@ impl GraphNode for MatchNode {
                 if self.right_based { m.right } else { m.left }
             }
         };
-        let (mut h, len) = planes_header(MessageKind::Disparity, &[&map]);
-        h.sequence = frame.header.sequence;
-        h.capture_ns = frame.header.capture_ns;
-        out.send(0, h, len, &mut |b| write_planes(&[&map], b))
+        send_planes(out, 0, MessageKind::Disparity, inputs[0].stamp(), &[&map])
     }
 }

@@ -2,9 +2,8 @@
 //! calibration is given: the input is already rectified).
 
 use crate::{Rectification, RemapLut, StereoCalibration};
-use runtime::step::{GraphNode, Msg, Outputs, params};
+use runtime::step::{GraphNode, Msg, Outputs, params, send_planes};
 use schemas::MessageKind;
-use schemas::wire::{planes_header, read_planes, write_planes};
 use serde::Deserialize;
 
 /// `params` of a rectify node.
@@ -68,19 +67,14 @@ impl GraphNode for RectifyNode {
                 b.copy_from_slice(m.payload)
             });
         };
-        let views = read_planes::<u8>(&m.header, m.payload).map_err(|e| e.to_string())?;
-        let [l, r] = views.as_slice() else {
-            return Err("a stereo frame has 2 images".into());
-        };
+        let [l, r] = m.planes_n::<u8, 2>()?;
         if (l.width, l.height) != *size {
             return Err(format!(
                 "frames are {}×{} but the calibration is for {}×{}",
                 l.width, l.height, size.0, size.1
             ));
         }
-        let (lo, ro) = (ll.apply(l), rl.apply(r));
-        let (mut h, len) = planes_header(MessageKind::StereoFrame, &[&lo, &ro]);
-        (h.sequence, h.capture_ns) = (m.header.sequence, m.header.capture_ns);
-        out.send(0, h, len, &mut |b| write_planes(&[&lo, &ro], b))
+        let (lo, ro) = (ll.apply(&l), rl.apply(&r));
+        send_planes(out, 0, MessageKind::StereoFrame, m.stamp(), &[&lo, &ro])
     }
 }

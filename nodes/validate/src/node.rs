@@ -1,9 +1,8 @@
 //! The validate node: left- and right-based maps in; the LR-checked left map and the left
 //! occlusion mask out.
 
-use runtime::step::{GraphNode, Msg, Outputs, params};
+use runtime::step::{GraphNode, Msg, Outputs, params, send_planes};
 use schemas::MessageKind;
-use schemas::wire::{planes_header, read_planes, write_planes};
 use serde::Deserialize;
 
 /// `params` of a validate node.
@@ -39,23 +38,14 @@ pub struct ValidateNode {
 
 impl GraphNode for ValidateNode {
     fn step(&mut self, inputs: &[Msg<'_>], out: &mut dyn Outputs) -> Result<(), String> {
-        let one = |m: &Msg<'_>| -> Result<schemas::DisparityMap, String> {
-            read_planes::<f32>(&m.header, m.payload)
-                .map_err(|e| e.to_string())?
-                .pop()
-                .ok_or_else(|| "an empty disparity message".to_string())
-        };
-        let (l, r) = (one(&inputs[0])?, one(&inputs[1])?);
+        let [l] = inputs[0].planes_n::<f32, 1>()?;
+        let [r] = inputs[1].planes_n::<f32, 1>()?;
         if (l.width, l.height) != (r.width, r.height) {
             return Err("left and right maps differ in size".into());
         }
         let c = crate::lr_check(&l, &r, self.params.tolerance);
-        let (seq, t) = (inputs[0].header.sequence, inputs[0].header.capture_ns);
-        let (mut h, len) = planes_header(MessageKind::Disparity, &[&c.left]);
-        (h.sequence, h.capture_ns) = (seq, t);
-        out.send(0, h, len, &mut |b| write_planes(&[&c.left], b))?;
-        let (mut h, len) = planes_header(MessageKind::Image, &[&c.occlusion_left]);
-        (h.sequence, h.capture_ns) = (seq, t);
-        out.send(1, h, len, &mut |b| write_planes(&[&c.occlusion_left], b))
+        let stamp = inputs[0].stamp();
+        send_planes(out, 0, MessageKind::Disparity, stamp, &[&c.left])?;
+        send_planes(out, 1, MessageKind::Image, stamp, &[&c.occlusion_left])
     }
 }
