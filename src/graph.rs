@@ -30,7 +30,7 @@ fn ok_capture(t: &toml::Table) -> Result<(), String> {
     capture::check_params(t)
 }
 fn ok_rectify(t: &toml::Table) -> Result<(), String> {
-    rectify::node::RectifyNode::from_table(t).map(|_| ())
+    rectify::node::rectification(t).map(|_| ())
 }
 fn ok_segment(t: &toml::Table) -> Result<(), String> {
     segment::node::params_from_table(t).map(|_| ())

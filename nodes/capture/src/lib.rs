@@ -14,18 +14,28 @@ pub mod synthetic;
 
 use runtime::step::GraphNode;
 
-/// Checks a capture node's `params`.
+fn source(t: &toml::Table) -> &str {
+    t.get("source")
+        .and_then(|v| v.as_str())
+        .unwrap_or("synthetic")
+}
+
+/// Checks a capture node's `params` without starting anything: every process of a graph
+/// validates the whole launch file, and a camera opened there would be busy for the node.
 pub fn check_params(t: &toml::Table) -> Result<(), String> {
-    build(t).map(|_| ())
+    match source(t) {
+        "synthetic" => synthetic::SyntheticParams::from_table(t).map(|_| ()),
+        // Listing the files is cheap and finds a wrong pattern before the graph starts.
+        "files" => files::FileCapture::new(files::FileParams::from_table(t)?).map(|_| ()),
+        #[cfg(feature = "v4l")]
+        "v4l" => camera::CameraParams::from_table(t).map(|_| ()),
+        _ => build(t).map(|_| ()),
+    }
 }
 
 /// The capture node its `params` describe.
 pub fn build(t: &toml::Table) -> Result<Box<dyn GraphNode>, String> {
-    match t
-        .get("source")
-        .and_then(|v| v.as_str())
-        .unwrap_or("synthetic")
-    {
+    match source(t) {
         "synthetic" => Ok(Box::new(synthetic::SyntheticCapture::new(
             &synthetic::SyntheticParams::from_table(t)?,
         ))),

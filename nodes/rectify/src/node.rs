@@ -27,28 +27,8 @@ pub struct RectifyNode {
 impl RectifyNode {
     /// Reads the calibration (if any) and builds both tables.
     pub fn from_table(t: &toml::Table) -> Result<Self, String> {
-        let p: RectifyParams = params(t)?;
-        let read = |path: &str| {
-            std::fs::read_to_string(path)
-                .map_err(|e| format!("cannot read calibration '{path}': {e}"))
-        };
-        let rect = match (&p.calibration, &p.camera_info) {
-            (None, None) => None,
-            (Some(path), None) => {
-                let cal = StereoCalibration::from_opencv_yaml(&read(path)?)
-                    .map_err(|e| format!("calibration '{path}': {e}"))?;
-                Some((Rectification::bouguet(&cal), cal.size))
-            }
-            (None, Some([l, r])) => {
-                let rect = Rectification::from_camera_info(&read(l)?, &read(r)?)?;
-                let size = rect.size();
-                Some((rect, size))
-            }
-            (Some(_), Some(_)) => {
-                return Err("give calibration or camera_info, not both".into());
-            }
-        };
-        let luts = rect.map(|(rect, (w, h))| {
+        let luts = rectification(t)?.map(|rect| {
+            let (w, h) = rect.size();
             (
                 RemapLut::new(&rect, false, w, h),
                 RemapLut::new(&rect, true, w, h),
@@ -56,6 +36,25 @@ impl RectifyNode {
             )
         });
         Ok(Self { luts })
+    }
+}
+
+/// The rectification a rectify node's `params` describe (`None`: pass frames through).
+/// Reading and checking it is cheap; the resampling tables are built only by the node.
+pub fn rectification(t: &toml::Table) -> Result<Option<Rectification>, String> {
+    let p: RectifyParams = params(t)?;
+    let read = |path: &str| {
+        std::fs::read_to_string(path).map_err(|e| format!("cannot read calibration '{path}': {e}"))
+    };
+    match (&p.calibration, &p.camera_info) {
+        (None, None) => Ok(None),
+        (Some(path), None) => {
+            let cal = StereoCalibration::from_opencv_yaml(&read(path)?)
+                .map_err(|e| format!("calibration '{path}': {e}"))?;
+            Ok(Some(Rectification::bouguet(&cal)))
+        }
+        (None, Some([l, r])) => Rectification::from_camera_info(&read(l)?, &read(r)?).map(Some),
+        (Some(_), Some(_)) => Err("give calibration or camera_info, not both".into()),
     }
 }
 
