@@ -10,7 +10,7 @@
 
 use crate::launch::Graph;
 use crate::step::{GraphNode, Msg, Outputs};
-use crate::transport::{EdgePublisher, EdgeSubscriber, Message, Transport, Wake, wait_any};
+use crate::transport::{EdgePublisher, EdgeSubscriber, Message, Transport, Wake, wait_loop};
 use iceoryx2::prelude::*;
 use schemas::FrameHeader;
 use serde::{Deserialize, Serialize};
@@ -176,36 +176,31 @@ pub fn run_node(
     } else {
         let refs: Vec<&EdgeSubscriber> = subs.iter().collect();
         let mut pending: Vec<Vec<Message>> = subs.iter().map(|_| Vec::new()).collect();
-        let mut ready = Vec::new();
-        'outer: loop {
-            match wait_any(&refs, Duration::from_secs(1), &mut ready).map_err(|e| e.to_string())? {
-                Wake::Stop => break,
-                Wake::Timeout | Wake::Ready => {}
+        let seq_of = |m: &Message| m.user_header().sequence;
+        wait_loop::<String>(&refs, Duration::from_secs(1), |wake, _| {
+            if wake == Wake::Stop {
+                return Ok(false);
             }
             for (i, s) in subs.iter().enumerate() {
-                while let Some(m) = s.receive().map_err(|e| e.to_string())? {
+                while let Some(m) = s.receive()? {
                     pending[i].push(m);
                 }
             }
             // The oldest frame every input has; frames older than it can no longer be joined.
-            loop {
-                let newest = pending
-                    .iter()
-                    .map(|p| {
-                        p.iter()
-                            .map(|m| m.user_header().sequence)
-                            .collect::<Vec<_>>()
-                    })
-                    .reduce(|a, b| a.into_iter().filter(|s| b.contains(s)).collect())
-                    .and_then(|common| common.into_iter().min());
-                let Some(seq) = newest else { break };
+            while let Some(seq) = pending[0]
+                .iter()
+                .map(seq_of)
+                .filter(|s| {
+                    pending[1..]
+                        .iter()
+                        .all(|p| p.iter().any(|m| seq_of(m) == *s))
+                })
+                .min()
+            {
                 let msgs: Vec<Msg<'_>> = pending
                     .iter()
                     .map(|p| {
-                        let m = p
-                            .iter()
-                            .find(|m| m.user_header().sequence == seq)
-                            .expect("common");
+                        let m = p.iter().find(|m| seq_of(m) == seq).expect("common");
                         Msg {
                             header: *m.user_header(),
                             payload: m.payload(),
@@ -218,13 +213,14 @@ pub fn run_node(
                 latencies.push(now_ns().saturating_sub(msgs[0].header.capture_ns) as f64 / 1e6);
                 last_frame = Some(seq);
                 for p in &mut pending {
-                    p.retain(|m| m.user_header().sequence > seq);
+                    p.retain(|m| seq_of(m) > seq);
                 }
                 if frames.is_some_and(|n| seq + 1 >= n) {
-                    break 'outer;
+                    return Ok(false);
                 }
             }
-        }
+            Ok(true)
+        })?;
     }
     let steps = times.len() as u64;
     let mean_ms = if times.is_empty() {

@@ -305,15 +305,20 @@ pub enum Wake {
     Stop,
 }
 
-/// Sleeps until one of `inputs` is notified, `timeout` passes, or a stop is requested; marks
-/// in `ready` which inputs were notified.
-pub fn wait_any(
+impl From<TransportError> for String {
+    fn from(e: TransportError) -> Self {
+        e.to_string()
+    }
+}
+
+/// Sleeps in one WaitSet, built once, until one of `inputs` is notified, `timeout` passes or
+/// a stop is requested, and calls `on_wake` with why and which inputs were notified; ends
+/// after a stop, when `on_wake` returns `Ok(false)`, or with its error.
+pub fn wait_loop<E: From<TransportError>>(
     inputs: &[&EdgeSubscriber],
     timeout: Duration,
-    ready: &mut Vec<bool>,
-) -> Result<Wake, TransportError> {
-    ready.clear();
-    ready.resize(inputs.len(), false);
+    mut on_wake: impl FnMut(Wake, &[bool]) -> Result<bool, E>,
+) -> Result<(), E> {
     let waitset = WaitSetBuilder::new()
         .create::<Service>()
         .map_err(|e| fail("waitset", "creating the waitset")(&e))?;
@@ -322,32 +327,49 @@ pub fn wait_any(
         .map(|s| waitset.attach_notification(&s.listener))
         .collect::<Result<Vec<_>, _>>()
         .map_err(|e| fail("waitset", "attaching an input")(&e))?;
-    let mut any = false;
-    let result = waitset
-        .wait_and_process_once_with_timeout(
-            |id| {
-                for (i, g) in guards.iter().enumerate() {
-                    if id.has_event_from(g) {
-                        ready[i] = true;
-                        any = true;
+    let mut ready = vec![false; inputs.len()];
+    loop {
+        ready.fill(false);
+        let result = waitset
+            .wait_and_process_once_with_timeout(
+                |id| {
+                    for (i, g) in guards.iter().enumerate() {
+                        ready[i] |= id.has_event_from(g);
                     }
-                }
-                CallbackProgression::Continue
-            },
-            timeout,
-        )
-        .map_err(|e| fail("waitset", "waiting")(&e))?;
-    for (i, s) in inputs.iter().enumerate() {
-        if ready[i] {
+                    CallbackProgression::Continue
+                },
+                timeout,
+            )
+            .map_err(|e| fail("waitset", "waiting")(&e))?;
+        for (s, _) in inputs.iter().zip(&ready).filter(|(_, r)| **r) {
             s.drain_events();
         }
+        let wake = match result {
+            iceoryx2::waitset::WaitSetRunResult::TerminationRequest
+            | iceoryx2::waitset::WaitSetRunResult::Interrupt => Wake::Stop,
+            _ if ready.contains(&true) => Wake::Ready,
+            _ => Wake::Timeout,
+        };
+        if !on_wake(wake, &ready)? || wake == Wake::Stop {
+            return Ok(());
+        }
     }
-    Ok(match result {
-        iceoryx2::waitset::WaitSetRunResult::TerminationRequest
-        | iceoryx2::waitset::WaitSetRunResult::Interrupt => Wake::Stop,
-        _ if any => Wake::Ready,
-        _ => Wake::Timeout,
-    })
+}
+
+/// One wait of [`wait_loop`]: marks in `ready` which inputs were notified.
+pub fn wait_any(
+    inputs: &[&EdgeSubscriber],
+    timeout: Duration,
+    ready: &mut Vec<bool>,
+) -> Result<Wake, TransportError> {
+    let mut wake = Wake::Timeout;
+    wait_loop(inputs, timeout, |w, r| {
+        wake = w;
+        ready.clear();
+        ready.extend_from_slice(r);
+        Ok::<_, TransportError>(false)
+    })?;
+    Ok(wake)
 }
 
 #[cfg(test)]
