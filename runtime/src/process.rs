@@ -11,6 +11,7 @@
 use crate::launch::Graph;
 use crate::step::{GraphNode, Msg, Outputs};
 use crate::transport::{EdgePublisher, EdgeSubscriber, Message, Transport, Wake, wait_loop};
+use iceoryx2::node::NodeView;
 use iceoryx2::prelude::*;
 use schemas::FrameHeader;
 use serde::{Deserialize, Serialize};
@@ -71,6 +72,11 @@ impl Outputs for ShmOutputs<'_> {
     }
 }
 
+/// The name under which node `id` reads its input `port`.
+fn reader_name(id: &str, port: &str) -> String {
+    format!("{id}.{port}")
+}
+
 fn percentile(v: &mut [f64], q: f64) -> f64 {
     if v.is_empty() {
         return 0.0;
@@ -91,7 +97,8 @@ pub fn run_node(
     let spec = graph
         .node(id)
         .ok_or_else(|| format!("no node '{id}' in {}", graph.file.display()))?;
-    let transport = Transport::new(id).map_err(|e| e.to_string())?;
+    // Named after the run too, so that iceoryx2's node list tells the runs apart.
+    let transport = Transport::new(&format!("{instance}/{id}")).map_err(|e| e.to_string())?;
     let pubs = spec
         .outputs
         .iter()
@@ -107,29 +114,35 @@ pub fn run_node(
         .inputs
         .iter()
         .map(|i| {
-            transport.subscriber(
+            transport.reader(
                 &Graph::edge_name(instance, &i.node, &i.output),
                 &graph.edge_config(&i.node, &i.output),
+                Some(&reader_name(id, &i.port)),
             )
         })
         .collect::<Result<Vec<_>, _>>()
         .map_err(|e| e.to_string())?;
     // A frame sent before a reader connects never reaches it (edges keep no history): wait
-    // until every reader the graph names is there. Only at start, so a short sleep is fine.
-    let expected: Vec<usize> = spec
+    // until every reader the graph names is there (readers outside the graph, such as a
+    // recorder or a test, do not count). Only at start, so a short sleep is fine.
+    let expected: Vec<Vec<String>> = spec
         .outputs
         .iter()
         .map(|(port, _)| {
             graph
                 .nodes
                 .iter()
-                .flat_map(|n| &n.inputs)
-                .filter(|i| i.node == id && i.output == *port)
-                .count()
+                .flat_map(|n| n.inputs.iter().map(move |i| (n, i)))
+                .filter(|(_, i)| i.node == id && i.output == *port)
+                .map(|(n, i)| reader_name(&n.id, &i.port))
+                .collect()
         })
         .collect();
     let t0 = Instant::now();
-    while pubs.iter().zip(&expected).any(|(p, &e)| p.readers() < e) {
+    while pubs.iter().zip(&expected).any(|(p, want)| {
+        let have = p.reader_names();
+        want.iter().any(|w| !have.contains(w))
+    }) {
         if t0.elapsed() > Duration::from_secs(30) {
             eprintln!("warning: not every reader connected within 30 s; sending anyway");
             break;
@@ -147,9 +160,6 @@ pub fn run_node(
         let period = fps
             .filter(|f| *f > 0.0)
             .map(|f| Duration::from_secs_f64(1.0 / f));
-        let iox = NodeBuilder::new()
-            .create::<crate::transport::Service>()
-            .map_err(|e| format!("{e:?}"))?;
         let start = Instant::now();
         let mut seq = 0u64;
         let mut stopped = false;
@@ -158,7 +168,7 @@ pub fn run_node(
             let wait = period.map_or(Duration::ZERO, |p| {
                 (start + p * seq as u32).saturating_duration_since(Instant::now())
             });
-            if iox.wait(wait).is_err() {
+            if !transport.sleep(wait) {
                 stopped = true;
                 break;
             }
@@ -172,7 +182,7 @@ pub fn run_node(
             seq += 1;
         }
         // Stay until told to stop: a publisher that leaves takes its unread frames along.
-        while !stopped && iox.wait(Duration::from_secs(3600)).is_ok() {}
+        while !stopped && transport.sleep(Duration::from_secs(3600)) {}
     } else {
         let refs: Vec<&EdgeSubscriber> = subs.iter().collect();
         let mut pending: Vec<Vec<Message>> = subs.iter().map(|_| Vec::new()).collect();
@@ -249,12 +259,18 @@ pub fn run_node(
     })
 }
 
-/// Nodes on this machine that died without removing their shared memory.
-pub fn dead_nodes() -> usize {
+/// Nodes of run `instance` on this machine that died without removing their shared memory.
+pub fn dead_nodes(instance: &str) -> usize {
     set_log_level_from_env_or(LogLevel::Error);
+    let prefix = format!("{instance}/");
     let mut dead = 0;
     let _ = Node::<crate::transport::Service>::list(Config::global_config(), |state| {
-        if let NodeState::Dead(_) = state {
+        if let NodeState::Dead(view) = state
+            && view
+                .details()
+                .as_ref()
+                .is_some_and(|d| d.name().as_str().starts_with(&prefix))
+        {
             dead += 1;
         }
         CallbackProgression::Continue

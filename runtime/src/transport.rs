@@ -13,6 +13,7 @@
 
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
+use iceoryx2::port::port_name::PortName;
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
@@ -113,6 +114,11 @@ impl Transport {
         Ok(Self { node })
     }
 
+    /// Sleeps for `d`; false when the process was asked to stop (SIGINT / SIGTERM), at once.
+    pub fn sleep(&self, d: Duration) -> bool {
+        self.node.wait(d).is_ok()
+    }
+
     fn services(
         &self,
         edge: &str,
@@ -177,10 +183,23 @@ impl Transport {
         edge: &str,
         cfg: &EdgeConfig,
     ) -> Result<EdgeSubscriber, TransportError> {
+        self.reader(edge, cfg, None)
+    }
+
+    /// The reading end of `edge` under `name`, which the writer can see
+    /// ([`EdgePublisher::reader_names`]).
+    pub fn reader(
+        &self,
+        edge: &str,
+        cfg: &EdgeConfig,
+        name: Option<&str>,
+    ) -> Result<EdgeSubscriber, TransportError> {
         let (pubsub, event) = self.services(edge, cfg)?;
-        let subscriber = pubsub
-            .subscriber_builder()
-            .buffer_size(cfg.depth.max(1))
+        let mut builder = pubsub.subscriber_builder().buffer_size(cfg.depth.max(1));
+        if let Some(n) = name {
+            builder = builder.name(&PortName::new(n).map_err(|_| TransportError::Name(n.into()))?);
+        }
+        let subscriber = builder
             .create()
             .map_err(|e| fail(edge, "creating the subscriber")(&e))?;
         let listener = event
@@ -235,10 +254,15 @@ impl EdgePublisher {
         &self.edge
     }
 
-    /// Readers connected to the edge now.
-    pub fn readers(&self) -> usize {
+    /// Names of the readers connected to the edge now (empty for unnamed ones).
+    pub fn reader_names(&self) -> Vec<String> {
         use iceoryx2::service::port_factory::PortFactory;
-        self.service.dynamic_config().number_of_subscribers()
+        let mut names = Vec::new();
+        self.service.dynamic_config().list_subscribers(|s| {
+            names.push(s.subscriber_name.as_str().to_string());
+            CallbackProgression::Continue
+        });
+        names
     }
 }
 
