@@ -164,25 +164,26 @@ mod tests {
         (img, inside)
     }
 
+    /// The disc's mask grown to `radius`, as a variance window would leave it.
+    fn grown(radius: f64) -> Mask {
+        let data = (0..30)
+            .flat_map(|y| (0..40).map(move |x| (x, y)))
+            .map(|(x, y)| {
+                if (x as f64 - 20.0).hypot(y as f64 - 15.0) <= radius {
+                    255
+                } else {
+                    0
+                }
+            })
+            .collect();
+        Plane::from_vec(40, 30, data).unwrap()
+    }
+
     #[test]
     fn peels_a_fat_mask_back_to_the_disc() {
         let (img, inside) = disc();
         // The mask a variance window of radius 3 would give: the disc grown by 3 px.
-        let fat = Plane::from_vec(
-            40,
-            30,
-            (0..30)
-                .flat_map(|y| (0..40).map(move |x| (x, y)))
-                .map(|(x, y)| {
-                    if (x as f64 - 20.0).hypot(y as f64 - 15.0) <= 11.0 {
-                        255
-                    } else {
-                        0
-                    }
-                })
-                .collect(),
-        )
-        .unwrap();
+        let fat = grown(11.0);
         let thin = peel_edges(&img, &fat, 4, 12, 2.0);
         for (i, &t) in thin.data.iter().enumerate() {
             assert_eq!(t != 0, inside[i], "pixel ({}, {})", i % 40, i / 40);
@@ -194,21 +195,7 @@ mod tests {
     #[test]
     fn fewer_layers_peel_less_and_unknown_surroundings_stay() {
         let (img, _) = disc();
-        let fat = Plane::from_vec(
-            40,
-            30,
-            (0..30)
-                .flat_map(|y| (0..40).map(move |x| (x, y)))
-                .map(|(x, y)| {
-                    if (x as f64 - 20.0).hypot(y as f64 - 15.0) <= 14.0 {
-                        255
-                    } else {
-                        0
-                    }
-                })
-                .collect(),
-        )
-        .unwrap();
+        let fat = grown(14.0);
         let (one, four) = (
             peel_edges(&img, &fat, 1, 12, 2.0),
             peel_edges(&img, &fat, 4, 12, 2.0),
