@@ -400,15 +400,22 @@ async fn supervise(
     }
     let mut sigterm = signal(SignalKind::terminate())
         .map_err(|e| CliError::Other(format!("cannot watch SIGTERM: {e}")))?;
-    let is_source = |id: &str| graph.node(id).is_some_and(|n| n.inputs.is_empty());
+    // A node that others read stays after its last frame (its readers may still be taking
+    // them) until it is told to stop.
+    let is_read = |id: &str| {
+        graph
+            .nodes
+            .iter()
+            .any(|n| n.inputs.iter().any(|i| i.node == id))
+    };
     let mut failure: Option<String> = None;
     let mut stopping = false;
     loop {
         if children.is_empty() {
             break;
         }
-        // Every node that consumes is done: the sources may go.
-        if !stopping && children.iter().all(|c| is_source(&c.id)) {
+        // Every node nobody reads is done: the ones they read may go.
+        if !stopping && children.iter().all(|c| is_read(&c.id)) {
             stopping = true;
             terminate(&children);
         }

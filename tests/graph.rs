@@ -6,11 +6,79 @@ use runtime::launch::Graph;
 use runtime::step::run_in_process;
 use runtime::transport::Transport;
 use std::path::Path;
-use std::process::Command;
+use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
 fn bin() -> &'static str {
     env!("CARGO_BIN_EXE_microstereo")
+}
+
+/// Starts `microstereo ARGS` with its output piped; it dies with this test process, so that
+/// a test that fails or is killed leaves no graph running.
+fn start(args: &[&str]) -> Child {
+    start_with(args, Stdio::piped, Stdio::piped)
+}
+
+/// [`start`] with the given stdout and stderr.
+fn start_with(args: &[&str], out: fn() -> Stdio, err: fn() -> Stdio) -> Child {
+    use std::os::unix::process::CommandExt;
+    let mut cmd = Command::new(bin());
+    cmd.args(args).stdout(out()).stderr(err());
+    // SAFETY: only async-signal-safe prctl between fork and exec.
+    unsafe {
+        cmd.pre_exec(|| {
+            libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL);
+            Ok(())
+        });
+    }
+    cmd.spawn().unwrap()
+}
+
+/// Waits for `child` to end within `limit`; past it, kills it and fails with what it said,
+/// so that a hung graph is one failed test rather than a hung test run.
+fn finish(mut child: Child, limit: Duration) -> Output {
+    use std::io::Read;
+    let pipe = |r: Option<Box<dyn Read + Send>>| {
+        std::thread::spawn(move || {
+            let mut v = Vec::new();
+            if let Some(mut r) = r {
+                let _ = r.read_to_end(&mut v);
+            }
+            v
+        })
+    };
+    let out = pipe(child.stdout.take().map(|p| Box::new(p) as _));
+    let err = pipe(child.stderr.take().map(|p| Box::new(p) as _));
+    let start = Instant::now();
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break Some(s);
+        }
+        if start.elapsed() > limit {
+            let _ = child.kill();
+            let _ = child.wait();
+            break None;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let (stdout, stderr) = (out.join().unwrap(), err.join().unwrap());
+    match status {
+        Some(status) => Output {
+            status,
+            stdout,
+            stderr,
+        },
+        None => panic!(
+            "still running after {limit:?}; it said:\n{}\n{}",
+            String::from_utf8_lossy(&stdout),
+            String::from_utf8_lossy(&stderr)
+        ),
+    }
+}
+
+/// Runs `microstereo ARGS` to its end (at most two minutes).
+fn run(args: &[&str]) -> Output {
+    finish(start(args), Duration::from_secs(120))
 }
 
 /// What a watched edge carried: `(frame, payload)` per message.
@@ -35,29 +103,26 @@ fn run_and_watch(
                 .unwrap()
         })
         .collect();
-    let run = Command::new(bin())
-        .args([
-            "run",
-            file.to_str().unwrap(),
-            "--frames",
-            &frames.to_string(),
-        ])
-        .args(["--instance", &instance])
-        .stdout(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
+    let run = start(&[
+        "run",
+        file.to_str().unwrap(),
+        "--frames",
+        &frames.to_string(),
+        "--instance",
+        &instance,
+    ]);
     let mut got: Vec<Edge> = vec![Vec::new(); watched.len()];
-    let start = Instant::now();
+    let begin = Instant::now();
     let refs: Vec<_> = subs.iter().collect();
     let mut ready = Vec::new();
     while got.iter().any(|g| (g.len() as u64) < frames) {
-        if start.elapsed() > Duration::from_secs(120) {
-            let out = run.wait_with_output().unwrap();
-            panic!(
-                "{:?} frames per watched edge after 120 s; the run said:\n{}",
-                got.iter().map(Vec::len).collect::<Vec<_>>(),
-                String::from_utf8_lossy(&out.stdout)
+        if begin.elapsed() > Duration::from_secs(120) {
+            eprintln!(
+                "{:?} frames per watched edge after 120 s",
+                got.iter().map(Vec::len).collect::<Vec<_>>()
             );
+            finish(run, Duration::ZERO);
+            unreachable!("finish fails a run that has not ended");
         }
         runtime::transport::wait_any(&refs, Duration::from_millis(200), &mut ready).unwrap();
         for (i, s) in subs.iter().enumerate() {
@@ -66,7 +131,7 @@ fn run_and_watch(
             }
         }
     }
-    (got, run.wait_with_output().unwrap())
+    (got, finish(run, Duration::from_secs(60)))
 }
 
 #[test]
@@ -142,10 +207,7 @@ fn bad_launch_files_are_refused_with_file_and_line() {
         "[[node]]\nid = \"capture\"\nkind = \"capture\"\nparams = { source = \"camera\" }\n\n[[node]]\nid = \"m\"\nkind = \"match-lr\"\ninputs = { frame = \"capture/frame\" }\nparams = { min_disparity = 5, max_disparity = 1 }\n",
     )
     .unwrap();
-    let out = Command::new(bin())
-        .args(["run", f.to_str().unwrap()])
-        .output()
-        .unwrap();
+    let out = run(&["run", f.to_str().unwrap()]);
     assert_eq!(out.status.code(), Some(2));
     let err = String::from_utf8_lossy(&out.stderr);
     let name = f.display().to_string();
@@ -161,10 +223,7 @@ fn bad_launch_files_are_refused_with_file_and_line() {
         )),
         "{err}"
     );
-    let out = Command::new(bin())
-        .args(["run", dir.path().join("missing.toml").to_str().unwrap()])
-        .output()
-        .unwrap();
+    let out = run(&["run", dir.path().join("missing.toml").to_str().unwrap()]);
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("cannot read the launch file"));
 }
@@ -191,12 +250,11 @@ fn children_of(ppid: u32) -> Vec<u32> {
 fn one_process_per_node_and_none_left_when_the_supervisor_is_killed() {
     let file = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/graph/small.toml");
     let instance = format!("killed{}", std::process::id());
-    let mut sup = Command::new(bin())
-        .args(["run", file.to_str().unwrap(), "--instance", &instance])
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::null())
-        .spawn()
-        .unwrap();
+    let mut sup = start_with(
+        &["run", file.to_str().unwrap(), "--instance", &instance],
+        Stdio::null,
+        Stdio::null,
+    );
     let start = Instant::now();
     let mut kids = Vec::new();
     while kids.len() < 8 && start.elapsed() < Duration::from_secs(20) {
@@ -221,10 +279,7 @@ fn one_process_per_node_and_none_left_when_the_supervisor_is_killed() {
     }
     // The killed nodes left their shared memory; the next run removes it and works.
     let dead_before = runtime::process::dead_nodes(&instance);
-    let out = Command::new(bin())
-        .args(["run", file.to_str().unwrap(), "--frames", "2"])
-        .output()
-        .unwrap();
+    let out = run(&["run", file.to_str().unwrap(), "--frames", "2"]);
     assert!(
         out.status.success(),
         "{}",
@@ -278,10 +333,7 @@ restart = {{ policy = "on-failure", max = 2, backoff_ms = 50 }}
         ),
     )
     .unwrap();
-    let out = Command::new(bin())
-        .args(["run", file.to_str().unwrap(), "--frames", "3"])
-        .output()
-        .unwrap();
+    let out = run(&["run", file.to_str().unwrap(), "--frames", "3"]);
     let (stdout, stderr) = (
         String::from_utf8_lossy(&out.stdout),
         String::from_utf8_lossy(&out.stderr),
@@ -307,10 +359,7 @@ restart = {{ policy = "on-failure", max = 2, backoff_ms = 50 }}
             .replace("restart = {", "# restart = {"),
     )
     .unwrap();
-    let out = Command::new(bin())
-        .args(["run", file.to_str().unwrap(), "--frames", "3"])
-        .output()
-        .unwrap();
+    let out = run(&["run", file.to_str().unwrap(), "--frames", "3"]);
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("node 'flaky' failed (exit status: 3)"));
 }
@@ -334,11 +383,7 @@ fn the_bridge_serves_one_json_scene_per_frame_to_a_tcp_controller() {
     .replace("drift = 2.0 }", "drift = 2.0, fps = 10.0 }");
     let file = dir.path().join("bridge.toml");
     std::fs::write(&file, small).unwrap();
-    let run = Command::new(bin())
-        .args(["run", file.to_str().unwrap(), "--frames", "6"])
-        .stdout(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
+    let run = start(&["run", file.to_str().unwrap(), "--frames", "6"]);
     let start = Instant::now();
     let stream = loop {
         match std::net::TcpStream::connect(("127.0.0.1", port)) {
@@ -366,7 +411,7 @@ fn the_bridge_serves_one_json_scene_per_frame_to_a_tcp_controller() {
         }
         frames.push(scene["frame"].as_u64().unwrap());
     }
-    let out = run.wait_with_output().unwrap();
+    let out = finish(run, Duration::from_secs(60));
     assert!(out.status.success());
     // Frames arrive in order, the last one included; the first may pass before we connect.
     assert!(frames.windows(2).all(|w| w[1] == w[0] + 1), "{frames:?}");
@@ -376,6 +421,15 @@ fn the_bridge_serves_one_json_scene_per_frame_to_a_tcp_controller() {
 #[test]
 fn a_custom_exec_node_joins_the_graph() {
     let dir = tempfile::tempdir().unwrap();
+    // Pairs that grow from frame to frame: each needs new shared memory on every edge.
+    for (k, w) in [96u32, 192, 384, 768, 1536].into_iter().enumerate() {
+        for side in ["l", "r"] {
+            let img = image::GrayImage::from_fn(w, w * 2 / 3, |x, y| {
+                image::Luma([((x * 7 + y * 13 + (x * y) % 31) % 256) as u8])
+            });
+            img.save(dir.path().join(format!("{side}{k}.png"))).unwrap();
+        }
+    }
     let file = dir.path().join("exec.toml");
     std::fs::write(
         &file,
@@ -384,11 +438,11 @@ fn a_custom_exec_node_joins_the_graph() {
 [[node]]
 id = "capture"
 kind = "capture"
-params = {{ width = 160, height = 120, cells = 2, seed = 3 }}
+params = {{ source = "files", left = "{dir}/l?.png", right = "{dir}/r?.png" }}
 
 [[node]]
 id = "invert"
-exec = "{}"
+exec = "{invert}"
 inputs = {{ frame = {{ from = "capture/frame", depth = 8, overflow = "block" }} }}
 ports = {{ inputs = {{ frame = "stereo-frame" }}, outputs = {{ frame = "stereo-frame" }} }}
 
@@ -397,7 +451,8 @@ id = "segment"
 kind = "segment"
 inputs = {{ frame = {{ from = "invert/frame", depth = 8, overflow = "block" }} }}
 "#,
-            env!("CARGO_BIN_EXE_microstereo-invert")
+            dir = dir.path().display(),
+            invert = env!("CARGO_BIN_EXE_microstereo-invert")
         ),
     )
     .unwrap();
@@ -405,7 +460,7 @@ inputs = {{ frame = {{ from = "invert/frame", depth = 8, overflow = "block" }} }
     let (got, out) = run_and_watch(
         &file,
         &graph,
-        3,
+        5,
         &[("capture", "frame"), ("invert", "frame")],
     );
     let summary = String::from_utf8_lossy(&out.stdout);
@@ -417,8 +472,17 @@ inputs = {{ frame = {{ from = "invert/frame", depth = 8, overflow = "block" }} }
     assert!(
         summary
             .lines()
-            .any(|l| l.starts_with("invert") && l.contains(" 3 ")),
+            .any(|l| l.starts_with("invert") && l.contains(" 5 ")),
         "{summary}"
     );
-    assert!(summary.contains("3 frame(s) of 3"), "{summary}");
+    // The invert forwards a frame in a few milliseconds, so it has the last, largest frame
+    // out while the slower segmentation is still busy with the one before: it must stay
+    // until that frame is read (a writer that leaves takes its unread frames along).
+    assert!(
+        summary
+            .lines()
+            .any(|l| l.starts_with("segment") && l.contains(" 5 ")),
+        "{summary}"
+    );
+    assert!(summary.contains("5 frame(s) of 5"), "{summary}");
 }

@@ -1,12 +1,13 @@
 //! One node as its own process: inputs and outputs on shared memory, one step per frame.
 //!
-//! A source produces frames (paced by `fps`, or as fast as it can) and then stays until it
-//! is told to stop, so that its last frames remain readable. Any other node sleeps in a
+//! A source produces frames (paced by `fps`, or as fast as it can). Any other node sleeps in a
 //! WaitSet until an input has data, joins its inputs by frame number (frames present on
 //! every input, oldest first; a frame some input never got is dropped), steps, and
 //! publishes its outputs
 //! in loaned shared memory under the same frame number. Given a frame count, it ends after
-//! the last frame. On exit it prints one [`NodeStats`] line for the supervisor.
+//! the last frame; a node that other nodes of the graph read then stays until it is told to
+//! stop, because a publisher that leaves takes its unread frames along. On exit it prints
+//! one [`NodeStats`] line for the supervisor.
 
 use crate::launch::Graph;
 use crate::step::{GraphNode, Msg, Outputs};
@@ -138,6 +139,7 @@ pub fn run_node(
                 .collect()
         })
         .collect();
+    let read_in_graph = expected.iter().any(|w| !w.is_empty());
     let t0 = Instant::now();
     while pubs.iter().zip(&expected).any(|(p, want)| {
         let have = p.reader_names();
@@ -181,12 +183,14 @@ pub fn run_node(
             last_frame = Some(seq);
             seq += 1;
         }
-        // Stay until told to stop: a publisher that leaves takes its unread frames along.
-        while !stopped && transport.sleep(Duration::from_secs(3600)) {}
+        if !stopped {
+            linger(&transport, read_in_graph);
+        }
     } else {
         let refs: Vec<&EdgeSubscriber> = subs.iter().collect();
         let mut pending: Vec<Vec<Message>> = subs.iter().map(|_| Vec::new()).collect();
         let seq_of = |m: &Message| m.user_header().sequence;
+        let mut done = false;
         wait_loop::<String>(&refs, Duration::from_secs(1), |wake, _| {
             if wake == Wake::Stop {
                 return Ok(false);
@@ -226,11 +230,15 @@ pub fn run_node(
                     p.retain(|m| seq_of(m) > seq);
                 }
                 if frames.is_some_and(|n| seq + 1 >= n) {
+                    done = true;
                     return Ok(false);
                 }
             }
             Ok(true)
         })?;
+        if done {
+            linger(&transport, read_in_graph);
+        }
     }
     let steps = times.len() as u64;
     let mean_ms = if times.is_empty() {
@@ -257,6 +265,13 @@ pub fn run_node(
         },
         last_frame,
     })
+}
+
+/// After its last frame, a node that other nodes read stays until it is told to stop: its
+/// readers may not have taken every frame yet, and a publisher that leaves takes its unread
+/// frames along (the supervisor stops such nodes once every node nobody reads has ended).
+fn linger(transport: &Transport, read_in_graph: bool) {
+    while read_in_graph && transport.sleep(Duration::from_secs(3600)) {}
 }
 
 /// Nodes of run `instance` on this machine that died without removing their shared memory.

@@ -11,6 +11,7 @@
 //! the writer wait (lossless edges). Readers count frames they never saw from gaps in the
 //! header's sequence numbers.
 
+use iceoryx2::node::NodeWaitFailure;
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::port_name::PortName;
@@ -116,7 +117,19 @@ impl Transport {
 
     /// Sleeps for `d`; false when the process was asked to stop (SIGINT / SIGTERM), at once.
     pub fn sleep(&self, d: Duration) -> bool {
-        self.node.wait(d).is_ok()
+        let until = std::time::Instant::now() + d;
+        loop {
+            match self
+                .node
+                .wait(until.saturating_duration_since(std::time::Instant::now()))
+            {
+                Ok(()) => return true,
+                // Any signal cuts the sleep short; only SIGINT and SIGTERM (which a zero wait
+                // reports) stop the node.
+                Err(NodeWaitFailure::Interrupt) if self.node.wait(Duration::ZERO).is_ok() => {}
+                Err(_) => return false,
+            }
+        }
     }
 
     fn services(
@@ -368,9 +381,10 @@ pub fn wait_loop<E: From<TransportError>>(
         for (s, _) in inputs.iter().zip(&ready).filter(|(_, r)| **r) {
             s.drain_events();
         }
+        // A signal other than SIGINT and SIGTERM also interrupts the wait: the next wait
+        // tells a stop request from it.
         let wake = match result {
-            iceoryx2::waitset::WaitSetRunResult::TerminationRequest
-            | iceoryx2::waitset::WaitSetRunResult::Interrupt => Wake::Stop,
+            iceoryx2::waitset::WaitSetRunResult::TerminationRequest => Wake::Stop,
             _ if ready.contains(&true) => Wake::Ready,
             _ => Wake::Timeout,
         };
