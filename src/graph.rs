@@ -276,8 +276,18 @@ pub struct RunArgs {
 pub fn run_cmd(a: RunArgs) -> Result<(), CliError> {
     let graph = load(&a.launch)?;
     let stale = runtime::process::remove_stale_resources();
-    if stale > 0 {
-        eprintln!("removed the shared memory of {stale} dead node(s)");
+    if stale.removed > 0 || stale.empty_files > 0 {
+        eprintln!(
+            "removed the shared memory of {} dead node(s) and {} unfinished edge(s)",
+            stale.removed, stale.empty_files
+        );
+    }
+    if stale.gave_up {
+        eprintln!(
+            "warning: the shared memory of dead nodes could not be removed within 5 s; \
+             the graph starts anyway (`rm /dev/shm/iox2_*` and `rm -r /tmp/iceoryx2` with \
+             no graph running clears it)"
+        );
     }
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)

@@ -279,7 +279,7 @@ pub fn dead_nodes(instance: &str) -> usize {
     set_log_level_from_env_or(LogLevel::Error);
     let prefix = format!("{instance}/");
     let mut dead = 0;
-    let _ = Node::<crate::transport::Service>::list(Config::global_config(), |state| {
+    let _ = Node::<crate::transport::Service>::list(crate::transport::iceoryx_config(), |state| {
         if let NodeState::Dead(view) = state
             && view
                 .details()
@@ -293,17 +293,119 @@ pub fn dead_nodes(instance: &str) -> usize {
     dead
 }
 
-/// Removes the shared-memory resources of graph nodes that died without cleaning up.
-pub fn remove_stale_resources() -> usize {
+/// What [`remove_stale_resources`] did.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct StaleCleanup {
+    /// Dead nodes whose shared memory was removed.
+    pub removed: usize,
+    /// Unsized shared-memory files (left by a process killed while creating them) removed.
+    pub empty_files: usize,
+    /// The clean-up did not finish within its time and was left behind.
+    pub gave_up: bool,
+}
+
+/// How old an empty shared-memory file must be to count as left by a dead creator (a live
+/// one gives it its size within microseconds of creating it).
+pub const UNSIZED_AGE: Duration = Duration::from_secs(1);
+
+/// Where POSIX shared memory lives on this system.
+const SHM_DIR: &str = "/dev/shm";
+
+/// Removes the shared-memory resources of nodes that died without cleaning up (on this
+/// machine, any run), within a few seconds.
+pub fn remove_stale_resources() -> StaleCleanup {
     set_log_level_from_env_or(LogLevel::Error);
-    let mut removed = 0;
-    let _ = Node::<crate::transport::Service>::list(Config::global_config(), |state| {
-        if let NodeState::Dead(view) = state
-            && view.try_remove_stale_resources().is_ok()
-        {
-            removed += 1;
-        }
-        CallbackProgression::Continue
+    let config = crate::transport::iceoryx_config();
+    // iceoryx2 0.10 waits forever to open shared memory that has no size yet, which is what
+    // a node killed while creating an edge leaves: remove it before touching the dead node.
+    let empty_files = remove_unsized_shm(
+        std::path::Path::new(SHM_DIR),
+        config.global.prefix.as_str(),
+        UNSIZED_AGE,
+    );
+    let (tx, rx) = std::sync::mpsc::channel();
+    // Any other hazard of that kind must not stop the graph from starting: the clean-up runs
+    // aside and is left behind after a deadline.
+    std::thread::spawn(move || {
+        let mut removed = 0;
+        let _ = Node::<crate::transport::Service>::list(config, |state| {
+            if let NodeState::Dead(view) = state
+                && view.try_remove_stale_resources().is_ok()
+            {
+                removed += 1;
+            }
+            CallbackProgression::Continue
+        });
+        let _ = tx.send(removed);
     });
-    removed
+    match rx.recv_timeout(Duration::from_secs(5)) {
+        Ok(removed) => StaleCleanup {
+            removed,
+            empty_files,
+            gave_up: false,
+        },
+        Err(_) => StaleCleanup {
+            removed: 0,
+            empty_files,
+            gave_up: true,
+        },
+    }
+}
+
+/// Removes the files in `dir` named `prefix*` that are empty and older than `age`: shared
+/// memory whose creator died before giving it a size (a live creator sizes it at once).
+fn remove_unsized_shm(dir: &std::path::Path, prefix: &str, age: Duration) -> usize {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return 0;
+    };
+    entries
+        .filter_map(Result::ok)
+        .filter(|e| e.file_name().to_string_lossy().starts_with(prefix))
+        .filter(|e| {
+            e.metadata().is_ok_and(|m| {
+                m.is_file()
+                    && m.len() == 0
+                    && m.modified()
+                        .ok()
+                        .and_then(|t| t.elapsed().ok())
+                        .is_some_and(|a| a > age)
+            })
+        })
+        .filter(|e| std::fs::remove_file(e.path()).is_ok())
+        .count()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn only_old_empty_files_of_the_prefix_are_removed() {
+        let dir = tempfile::tempdir().unwrap();
+        let old = std::time::SystemTime::now() - Duration::from_secs(60);
+        let make = |name: &str, bytes: &[u8], when: Option<std::time::SystemTime>| {
+            let p = dir.path().join(name);
+            std::fs::write(&p, bytes).unwrap();
+            if let Some(t) = when {
+                std::fs::File::options()
+                    .write(true)
+                    .open(&p)
+                    .unwrap()
+                    .set_modified(t)
+                    .unwrap();
+            }
+        };
+        make("iox2_a.dynamic", b"", Some(old));
+        make("iox2_b.dynamic", b"", None);
+        make("iox2_c.dynamic", b"x", Some(old));
+        make("other.dynamic", b"", Some(old));
+        let n = remove_unsized_shm(dir.path(), "iox2_", Duration::from_secs(10));
+        let mut left: Vec<_> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().into_string().unwrap())
+            .collect();
+        left.sort();
+        assert_eq!(n, 1);
+        assert_eq!(left, ["iox2_b.dynamic", "iox2_c.dynamic", "other.dynamic"]);
+    }
 }

@@ -101,6 +101,21 @@ type EdgeEvents = iceoryx2::service::port_factory::event::PortFactory<Service>;
 /// Largest number of readers of one edge.
 const MAX_READERS: usize = 16;
 
+/// iceoryx2's default configuration without its own clean-up of dead nodes when a node
+/// starts or ends or a service opens: that clean-up can wait forever (iceoryx2 0.10 waits for
+/// shared memory that a process killed while creating it left with no size), so it happens
+/// once per run, bounded, in [`crate::process::remove_stale_resources`].
+pub(crate) fn iceoryx_config() -> &'static Config {
+    static CONFIG: std::sync::OnceLock<Config> = std::sync::OnceLock::new();
+    CONFIG.get_or_init(|| {
+        let mut c = Config::global_config().clone();
+        c.global.node.cleanup_dead_nodes_on_creation = false;
+        c.global.node.cleanup_dead_nodes_on_destruction = false;
+        c.global.service.cleanup_dead_nodes_on_open = false;
+        c
+    })
+}
+
 impl Transport {
     /// Joins the transport as `name` (shown by iceoryx2's tools).
     pub fn new(name: &str) -> Result<Self, TransportError> {
@@ -110,6 +125,7 @@ impl Transport {
         let node_name = NodeName::new(name).map_err(|_| TransportError::Name(name.into()))?;
         let node = NodeBuilder::new()
             .name(&node_name)
+            .config(iceoryx_config())
             .create::<Service>()
             .map_err(|e| fail(name, "creating the iceoryx2 node")(&e))?;
         Ok(Self { node })
