@@ -475,6 +475,16 @@ async fn supervise(
                 wait
             );
             tokio::time::sleep(wait).await;
+            if failed {
+                // A node that died holds its places on its edges (a full queue of a dead
+                // reader blocks a lossless writer): free them before its successor joins.
+                let stale = tokio::task::spawn_blocking(runtime::process::remove_stale_resources)
+                    .await
+                    .unwrap_or_default();
+                if stale.gave_up {
+                    eprintln!("[{}] warning: its shared memory could not be removed", c.id);
+                }
+            }
             let mut proc = spawn(graph, &instance, &c.id, a.frames)?;
             forward_logs(&c.id, &mut proc, &stats);
             children.push(Child {

@@ -305,6 +305,95 @@ fn one_process_per_node_and_none_left_when_the_supervisor_is_killed() {
 }
 
 #[test]
+fn a_node_killed_mid_run_is_restarted_and_the_run_completes_clean() {
+    let dir = tempfile::tempdir().unwrap();
+    let small = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/graph/small.toml"),
+    )
+    .unwrap()
+    // Paced, so that the kill lands mid-run.
+    .replace("drift = 2.0 }", "drift = 2.0, fps = 8.0 }");
+    let small = small.replacen(
+        "id = \"match-lr\"\n",
+        "id = \"match-lr\"\nrestart = { policy = \"on-failure\", max = 2, backoff_ms = 50 }\n",
+        1,
+    );
+    assert!(small.contains("restart = {"));
+    let file = dir.path().join("kill-node.toml");
+    std::fs::write(&file, small).unwrap();
+    let instance = format!("killnode{}", std::process::id());
+    let frames = 24u64;
+    let sup = start(&[
+        "run",
+        file.to_str().unwrap(),
+        "--frames",
+        &frames.to_string(),
+        "--instance",
+        &instance,
+    ]);
+    let node_pid = |id: &str| {
+        children_of(sup.id()).into_iter().find(|p| {
+            std::fs::read_to_string(format!("/proc/{p}/cmdline"))
+                .is_ok_and(|c| c.contains(&format!("--id\0{id}\0")))
+        })
+    };
+    let begin = Instant::now();
+    let mut victim = None;
+    while victim.is_none() && begin.elapsed() < Duration::from_secs(20) {
+        victim = node_pid("match-lr");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let victim = victim.expect("a match-lr process");
+    // A few frames in (8 per second), well before the last.
+    std::thread::sleep(Duration::from_millis(800));
+    // SAFETY: kill(2) on a process this test started (through the supervisor).
+    unsafe {
+        libc::kill(victim as i32, libc::SIGKILL);
+    }
+    let out = finish(sup, Duration::from_secs(120));
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr),
+    );
+    assert!(out.status.success(), "{stdout}\n{stderr}");
+    assert!(
+        stderr.contains("[match-lr] exited (signal: 9 (SIGKILL)); restart 1 of 2"),
+        "{stderr}"
+    );
+    // The run got to its end through the restarted matcher; the frames it missed while down
+    // (and the one it was killed on) are the ones the summary counts as dropped on its edge.
+    let done: u64 = stdout
+        .lines()
+        .find_map(|l| l.split_once(&format!(" frame(s) of {frames}")))
+        .and_then(|(n, _)| n.trim().parse().ok())
+        .expect("a summary");
+    let missed: u64 = stdout
+        .split("match-lr/disparity → validate.left: ")
+        .nth(1)
+        .and_then(|r| r.split(',').next()?.trim().parse().ok())
+        .expect("drops of the matcher's edge");
+    assert!(done >= frames / 2, "{stdout}");
+    assert_eq!(done + missed, frames, "{stdout}");
+    assert!(
+        stdout
+            .lines()
+            .any(|l| l.starts_with("match-lr") && !l.contains("no report")),
+        "{stdout}"
+    );
+    // No process of the run is left, and no shared memory of a dead node of it.
+    let left: Vec<u32> = std::fs::read_dir("/proc")
+        .unwrap()
+        .filter_map(|e| e.ok()?.file_name().to_str()?.parse::<u32>().ok())
+        .filter(|p| {
+            std::fs::read_to_string(format!("/proc/{p}/cmdline"))
+                .is_ok_and(|c| c.contains(&instance))
+        })
+        .collect();
+    assert!(left.is_empty(), "processes left: {left:?}");
+    assert_eq!(runtime::process::dead_nodes(&instance), 0);
+}
+
+#[test]
 fn a_failing_node_is_restarted_by_its_policy() {
     let dir = tempfile::tempdir().unwrap();
     // Fails on its first start, then runs the example custom node.
