@@ -36,6 +36,8 @@ enum Command {
     Run(crate::graph::RunArgs),
     /// Runs one node of a launch file as this process (started by `run`).
     Node(crate::graph::NodeArgs),
+    /// Times one edge: 0.3, 1.3 and 5 MP frames over iceoryx2 and over a Unix-domain socket.
+    BenchTransport(crate::graph::BenchTransportArgs),
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -340,6 +342,7 @@ pub fn main() -> i32 {
         Command::Reconstruct(a) => reconstruct(*a),
         Command::Eval(a) => eval(a),
         Command::Bench(a) => bench(a),
+        Command::BenchTransport(a) => crate::graph::bench_transport(a),
         Command::Segment(a) => segment_cmd(a),
         Command::Synth(a) => crate::synthcmd::synth(a),
         Command::CalibrateDepth(a) => crate::calibrate::calibrate_depth(a),

@@ -394,6 +394,65 @@ fn a_node_killed_mid_run_is_restarted_and_the_run_completes_clean() {
 }
 
 #[test]
+fn a_source_faster_than_the_graph_drops_frames_on_lossy_edges_and_the_run_ends() {
+    // The small graph with its edges left lossy (depth 2, drop the oldest) and a source that
+    // reads files as fast as it can: the joining nodes get frames on some inputs far ahead
+    // of the others and must let the oldest go instead of holding every one.
+    let small = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/graph/small.toml"),
+    )
+    .unwrap()
+    .replace(", depth = 8, overflow = \"block\"", "")
+    .replace(
+        "params = { width = 320, height = 240, cells = 3, seed = 5, drift = 2.0 }",
+        &format!(
+            "params = {{ source = \"files\", left = \"{c}/im2.png\", right = \"{c}/im6.png\", repeat = true }}",
+            c = Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("tests/data/cones")
+                .display()
+        ),
+    );
+    assert!(!small.contains("overflow") && small.contains("files"));
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("lossy.toml");
+    std::fs::write(&file, small).unwrap();
+    let frames = 40u64;
+    let out = run(&[
+        "run",
+        file.to_str().unwrap(),
+        "--frames",
+        &frames.to_string(),
+    ]);
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr),
+    );
+    assert!(out.status.success(), "{stdout}\n{stderr}");
+    // Every node read the source's last frame; the frames between went where the summary
+    // says: dropped on the lossy edges.
+    let done: u64 = stdout
+        .lines()
+        .find_map(|l| l.split_once(&format!(" frame(s) of {frames}")))
+        .and_then(|(n, _)| n.trim().parse().ok())
+        .expect("a summary");
+    let dropped: u64 = stdout
+        .split("triangulate/targets → manipulator-bridge.targets: ")
+        .next()
+        .and_then(|h| {
+            h.rsplit(": ")
+                .next()?
+                .split(',')
+                .next()?
+                .trim()
+                .parse()
+                .ok()
+        })
+        .expect("drops of the last joining edge");
+    assert!(done >= 1 && done < frames, "{stdout}");
+    assert!(dropped > 0, "{stdout}");
+}
+
+#[test]
 fn a_failing_node_is_restarted_by_its_policy() {
     let dir = tempfile::tempdir().unwrap();
     // Fails on its first start, then runs the example custom node.

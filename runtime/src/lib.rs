@@ -5,6 +5,7 @@
 //! (tests, one-shot commands such as `microstereo reconstruct`) and, once the process graph
 //! lands, inside a node process behind the shared-memory transport.
 
+pub mod hop;
 pub mod launch;
 pub mod process;
 pub mod step;

@@ -11,7 +11,9 @@
 
 use crate::launch::Graph;
 use crate::step::{GraphNode, Msg, Outputs};
-use crate::transport::{EdgePublisher, EdgeSubscriber, Message, Transport, Wake, wait_loop};
+use crate::transport::{
+    EdgePublisher, EdgeSubscriber, Message, Overflow, Transport, Wake, wait_loop,
+};
 use iceoryx2::node::NodeView;
 use iceoryx2::prelude::*;
 use schemas::FrameHeader;
@@ -196,8 +198,22 @@ pub fn run_node(
                 return Ok(false);
             }
             for (i, s) in subs.iter().enumerate() {
-                while let Some(m) = s.receive()? {
-                    pending[i].push(m);
+                loop {
+                    // An input ahead of the others holds its frames until they catch up, up
+                    // to its borrow limit: then a lossy edge lets its oldest go, a lossless
+                    // one leaves the rest queued (its writer waits).
+                    if pending[i].len() >= s.max_held() {
+                        if s.config().overflow == Overflow::DropOldest {
+                            pending[i].remove(0);
+                            s.discard();
+                        } else {
+                            break;
+                        }
+                    }
+                    match s.receive()? {
+                        Some(m) => pending[i].push(m),
+                        None => break,
+                    }
                 }
             }
             // The oldest frame every input has; frames older than it can no longer be joined.

@@ -160,7 +160,8 @@ impl Transport {
             .publish_subscribe::<[u8]>()
             .user_header::<FrameHeader>()
             .subscriber_max_buffer_size(cfg.depth.max(1))
-            // A reader holds frames while it waits for the same frame on its other inputs.
+            // A reader holds frames while it waits for the same frame on its other inputs
+            // (EdgeSubscriber::max_held).
             .subscriber_max_borrowed_samples(cfg.depth.max(1) + 2)
             .enable_safe_overflow(cfg.overflow == Overflow::DropOldest)
             .max_subscribers(MAX_READERS)
@@ -224,6 +225,11 @@ impl Transport {
         name: Option<&str>,
     ) -> Result<EdgeSubscriber, TransportError> {
         let (pubsub, event) = self.services(edge, cfg)?;
+        // The listener first: a writer that sees the subscriber may send (and notify) at once.
+        let listener = event
+            .listener_builder()
+            .create()
+            .map_err(|e| fail(edge, "creating the listener")(&e))?;
         let mut builder = pubsub.subscriber_builder().buffer_size(cfg.depth.max(1));
         if let Some(n) = name {
             builder = builder.name(&PortName::new(n).map_err(|_| TransportError::Name(n.into()))?);
@@ -231,14 +237,11 @@ impl Transport {
         let subscriber = builder
             .create()
             .map_err(|e| fail(edge, "creating the subscriber")(&e))?;
-        let listener = event
-            .listener_builder()
-            .create()
-            .map_err(|e| fail(edge, "creating the listener")(&e))?;
         Ok(EdgeSubscriber {
             edge: edge.into(),
             subscriber,
             listener,
+            cfg: *cfg,
             last: Cell::new(None),
             received: Cell::new(0),
             dropped: Cell::new(0),
@@ -264,6 +267,27 @@ impl EdgePublisher {
         len: usize,
         fill: impl FnOnce(&mut [u8]),
     ) -> Result<(), TransportError> {
+        self.send_impl(header, len, fill, false)
+    }
+
+    /// [`send`](Self::send) with the capture time set once the payload is written (to time
+    /// the hop alone).
+    pub fn send_stamped(
+        &self,
+        header: FrameHeader,
+        len: usize,
+        fill: impl FnOnce(&mut [u8]),
+    ) -> Result<(), TransportError> {
+        self.send_impl(header, len, fill, true)
+    }
+
+    fn send_impl(
+        &self,
+        header: FrameHeader,
+        len: usize,
+        fill: impl FnOnce(&mut [u8]),
+        stamp: bool,
+    ) -> Result<(), TransportError> {
         let mut sample = self
             .publisher
             .loan_slice_uninit(len)
@@ -271,6 +295,9 @@ impl EdgePublisher {
         *sample.user_header_mut() = header;
         let mut sample = sample.write_from_fn(|_| 0u8);
         fill(sample.payload_mut());
+        if stamp {
+            sample.user_header_mut().capture_ns = crate::process::now_ns();
+        }
         sample.send().map_err(|e| fail(&self.edge, "sending")(&e))?;
         self.notifier
             .notify()
@@ -301,12 +328,29 @@ pub struct EdgeSubscriber {
     edge: String,
     subscriber: Subscriber<Service, [u8], FrameHeader>,
     listener: Listener<Service>,
+    cfg: EdgeConfig,
     last: Cell<Option<u64>>,
     received: Cell<u64>,
     dropped: Cell<u64>,
 }
 
 impl EdgeSubscriber {
+    /// How many received messages the reader may hold at once (see the service's borrow
+    /// limit); receiving more fails until one is dropped.
+    pub fn max_held(&self) -> usize {
+        self.cfg.depth.max(1) + 2
+    }
+
+    /// The edge's settings.
+    pub fn config(&self) -> EdgeConfig {
+        self.cfg
+    }
+
+    /// Counts a message the reader received but let go unused among the dropped ones.
+    pub fn discard(&self) {
+        self.dropped.set(self.dropped.get() + 1);
+    }
+
     /// The next queued message, if any (oldest first).
     pub fn receive(&self) -> Result<Option<Message>, TransportError> {
         let m = self
