@@ -76,6 +76,37 @@ fn finish(mut child: Child, limit: Duration) -> Output {
     }
 }
 
+/// Starts `microstereo run FILE --frames N --instance NAME`.
+fn start_run(file: &Path, frames: u64, instance: &str) -> Child {
+    let n = frames.to_string();
+    start(&[
+        "run",
+        file.to_str().unwrap(),
+        "--frames",
+        &n,
+        "--instance",
+        instance,
+    ])
+}
+
+/// From a run's summary: how many of its `frames` frames reached the end of the graph.
+fn frames_done(summary: &str, frames: u64) -> u64 {
+    summary
+        .lines()
+        .find_map(|l| l.split_once(&format!(" frame(s) of {frames}")))
+        .and_then(|(n, _)| n.trim().parse().ok())
+        .expect("a summary")
+}
+
+/// From a run's summary: the frames dropped on the edge printed as `edge` (`a/b → c.d`).
+fn drops_on(summary: &str, edge: &str) -> u64 {
+    summary
+        .split(&format!("{edge}: "))
+        .nth(1)
+        .and_then(|r| r.split([',', '\n']).next()?.trim().parse().ok())
+        .unwrap_or_else(|| panic!("no drops of {edge} in {summary}"))
+}
+
 /// Runs `microstereo ARGS` to its end (at most two minutes).
 fn run(args: &[&str]) -> Output {
     finish(start(args), Duration::from_secs(120))
@@ -103,14 +134,7 @@ fn run_and_watch(
                 .unwrap()
         })
         .collect();
-    let run = start(&[
-        "run",
-        file.to_str().unwrap(),
-        "--frames",
-        &frames.to_string(),
-        "--instance",
-        &instance,
-    ]);
+    let run = start_run(file, frames, &instance);
     let mut got: Vec<Edge> = vec![Vec::new(); watched.len()];
     let begin = Instant::now();
     let refs: Vec<_> = subs.iter().collect();
@@ -323,14 +347,7 @@ fn a_node_killed_mid_run_is_restarted_and_the_run_completes_clean() {
     std::fs::write(&file, small).unwrap();
     let instance = format!("killnode{}", std::process::id());
     let frames = 24u64;
-    let sup = start(&[
-        "run",
-        file.to_str().unwrap(),
-        "--frames",
-        &frames.to_string(),
-        "--instance",
-        &instance,
-    ]);
+    let sup = start_run(&file, frames, &instance);
     let node_pid = |id: &str| {
         children_of(sup.id()).into_iter().find(|p| {
             std::fs::read_to_string(format!("/proc/{p}/cmdline"))
@@ -362,16 +379,8 @@ fn a_node_killed_mid_run_is_restarted_and_the_run_completes_clean() {
     );
     // The run got to its end through the restarted matcher; the frames it missed while down
     // (and the one it was killed on) are the ones the summary counts as dropped on its edge.
-    let done: u64 = stdout
-        .lines()
-        .find_map(|l| l.split_once(&format!(" frame(s) of {frames}")))
-        .and_then(|(n, _)| n.trim().parse().ok())
-        .expect("a summary");
-    let missed: u64 = stdout
-        .split("match-lr/disparity → validate.left: ")
-        .nth(1)
-        .and_then(|r| r.split(',').next()?.trim().parse().ok())
-        .expect("drops of the matcher's edge");
+    let done = frames_done(&stdout, frames);
+    let missed = drops_on(&stdout, "match-lr/disparity → validate.left");
     assert!(done >= frames / 2, "{stdout}");
     assert_eq!(done + missed, frames, "{stdout}");
     assert!(
@@ -430,24 +439,8 @@ fn a_source_faster_than_the_graph_drops_frames_on_lossy_edges_and_the_run_ends()
     assert!(out.status.success(), "{stdout}\n{stderr}");
     // Every node read the source's last frame; the frames between went where the summary
     // says: dropped on the lossy edges.
-    let done: u64 = stdout
-        .lines()
-        .find_map(|l| l.split_once(&format!(" frame(s) of {frames}")))
-        .and_then(|(n, _)| n.trim().parse().ok())
-        .expect("a summary");
-    let dropped: u64 = stdout
-        .split("triangulate/targets → manipulator-bridge.targets: ")
-        .next()
-        .and_then(|h| {
-            h.rsplit(": ")
-                .next()?
-                .split(',')
-                .next()?
-                .trim()
-                .parse()
-                .ok()
-        })
-        .expect("drops of the last joining edge");
+    let done = frames_done(&stdout, frames);
+    let dropped = drops_on(&stdout, "validate/disparity → triangulate.checked");
     assert!(done >= 1 && done < frames, "{stdout}");
     assert!(dropped > 0, "{stdout}");
 }

@@ -85,32 +85,50 @@ pub fn iceoryx2(bytes: usize, frames: usize) -> Result<HopStats, String> {
             }
             std::thread::sleep(Duration::from_millis(1));
         }
-        let mut lat = Vec::with_capacity(frames);
-        let start = Instant::now();
-        for k in 0..frames {
+        let (lat, elapsed) = drive(frames, bytes, paced, &seen_rx, |k| {
             let header = FrameHeader {
                 sequence: k as u64,
                 ..FrameHeader::image(MessageKind::Image, PixelFormat::Mono8, bytes, 1, 1)
             };
             p.send_stamped(header, bytes, |b| fill(b, k))
-                .map_err(|e| e.to_string())?;
-            if paced {
-                lat.push(check(
-                    seen_rx.recv_timeout(Duration::from_secs(10)),
-                    bytes,
-                    k,
-                )?);
-            }
-        }
-        if !paced {
-            for k in 0..frames {
-                check(seen_rx.recv_timeout(Duration::from_secs(10)), bytes, k)?;
-            }
-        }
-        let elapsed = start.elapsed();
+                .map_err(|e| e.to_string())
+        })?;
         reader.join().map_err(|_| "the reader panicked")??;
         Ok((lat, elapsed))
     };
+    measure(frames, run)
+}
+
+/// Sends `frames` frames with `send(k)`: one at a time, each latency kept, when `paced`;
+/// else back to back. Returns the latencies and the time until the reader had them all.
+fn drive(
+    frames: usize,
+    bytes: usize,
+    paced: bool,
+    seen: &mpsc::Receiver<Seen>,
+    mut send: impl FnMut(usize) -> Result<(), String>,
+) -> Result<(Vec<f64>, Duration), String> {
+    let mut lat = Vec::with_capacity(frames);
+    let start = Instant::now();
+    for k in 0..frames {
+        send(k)?;
+        if paced {
+            lat.push(check(seen.recv_timeout(Duration::from_secs(10)), bytes, k)?);
+        }
+    }
+    if !paced {
+        for k in 0..frames {
+            check(seen.recv_timeout(Duration::from_secs(10)), bytes, k)?;
+        }
+    }
+    Ok((lat, start.elapsed()))
+}
+
+/// A latency run then a throughput run of `run`.
+fn measure(
+    frames: usize,
+    run: impl Fn(bool) -> Result<(Vec<f64>, Duration), String>,
+) -> Result<HopStats, String> {
     let (mut lat, _) = run(true)?;
     let (_, elapsed) = run(false)?;
     Ok(HopStats {
@@ -153,40 +171,19 @@ pub fn unix_socket(bytes: usize, frames: usize) -> Result<HopStats, String> {
             Ok(())
         });
         let mut frame = vec![0u8; bytes];
-        let mut lat = Vec::with_capacity(frames);
-        let start = Instant::now();
-        for k in 0..frames {
+        let (lat, elapsed) = drive(frames, bytes, paced, &seen_rx, |k| {
             fill(&mut frame, k);
             w.write_all(&now_ns().to_le_bytes())
                 .and_then(|_| w.write_all(&frame))
-                .map_err(|e| format!("socket write: {e}"))?;
-            if paced {
-                lat.push(check(
-                    seen_rx.recv_timeout(Duration::from_secs(10)),
-                    bytes,
-                    k,
-                )?);
-            }
-        }
-        if !paced {
-            for k in 0..frames {
-                check(seen_rx.recv_timeout(Duration::from_secs(10)), bytes, k)?;
-            }
-        }
-        let elapsed = start.elapsed();
+                .map_err(|e| format!("socket write: {e}"))
+        })?;
         reader
             .join()
             .map_err(|_| "the reader panicked")?
             .map_err(|e| format!("socket read: {e}"))?;
         Ok((lat, elapsed))
     };
-    let (mut lat, _) = run(true)?;
-    let (_, elapsed) = run(false)?;
-    Ok(HopStats {
-        p50_us: percentile(&mut lat, 0.5),
-        p99_us: percentile(&mut lat, 0.99),
-        fps: frames as f64 / elapsed.as_secs_f64(),
-    })
+    measure(frames, run)
 }
 
 #[cfg(test)]
