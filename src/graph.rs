@@ -284,9 +284,10 @@ pub fn run_cmd(a: RunArgs) -> Result<(), CliError> {
     }
     if stale.gave_up {
         eprintln!(
-            "warning: the shared memory of dead nodes could not be removed within 5 s; \
+            "warning: the shared memory of dead nodes could not be removed within {:?}; \
              the graph starts anyway (`rm /dev/shm/iox2_*` and `rm -r /tmp/iceoryx2` with \
-             no graph running clears it)"
+             no graph running clears it)",
+            runtime::process::STALE_CLEANUP_LIMIT
         );
     }
     let rt = tokio::runtime::Builder::new_multi_thread()
@@ -412,12 +413,6 @@ async fn supervise(
         .map_err(|e| CliError::Other(format!("cannot watch SIGTERM: {e}")))?;
     // A node that others read stays after its last frame (its readers may still be taking
     // them) until it is told to stop.
-    let is_read = |id: &str| {
-        graph
-            .nodes
-            .iter()
-            .any(|n| n.inputs.iter().any(|i| i.node == id))
-    };
     let mut failure: Option<String> = None;
     let mut stopping = false;
     loop {
@@ -425,7 +420,7 @@ async fn supervise(
             break;
         }
         // Every node nobody reads is done: the ones they read may go.
-        if !stopping && children.iter().all(|c| is_read(&c.id)) {
+        if !stopping && children.iter().all(|c| graph.is_read(&c.id)) {
             stopping = true;
             terminate(&children);
         }

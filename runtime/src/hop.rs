@@ -7,7 +7,7 @@
 //! after the frame is written, to the reader holding the frame, having read its first and last
 //! byte. Throughput is frames sent back to back through a lossless edge of depth 4.
 
-use crate::process::now_ns;
+use crate::process::{now_ns, percentile};
 use crate::transport::{EdgeConfig, Overflow, Transport, Wake, wait_loop};
 use schemas::{FrameHeader, MessageKind, PixelFormat};
 use std::io::{Read, Write};
@@ -23,11 +23,6 @@ pub struct HopStats {
     pub p99_us: f64,
     /// Frames per second, back to back.
     pub fps: f64,
-}
-
-fn percentile(v: &mut [f64], q: f64) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[((v.len() - 1) as f64 * q).round() as usize]
 }
 
 fn fill(b: &mut [u8], k: usize) {

@@ -237,6 +237,13 @@ impl Graph {
     pub fn node(&self, id: &str) -> Option<&NodeSpec> {
         self.nodes.iter().find(|n| n.id == id)
     }
+
+    /// Whether some node of the graph reads an output of node `id`.
+    pub fn is_read(&self, id: &str) -> bool {
+        self.nodes
+            .iter()
+            .any(|n| n.inputs.iter().any(|i| i.node == id))
+    }
 }
 
 /// A node's inputs as `(NODE/OUTPUT, message expected, byte offset in the file)`.

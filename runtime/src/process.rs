@@ -80,7 +80,8 @@ fn reader_name(id: &str, port: &str) -> String {
     format!("{id}.{port}")
 }
 
-fn percentile(v: &mut [f64], q: f64) -> f64 {
+/// The `q` quantile of `v` (sorted in place; 0 when empty).
+pub(crate) fn percentile(v: &mut [f64], q: f64) -> f64 {
     if v.is_empty() {
         return 0.0;
     }
@@ -141,7 +142,7 @@ pub fn run_node(
                 .collect()
         })
         .collect();
-    let read_in_graph = expected.iter().any(|w| !w.is_empty());
+    let read_in_graph = graph.is_read(id);
     let t0 = Instant::now();
     while pubs.iter().zip(&expected).any(|(p, want)| {
         let have = p.reader_names();
@@ -202,7 +203,7 @@ pub fn run_node(
                     // An input ahead of the others holds its frames until they catch up, up
                     // to its borrow limit: then a lossy edge lets its oldest go, a lossless
                     // one leaves the rest queued (its writer waits).
-                    if pending[i].len() >= s.max_held() {
+                    if pending[i].len() >= crate::transport::max_held(&s.config()) {
                         if s.config().overflow == Overflow::DropOldest {
                             pending[i].remove(0);
                             s.discard();
@@ -324,6 +325,9 @@ pub struct StaleCleanup {
 /// one gives it its size within microseconds of creating it).
 pub const UNSIZED_AGE: Duration = Duration::from_secs(1);
 
+/// How long a run waits for the clean-up of dead nodes before it starts anyway.
+pub const STALE_CLEANUP_LIMIT: Duration = Duration::from_secs(5);
+
 /// Where POSIX shared memory lives on this system.
 const SHM_DIR: &str = "/dev/shm";
 
@@ -354,7 +358,7 @@ pub fn remove_stale_resources() -> StaleCleanup {
         });
         let _ = tx.send(removed);
     });
-    match rx.recv_timeout(Duration::from_secs(5)) {
+    match rx.recv_timeout(STALE_CLEANUP_LIMIT) {
         Ok(removed) => StaleCleanup {
             removed,
             empty_files,

@@ -160,9 +160,7 @@ impl Transport {
             .publish_subscribe::<[u8]>()
             .user_header::<FrameHeader>()
             .subscriber_max_buffer_size(cfg.depth.max(1))
-            // A reader holds frames while it waits for the same frame on its other inputs
-            // (EdgeSubscriber::max_held).
-            .subscriber_max_borrowed_samples(cfg.depth.max(1) + 2)
+            .subscriber_max_borrowed_samples(max_held(cfg))
             .enable_safe_overflow(cfg.overflow == Overflow::DropOldest)
             .max_subscribers(MAX_READERS)
             .history_size(0)
@@ -334,13 +332,14 @@ pub struct EdgeSubscriber {
     dropped: Cell<u64>,
 }
 
-impl EdgeSubscriber {
-    /// How many received messages the reader may hold at once (see the service's borrow
-    /// limit); receiving more fails until one is dropped.
-    pub fn max_held(&self) -> usize {
-        self.cfg.depth.max(1) + 2
-    }
+/// How many received messages a reader of an edge with `cfg` may hold at once (it holds
+/// frames while it waits for the same frame on its other inputs); receiving more fails until
+/// one is let go.
+pub fn max_held(cfg: &EdgeConfig) -> usize {
+    cfg.depth.max(1) + 2
+}
 
+impl EdgeSubscriber {
     /// The edge's settings.
     pub fn config(&self) -> EdgeConfig {
         self.cfg
