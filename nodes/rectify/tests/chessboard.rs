@@ -39,39 +39,53 @@ fn rotations_match_opencv_and_corners_share_rows() {
             }
         }
     }
-    assert!((rect.baseline - 83.6).abs() < 0.1, "{}", rect.baseline);
+    assert!((rect.baseline - 83.18).abs() < 0.05, "{}", rect.baseline);
     let pairs: Vec<serde_json::Value> =
         serde_json::from_str(&data("opencv_chessboard_corners.json")).unwrap();
+    assert_eq!(pairs.len(), 13);
     let mut all = Vec::new();
+    let mut worst_row: f64 = 0.0;
     for p in &pairs {
         let (l, r) = (
             p["left"].as_array().unwrap(),
             p["right"].as_array().unwrap(),
         );
-        let mut worst: f64 = 0.0;
-        for (a, b) in l.iter().zip(r) {
-            let (_, yl) = rect.point(false, a[0].as_f64().unwrap(), a[1].as_f64().unwrap());
-            let (_, yr) = rect.point(true, b[0].as_f64().unwrap(), b[1].as_f64().unwrap());
-            worst = worst.max((yl - yr).abs());
-            all.push((yl - yr).abs());
+        assert_eq!((l.len(), r.len()), (54, 54));
+        let dy: Vec<f64> = l
+            .iter()
+            .zip(r)
+            .map(|(a, b)| {
+                let (_, yl) = rect.point(false, a[0].as_f64().unwrap(), a[1].as_f64().unwrap());
+                let (_, yr) = rect.point(true, b[0].as_f64().unwrap(), b[1].as_f64().unwrap());
+                yl - yr
+            })
+            .collect();
+        // Each board row (9 corners) lies on one image row in both views: averaging the
+        // row takes out the corner detector's own noise (RMS 0.2 px), which no
+        // rectification can remove.
+        for row in dy.chunks(9) {
+            worst_row = worst_row.max((row.iter().sum::<f64>() / 9.0).abs());
         }
-        // As close as OpenCV's own rectification of the same corners gets (its new camera
-        // differs a little from ours, so within 10 %).
+        // Single corners: as close as OpenCV's own rectification of the same corners gets
+        // (its new camera differs a little from ours, so within 10 %).
+        let worst = dy.iter().fold(0.0f64, |m, d| m.max(d.abs()));
         let cv = p["opencv_dy_max"].as_f64().unwrap();
         assert!(
             worst <= 1.1 * cv + 0.02,
             "pair {}: {worst:.3} px vs OpenCV {cv:.3}",
             p["pair"]
         );
+        all.extend(dy.iter().map(|d| d.abs()));
     }
     all.sort_by(f64::total_cmp);
     let median = all[all.len() / 2];
-    let p90 = all[all.len() * 9 / 10];
+    let p95 = all[all.len() * 95 / 100];
     eprintln!(
-        "row differences: median {median:.3} px, 90th percentile {p90:.3} px, worst {:.3}",
+        "board rows within {worst_row:.3} px; corners: median {median:.3} px, 95th percentile {p95:.3} px, worst {:.3}",
         all[all.len() - 1]
     );
-    assert!(median < 0.2 && p90 < 0.5, "median {median}, p90 {p90}");
+    assert!(worst_row <= 0.5, "a board row is {worst_row:.3} px apart");
+    assert!(median < 0.15 && p95 < 0.5, "median {median}, p95 {p95}");
 }
 
 #[test]
@@ -129,7 +143,7 @@ fn ros_camera_info_pairs_rectify_like_opencv() {
     )
     .unwrap();
     assert_eq!(rect.size(), (640, 480));
-    assert!((rect.baseline - 83.6).abs() < 0.1, "{}", rect.baseline);
+    assert!((rect.baseline - 83.18).abs() < 0.05, "{}", rect.baseline);
     let pairs: Vec<serde_json::Value> =
         serde_json::from_str(&data("opencv_chessboard_corners.json")).unwrap();
     for p in &pairs {
