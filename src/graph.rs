@@ -577,47 +577,92 @@ fn print_summary(
     );
 }
 
+/// Where `bench-transport` runs the two ends of the edge.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BenchPlacement {
+    /// Wherever the scheduler puts them.
+    Free,
+    /// Both pinned to one core.
+    OneCore,
+    /// Writer and reader pinned to two different cores.
+    TwoCores,
+    /// Each of the three, one table each.
+    All,
+}
+
 /// Arguments of `microstereo bench-transport`.
 #[derive(Args, Debug)]
 pub struct BenchTransportArgs {
     /// Frames per size and transport (latency and throughput each).
     #[arg(long, default_value_t = 300)]
     pub frames: usize,
+    /// Where the writer and the reader run.
+    #[arg(long, value_enum, default_value_t = BenchPlacement::All)]
+    pub placement: BenchPlacement,
 }
 
 /// Times one edge over iceoryx2 and over a Unix-domain socket for three frame sizes and
-/// prints them side by side, with the ratios.
+/// prints them side by side, with the ratios, for each placement of the two ends asked.
 pub fn bench_transport(a: BenchTransportArgs) -> Result<(), CliError> {
+    use runtime::hop::Placement;
     if a.frames < 2 {
         return Err(CliError::Other(format!(
             "--frames {} is too few to time; use at least 2",
             a.frames
         )));
     }
-    println!(
-        "{:<22} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>8} {:>8}",
-        "frame", "shm p50", "shm p99", "shm fps", "uds p50", "uds p99", "uds fps", "p50 ×", "fps ×"
-    );
-    for (name, w, h) in [
-        ("0.3 MP (640×480)", 640usize, 480usize),
-        ("1.3 MP (1280×1024)", 1280, 1024),
-        ("5 MP (2592×1944)", 2592, 1944),
-    ] {
-        let bytes = w * h;
-        let shm = runtime::hop::iceoryx2(bytes, a.frames).map_err(CliError::Other)?;
-        let uds = runtime::hop::unix_socket(bytes, a.frames).map_err(CliError::Other)?;
+    let placements = match a.placement {
+        BenchPlacement::Free => vec![Placement::Free],
+        BenchPlacement::OneCore => vec![Placement::OneCore],
+        BenchPlacement::TwoCores => vec![Placement::TwoCores],
+        BenchPlacement::All => vec![Placement::OneCore, Placement::TwoCores, Placement::Free],
+    };
+    for placement in placements {
+        let (wake50, wake99) =
+            runtime::hop::wake_floor(a.frames, placement).map_err(CliError::Other)?;
         println!(
-            "{:<22} {:>9.1} {:>9.1} {:>9.0} {:>9.1} {:>9.1} {:>9.0} {:>8.1} {:>8.1}",
-            name,
-            shm.p50_us,
-            shm.p99_us,
-            shm.fps,
-            uds.p50_us,
-            uds.p99_us,
-            uds.fps,
-            uds.p50_us / shm.p50_us,
-            shm.fps / uds.fps
+            "writer and reader {} (a bare thread wake-up: p50 {wake50:.1} µs, p99 {wake99:.1} µs)",
+            match placement {
+                Placement::OneCore => "on one core",
+                Placement::TwoCores => "on two cores",
+                Placement::Free => "where the scheduler puts them",
+            }
         );
+        println!(
+            "{:<22} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>8} {:>8}",
+            "frame",
+            "shm p50",
+            "shm p99",
+            "shm fps",
+            "uds p50",
+            "uds p99",
+            "uds fps",
+            "p50 ×",
+            "fps ×"
+        );
+        for (name, w, h) in [
+            ("0.3 MP (640×480)", 640usize, 480usize),
+            ("1.3 MP (1280×1024)", 1280, 1024),
+            ("5 MP (2592×1944)", 2592, 1944),
+        ] {
+            let bytes = w * h;
+            let shm =
+                runtime::hop::iceoryx2(bytes, a.frames, placement).map_err(CliError::Other)?;
+            let uds =
+                runtime::hop::unix_socket(bytes, a.frames, placement).map_err(CliError::Other)?;
+            println!(
+                "{:<22} {:>9.1} {:>9.1} {:>9.0} {:>9.1} {:>9.1} {:>9.0} {:>8.1} {:>8.1}",
+                name,
+                shm.p50_us,
+                shm.p99_us,
+                shm.fps,
+                uds.p50_us,
+                uds.p99_us,
+                uds.fps,
+                uds.p50_us / shm.p50_us,
+                shm.fps / uds.fps
+            );
+        }
     }
     println!(
         "latencies in µs, one frame at a time; fps back to back through a lossless edge of depth 4"

@@ -668,3 +668,43 @@ fn cells_bad_input_and_empty_scenes() {
         "--cells measures cells in 3D",
     );
 }
+
+#[test]
+fn bench_transport_prints_both_edges_per_frame_size() {
+    let out = run(&[
+        "bench-transport",
+        "--frames",
+        "20",
+        "--placement",
+        "one-core",
+    ]);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{text}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(
+        text.contains("on one core (a bare thread wake-up: p50"),
+        "{text}"
+    );
+    let rows: Vec<Vec<f64>> = text
+        .lines()
+        .filter(|l| l.contains(" MP ("))
+        .map(|l| {
+            l.split_whitespace()
+                .rev()
+                .take(8)
+                .map(|v| v.parse().unwrap())
+                .collect()
+        })
+        .collect();
+    assert_eq!(rows.len(), 3, "{text}");
+    for r in rows {
+        // Reversed: fps ×, p50 ×, uds fps, uds p99, uds p50, shm fps, shm p99, shm p50.
+        let (shm50, shm99, uds50, uds99) = (r[7], r[6], r[4], r[3]);
+        assert!(shm50 > 0.0 && shm99 >= shm50 && uds99 >= uds50, "{r:?}");
+        assert!((r[1] - uds50 / shm50).abs() < 0.06 * r[1] + 0.06, "{r:?}");
+    }
+    assert_clean_failure(&run(&["bench-transport", "--frames", "1"]), "too few");
+}

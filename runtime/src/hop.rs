@@ -6,6 +6,12 @@
 //! acknowledgement before the next frame, so no queue forms): from just before the send,
 //! after the frame is written, to the reader holding the frame, having read its first and last
 //! byte. Throughput is frames sent back to back through a lossless edge of depth 4.
+//!
+//! Where the two ends run matters more than the transport on a virtual machine: waking a
+//! thread on another core costs a hypervisor-mediated interrupt (about 30 µs at the median
+//! on the 2-core development VM, for a bare futex), while a wake-up on the same core costs a
+//! few µs. [`Placement`] pins both ends to one core, to two cores, or leaves them to the
+//! scheduler, and both transports are timed the same way.
 
 use crate::process::{now_ns, percentile};
 use crate::transport::{EdgeConfig, Overflow, Transport, Wake, wait_loop};
@@ -13,6 +19,82 @@ use schemas::{FrameHeader, MessageKind, PixelFormat};
 use std::io::{Read, Write};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
+
+/// Where the writer and the reader of the benchmark edge run.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Placement {
+    /// Wherever the scheduler puts them.
+    Free,
+    /// Both on the first CPU the process may use.
+    OneCore,
+    /// The writer on the first CPU the process may use, the reader on the second.
+    TwoCores,
+}
+
+impl Placement {
+    /// The CPUs of the writer and the reader (none: not pinned).
+    fn cpus(self) -> Result<(Option<usize>, Option<usize>), String> {
+        if self == Placement::Free {
+            return Ok((None, None));
+        }
+        let allowed = allowed_cpus()?;
+        match (self, allowed.as_slice()) {
+            (Placement::OneCore, [a, ..]) => Ok((Some(*a), Some(*a))),
+            (Placement::TwoCores, [a, b, ..]) => Ok((Some(*a), Some(*b))),
+            _ => Err(format!(
+                "{self:?} needs more CPUs than the {} this process may use",
+                allowed.len()
+            )),
+        }
+    }
+}
+
+#[cfg(target_os = "linux")]
+fn allowed_cpus() -> Result<Vec<usize>, String> {
+    // SAFETY: a zeroed cpu_set_t is a valid empty set, filled in by the kernel.
+    let mut set: libc::cpu_set_t = unsafe { std::mem::zeroed() };
+    let size = std::mem::size_of::<libc::cpu_set_t>();
+    // SAFETY: `set` is a live cpu_set_t of `size` bytes.
+    if unsafe { libc::sched_getaffinity(0, size, &mut set) } != 0 {
+        return Err(format!(
+            "reading the CPU affinity: {}",
+            std::io::Error::last_os_error()
+        ));
+    }
+    Ok((0..libc::CPU_SETSIZE as usize)
+        // SAFETY: `set` is initialised and the index is below CPU_SETSIZE.
+        .filter(|&c| unsafe { libc::CPU_ISSET(c, &set) })
+        .collect())
+}
+
+#[cfg(target_os = "linux")]
+fn pin(cpu: Option<usize>) -> Result<(), String> {
+    let Some(cpu) = cpu else { return Ok(()) };
+    // SAFETY: a zeroed cpu_set_t is a valid empty set; CPU_SET stays within it.
+    let mut set: libc::cpu_set_t = unsafe { std::mem::zeroed() };
+    unsafe { libc::CPU_SET(cpu, &mut set) };
+    // SAFETY: `set` is a live cpu_set_t; pid 0 is the calling thread.
+    if unsafe { libc::sched_setaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &set) } != 0 {
+        return Err(format!(
+            "pinning a benchmark thread to CPU {cpu}: {}",
+            std::io::Error::last_os_error()
+        ));
+    }
+    Ok(())
+}
+
+#[cfg(not(target_os = "linux"))]
+fn allowed_cpus() -> Result<Vec<usize>, String> {
+    Err("pinning benchmark threads to CPUs needs Linux; use the free placement".into())
+}
+
+#[cfg(not(target_os = "linux"))]
+fn pin(cpu: Option<usize>) -> Result<(), String> {
+    match cpu {
+        None => Ok(()),
+        Some(_) => allowed_cpus().map(|_| ()),
+    }
+}
 
 /// The cost of one edge for one frame size.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -39,19 +121,20 @@ fn fill(b: &mut [u8], k: usize) {
 type Seen = (u64, u8, u8);
 
 /// `frames` frames of `bytes` bytes over an iceoryx2 edge, latency then throughput.
-pub fn iceoryx2(bytes: usize, frames: usize) -> Result<HopStats, String> {
+pub fn iceoryx2(bytes: usize, frames: usize, placement: Placement) -> Result<HopStats, String> {
     let edge = format!("microstereo/bench/{}/{bytes}", std::process::id());
     let cfg = EdgeConfig {
         depth: 4,
         overflow: Overflow::Block,
     };
-    let run = |paced: bool| -> Result<(Vec<f64>, Duration), String> {
+    let run = |paced: bool, reader_cpu: Option<usize>| -> Result<(Vec<f64>, Duration), String> {
         let t = Transport::new("bench-writer").map_err(|e| e.to_string())?;
         let p = t.publisher(&edge, &cfg).map_err(|e| e.to_string())?;
         let (seen_tx, seen_rx) = mpsc::channel::<Seen>();
         let reader = {
             let edge = edge.clone();
             std::thread::spawn(move || -> Result<(), String> {
+                pin(reader_cpu)?;
                 let t = Transport::new("bench-reader").map_err(|e| e.to_string())?;
                 let s = t
                     .reader(&edge, &cfg, Some("bench.in"))
@@ -91,7 +174,7 @@ pub fn iceoryx2(bytes: usize, frames: usize) -> Result<HopStats, String> {
         reader.join().map_err(|_| "the reader panicked")??;
         Ok((lat, elapsed))
     };
-    measure(frames, run)
+    measure(frames, placement, run)
 }
 
 /// Sends `frames` frames with `send(k)`: one at a time, each latency kept, when `paced`;
@@ -119,17 +202,27 @@ fn drive(
     Ok((lat, start.elapsed()))
 }
 
-/// A latency run then a throughput run of `run`.
+/// A latency run then a throughput run of `run(paced, reader_cpu)`, its writer on a thread
+/// of its own placed as asked (the caller's CPU affinity stays as it was).
 fn measure(
     frames: usize,
-    run: impl Fn(bool) -> Result<(Vec<f64>, Duration), String>,
+    placement: Placement,
+    run: impl Fn(bool, Option<usize>) -> Result<(Vec<f64>, Duration), String> + Sync,
 ) -> Result<HopStats, String> {
-    let (mut lat, _) = run(true)?;
-    let (_, elapsed) = run(false)?;
-    Ok(HopStats {
-        p50_us: percentile(&mut lat, 0.5),
-        p99_us: percentile(&mut lat, 0.99),
-        fps: frames as f64 / elapsed.as_secs_f64(),
+    let (writer_cpu, reader_cpu) = placement.cpus()?;
+    std::thread::scope(|s| {
+        s.spawn(|| {
+            pin(writer_cpu)?;
+            let (mut lat, _) = run(true, reader_cpu)?;
+            let (_, elapsed) = run(false, reader_cpu)?;
+            Ok(HopStats {
+                p50_us: percentile(&mut lat, 0.5),
+                p99_us: percentile(&mut lat, 0.99),
+                fps: frames as f64 / elapsed.as_secs_f64(),
+            })
+        })
+        .join()
+        .map_err(|_| "the benchmark writer panicked".to_string())?
     })
 }
 
@@ -149,17 +242,19 @@ fn check(
 
 /// `frames` frames of `bytes` bytes copied through a Unix-domain socket, latency then
 /// throughput.
-pub fn unix_socket(bytes: usize, frames: usize) -> Result<HopStats, String> {
-    let run = |paced: bool| -> Result<(Vec<f64>, Duration), String> {
+pub fn unix_socket(bytes: usize, frames: usize, placement: Placement) -> Result<HopStats, String> {
+    let run = |paced: bool, reader_cpu: Option<usize>| -> Result<(Vec<f64>, Duration), String> {
         let (mut w, mut r) =
             std::os::unix::net::UnixStream::pair().map_err(|e| format!("socket pair: {e}"))?;
         let (seen_tx, seen_rx) = mpsc::channel::<Seen>();
-        let reader = std::thread::spawn(move || -> std::io::Result<()> {
+        let reader = std::thread::spawn(move || -> Result<(), String> {
+            pin(reader_cpu)?;
             let mut buf = vec![0u8; bytes];
             let mut head = [0u8; 8];
             for _ in 0..frames {
-                r.read_exact(&mut head)?;
-                r.read_exact(&mut buf)?;
+                r.read_exact(&mut head)
+                    .and_then(|_| r.read_exact(&mut buf))
+                    .map_err(|e| format!("socket read: {e}"))?;
                 let seen = now_ns();
                 let _ = seen_tx.send((seen - u64::from_le_bytes(head), buf[0], buf[buf.len() - 1]));
             }
@@ -172,13 +267,56 @@ pub fn unix_socket(bytes: usize, frames: usize) -> Result<HopStats, String> {
                 .and_then(|_| w.write_all(&frame))
                 .map_err(|e| format!("socket write: {e}"))
         })?;
-        reader
-            .join()
-            .map_err(|_| "the reader panicked")?
-            .map_err(|e| format!("socket read: {e}"))?;
+        reader.join().map_err(|_| "the reader panicked")??;
         Ok((lat, elapsed))
     };
-    measure(frames, run)
+    measure(frames, placement, run)
+}
+
+/// The operating system's own price of a wake-up with this placement, the floor under any
+/// event-driven edge: one thread parks, the other stamps the time and unparks it (a bare
+/// futex), `frames` times. Returns the p50 and p99 in µs.
+pub fn wake_floor(frames: usize, placement: Placement) -> Result<(f64, f64), String> {
+    use std::sync::Arc;
+    use std::sync::atomic::{AtomicU64, Ordering};
+    let (writer_cpu, reader_cpu) = placement.cpus()?;
+    std::thread::scope(|s| {
+        s.spawn(|| -> Result<(f64, f64), String> {
+            pin(writer_cpu)?;
+            let stamp = Arc::new(AtomicU64::new(0));
+            let (tx, rx) = mpsc::channel::<u64>();
+            let reader = {
+                let stamp = stamp.clone();
+                std::thread::spawn(move || -> Result<(), String> {
+                    pin(reader_cpu)?;
+                    for _ in 0..frames {
+                        // park() may return early; the stamp says whether this was the wake.
+                        let sent = loop {
+                            match stamp.swap(0, Ordering::AcqRel) {
+                                0 => std::thread::park(),
+                                t => break t,
+                            }
+                        };
+                        let _ = tx.send(now_ns().saturating_sub(sent));
+                    }
+                    Ok(())
+                })
+            };
+            let mut lat = Vec::with_capacity(frames);
+            for k in 0..frames {
+                stamp.store(now_ns(), Ordering::Release);
+                reader.thread().unpark();
+                let ns = rx
+                    .recv_timeout(Duration::from_secs(10))
+                    .map_err(|_| format!("wake-up {k} never arrived"))?;
+                lat.push(ns as f64 / 1e3);
+            }
+            reader.join().map_err(|_| "the reader panicked")??;
+            Ok((percentile(&mut lat, 0.5), percentile(&mut lat, 0.99)))
+        })
+        .join()
+        .map_err(|_| "the benchmark writer panicked".to_string())?
+    })
 }
 
 #[cfg(test)]
@@ -188,9 +326,9 @@ mod tests {
     #[test]
     fn both_edges_carry_every_frame_intact() {
         // The byte checks inside fail the run on a lost or stale frame.
-        for bytes in [1000, 300_000] {
-            let a = iceoryx2(bytes, 20).unwrap();
-            let b = unix_socket(bytes, 20).unwrap();
+        for (bytes, placement) in [(1000, Placement::Free), (300_000, Placement::OneCore)] {
+            let a = iceoryx2(bytes, 20, placement).unwrap();
+            let b = unix_socket(bytes, 20, placement).unwrap();
             assert!(
                 a.p50_us > 0.0 && a.p99_us >= a.p50_us && a.fps > 0.0,
                 "{a:?}"
@@ -199,6 +337,31 @@ mod tests {
                 b.p50_us > 0.0 && b.p99_us >= b.p50_us && b.fps > 0.0,
                 "{b:?}"
             );
+        }
+        let (p50, p99) = wake_floor(50, Placement::OneCore).unwrap();
+        assert!(p50 > 0.0 && p99 >= p50, "{p50} {p99}");
+    }
+
+    #[test]
+    fn placements_pin_the_threads_where_they_say() {
+        let cpus = allowed_cpus().unwrap();
+        let (w, r) = Placement::OneCore.cpus().unwrap();
+        assert_eq!((w, r), (Some(cpus[0]), Some(cpus[0])));
+        assert_eq!(Placement::Free.cpus().unwrap(), (None, None));
+        match Placement::TwoCores.cpus() {
+            Ok((Some(w), Some(r))) => assert!(w != r && cpus.contains(&r)),
+            Ok(other) => panic!("{other:?}"),
+            Err(e) => assert!(cpus.len() < 2 && e.contains("needs more CPUs"), "{e}"),
+        }
+        for &cpu in cpus.iter().take(2) {
+            let on = std::thread::spawn(move || {
+                pin(Some(cpu)).unwrap();
+                // SAFETY: sched_getcpu has no preconditions.
+                unsafe { libc::sched_getcpu() }
+            })
+            .join()
+            .unwrap();
+            assert_eq!(on, cpu as i32);
         }
     }
 }
