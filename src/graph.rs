@@ -540,22 +540,33 @@ fn print_summary(
             None => println!("{:<20} (no report)", n.id),
         }
     }
-    let mut drops = Vec::new();
-    for n in &graph.nodes {
-        if let Some(s) = stats.get(&n.id) {
-            for ((port, d), i) in s.drops.iter().zip(&n.inputs) {
-                drops.push(format!("{}/{} → {}.{port}: {d}", i.node, i.output, n.id));
+    for (title, of) in [
+        (
+            "dropped frames per edge",
+            (|s: &NodeStats| &s.drops) as fn(&NodeStats) -> &Vec<(String, u64)>,
+        ),
+        (
+            "frames that never reached each input (dropped here or upstream, or lost in a restart)",
+            |s: &NodeStats| &s.missing,
+        ),
+    ] {
+        let mut per_edge = Vec::new();
+        for n in &graph.nodes {
+            if let Some(s) = stats.get(&n.id) {
+                for ((port, d), i) in of(s).iter().zip(&n.inputs) {
+                    per_edge.push(format!("{}/{} → {}.{port}: {d}", i.node, i.output, n.id));
+                }
             }
         }
+        println!(
+            "{title}: {}",
+            if per_edge.is_empty() {
+                "none".into()
+            } else {
+                per_edge.join(", ")
+            }
+        );
     }
-    println!(
-        "dropped frames per edge: {}",
-        if drops.is_empty() {
-            "none".into()
-        } else {
-            drops.join(", ")
-        }
-    );
     let sinks: Vec<&NodeStats> = graph
         .nodes
         .iter()

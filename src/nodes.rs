@@ -168,6 +168,7 @@ impl GraphNode for TriangulateNode {
             format: schemas::PixelFormat::F32 as u32,
             kind: MessageKind::PointCloud as u32,
             images: 0,
+            ..FrameHeader::default()
         };
         out.send(0, h, n * 15, &mut |b| {
             for (k, p) in cloud.points.iter().enumerate() {

@@ -36,8 +36,11 @@ pub struct NodeStats {
     pub mean_ms: f64,
     /// 99th-percentile step time, ms.
     pub p99_ms: f64,
-    /// Per input `(port, frames that never arrived)`.
+    /// Per input `(port, messages lost on its edge)`.
     pub drops: Vec<(String, u64)>,
+    /// Per input `(port, frames of the stream it never delivered, lost anywhere)`.
+    #[serde(default)]
+    pub missing: Vec<(String, u64)>,
     /// Mean time from capture to the end of this node's step, ms.
     pub latency_ms: f64,
     /// The last frame number handled.
@@ -274,6 +277,12 @@ pub fn run_node(
             .iter()
             .zip(&subs)
             .map(|(i, s)| (i.port.clone(), s.dropped()))
+            .collect(),
+        missing: spec
+            .inputs
+            .iter()
+            .zip(&subs)
+            .map(|(i, s)| (i.port.clone(), s.missing()))
             .collect(),
         latency_ms: if latencies.is_empty() {
             0.0

@@ -8,8 +8,9 @@
 //! The writer loans a sample in shared memory and fills it in place; readers get a view of
 //! that same memory. Per edge, the queue depth and what happens when it is full come from
 //! the launch file ([`EdgeConfig`]): drop the oldest frame (default, for live video) or make
-//! the writer wait (lossless edges). Readers count frames they never saw from gaps in the
-//! header's sequence numbers.
+//! the writer wait (lossless edges). Readers count the messages lost on their edge from gaps
+//! in the writer's per-edge count, and the frames they never saw (lost here or upstream)
+//! from gaps in the frame numbers.
 
 use iceoryx2::node::NodeWaitFailure;
 use iceoryx2::port::listener::Listener;
@@ -202,6 +203,7 @@ impl Transport {
             publisher,
             notifier,
             service: pubsub,
+            sent: Cell::new(0),
         })
     }
 
@@ -241,8 +243,10 @@ impl Transport {
             listener,
             cfg: *cfg,
             last: Cell::new(None),
+            last_on_edge: Cell::new(None),
             received: Cell::new(0),
             dropped: Cell::new(0),
+            missing: Cell::new(0),
         })
     }
 }
@@ -254,6 +258,7 @@ pub struct EdgePublisher {
     publisher: Publisher<Service, [u8], FrameHeader>,
     notifier: Notifier<Service>,
     service: EdgeData,
+    sent: Cell<u64>,
 }
 
 impl EdgePublisher {
@@ -290,13 +295,17 @@ impl EdgePublisher {
             .publisher
             .loan_slice_uninit(len)
             .map_err(|e| fail(&self.edge, "loaning a sample")(&e))?;
-        *sample.user_header_mut() = header;
+        *sample.user_header_mut() = FrameHeader {
+            edge_sequence: self.sent.get(),
+            ..header
+        };
         let mut sample = sample.write_from_fn(|_| 0u8);
         fill(sample.payload_mut());
         if stamp {
             sample.user_header_mut().capture_ns = crate::process::now_ns();
         }
         sample.send().map_err(|e| fail(&self.edge, "sending")(&e))?;
+        self.sent.set(self.sent.get() + 1);
         self.notifier
             .notify()
             .map_err(|e| fail(&self.edge, "notifying the readers")(&e))?;
@@ -328,8 +337,10 @@ pub struct EdgeSubscriber {
     listener: Listener<Service>,
     cfg: EdgeConfig,
     last: Cell<Option<u64>>,
+    last_on_edge: Cell<Option<u64>>,
     received: Cell<u64>,
     dropped: Cell<u64>,
+    missing: Cell<u64>,
 }
 
 /// How many received messages a reader of an edge with `cfg` may hold at once (it holds
@@ -348,6 +359,7 @@ impl EdgeSubscriber {
     /// Counts a message the reader received but let go unused among the dropped ones.
     pub fn discard(&self) {
         self.dropped.set(self.dropped.get() + 1);
+        self.missing.set(self.missing.get() + 1);
     }
 
     /// The next queued message, if any (oldest first).
@@ -357,13 +369,17 @@ impl EdgeSubscriber {
             .receive()
             .map_err(|e| fail(&self.edge, "receiving")(&e))?;
         if let Some(m) = &m {
-            let seq = m.user_header().sequence;
-            if let Some(last) = self.last.get()
-                && seq > last + 1
-            {
-                self.dropped.set(self.dropped.get() + seq - last - 1);
-            }
-            self.last.set(Some(seq));
+            let gap = |last: &Cell<Option<u64>>, now: u64| {
+                // A number at or below the last one is a restarted writer counting anew.
+                let g = last.get().map_or(0, |l| now.saturating_sub(l + 1));
+                last.set(Some(now));
+                g
+            };
+            let h = m.user_header();
+            self.missing
+                .set(self.missing.get() + gap(&self.last, h.sequence));
+            self.dropped
+                .set(self.dropped.get() + gap(&self.last_on_edge, h.edge_sequence));
             self.received.set(self.received.get() + 1);
         }
         Ok(m)
@@ -379,9 +395,15 @@ impl EdgeSubscriber {
         self.received.get()
     }
 
-    /// Frames that never reached this reader (gaps in the sequence numbers).
+    /// Messages lost on this edge: overwritten in a full queue or let go unused.
     pub fn dropped(&self) -> u64 {
         self.dropped.get()
+    }
+
+    /// Frames of the stream that never reached this reader's node, wherever they were lost
+    /// (on this edge, upstream, or in a restarted writer): gaps in the frame numbers.
+    pub fn missing(&self) -> u64 {
+        self.missing.get()
     }
 
     /// The edge's name.
@@ -552,6 +574,30 @@ mod tests {
     }
 
     #[test]
+    fn frames_lost_upstream_are_missing_but_not_dropped_here() {
+        let edge = edge_name("upstream");
+        let cfg = EdgeConfig::default();
+        let t = Transport::new("both").unwrap();
+        let sub = t.subscriber(&edge, &cfg).unwrap();
+        let p = t.publisher(&edge, &cfg).unwrap();
+        // The writer never got frames 1, 2 and 4: they were lost before this edge.
+        for seq in [0u64, 3, 5] {
+            p.send(header(seq, 8), 8, |b| b.fill(0)).unwrap();
+            assert!(sub.receive().unwrap().is_some());
+        }
+        assert_eq!((sub.received(), sub.dropped(), sub.missing()), (3, 0, 3));
+        // A restarted writer counts its messages from 0 again: no loss on the edge, and the
+        // frames it skipped while down are missing.
+        drop(p);
+        let p = t.publisher(&edge, &cfg).unwrap();
+        for seq in [9u64, 10] {
+            p.send(header(seq, 8), 8, |b| b.fill(0)).unwrap();
+            assert!(sub.receive().unwrap().is_some());
+        }
+        assert_eq!((sub.received(), sub.dropped(), sub.missing()), (5, 0, 6));
+    }
+
+    #[test]
     fn a_full_drop_oldest_queue_keeps_the_newest_and_counts_the_rest() {
         let edge = edge_name("drop");
         let cfg = EdgeConfig {
@@ -581,6 +627,7 @@ mod tests {
         }
         while sub.receive().unwrap().is_some() {}
         assert_eq!((sub.received(), sub.dropped()), (4, 3));
+        assert_eq!(sub.missing(), 3);
         let mut ready = Vec::new();
         // Nothing new: the wait ends by its timeout.
         let _ = wait_any(&[&sub], Duration::from_millis(1), &mut ready).unwrap();

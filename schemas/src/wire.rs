@@ -95,6 +95,9 @@ pub struct FrameHeader {
     pub sequence: u64,
     /// Capture time, nanoseconds since the Unix epoch.
     pub capture_ns: u64,
+    /// Messages the writer sent on this edge before this one, set by the transport: a gap
+    /// is a message dropped on this edge, while a gap in `sequence` may be upstream.
+    pub edge_sequence: u64,
     /// Image width in pixels (0 for non-images).
     pub width: u32,
     /// Image height in pixels (0 for non-images).
@@ -114,6 +117,7 @@ impl Default for FrameHeader {
         Self {
             sequence: 0,
             capture_ns: 0,
+            edge_sequence: 0,
             width: 0,
             height: 0,
             stride: 0,
@@ -156,7 +160,7 @@ mod tests {
 
     #[test]
     fn header_is_plain_old_data_of_a_fixed_layout() {
-        assert_eq!(core::mem::size_of::<FrameHeader>(), 40);
+        assert_eq!(core::mem::size_of::<FrameHeader>(), 48);
         assert_eq!(core::mem::align_of::<FrameHeader>(), 8);
         let h = FrameHeader::image(MessageKind::StereoFrame, PixelFormat::Mono8, 640, 480, 2);
         assert_eq!(h.image_bytes(), 2 * 640 * 480);

@@ -116,16 +116,16 @@ impl SyntheticCapture {
 
 impl GraphNode for SyntheticCapture {
     fn produce(&mut self, seq: u64, out: &mut dyn Outputs) -> Result<bool, String> {
-        let r = self
+        let (left, right) = self
             .scene
             .at_frame(seq as usize, self.drift, self.step)
-            .render();
+            .render_views();
         send_planes(
             out,
             0,
             MessageKind::StereoFrame,
             (seq, now_ns()),
-            &[&r.left, &r.right],
+            &[&left, &right],
         )?;
         Ok(true)
     }

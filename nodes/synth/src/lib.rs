@@ -356,7 +356,7 @@ pub struct Rendered {
 pub const PIPETTE: u32 = u32::MAX;
 
 /// What a ray hits first.
-#[derive(Clone, Copy)]
+#[derive(Clone, Copy, Debug)]
 enum Hit {
     Substrate,
     Cell(usize, [f64; 3]),
@@ -410,8 +410,33 @@ impl Scene {
         self.optics.working_distance() - self.stage
     }
 
-    /// The first thing a ray through pixel `(u, v)` of a view meets, and its depth.
-    fn cast(&self, right: bool, u: f64, v: f64, cal: &Calibration) -> (Hit, f64) {
+    /// The cells a ray through image row `v` may meet. A hit above the substrate
+    /// (0 < s ≤ height) lies within the footprint's larger semi-axis of the centre, and the
+    /// ray's y there is `sy·(z0 − s)` whatever the column: cells out of that reach on every
+    /// height cannot be hit, so leaving them out changes no pixel.
+    fn cells_on_row(&self, v: f64, cal: &Calibration) -> Vec<usize> {
+        let (sy, z0) = ((v - cal.cy) / cal.focal_px, self.z0());
+        (0..self.cells.len())
+            .filter(|&k| {
+                let c = &self.cells[k];
+                // 1 µm beyond the footprint, against rounding.
+                let reach = c.semi_axes[0].max(c.semi_axes[1]) + 1.0;
+                let (y0, y1) = (sy * z0, sy * (z0 - c.height));
+                y0.max(y1) >= c.centre[1] - reach && y0.min(y1) <= c.centre[1] + reach
+            })
+            .collect()
+    }
+
+    /// The first thing a ray through pixel `(u, v)` of a view meets, and its depth, of the
+    /// cells `candidates` (those of [`Self::cells_on_row`] for `v`) and the pipette.
+    fn cast(
+        &self,
+        right: bool,
+        u: f64,
+        v: f64,
+        cal: &Calibration,
+        candidates: &[usize],
+    ) -> (Hit, f64) {
         let f = cal.focal_px;
         let (ox, cx) = if right {
             (0.5 * self.optics.baseline, cal.cx_right)
@@ -422,7 +447,8 @@ impl Scene {
         let z0 = self.z0();
         // The ray at height s above the substrate: x = ox + sx·(z0 − s), y = sy·(z0 − s).
         let mut best = (Hit::Substrate, 0.0f64);
-        for (k, c) in self.cells.iter().enumerate() {
+        for &k in candidates {
+            let c = &self.cells[k];
             let (co, si) = (c.angle.cos(), c.angle.sin());
             let (dx, dy) = (ox + sx * z0 - c.centre[0], sy * z0 - c.centre[1]);
             let (px, py) = (co * dx + si * dy, -si * dx + co * dy);
@@ -544,14 +570,17 @@ impl Scene {
         let rows: Vec<Vec<f64>> = (0..h)
             .into_par_iter()
             .map(|v| {
+                let sub_row = |j: usize| v as f64 + (j as f64 + 0.5) / n as f64 - 0.5;
+                let on_row: Vec<Vec<usize>> =
+                    (0..n).map(|j| self.cells_on_row(sub_row(j), cal)).collect();
                 (0..w)
                     .map(|u| {
                         let mut acc = 0.0;
-                        for j in 0..n {
+                        for (j, candidates) in on_row.iter().enumerate() {
                             for i in 0..n {
                                 let su = u as f64 + (i as f64 + 0.5) / n as f64 - 0.5;
-                                let sv = v as f64 + (j as f64 + 0.5) / n as f64 - 0.5;
-                                let (hit, _) = self.cast(right, su, sv, cal);
+                                let sv = sub_row(j);
+                                let (hit, _) = self.cast(right, su, sv, cal, candidates);
                                 acc += self.shade(hit, su, sv, right, cal);
                             }
                         }
@@ -563,8 +592,8 @@ impl Scene {
         Plane::from_vec(w, h, rows.concat()).expect("size")
     }
 
-    /// Renders both views and the ground truth.
-    pub fn render(&self) -> Rendered {
+    /// Renders both views, without the ground truth (what a camera would give).
+    pub fn render_views(&self) -> (Plane<u8>, Plane<u8>) {
         let cal = self.optics.calibration();
         let (w, h) = (self.optics.width, self.optics.height);
         let mut rng_l = ChaCha8Rng::seed_from_u64(self.seed ^ 0x1ef7);
@@ -580,13 +609,22 @@ impl Scene {
         };
         let left = finish(self.view(false, &cal), &mut rng_l);
         let right = finish(self.view(true, &cal), &mut rng_r);
+        (left, right)
+    }
+
+    /// Renders both views and the ground truth.
+    pub fn render(&self) -> Rendered {
+        let cal = self.optics.calibration();
+        let (w, h) = (self.optics.width, self.optics.height);
+        let (left, right) = self.render_views();
         let mut disparity = Plane::filled(w, h, 0f32);
         let mut depth = Plane::filled(w, h, 0f32);
         let mut labels = Plane::filled(w, h, 0u32);
         let off = cal.cx_right - cal.cx;
         for v in 0..h {
+            let candidates = self.cells_on_row(v as f64, &cal);
             for u in 0..w {
-                let (hit, z) = self.cast(false, u as f64, v as f64, &cal);
+                let (hit, z) = self.cast(false, u as f64, v as f64, &cal, &candidates);
                 *depth.get_mut(u, v) = z as f32;
                 *disparity.get_mut(u, v) = (self.optics.baseline * cal.focal_px / z - off) as f32;
                 *labels.get_mut(u, v) = match hit {
@@ -792,6 +830,43 @@ mod tests {
             }
         }
         assert!(err / 9.0 < 4.0, "mean photometric error {}", err / 9.0);
+    }
+
+    #[test]
+    fn rays_meet_the_same_thing_among_the_cells_on_their_row_as_among_all() {
+        let optics = Optics {
+            width: 320,
+            height: 240,
+            ..Optics::default()
+        };
+        let spec = CellSpec {
+            count: 12,
+            ..CellSpec::default()
+        };
+        let cal = optics.calibration();
+        let (mut hits, mut kept, mut rows) = (0, 0, 0);
+        for seed in 1..4 {
+            let scene = Scene::random(optics, Look::default(), &spec, seed).at_frame(2, 2.0, 0.0);
+            let all: Vec<usize> = (0..scene.cells.len()).collect();
+            for right in [false, true] {
+                for v in 0..240 {
+                    let sv = v as f64 + 0.25;
+                    let row = scene.cells_on_row(sv, &cal);
+                    (kept, rows) = (kept + row.len(), rows + all.len());
+                    for u in 0..320 {
+                        let (a, za) = scene.cast(right, u as f64, sv, &cal, &row);
+                        let (b, zb) = scene.cast(right, u as f64, sv, &cal, &all);
+                        assert_eq!(za.to_bits(), zb.to_bits(), "seed {seed} ({u}, {sv})");
+                        assert_eq!(format!("{a:?}"), format!("{b:?}"));
+                        hits += matches!(a, Hit::Cell(..)) as usize;
+                    }
+                }
+            }
+        }
+        // The scenes have cells: the comparison covered hits, not only substrate; and most
+        // cells are off most rows.
+        assert!(hits > 10_000, "{hits}");
+        assert!(kept * 2 < rows, "{kept} of {rows}");
     }
 
     #[test]
