@@ -540,31 +540,39 @@ fn print_summary(
             None => println!("{:<20} (no report)", n.id),
         }
     }
-    for (title, of) in [
-        (
-            "dropped frames per edge",
-            (|s: &NodeStats| &s.drops) as fn(&NodeStats) -> &Vec<(String, u64)>,
-        ),
-        (
-            "frames that never reached each input (dropped here or upstream, or lost in a restart)",
-            |s: &NodeStats| &s.missing,
-        ),
-    ] {
-        let mut per_edge = Vec::new();
-        for n in &graph.nodes {
-            if let Some(s) = stats.get(&n.id) {
-                for ((port, d), i) in of(s).iter().zip(&n.inputs) {
-                    per_edge.push(format!("{}/{} → {}.{port}: {d}", i.node, i.output, n.id));
-                }
+    // Per edge: messages its own queue lost, and frames of the stream that never reached
+    // the reader (lost there, upstream, or in a restarted writer).
+    let mut rows = Vec::new();
+    for n in &graph.nodes {
+        if let Some(s) = stats.get(&n.id) {
+            for (k, i) in n.inputs.iter().enumerate() {
+                let figure = |v: &Vec<(String, u64)>| v.get(k).map(|(_, d)| *d);
+                rows.push((
+                    format!("{}/{} → {}.{}", i.node, i.output, n.id, i.port),
+                    figure(&s.drops),
+                    figure(&s.missing),
+                ));
             }
         }
+    }
+    let width = rows
+        .iter()
+        .map(|r| r.0.chars().count())
+        .max()
+        .unwrap_or(4)
+        .max(4);
+    println!();
+    println!(
+        "{:<width$} {:>8} {:>14}",
+        "edge", "dropped", "never arrived"
+    );
+    let show = |v: Option<u64>| v.map_or("-".to_string(), |d| d.to_string());
+    for (edge, dropped, missing) in &rows {
         println!(
-            "{title}: {}",
-            if per_edge.is_empty() {
-                "none".into()
-            } else {
-                per_edge.join(", ")
-            }
+            "{:<width$} {:>8} {:>14}",
+            edge,
+            show(*dropped),
+            show(*missing)
         );
     }
     let sinks: Vec<&NodeStats> = graph

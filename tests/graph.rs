@@ -100,22 +100,27 @@ fn frames_done(summary: &str, frames: u64) -> u64 {
 
 /// From a run's summary: the frames dropped on the edge printed as `edge` (`a/b → c.d`).
 fn drops_on(summary: &str, edge: &str) -> u64 {
-    summary_figure(summary, "dropped frames per edge: ", edge)
+    edge_figures(summary, edge).0
 }
 
 /// From a run's summary: the frames that never reached the input of `edge`, lost anywhere.
 fn missing_at(summary: &str, edge: &str) -> u64 {
-    summary_figure(summary, "frames that never reached each input", edge)
+    edge_figures(summary, edge).1
 }
 
-/// The number after `edge: ` on the summary line that starts with `line`.
-fn summary_figure(summary: &str, line: &str, edge: &str) -> u64 {
+/// The `(dropped, never arrived)` columns of `edge`'s row in the summary's edge table.
+fn edge_figures(summary: &str, edge: &str) -> (u64, u64) {
     summary
         .lines()
-        .find(|l| l.starts_with(line))
-        .and_then(|l| l.split(&format!("{edge}: ")).nth(1))
-        .and_then(|r| r.split(',').next()?.trim().parse().ok())
-        .unwrap_or_else(|| panic!("no '{line}' figure for {edge} in {summary}"))
+        .find_map(|l| {
+            let rest = l.strip_prefix(edge)?;
+            let v: Vec<u64> = rest
+                .split_whitespace()
+                .map(|x| x.parse().ok())
+                .collect::<Option<_>>()?;
+            (v.len() == 2).then(|| (v[0], v[1]))
+        })
+        .unwrap_or_else(|| panic!("no row for {edge} in {summary}"))
 }
 
 /// Runs `microstereo ARGS` to its end (at most two minutes).

@@ -47,9 +47,22 @@ pub fn peel_edges(img: &Plane<u8>, mask: &Mask, layers: usize, bg_radius: usize,
             0
         }
     });
+    // Every test below reads r many times over, for the same pixels round after round:
+    // tabulated once (NaN where the window holds no background).
+    let table: Vec<f64> = (0..h)
+        .flat_map(|y| (0..w).map(move |x| (x, y)))
+        .map(|(x, y)| {
+            let c = n.around(x, y, bg_radius).0;
+            if c > 0 {
+                *img.get(x, y) as f64 - s.around(x, y, bg_radius).0 as f64 / c as f64
+            } else {
+                f64::NAN
+            }
+        })
+        .collect();
     let r = |x: usize, y: usize| {
-        let c = n.around(x, y, bg_radius).0;
-        (c > 0).then(|| *img.get(x, y) as f64 - s.around(x, y, bg_radius).0 as f64 / c as f64)
+        let v = table[y * w + x];
+        (!v.is_nan()).then_some(v)
     };
     // Spread of the background about its local mean (median absolute deviation), from
     // every third pixel along both axes: plenty for one number.
@@ -83,11 +96,12 @@ pub fn peel_edges(img: &Plane<u8>, mask: &Mask, layers: usize, bg_radius: usize,
         .flat_map(|y| (0..w).map(move |x| (x, y)))
         .filter(|&(x, y)| *mask.get(x, y) != 0 && neighbours4(x, y, w, h).any(|(u, v)| is_bg(u, v)))
         .collect();
+    let mut listed = vec![false; w * h];
     let test_rounds: [(PeelTest, usize); 2] = [(&quiet, 2 * layers), (&alone, 1)];
     for (test, rounds) in test_rounds {
         for _ in 0..rounds {
             let (gone, kept): (Vec<_>, Vec<_>) = boundary.iter().partition(|&&(x, y)| test(x, y));
-            if !peel_boundary(&mut out, &mut boundary, gone, kept) {
+            if !peel_boundary(&mut out, &mut boundary, gone, kept, &mut listed) {
                 break;
             }
         }
@@ -107,7 +121,7 @@ pub fn peel_edges(img: &Plane<u8>, mask: &Mask, layers: usize, bg_radius: usize,
                 .count();
             n4 <= 1 || n8 <= 3 || (n8 <= 4 && r(x, y).is_some_and(|v| v.abs() <= 1.5 * tol))
         });
-        if !peel_boundary(&mut out, &mut boundary, gone, kept) {
+        if !peel_boundary(&mut out, &mut boundary, gone, kept, &mut listed) {
             break;
         }
     }
@@ -115,12 +129,13 @@ pub fn peel_edges(img: &Plane<u8>, mask: &Mask, layers: usize, bg_radius: usize,
 }
 
 /// Hands `gone` to the background and makes the boundary `kept` plus the mask pixels that
-/// `gone` exposes; false when nothing went.
+/// `gone` exposes; false when nothing went. `listed` is an all-false scratch grid.
 fn peel_boundary(
     out: &mut Mask,
     boundary: &mut Vec<(usize, usize)>,
     gone: Vec<(usize, usize)>,
     kept: Vec<(usize, usize)>,
+    listed: &mut [bool],
 ) -> bool {
     let (w, h) = (out.width, out.height);
     if gone.is_empty() {
@@ -129,12 +144,23 @@ fn peel_boundary(
     for &(x, y) in &gone {
         *out.get_mut(x, y) = 0;
     }
+    // The new boundary as a set (the tests do not depend on its order): what was kept, then
+    // each newly exposed mask pixel once; `listed` marks members and is left all false.
     let mut next = kept;
-    for &(x, y) in &gone {
-        next.extend(neighbours4(x, y, w, h).filter(|&(u, v)| *out.get(u, v) != 0));
+    for &(x, y) in &next {
+        listed[y * w + x] = true;
     }
-    next.sort_unstable_by_key(|&(x, y)| (y, x));
-    next.dedup();
+    for &(x, y) in &gone {
+        for (u, v) in neighbours4(x, y, w, h) {
+            if *out.get(u, v) != 0 && !listed[v * w + u] {
+                listed[v * w + u] = true;
+                next.push((u, v));
+            }
+        }
+    }
+    for &(x, y) in &next {
+        listed[y * w + x] = false;
+    }
     *boundary = next;
     true
 }
