@@ -399,7 +399,7 @@ fn a_node_killed_mid_run_is_restarted_and_the_run_completes_clean() {
     let done = frames_done(&stdout, frames);
     let missed = missing_at(&stdout, "match-lr/disparity → validate.left");
     assert!(done >= frames / 2, "{stdout}");
-    assert!(missed >= 1, "{stdout}");
+    // (None at all when the kill lands between frames and the restart beats the next one.)
     assert_eq!(done + missed, frames, "{stdout}");
     assert_eq!(
         drops_on(&stdout, "match-lr/disparity → validate.left"),
@@ -461,11 +461,18 @@ fn a_source_faster_than_the_graph_drops_frames_on_lossy_edges_and_the_run_ends()
     );
     assert!(out.status.success(), "{stdout}\n{stderr}");
     // Every node read the source's last frame; the frames between went where the summary
-    // says: dropped on the lossy edges.
+    // says: dropped on the lossy edges, and the edges that dropped none lost none.
     let done = frames_done(&stdout, frames);
-    let dropped = drops_on(&stdout, "validate/disparity → triangulate.checked");
     assert!(done >= 1 && done < frames, "{stdout}");
-    assert!(dropped > 0, "{stdout}");
+    let figures: Vec<(u64, u64)> = stdout
+        .lines()
+        .filter(|l| l.contains(" → ") && !l.contains("frame(s)"))
+        .map(|l| edge_figures(&stdout, l.split("  ").next().unwrap()))
+        .collect();
+    assert_eq!(figures.len(), 12, "{stdout}");
+    assert!(figures.iter().map(|f| f.0).sum::<u64>() > 0, "{stdout}");
+    let to_sink = edge_figures(&stdout, "triangulate/targets → manipulator-bridge.targets");
+    assert!(to_sink.1 >= to_sink.0, "{stdout}");
 }
 
 #[test]
