@@ -545,12 +545,10 @@ fn print_summary(
     let mut rows = Vec::new();
     for n in &graph.nodes {
         if let Some(s) = stats.get(&n.id) {
-            for (k, i) in n.inputs.iter().enumerate() {
-                let figure = |v: &Vec<(String, u64)>| v.get(k).map(|(_, d)| *d);
+            for (i, lost) in n.inputs.iter().zip(&s.inputs) {
                 rows.push((
                     format!("{}/{} → {}.{}", i.node, i.output, n.id, i.port),
-                    figure(&s.drops),
-                    figure(&s.missing),
+                    lost,
                 ));
             }
         }
@@ -566,14 +564,8 @@ fn print_summary(
         "{:<width$} {:>8} {:>14}",
         "edge", "dropped", "never arrived"
     );
-    let show = |v: Option<u64>| v.map_or("-".to_string(), |d| d.to_string());
-    for (edge, dropped, missing) in &rows {
-        println!(
-            "{:<width$} {:>8} {:>14}",
-            edge,
-            show(*dropped),
-            show(*missing)
-        );
+    for (edge, lost) in &rows {
+        println!("{:<width$} {:>8} {:>14}", edge, lost.dropped, lost.missing);
     }
     let sinks: Vec<&NodeStats> = graph
         .nodes

@@ -8,9 +8,9 @@
 //! byte. Throughput is frames sent back to back through a lossless edge of depth 4.
 //!
 //! Where the two ends run matters more than the transport on a virtual machine: waking a
-//! thread on another core costs a hypervisor-mediated interrupt (about 30 µs at the median
-//! on the 2-core development VM, for a bare futex), while a wake-up on the same core costs a
-//! few µs. [`Placement`] pins both ends to one core, to two cores, or leaves them to the
+//! thread on another core costs a hypervisor-mediated interrupt (17–24 µs at the median
+//! on the 2-core development VM, for a bare futex: [`wake_floor`]), while a wake-up on the
+//! same core costs 2–3 µs. [`Placement`] pins both ends to one core, to two cores, or leaves them to the
 //! scheduler, and both transports are timed the same way.
 
 use crate::process::{now_ns, percentile};
@@ -209,17 +209,28 @@ fn measure(
     placement: Placement,
     run: impl Fn(bool, Option<usize>) -> Result<(Vec<f64>, Duration), String> + Sync,
 ) -> Result<HopStats, String> {
+    on_writer(placement, |reader_cpu| {
+        let (mut lat, _) = run(true, reader_cpu)?;
+        let (_, elapsed) = run(false, reader_cpu)?;
+        Ok(HopStats {
+            p50_us: percentile(&mut lat, 0.5),
+            p99_us: percentile(&mut lat, 0.99),
+            fps: frames as f64 / elapsed.as_secs_f64(),
+        })
+    })
+}
+
+/// Runs `writer(reader_cpu)` on a thread of its own, pinned where `placement` puts the
+/// writer (the caller's CPU affinity stays as it was).
+fn on_writer<T: Send>(
+    placement: Placement,
+    writer: impl FnOnce(Option<usize>) -> Result<T, String> + Send,
+) -> Result<T, String> {
     let (writer_cpu, reader_cpu) = placement.cpus()?;
     std::thread::scope(|s| {
         s.spawn(|| {
             pin(writer_cpu)?;
-            let (mut lat, _) = run(true, reader_cpu)?;
-            let (_, elapsed) = run(false, reader_cpu)?;
-            Ok(HopStats {
-                p50_us: percentile(&mut lat, 0.5),
-                p99_us: percentile(&mut lat, 0.99),
-                fps: frames as f64 / elapsed.as_secs_f64(),
-            })
+            writer(reader_cpu)
         })
         .join()
         .map_err(|_| "the benchmark writer panicked".to_string())?
@@ -279,43 +290,37 @@ pub fn unix_socket(bytes: usize, frames: usize, placement: Placement) -> Result<
 pub fn wake_floor(frames: usize, placement: Placement) -> Result<(f64, f64), String> {
     use std::sync::Arc;
     use std::sync::atomic::{AtomicU64, Ordering};
-    let (writer_cpu, reader_cpu) = placement.cpus()?;
-    std::thread::scope(|s| {
-        s.spawn(|| -> Result<(f64, f64), String> {
-            pin(writer_cpu)?;
-            let stamp = Arc::new(AtomicU64::new(0));
-            let (tx, rx) = mpsc::channel::<u64>();
-            let reader = {
-                let stamp = stamp.clone();
-                std::thread::spawn(move || -> Result<(), String> {
-                    pin(reader_cpu)?;
-                    for _ in 0..frames {
-                        // park() may return early; the stamp says whether this was the wake.
-                        let sent = loop {
-                            match stamp.swap(0, Ordering::AcqRel) {
-                                0 => std::thread::park(),
-                                t => break t,
-                            }
-                        };
-                        let _ = tx.send(now_ns().saturating_sub(sent));
-                    }
-                    Ok(())
-                })
-            };
-            let mut lat = Vec::with_capacity(frames);
-            for k in 0..frames {
-                stamp.store(now_ns(), Ordering::Release);
-                reader.thread().unpark();
-                let ns = rx
-                    .recv_timeout(Duration::from_secs(10))
-                    .map_err(|_| format!("wake-up {k} never arrived"))?;
-                lat.push(ns as f64 / 1e3);
-            }
-            reader.join().map_err(|_| "the reader panicked")??;
-            Ok((percentile(&mut lat, 0.5), percentile(&mut lat, 0.99)))
-        })
-        .join()
-        .map_err(|_| "the benchmark writer panicked".to_string())?
+    on_writer(placement, |reader_cpu| {
+        let stamp = Arc::new(AtomicU64::new(0));
+        let (tx, rx) = mpsc::channel::<u64>();
+        let reader = {
+            let stamp = stamp.clone();
+            std::thread::spawn(move || -> Result<(), String> {
+                pin(reader_cpu)?;
+                for _ in 0..frames {
+                    // park() may return early; the stamp says whether this was the wake.
+                    let sent = loop {
+                        match stamp.swap(0, Ordering::AcqRel) {
+                            0 => std::thread::park(),
+                            t => break t,
+                        }
+                    };
+                    let _ = tx.send(now_ns().saturating_sub(sent));
+                }
+                Ok(())
+            })
+        };
+        let mut lat = Vec::with_capacity(frames);
+        for k in 0..frames {
+            stamp.store(now_ns(), Ordering::Release);
+            reader.thread().unpark();
+            let ns = rx
+                .recv_timeout(Duration::from_secs(10))
+                .map_err(|_| format!("wake-up {k} never arrived"))?;
+            lat.push(ns as f64 / 1e3);
+        }
+        reader.join().map_err(|_| "the reader panicked")??;
+        Ok((percentile(&mut lat, 0.5), percentile(&mut lat, 0.99)))
     })
 }
 
@@ -343,6 +348,7 @@ mod tests {
     }
 
     #[test]
+    #[cfg(target_os = "linux")]
     fn placements_pin_the_threads_where_they_say() {
         let cpus = allowed_cpus().unwrap();
         let (w, r) = Placement::OneCore.cpus().unwrap();

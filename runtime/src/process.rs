@@ -36,15 +36,23 @@ pub struct NodeStats {
     pub mean_ms: f64,
     /// 99th-percentile step time, ms.
     pub p99_ms: f64,
-    /// Per input `(port, messages lost on its edge)`.
-    pub drops: Vec<(String, u64)>,
-    /// Per input `(port, frames of the stream it never delivered, lost anywhere)`.
-    #[serde(default)]
-    pub missing: Vec<(String, u64)>,
+    /// What each input lost, in the order of the node's inputs.
+    pub inputs: Vec<InputStats>,
     /// Mean time from capture to the end of this node's step, ms.
     pub latency_ms: f64,
     /// The last frame number handled.
     pub last_frame: Option<u64>,
+}
+
+/// What one input of a node lost.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct InputStats {
+    /// The input's port.
+    pub port: String,
+    /// Messages lost on its edge.
+    pub dropped: u64,
+    /// Frames of the stream it never delivered, lost anywhere.
+    pub missing: u64,
 }
 
 /// Nanoseconds since the Unix epoch (capture timestamps).
@@ -272,17 +280,15 @@ pub fn run_node(
         frames_out: out.sent,
         mean_ms,
         p99_ms: percentile(&mut times, 0.99),
-        drops: spec
+        inputs: spec
             .inputs
             .iter()
             .zip(&subs)
-            .map(|(i, s)| (i.port.clone(), s.dropped()))
-            .collect(),
-        missing: spec
-            .inputs
-            .iter()
-            .zip(&subs)
-            .map(|(i, s)| (i.port.clone(), s.missing()))
+            .map(|(i, s)| InputStats {
+                port: i.port.clone(),
+                dropped: s.dropped(),
+                missing: s.missing(),
+            })
             .collect(),
         latency_ms: if latencies.is_empty() {
             0.0

@@ -577,9 +577,9 @@ impl Scene {
                     .map(|u| {
                         let mut acc = 0.0;
                         for (j, candidates) in on_row.iter().enumerate() {
+                            let sv = sub_row(j);
                             for i in 0..n {
                                 let su = u as f64 + (i as f64 + 0.5) / n as f64 - 0.5;
-                                let sv = sub_row(j);
                                 let (hit, _) = self.cast(right, su, sv, cal, candidates);
                                 acc += self.shade(hit, su, sv, right, cal);
                             }
