@@ -4,9 +4,9 @@
 
 use crate::cells::{cell_heights, measure, pair_cells};
 use runtime::step::{GraphNode, Msg, Outputs, params, send_json};
-use schemas::wire::CellLists;
-use schemas::{Calibration, Cell3, DisparityRange, FrameHeader, MessageKind, Plane};
-use serde::{Deserialize, Serialize};
+use schemas::wire::{CLOUD_POINT_BYTES, CellLists, Targets, cloud_header};
+use schemas::{Calibration, DisparityRange, FrameHeader, MessageKind, Plane};
+use serde::Deserialize;
 use std::io::Write;
 use std::net::{TcpListener, TcpStream};
 use std::path::PathBuf;
@@ -55,19 +55,6 @@ impl TriangulateParams {
         }
         Ok(p)
     }
-}
-
-/// What the triangulate node sends on `targets` and the bridge serves: one scene per frame.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct Scene {
-    /// Frame number.
-    pub frame: u64,
-    /// Capture time, ns since the Unix epoch.
-    pub capture_ns: u64,
-    /// Unit of every coordinate.
-    pub unit: String,
-    /// Per-cell 3D figures.
-    pub cells: Vec<Cell3>,
 }
 
 /// Triangulates each frame's final map and measures its cells.
@@ -162,24 +149,18 @@ impl GraphNode for TriangulateNode {
         let h = FrameHeader {
             sequence: frame.header.sequence,
             capture_ns: frame.header.capture_ns,
-            width: n as u32,
-            height: 1,
-            stride: 15,
-            format: schemas::PixelFormat::F32 as u32,
-            kind: MessageKind::PointCloud as u32,
-            images: 0,
-            ..FrameHeader::default()
+            ..cloud_header(n)
         };
-        out.send(0, h, n * 15, &mut |b| {
+        out.send(0, h, n * CLOUD_POINT_BYTES, &mut |b| {
             for (k, p) in cloud.points.iter().enumerate() {
-                let o = &mut b[k * 15..k * 15 + 15];
+                let o = &mut b[k * CLOUD_POINT_BYTES..(k + 1) * CLOUD_POINT_BYTES];
                 o[0..4].copy_from_slice(&(p.x as f32).to_le_bytes());
                 o[4..8].copy_from_slice(&(p.y as f32).to_le_bytes());
                 o[8..12].copy_from_slice(&(p.z as f32).to_le_bytes());
                 o[12..15].copy_from_slice(&p.rgb);
             }
         })?;
-        let scene = serde_json::to_vec(&Scene {
+        let scene = serde_json::to_vec(&Targets {
             frame: frame.header.sequence,
             capture_ns: frame.header.capture_ns,
             unit: calib.unit.symbol().into(),

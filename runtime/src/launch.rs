@@ -246,6 +246,139 @@ impl Graph {
     }
 }
 
+/// Whether `text` matches `pattern`, where `*` stands for any run of characters.
+pub fn glob_match(pattern: &str, text: &str) -> bool {
+    let (p, t) = (pattern.as_bytes(), text.as_bytes());
+    // Greedy match with backtracking to the last star: linear for one star, fine for a few.
+    let (mut pi, mut ti, mut star, mut mark) = (0, 0, None, 0);
+    while ti < t.len() {
+        if pi < p.len() && p[pi] == b'*' {
+            star = Some(pi);
+            mark = ti;
+            pi += 1;
+        } else if pi < p.len() && p[pi] == t[ti] {
+            pi += 1;
+            ti += 1;
+        } else if let Some(s) = star {
+            pi = s + 1;
+            mark += 1;
+            ti = mark;
+        } else {
+            return false;
+        }
+    }
+    p[pi..].iter().all(|&c| c == b'*')
+}
+
+impl Graph {
+    /// Every output of the graph as `(NODE/OUTPUT, message)`, producers first.
+    pub fn edges(&self) -> Vec<(String, MessageKind)> {
+        self.nodes
+            .iter()
+            .flat_map(|n| n.outputs.iter().map(|(p, k)| (format!("{}/{p}", n.id), *k)))
+            .collect()
+    }
+
+    /// Adds node `id` of built-in `kind` reading every edge that matches one of `patterns`
+    /// (`NODE/OUTPUT`, `*` for any characters; no pattern: every edge), each under the port
+    /// `NODE.OUTPUT` and with the edge's own queue settings. A pattern that matches nothing
+    /// is an error that lists the edges.
+    pub fn add_tap(
+        &mut self,
+        id: &str,
+        kind: &str,
+        patterns: &[String],
+        params: toml::Table,
+    ) -> Result<(), String> {
+        if self.node(id).is_some() {
+            return Err(format!("the graph already has a node '{id}'"));
+        }
+        let edges = self.edges();
+        for p in patterns {
+            if !edges.iter().any(|(e, _)| glob_match(p, e)) {
+                return Err(format!(
+                    "no edge matches '{p}'; the edges: {}",
+                    edges
+                        .iter()
+                        .map(|(e, _)| e.as_str())
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                ));
+            }
+        }
+        let inputs = edges
+            .iter()
+            .filter(|(e, _)| patterns.is_empty() || patterns.iter().any(|p| glob_match(p, e)))
+            .map(|(e, _)| {
+                let (node, output) = e.split_once('/').expect("NODE/OUTPUT");
+                Input {
+                    port: format!("{node}.{output}"),
+                    node: node.into(),
+                    output: output.into(),
+                    edge: self.edge_config(node, output),
+                }
+            })
+            .collect();
+        self.nodes.push(NodeSpec {
+            id: id.into(),
+            runner: Runner::Builtin(kind.into()),
+            inputs,
+            outputs: Vec::new(),
+            params,
+            restart: Restart::default(),
+        });
+        Ok(())
+    }
+
+    /// Turns nodes `ids` into sources of built-in `kind` (their outputs stay, their inputs
+    /// go; `params` gains `node = ID`), then drops the nodes that fed only them.
+    pub fn replace_with_sources(
+        &mut self,
+        ids: &[String],
+        kind: &str,
+        params: &toml::Table,
+    ) -> Result<(), String> {
+        let read_before: Vec<String> = self
+            .nodes
+            .iter()
+            .filter(|n| self.is_read(&n.id))
+            .map(|n| n.id.clone())
+            .collect();
+        for id in ids {
+            let names = self
+                .nodes
+                .iter()
+                .map(|n| n.id.as_str())
+                .collect::<Vec<_>>()
+                .join(", ");
+            let Some(n) = self.nodes.iter_mut().find(|n| n.id == *id) else {
+                return Err(format!("no node '{id}' to replace; the nodes: {names}"));
+            };
+            if n.outputs.is_empty() {
+                return Err(format!("node '{id}' has no outputs to replay"));
+            }
+            n.runner = Runner::Builtin(kind.into());
+            n.inputs.clear();
+            n.params = params.clone();
+            n.params.insert("node".into(), toml::Value::String(id.clone()));
+            n.restart = Restart::default();
+        }
+        // A node that fed only replaced nodes has nobody to feed now.
+        loop {
+            let idle: Vec<String> = self
+                .nodes
+                .iter()
+                .filter(|n| read_before.contains(&n.id) && !self.is_read(&n.id))
+                .map(|n| n.id.clone())
+                .collect();
+            if idle.is_empty() {
+                return Ok(());
+            }
+            self.nodes.retain(|n| !idle.contains(&n.id));
+        }
+    }
+}
+
 /// A node's inputs as `(NODE/OUTPUT, message expected, byte offset in the file)`.
 type Wanted = Vec<(String, MessageKind, usize)>;
 
@@ -635,6 +768,87 @@ mod tests {
 
     fn check(text: &str) -> Result<Graph, LaunchErrors> {
         LaunchFile::parse(Path::new("g.toml"), text)?.validate(&kinds, KNOWN)
+    }
+
+    #[test]
+    fn globs_match_whole_names() {
+        for (p, t, want) in [
+            ("a/frame", "a/frame", true),
+            ("a/*", "a/frame", true),
+            ("*/disparity", "match-lr/disparity", true),
+            ("*/disparity", "match-lr/disparity2", false),
+            ("*", "x/y", true),
+            ("m*-*/d*", "match-lr/disparity", true),
+            ("a/frame", "a/frames", false),
+            ("b/*", "a/frame", false),
+        ] {
+            assert_eq!(glob_match(p, t), want, "{p} ~ {t}");
+        }
+    }
+
+    fn chain() -> Graph {
+        check(
+            r#"
+[[node]]
+id = "a"
+kind = "source"
+
+[[node]]
+id = "b"
+kind = "filter"
+inputs = { frame = { from = "a/frame", depth = 4, overflow = "block" } }
+
+[[node]]
+id = "c"
+kind = "filter"
+inputs = { frame = "b/frame" }
+"#,
+        )
+        .unwrap()
+    }
+
+    #[test]
+    fn a_tap_reads_the_matching_edges_with_their_settings() {
+        let mut g = chain();
+        g.add_tap("rec", "recorder", &["b/*".into()], toml::Table::new())
+            .unwrap();
+        let rec = g.node("rec").unwrap();
+        assert_eq!(
+            rec.inputs,
+            [Input {
+                port: "b.frame".into(),
+                node: "b".into(),
+                output: "frame".into(),
+                edge: EdgeConfig::default(),
+            }]
+        );
+        let mut g = chain();
+        g.add_tap("rec", "recorder", &[], toml::Table::new()).unwrap();
+        let ports: Vec<_> = g.node("rec").unwrap().inputs.iter().map(|i| i.port.as_str()).collect();
+        assert_eq!(ports, ["a.frame", "b.frame", "c.frame"]);
+        assert_eq!(g.node("rec").unwrap().inputs[0].edge.overflow, Overflow::Block);
+        let e = chain()
+            .add_tap("rec", "recorder", &["x/*".into()], toml::Table::new())
+            .unwrap_err();
+        assert!(e.contains("no edge matches 'x/*'") && e.contains("a/frame, b/frame"), "{e}");
+    }
+
+    #[test]
+    fn replaced_nodes_become_sources_and_what_fed_only_them_goes() {
+        let mut g = chain();
+        let params = toml::Table::from_iter([("file".to_string(), toml::Value::from("r.mcap"))]);
+        g.replace_with_sources(&["b".into()], "replay", &params).unwrap();
+        let ids: Vec<_> = g.nodes.iter().map(|n| n.id.as_str()).collect();
+        assert_eq!(ids, ["b", "c"]);
+        let b = g.node("b").unwrap();
+        assert_eq!(b.runner, Runner::Builtin("replay".into()));
+        assert!(b.inputs.is_empty());
+        assert_eq!(b.params.get("node").and_then(|v| v.as_str()), Some("b"));
+        assert_eq!(b.outputs, [("frame".to_string(), MessageKind::StereoFrame)]);
+        let e = chain()
+            .replace_with_sources(&["zz".into()], "replay", &params)
+            .unwrap_err();
+        assert!(e.contains("no node 'zz'") && e.contains("a, b, c"), "{e}");
     }
 
     #[test]

@@ -299,6 +299,84 @@ pub fn run_node(
     })
 }
 
+/// Runs node `id` of `graph` as a tap (a recorder or a viewer): every message on each of
+/// its inputs goes to `on_msg` (input index, header, payload) as it arrives, not joined by
+/// frame; `on_idle` runs when a second passes with nothing. Ends on a stop request, or,
+/// given a frame count, once every input has delivered the last frame.
+pub fn run_tap(
+    graph: &Graph,
+    instance: &str,
+    id: &str,
+    frames: Option<u64>,
+    mut on_msg: impl FnMut(usize, &FrameHeader, &[u8]) -> Result<(), String>,
+    mut on_idle: impl FnMut() -> Result<(), String>,
+) -> Result<NodeStats, String> {
+    let spec = graph
+        .node(id)
+        .ok_or_else(|| format!("no node '{id}' in {}", graph.file.display()))?;
+    let transport = Transport::new(&format!("{instance}/{id}")).map_err(|e| e.to_string())?;
+    let subs = spec
+        .inputs
+        .iter()
+        .map(|i| {
+            transport.reader(
+                &Graph::edge_name(instance, &i.node, &i.output),
+                &graph.edge_config(&i.node, &i.output),
+                Some(&reader_name(id, &i.port)),
+            )
+        })
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| e.to_string())?;
+    let refs: Vec<&EdgeSubscriber> = subs.iter().collect();
+    let mut finished = vec![false; subs.len()];
+    let mut times = Vec::new();
+    let mut last_frame = None;
+    let mut received = 0u64;
+    wait_loop::<String>(&refs, Duration::from_secs(1), |wake, _| {
+        match wake {
+            Wake::Stop => return Ok(false),
+            Wake::Timeout => on_idle()?,
+            Wake::Ready => {}
+        }
+        for (i, s) in subs.iter().enumerate() {
+            while let Some(m) = s.receive()? {
+                let t = Instant::now();
+                let h = *m.user_header();
+                on_msg(i, &h, m.payload())?;
+                times.push(t.elapsed().as_secs_f64() * 1e3);
+                received += 1;
+                last_frame = last_frame.max(Some(h.sequence));
+                finished[i] |= frames.is_some_and(|n| h.sequence + 1 >= n);
+            }
+        }
+        Ok(!(frames.is_some() && finished.iter().all(|f| *f)))
+    })?;
+    let mean_ms = if times.is_empty() {
+        0.0
+    } else {
+        times.iter().sum::<f64>() / times.len() as f64
+    };
+    Ok(NodeStats {
+        id: id.into(),
+        frames_in: received,
+        frames_out: 0,
+        mean_ms,
+        p99_ms: percentile(&mut times, 0.99),
+        inputs: spec
+            .inputs
+            .iter()
+            .zip(&subs)
+            .map(|(i, s)| InputStats {
+                port: i.port.clone(),
+                dropped: s.dropped(),
+                missing: s.missing(),
+            })
+            .collect(),
+        latency_ms: 0.0,
+        last_frame,
+    })
+}
+
 /// After its last frame, a node that other nodes read stays until it is told to stop: its
 /// readers may not have taken every frame yet, and a publisher that leaves takes its unread
 /// frames along (the supervisor stops such nodes once every node nobody reads has ended).

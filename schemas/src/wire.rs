@@ -71,6 +71,37 @@ pub enum MessageKind {
 }
 
 impl MessageKind {
+    /// Every kind, in wire order.
+    pub const ALL: [MessageKind; 8] = [
+        Self::StereoFrame,
+        Self::Image,
+        Self::Disparity,
+        Self::Labels,
+        Self::CellList,
+        Self::PointCloud,
+        Self::Targets,
+        Self::DisparityPair,
+    ];
+
+    /// Its name in launch files and recordings (`stereo-frame`, `disparity`, …).
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::StereoFrame => "stereo-frame",
+            Self::Image => "image",
+            Self::Disparity => "disparity",
+            Self::Labels => "labels",
+            Self::CellList => "cell-list",
+            Self::PointCloud => "point-cloud",
+            Self::Targets => "targets",
+            Self::DisparityPair => "disparity-pair",
+        }
+    }
+
+    /// The kind with this [`name`](Self::name).
+    pub fn from_name(name: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|k| k.name() == name)
+    }
+
     /// The kind with this wire value.
     pub fn from_u32(v: u32) -> Option<Self> {
         Some(match v {
@@ -171,6 +202,12 @@ mod tests {
         assert_eq!(PixelFormat::from_u32(h.format), Some(PixelFormat::Mono8));
         assert_eq!(PixelFormat::from_u32(99), None);
         assert_eq!(MessageKind::from_u32(0), None);
+        for k in MessageKind::ALL {
+            assert_eq!(MessageKind::from_u32(k as u32), Some(k));
+            assert_eq!(MessageKind::from_name(k.name()), Some(k));
+            let serde_name = serde_json::to_string(&k).unwrap();
+            assert_eq!(serde_name.trim_matches('"'), k.name());
+        }
     }
 
     #[test]
@@ -313,4 +350,35 @@ pub struct CellLists {
     pub left: Vec<crate::Cell>,
     /// Cells of the right view.
     pub right: Vec<crate::Cell>,
+}
+
+/// What the triangulate node sends on `targets` and the manipulator bridge serves: the 3D
+/// cells of one frame (JSON).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Targets {
+    /// Frame number.
+    pub frame: u64,
+    /// Capture time, ns since the Unix epoch.
+    pub capture_ns: u64,
+    /// Unit of every coordinate.
+    pub unit: String,
+    /// Per-cell 3D figures.
+    pub cells: Vec<crate::Cell3>,
+}
+
+/// Bytes per point of a point-cloud message: `x, y, z` as little-endian f32, then `r, g, b`.
+pub const CLOUD_POINT_BYTES: usize = 15;
+
+/// The header of a point-cloud message of `points` points (one row of
+/// [`CLOUD_POINT_BYTES`] each).
+pub fn cloud_header(points: usize) -> FrameHeader {
+    FrameHeader {
+        width: points as u32,
+        height: 1,
+        stride: CLOUD_POINT_BYTES as u32,
+        format: PixelFormat::F32 as u32,
+        kind: MessageKind::PointCloud as u32,
+        images: 0,
+        ..FrameHeader::default()
+    }
 }

@@ -1,0 +1,761 @@
+//! Recordings on disk: an MCAP file with profile `ros2`, one channel per edge (two for a
+//! message with two images), CDR messages, zstd chunks.
+//!
+//! Each channel's metadata names the edge (`microstereo.edge` = `NODE/OUTPUT`), its message
+//! kind and the side; each MCAP message carries the frame number as its `sequence` and the
+//! capture time as its `publish_time`, so that [`EdgeReader`] gives back exactly the header
+//! and payload the node sent. The launch file of the run is stored as a metadata record.
+
+use crate::ros2::{self, MsgType};
+use mcap::records::MessageHeader;
+use schemas::{FrameHeader, MessageKind};
+use std::collections::{BTreeMap, HashMap};
+use std::fs::File;
+use std::io::{BufReader, BufWriter, Read, Seek, SeekFrom};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// Channel metadata key: the edge, `NODE/OUTPUT`.
+pub const META_EDGE: &str = "microstereo.edge";
+/// Channel metadata key: the message kind's name.
+pub const META_KIND: &str = "microstereo.kind";
+/// Channel metadata key: `left` or `right` for one image of a two-image message.
+pub const META_SIDE: &str = "microstereo.side";
+/// Name of the metadata record holding the run's launch file (`text`, `path`).
+pub const META_LAUNCH: &str = "microstereo.launch";
+
+/// How often the writer ends its chunk and flushes it to disk at the latest.
+pub const FLUSH_EVERY: Duration = Duration::from_secs(1);
+
+/// The MCAP magic that starts and ends a complete file.
+const MAGIC: &[u8; 8] = b"\x89MCAP0\r\n";
+
+/// Why a recording cannot be written or read.
+#[derive(Debug, thiserror::Error)]
+pub enum RecordingError {
+    /// The file cannot be opened, created or written.
+    #[error("{path}: {what}: {reason}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// What was being done.
+        what: &'static str,
+        /// The system's reason.
+        reason: String,
+    },
+    /// The file is not an MCAP file, or breaks off, or holds a record that cannot be read.
+    #[error("{path}: {reason} (after {messages} message(s)){}", if *truncated { "; the file is truncated (no MCAP footer): it was not closed, e.g. its recorder was killed" } else { "" })]
+    Corrupt {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        reason: String,
+        /// Messages read before it.
+        messages: u64,
+        /// The file lacks the MCAP end magic.
+        truncated: bool,
+    },
+    /// A message cannot be turned back into what its edge carried.
+    #[error("{path}: channel '{topic}', frame {sequence}: {reason}")]
+    Message {
+        /// The file.
+        path: PathBuf,
+        /// Its channel's topic.
+        topic: String,
+        /// Its frame.
+        sequence: u64,
+        /// What is wrong.
+        reason: String,
+    },
+}
+
+/// The topic of `edge` (`NODE/OUTPUT`) for `side`.
+pub fn topic(edge: &str, side: Option<&str>) -> String {
+    match side {
+        Some(s) => format!("/{edge}/{s}"),
+        None => format!("/{edge}"),
+    }
+}
+
+/// Writes edge messages into an MCAP file.
+pub struct RecordingWriter {
+    path: PathBuf,
+    mcap: mcap::Writer<BufWriter<File>>,
+    schemas: HashMap<&'static str, u16>,
+    channels: HashMap<(String, Option<&'static str>), u16>,
+    last_flush: Instant,
+    /// Edge messages written.
+    pub messages: u64,
+}
+
+impl std::fmt::Debug for RecordingWriter {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("RecordingWriter")
+            .field("path", &self.path)
+            .field("messages", &self.messages)
+            .finish_non_exhaustive()
+    }
+}
+
+impl RecordingWriter {
+    /// Creates `path`; an existing file is refused unless `overwrite`, so that no earlier
+    /// recording is lost by accident.
+    pub fn create(path: &Path, overwrite: bool) -> Result<Self, RecordingError> {
+        let io = |what: &'static str| {
+            let path = path.to_path_buf();
+            move |e: std::io::Error| RecordingError::Io {
+                path,
+                what,
+                reason: e.to_string(),
+            }
+        };
+        let file = if overwrite {
+            File::create(path)
+        } else {
+            File::options().write(true).create_new(true).open(path)
+        }
+        .map_err(|e| {
+            if e.kind() == std::io::ErrorKind::AlreadyExists {
+                RecordingError::Io {
+                    path: path.into(),
+                    what: "creating the recording",
+                    reason: "the file exists; choose another name or allow overwriting it".into(),
+                }
+            } else {
+                io("creating the recording")(e)
+            }
+        })?;
+        let mcap = mcap::WriteOptions::new()
+            .profile("ros2")
+            .library(concat!("microstereo ", env!("CARGO_PKG_VERSION")))
+            .compression(Some(mcap::Compression::Zstd))
+            .compression_level(3)
+            .chunk_size(Some(8 << 20))
+            .create(BufWriter::with_capacity(1 << 20, file))
+            .map_err(|e| RecordingError::Io {
+                path: path.into(),
+                what: "starting the MCAP file",
+                reason: e.to_string(),
+            })?;
+        Ok(Self {
+            path: path.into(),
+            mcap,
+            schemas: HashMap::new(),
+            channels: HashMap::new(),
+            last_flush: Instant::now(),
+            messages: 0,
+        })
+    }
+
+    fn mcap_err(
+        &self,
+        what: &'static str,
+    ) -> impl FnOnce(mcap::McapError) -> RecordingError + use<> {
+        let path = self.path.clone();
+        move |e| RecordingError::Io {
+            path,
+            what,
+            reason: e.to_string(),
+        }
+    }
+
+    /// Stores the launch file the graph ran from.
+    pub fn write_launch(&mut self, path: &Path, text: &str) -> Result<(), RecordingError> {
+        let metadata = BTreeMap::from([
+            ("path".to_string(), path.display().to_string()),
+            ("text".to_string(), text.to_string()),
+        ]);
+        let err = self.mcap_err("writing the launch file");
+        self.mcap
+            .write_metadata(&mcap::records::Metadata {
+                name: META_LAUNCH.into(),
+                metadata,
+            })
+            .map_err(err)
+    }
+
+    fn channel(
+        &mut self,
+        edge: &str,
+        kind: MessageKind,
+        side: Option<&'static str>,
+        msg: MsgType,
+    ) -> Result<u16, RecordingError> {
+        if let Some(&id) = self.channels.get(&(edge.to_string(), side)) {
+            return Ok(id);
+        }
+        let schema = match self.schemas.get(msg.name) {
+            Some(&id) => id,
+            None => {
+                let err = self.mcap_err("adding a schema");
+                let id = self
+                    .mcap
+                    .add_schema(msg.name, "ros2msg", msg.definition.as_bytes())
+                    .map_err(err)?;
+                self.schemas.insert(msg.name, id);
+                id
+            }
+        };
+        let mut meta = BTreeMap::from([
+            (META_EDGE.to_string(), edge.to_string()),
+            (META_KIND.to_string(), kind.name().to_string()),
+        ]);
+        if let Some(s) = side {
+            meta.insert(META_SIDE.into(), s.into());
+        }
+        let err = self.mcap_err("adding a channel");
+        let id = self
+            .mcap
+            .add_channel(schema, &topic(edge, side), "cdr", &meta)
+            .map_err(err)?;
+        self.channels.insert((edge.to_string(), side), id);
+        Ok(id)
+    }
+
+    /// Writes one message of `edge` (`NODE/OUTPUT`), received at `log_time` (ns since the
+    /// epoch); flushes when the last flush is [`FLUSH_EVERY`] old.
+    pub fn write(
+        &mut self,
+        edge: &str,
+        kind: MessageKind,
+        header: &FrameHeader,
+        payload: &[u8],
+        log_time: u64,
+    ) -> Result<(), RecordingError> {
+        let parts = ros2::encode(kind, header, payload).map_err(|reason| {
+            RecordingError::Message {
+                path: self.path.clone(),
+                topic: topic(edge, None),
+                sequence: header.sequence,
+                reason,
+            }
+        })?;
+        for p in parts {
+            let channel_id = self.channel(edge, kind, p.side, p.msg)?;
+            let err = self.mcap_err("writing a message");
+            self.mcap
+                .write_to_known_channel(
+                    &MessageHeader {
+                        channel_id,
+                        // MCAP has 32 bits for it: frame numbers wrap after 2^32 frames.
+                        sequence: header.sequence as u32,
+                        log_time,
+                        publish_time: header.capture_ns,
+                    },
+                    &p.cdr,
+                )
+                .map_err(err)?;
+        }
+        self.messages += 1;
+        self.flush_if_due()
+    }
+
+    /// Ends the chunk and flushes the file when the last flush is [`FLUSH_EVERY`] old, so
+    /// that a writer killed now leaves a file readable up to here.
+    pub fn flush_if_due(&mut self) -> Result<(), RecordingError> {
+        if self.last_flush.elapsed() >= FLUSH_EVERY {
+            let err = self.mcap_err("flushing");
+            self.mcap.flush().map_err(err)?;
+            self.last_flush = Instant::now();
+        }
+        Ok(())
+    }
+
+    /// Writes the summary and footer and closes the file.
+    pub fn finish(mut self) -> Result<(), RecordingError> {
+        let err = self.mcap_err("finishing the file");
+        self.mcap.finish().map_err(err)?;
+        let path = self.path.clone();
+        self.mcap
+            .into_inner()
+            .into_inner()
+            .map_err(|e| RecordingError::Io {
+                path: path.clone(),
+                what: "finishing the file",
+                reason: e.into_error().to_string(),
+            })?
+            .sync_all()
+            .map_err(|e| RecordingError::Io {
+                path,
+                what: "syncing the file",
+                reason: e.to_string(),
+            })
+    }
+}
+
+/// One message of an edge, as its node sent it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EdgeMessage {
+    /// `NODE/OUTPUT`.
+    pub edge: String,
+    /// What it is.
+    pub kind: MessageKind,
+    /// Its header (`edge_sequence` 0: the transport sets it when it is sent again).
+    pub header: FrameHeader,
+    /// Its payload.
+    pub payload: Vec<u8>,
+    /// When the recorder received it, ns since the epoch.
+    pub log_time: u64,
+}
+
+/// One channel of a recording as [`channels`] lists it.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ChannelInfo {
+    /// Topic.
+    pub topic: String,
+    /// ROS 2 type.
+    pub schema: String,
+    /// The edge it belongs to, when microstereo wrote it.
+    pub edge: Option<String>,
+    /// The edge's message kind.
+    pub kind: Option<MessageKind>,
+    /// Messages on it.
+    pub messages: u64,
+    /// First and last log time, ns.
+    pub first_ns: u64,
+    /// Last log time, ns.
+    pub last_ns: u64,
+    /// Bytes of message data.
+    pub bytes: u64,
+}
+
+/// What a pass over a recording found, channel by channel.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Overview {
+    /// Channels in order of first appearance.
+    pub channels: Vec<ChannelInfo>,
+    /// The launch file stored in it, `(path, text)`.
+    pub launch: Option<(String, String)>,
+    /// Why reading stopped early (a truncated or corrupt file).
+    pub error: Option<String>,
+    /// The file ends without the MCAP footer.
+    pub truncated: bool,
+    /// Largest frame number seen.
+    pub last_sequence: Option<u64>,
+    /// Smallest frame number seen.
+    pub first_sequence: Option<u64>,
+}
+
+impl Overview {
+    /// The channels that make up `edge`.
+    pub fn edge(&self, edge: &str) -> Vec<&ChannelInfo> {
+        self.channels
+            .iter()
+            .filter(|c| c.edge.as_deref() == Some(edge))
+            .collect()
+    }
+}
+
+fn open(path: &Path) -> Result<(File, bool), RecordingError> {
+    let mut f = File::open(path).map_err(|e| RecordingError::Io {
+        path: path.into(),
+        what: "opening the recording",
+        reason: e.to_string(),
+    })?;
+    let corrupt = |reason: String| RecordingError::Corrupt {
+        path: path.into(),
+        reason,
+        messages: 0,
+        truncated: false,
+    };
+    let len = f.metadata().map(|m| m.len()).unwrap_or(0);
+    let mut head = [0u8; 8];
+    if len < 8 || f.read_exact(&mut head).is_err() || &head != MAGIC {
+        return Err(corrupt(
+            "not an MCAP file (it does not start with the MCAP magic)".into(),
+        ));
+    }
+    let mut tail = [0u8; 8];
+    let complete = len >= 16
+        && f.seek(SeekFrom::End(-8)).is_ok()
+        && f.read_exact(&mut tail).is_ok()
+        && &tail == MAGIC;
+    f.seek(SeekFrom::Start(0)).map_err(|e| RecordingError::Io {
+        path: path.into(),
+        what: "reading the recording",
+        reason: e.to_string(),
+    })?;
+    Ok((f, !complete))
+}
+
+/// The raw MCAP messages of `path`, with whether the file lacks its footer; the metadata
+/// record with the launch file is handed to `on_launch`.
+fn raw_messages(path: &Path) -> Result<(RawMessages, bool), RecordingError> {
+    let (f, truncated) = open(path)?;
+    let opts = mcap::sans_io::LinearReaderOptions::default().with_skip_end_magic(true);
+    Ok((
+        RawMessages {
+            inner: mcap::sans_io::LinearReader::new_with_options(opts),
+            file: BufReader::with_capacity(1 << 20, f),
+            channels: HashMap::new(),
+            schemas: HashMap::new(),
+            launch: None,
+        },
+        truncated,
+    ))
+}
+
+/// An MCAP message with its channel.
+struct RawMessage {
+    channel: Arc<mcap::records::Channel>,
+    schema: Option<String>,
+    header: MessageHeader,
+    data: Vec<u8>,
+}
+
+/// Streams the records of an MCAP file, keeping channels, schemas and the launch metadata.
+struct RawMessages {
+    inner: mcap::sans_io::LinearReader,
+    file: BufReader<File>,
+    channels: HashMap<u16, Arc<mcap::records::Channel>>,
+    schemas: HashMap<u16, String>,
+    launch: Option<(String, String)>,
+}
+
+impl RawMessages {
+    fn next_message(&mut self) -> Option<Result<RawMessage, String>> {
+        use mcap::records::Record;
+        use mcap::sans_io::LinearReadEvent;
+        loop {
+            let event = self.inner.next_event()?;
+            match event {
+                Err(e) => return Some(Err(e.to_string())),
+                Ok(LinearReadEvent::ReadRequest(n)) => {
+                    let buf = self.inner.insert(n);
+                    match self.file.read(buf) {
+                        Ok(got) => self.inner.notify_read(got),
+                        Err(e) => return Some(Err(e.to_string())),
+                    }
+                }
+                Ok(LinearReadEvent::Record { opcode, data }) => {
+                    let record = match mcap::parse_record(opcode, data) {
+                        Ok(r) => r,
+                        Err(e) => return Some(Err(e.to_string())),
+                    };
+                    match record {
+                        Record::Schema { header, .. } => {
+                            self.schemas.insert(header.id, header.name.clone());
+                        }
+                        Record::Channel(c) => {
+                            self.channels.insert(c.id, Arc::new(c));
+                        }
+                        Record::Metadata(m) if m.name == META_LAUNCH => {
+                            self.launch = Some((
+                                m.metadata.get("path").cloned().unwrap_or_default(),
+                                m.metadata.get("text").cloned().unwrap_or_default(),
+                            ));
+                        }
+                        Record::Message { header, data } => {
+                            let Some(channel) = self.channels.get(&header.channel_id).cloned()
+                            else {
+                                return Some(Err(format!(
+                                    "a message on channel {} which the file never declares",
+                                    header.channel_id
+                                )));
+                            };
+                            let schema = self.schemas.get(&channel.schema_id).cloned();
+                            return Some(Ok(RawMessage {
+                                channel,
+                                schema,
+                                header,
+                                data: data.into_owned(),
+                            }));
+                        }
+                        _ => {}
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// Reads a recording once and lists its channels (a truncated or corrupt file gives what
+/// could be read, with the reason it stopped).
+pub fn overview(path: &Path) -> Result<Overview, RecordingError> {
+    let (mut raw, truncated) = raw_messages(path)?;
+    let mut o = Overview {
+        truncated,
+        ..Overview::default()
+    };
+    let mut index: HashMap<u16, usize> = HashMap::new();
+    while let Some(m) = raw.next_message() {
+        let m = match m {
+            Ok(m) => m,
+            Err(e) => {
+                o.error = Some(e);
+                break;
+            }
+        };
+        let i = *index.entry(m.channel.id).or_insert_with(|| {
+            o.channels.push(ChannelInfo {
+                topic: m.channel.topic.clone(),
+                schema: m.schema.clone().unwrap_or_default(),
+                edge: m.channel.metadata.get(META_EDGE).cloned(),
+                kind: m
+                    .channel
+                    .metadata
+                    .get(META_KIND)
+                    .and_then(|k| MessageKind::from_name(k)),
+                messages: 0,
+                first_ns: m.header.log_time,
+                last_ns: m.header.log_time,
+                bytes: 0,
+            });
+            o.channels.len() - 1
+        });
+        let c = &mut o.channels[i];
+        c.messages += 1;
+        c.first_ns = c.first_ns.min(m.header.log_time);
+        c.last_ns = c.last_ns.max(m.header.log_time);
+        c.bytes += m.data.len() as u64;
+        let seq = u64::from(m.header.sequence);
+        o.last_sequence = Some(o.last_sequence.map_or(seq, |s| s.max(seq)));
+        o.first_sequence = Some(o.first_sequence.map_or(seq, |s| s.min(seq)));
+    }
+    o.launch = raw.launch.take();
+    if truncated && o.error.is_none() {
+        o.error = Some("the file ends without its MCAP footer".into());
+    }
+    Ok(o)
+}
+
+/// Reads the messages of chosen edges back, in the order they were recorded, with the
+/// two images of a stereo frame joined again.
+pub struct EdgeReader {
+    path: PathBuf,
+    raw: RawMessages,
+    truncated: bool,
+    edges: Option<Vec<String>>,
+    /// Halves of two-image messages waiting for their other side: (edge, frame) → parts.
+    halves: HashMap<(String, u64), [Option<Vec<u8>>; 2]>,
+    read: u64,
+    done: bool,
+}
+
+impl std::fmt::Debug for EdgeReader {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("EdgeReader")
+            .field("path", &self.path)
+            .field("read", &self.read)
+            .finish_non_exhaustive()
+    }
+}
+
+impl EdgeReader {
+    /// Opens `path`; with `edges`, only those edges' messages are decoded and given.
+    pub fn open(path: &Path, edges: Option<Vec<String>>) -> Result<Self, RecordingError> {
+        let (raw, truncated) = raw_messages(path)?;
+        Ok(Self {
+            path: path.into(),
+            raw,
+            truncated,
+            edges,
+            halves: HashMap::new(),
+            read: 0,
+            done: false,
+        })
+    }
+
+    /// The launch file stored in the recording, once the reader has passed it (it comes
+    /// first in files microstereo writes).
+    pub fn launch(&self) -> Option<&(String, String)> {
+        self.raw.launch.as_ref()
+    }
+
+    fn message_error(&self, topic: &str, sequence: u64, reason: String) -> RecordingError {
+        RecordingError::Message {
+            path: self.path.clone(),
+            topic: topic.into(),
+            sequence,
+            reason,
+        }
+    }
+}
+
+impl Iterator for EdgeReader {
+    type Item = Result<EdgeMessage, RecordingError>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        if self.done {
+            return None;
+        }
+        loop {
+            let m = match self.raw.next_message() {
+                None => {
+                    self.done = true;
+                    return self.truncated.then(|| {
+                        Err(RecordingError::Corrupt {
+                            path: self.path.clone(),
+                            reason: "the file ends without its MCAP footer".into(),
+                            messages: self.read,
+                            truncated: true,
+                        })
+                    });
+                }
+                Some(Err(reason)) => {
+                    self.done = true;
+                    return Some(Err(RecordingError::Corrupt {
+                        path: self.path.clone(),
+                        reason,
+                        messages: self.read,
+                        truncated: self.truncated,
+                    }));
+                }
+                Some(Ok(m)) => m,
+            };
+            let meta = &m.channel.metadata;
+            let (Some(edge), Some(kind)) = (meta.get(META_EDGE), meta.get(META_KIND)) else {
+                continue;
+            };
+            if self
+                .edges
+                .as_ref()
+                .is_some_and(|want| !want.iter().any(|e| e == edge))
+            {
+                continue;
+            }
+            let sequence = u64::from(m.header.sequence);
+            let topic = m.channel.topic.clone();
+            let Some(kind) = MessageKind::from_name(kind) else {
+                return Some(Err(self.message_error(
+                    &topic,
+                    sequence,
+                    format!("unknown message kind '{kind}'"),
+                )));
+            };
+            if m.channel.message_encoding != "cdr"
+                || m.schema.as_deref() != Some(ros2::msg_type(kind).name)
+            {
+                return Some(Err(self.message_error(
+                    &topic,
+                    sequence,
+                    format!(
+                        "a {} channel with schema {:?} in {} encoding; microstereo writes {} in cdr",
+                        kind.name(),
+                        m.schema,
+                        m.channel.message_encoding,
+                        ros2::msg_type(kind).name
+                    ),
+                )));
+            }
+            let sides = ros2::kind_sides(kind);
+            let parts: Vec<Vec<u8>> = if sides.is_empty() {
+                vec![m.data]
+            } else {
+                let side = meta.get(META_SIDE).map(String::as_str);
+                let Some(i) = sides.iter().position(|s| Some(*s) == side) else {
+                    return Some(Err(self.message_error(
+                        &topic,
+                        sequence,
+                        format!("side {side:?} where left or right was expected"),
+                    )));
+                };
+                let slot = self.halves.entry((edge.clone(), sequence)).or_default();
+                slot[i] = Some(m.data);
+                if slot.iter().any(Option::is_none) {
+                    continue;
+                }
+                let [a, b] = self
+                    .halves
+                    .remove(&(edge.clone(), sequence))
+                    .expect("present");
+                vec![a.expect("both"), b.expect("both")]
+            };
+            let refs: Vec<&[u8]> = parts.iter().map(Vec::as_slice).collect();
+            self.read += 1;
+            return Some(
+                ros2::decode(kind, &refs, (sequence, m.header.publish_time))
+                    .map(|(header, payload)| EdgeMessage {
+                        edge: edge.clone(),
+                        kind,
+                        header,
+                        payload,
+                        log_time: m.header.log_time,
+                    })
+                    .map_err(|reason| self.message_error(&topic, sequence, reason)),
+            );
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use schemas::PixelFormat;
+
+    fn frame(seq: u64, w: usize) -> (FrameHeader, Vec<u8>) {
+        let h = FrameHeader {
+            sequence: seq,
+            capture_ns: 1_000 + seq,
+            ..FrameHeader::image(MessageKind::StereoFrame, PixelFormat::Mono8, w, 2, 2)
+        };
+        let p = (0..h.image_bytes()).map(|i| (i as u64 * 7 + seq) as u8).collect();
+        (h, p)
+    }
+
+    fn write_three(path: &Path) {
+        let mut w = RecordingWriter::create(path, false).unwrap();
+        w.write_launch(Path::new("g.toml"), "[[node]]\n").unwrap();
+        for seq in 0..3 {
+            let (h, p) = frame(seq, 4);
+            w.write("cam/frame", MessageKind::StereoFrame, &h, &p, 50 + seq)
+                .unwrap();
+        }
+        w.finish().unwrap();
+    }
+
+    #[test]
+    fn a_recording_reads_back_exactly_and_lists_its_channels() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("r.mcap");
+        write_three(&path);
+        let back: Vec<EdgeMessage> = EdgeReader::open(&path, None)
+            .unwrap()
+            .collect::<Result<_, _>>()
+            .unwrap();
+        assert_eq!(back.len(), 3);
+        for (seq, m) in back.iter().enumerate() {
+            let (h, p) = frame(seq as u64, 4);
+            assert_eq!((m.edge.as_str(), m.header, &m.payload), ("cam/frame", h, &p));
+            assert_eq!(m.log_time, 50 + seq as u64);
+        }
+        let o = overview(&path).unwrap();
+        assert_eq!(o.error, None);
+        assert!(!o.truncated);
+        let topics: Vec<_> = o.channels.iter().map(|c| (c.topic.as_str(), c.messages)).collect();
+        assert_eq!(topics, [("/cam/frame/left", 3), ("/cam/frame/right", 3)]);
+        assert_eq!(o.channels[0].schema, "sensor_msgs/msg/Image");
+        assert_eq!(o.edge("cam/frame").len(), 2);
+        assert_eq!((o.first_sequence, o.last_sequence), (Some(0), Some(2)));
+        assert_eq!(o.launch, Some(("g.toml".into(), "[[node]]\n".into())));
+        // An existing file is not overwritten by accident.
+        let e = RecordingWriter::create(&path, false).unwrap_err();
+        assert!(e.to_string().contains("exists"), "{e}");
+    }
+
+    #[test]
+    fn a_truncated_file_gives_what_it_holds_and_says_so() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("r.mcap");
+        write_three(&path);
+        let bytes = std::fs::read(&path).unwrap();
+        // Cut inside the footer's summary: the data section is whole.
+        let cut = dir.path().join("cut.mcap");
+        std::fs::write(&cut, &bytes[..bytes.len() - 30]).unwrap();
+        let got: Vec<_> = EdgeReader::open(&cut, None).unwrap().collect();
+        assert!(got.len() >= 3, "{got:?}");
+        let last = got.last().unwrap().as_ref().unwrap_err().to_string();
+        assert!(last.contains("truncated"), "{last}");
+        // Cut in the middle: the chunk is lost, the error says where.
+        let half = dir.path().join("half.mcap");
+        std::fs::write(&half, &bytes[..bytes.len() / 2]).unwrap();
+        let o = overview(&half).unwrap();
+        assert!(o.truncated && o.error.is_some(), "{o:?}");
+        // Not an MCAP file at all.
+        let junk = dir.path().join("junk.mcap");
+        std::fs::write(&junk, b"hello, world, this is text").unwrap();
+        let e = overview(&junk).unwrap_err().to_string();
+        assert!(e.contains("not an MCAP file"), "{e}");
+    }
+}

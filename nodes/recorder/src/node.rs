@@ -1,0 +1,358 @@
+//! The recorder node (a tap on the graph's edges that writes them to MCAP) and the replay
+//! source (recorded edges sent again in place of the node that made them).
+
+use crate::file::{EdgeMessage, EdgeReader, RecordingError, RecordingWriter};
+use runtime::launch::Graph;
+use runtime::process::{NodeStats, now_ns};
+use runtime::step::{GraphNode, Outputs, params};
+use schemas::{FrameHeader, MessageKind};
+use serde::Deserialize;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::mpsc::{RecvTimeoutError, TrySendError, sync_channel};
+use std::time::{Duration, Instant};
+
+/// The built-in kind name of the recorder.
+pub const RECORDER_KIND: &str = "recorder";
+/// The built-in kind name of the replay source.
+pub const REPLAY_KIND: &str = "replay";
+
+/// Messages the recorder may hold between taking them from shared memory and writing them;
+/// beyond that it drops (and counts) rather than hold up the graph.
+const QUEUE: usize = 64;
+
+/// `params` of a recorder node.
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RecorderParams {
+    /// The MCAP file to write.
+    pub path: PathBuf,
+    /// Replace an existing file.
+    #[serde(default)]
+    pub overwrite: bool,
+}
+
+/// A message taken from an edge, on its way to the writer thread.
+struct Taken {
+    input: usize,
+    header: FrameHeader,
+    payload: Vec<u8>,
+    log_time: u64,
+}
+
+/// Runs node `id` of `graph` as the recorder: every message on its inputs is copied out of
+/// shared memory at once and written by a second thread (CDR, zstd chunks, a flush at least
+/// every second). Messages that found the writer's queue full count as dropped.
+pub fn run_recorder(
+    graph: &Graph,
+    instance: &str,
+    id: &str,
+    frames: Option<u64>,
+) -> Result<NodeStats, String> {
+    let spec = graph
+        .node(id)
+        .ok_or_else(|| format!("no node '{id}' in {}", graph.file.display()))?;
+    let p: RecorderParams = params(&spec.params)?;
+    let edges: Vec<(String, MessageKind)> = spec
+        .inputs
+        .iter()
+        .map(|i| {
+            let kind = graph
+                .node(&i.node)
+                .and_then(|n| n.outputs.iter().find(|(o, _)| *o == i.output))
+                .map(|(_, k)| *k)
+                .ok_or_else(|| format!("no output {}/{}", i.node, i.output))?;
+            Ok((format!("{}/{}", i.node, i.output), kind))
+        })
+        .collect::<Result<_, String>>()?;
+    let mut writer = RecordingWriter::create(&p.path, p.overwrite).map_err(|e| e.to_string())?;
+    if let Ok(text) = std::fs::read_to_string(&graph.file) {
+        writer
+            .write_launch(&graph.file, &text)
+            .map_err(|e| e.to_string())?;
+    }
+    let (tx, rx) = sync_channel::<Taken>(QUEUE);
+    let thread_edges = edges.clone();
+    let writing = std::thread::spawn(move || -> Result<u64, RecordingError> {
+        loop {
+            match rx.recv_timeout(Duration::from_millis(200)) {
+                Ok(t) => {
+                    let (edge, kind) = &thread_edges[t.input];
+                    writer.write(edge, *kind, &t.header, &t.payload, t.log_time)?;
+                }
+                Err(RecvTimeoutError::Timeout) => writer.flush_if_due()?,
+                Err(RecvTimeoutError::Disconnected) => break,
+            }
+        }
+        let n = writer.messages;
+        writer.finish()?;
+        Ok(n)
+    });
+    let mut full = vec![0u64; edges.len()];
+    let tapped = runtime::process::run_tap(
+        graph,
+        instance,
+        id,
+        frames,
+        |input, header, payload| {
+            let t = Taken {
+                input,
+                header: *header,
+                payload: payload.to_vec(),
+                log_time: now_ns(),
+            };
+            match tx.try_send(t) {
+                Ok(()) => Ok(()),
+                Err(TrySendError::Full(_)) => {
+                    full[input] += 1;
+                    Ok(())
+                }
+                Err(TrySendError::Disconnected(_)) => {
+                    Err("the writer stopped (see its error below)".into())
+                }
+            }
+        },
+        || Ok(()),
+    );
+    drop(tx);
+    let written = writing
+        .join()
+        .map_err(|_| "the writer thread panicked".to_string())?
+        .map_err(|e| e.to_string());
+    let mut stats = match (tapped, written) {
+        (Ok(s), Ok(n)) => NodeStats {
+            frames_out: n,
+            ..s
+        },
+        (Err(e), Err(w)) => return Err(format!("{e}; {w}")),
+        (Err(e), _) | (_, Err(e)) => return Err(e),
+    };
+    for (s, f) in stats.inputs.iter_mut().zip(&full) {
+        s.dropped += f;
+        s.missing += f;
+    }
+    Ok(stats)
+}
+
+/// How fast a replay runs.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Rate {
+    /// As fast as the graph takes frames.
+    Max,
+    /// This many times the recorded speed.
+    Times(f64),
+}
+
+impl Rate {
+    /// Reads `1.0`, `0.5`, `max`.
+    pub fn parse(s: &str) -> Result<Self, String> {
+        if s == "max" {
+            return Ok(Self::Max);
+        }
+        match s.parse::<f64>() {
+            Ok(r) if r > 0.0 && r.is_finite() => Ok(Self::Times(r)),
+            _ => Err(format!(
+                "rate '{s}' is neither 'max' nor a positive number (1.0 = recorded speed)"
+            )),
+        }
+    }
+}
+
+/// `params` of a replay node (set by `microstereo replay`).
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ReplayParams {
+    /// The recording.
+    pub file: PathBuf,
+    /// The node whose outputs it replays.
+    pub node: String,
+    /// `max` or a speed factor.
+    #[serde(default = "recorded_speed")]
+    pub rate: String,
+    /// Start again at the end, with frame numbers and times running on.
+    #[serde(default)]
+    pub r#loop: bool,
+}
+
+fn recorded_speed() -> String {
+    "1.0".into()
+}
+
+/// Sends the recorded messages of one node's outputs, frame by frame, at recorded timing or
+/// as fast as possible.
+#[derive(Debug)]
+pub struct ReplayNode {
+    params: ReplayParams,
+    rate: Rate,
+    /// The node's outputs, in port order, as `NODE/OUTPUT`.
+    edges: Vec<String>,
+    reader: EdgeReader,
+    /// Frames read but not sent yet: sequence → message per output port.
+    ahead: BTreeMap<u64, Vec<Option<EdgeMessage>>>,
+    /// The first frame's capture time and when it was sent.
+    clock: Option<(u64, Instant)>,
+    /// Added to frame numbers and capture times after each loop.
+    offset: (u64, u64),
+    /// The span of one pass: frames, and capture time.
+    span: (u64, u64),
+    /// Last frame and capture time seen in this pass.
+    last: Option<(u64, u64)>,
+    /// Frames the recording holds only in part (some output missing): skipped.
+    pub incomplete: u64,
+    sent_any: bool,
+}
+
+impl ReplayNode {
+    /// A replay of node `params.node`, whose outputs are `outputs` (port names in order).
+    pub fn new(params: ReplayParams, outputs: &[String]) -> Result<Self, String> {
+        let rate = Rate::parse(&params.rate)?;
+        let edges: Vec<String> = outputs
+            .iter()
+            .map(|o| format!("{}/{o}", params.node))
+            .collect();
+        let reader = EdgeReader::open(&params.file, Some(edges.clone())).map_err(|e| e.to_string())?;
+        Ok(Self {
+            params,
+            rate,
+            edges,
+            reader,
+            ahead: BTreeMap::new(),
+            clock: None,
+            offset: (0, 0),
+            span: (0, 0),
+            last: None,
+            incomplete: 0,
+            sent_any: false,
+        })
+    }
+
+    /// The next whole frame, or `None` at the end of the recording.
+    fn next_frame(&mut self) -> Result<Option<Vec<EdgeMessage>>, String> {
+        loop {
+            // The oldest frame complete on every output goes; older partial ones never will.
+            if let Some((&seq, _)) = self
+                .ahead
+                .iter()
+                .find(|(_, m)| m.iter().all(Option::is_some))
+            {
+                let older: Vec<u64> = self.ahead.range(..seq).map(|(s, _)| *s).collect();
+                self.incomplete += older.len() as u64;
+                for s in older {
+                    self.ahead.remove(&s);
+                }
+                let msgs = self.ahead.remove(&seq).expect("present");
+                return Ok(Some(msgs.into_iter().map(Option::unwrap).collect()));
+            }
+            match self.reader.next() {
+                Some(Ok(m)) => {
+                    let port = self.edges.iter().position(|e| *e == m.edge).expect("filtered");
+                    let n = self.edges.len();
+                    let seq = m.header.sequence;
+                    self.ahead.entry(seq).or_insert_with(|| vec![None; n])[port] = Some(m);
+                }
+                Some(Err(e)) => return Err(e.to_string()),
+                None => {
+                    self.incomplete += self.ahead.len() as u64;
+                    self.ahead.clear();
+                    return Ok(None);
+                }
+            }
+        }
+    }
+
+    fn rewind(&mut self) -> Result<(), String> {
+        self.reader =
+            EdgeReader::open(&self.params.file, Some(self.edges.clone())).map_err(|e| e.to_string())?;
+        Ok(())
+    }
+}
+
+impl GraphNode for ReplayNode {
+    fn produce(&mut self, _seq: u64, out: &mut dyn Outputs) -> Result<bool, String> {
+        let msgs = match self.next_frame()? {
+            Some(m) => m,
+            None if self.params.r#loop && self.sent_any => {
+                // Frame numbers and times run on past the end of the last pass.
+                let (first_seq, first_ns) = self.span;
+                let (last_seq, last_ns) = self.last.expect("sent one");
+                let frames = last_seq - first_seq + 1;
+                let period = (last_ns - first_ns) / frames.saturating_sub(1).max(1);
+                self.offset.0 += frames;
+                self.offset.1 += last_ns - first_ns + period;
+                self.rewind()?;
+                match self.next_frame()? {
+                    Some(m) => m,
+                    None => return Ok(false),
+                }
+            }
+            None => return Ok(false),
+        };
+        let (seq, ns) = (msgs[0].header.sequence, msgs[0].header.capture_ns);
+        if !self.sent_any {
+            self.span = (seq, ns);
+        }
+        self.last = Some((seq, ns));
+        let ns_out = ns + self.offset.1;
+        if let Rate::Times(r) = self.rate {
+            let (c0, t0) = *self.clock.get_or_insert((ns_out, Instant::now()));
+            let due = t0 + Duration::from_secs_f64(ns_out.saturating_sub(c0) as f64 / 1e9 / r);
+            std::thread::sleep(due.saturating_duration_since(Instant::now()));
+        }
+        for (port, m) in msgs.iter().enumerate() {
+            let h = FrameHeader {
+                sequence: m.header.sequence + self.offset.0,
+                capture_ns: ns_out,
+                ..m.header
+            };
+            out.send(port, h, m.payload.len(), &mut |b| b.copy_from_slice(&m.payload))?;
+        }
+        self.sent_any = true;
+        Ok(true)
+    }
+}
+
+/// Checks that `path` holds every edge in `edges` with the message kind the graph expects:
+/// one error naming what is missing or different, and how to fix it.
+pub fn check_channels(
+    path: &Path,
+    overview: &crate::file::Overview,
+    edges: &[(String, MessageKind)],
+) -> Result<(), String> {
+    let mut problems = Vec::new();
+    for (edge, kind) in edges {
+        let chans = overview.edge(edge);
+        if chans.is_empty() {
+            problems.push(format!("no channel for edge '{edge}'"));
+        } else if let Some(c) = chans.iter().find(|c| c.kind != Some(*kind)) {
+            problems.push(format!(
+                "edge '{edge}' carries {} in the recording ({}) but {} in the launch file",
+                c.kind.map_or("an unknown kind", |k| k.name()),
+                c.schema,
+                kind.name()
+            ));
+        }
+    }
+    if problems.is_empty() {
+        return Ok(());
+    }
+    let have: Vec<&str> = overview
+        .channels
+        .iter()
+        .filter_map(|c| c.edge.as_deref())
+        .fold(Vec::new(), |mut v, e| {
+            if !v.contains(&e) {
+                v.push(e);
+            }
+            v
+        });
+    Err(format!(
+        "{}: {}; it holds: {}. Record those edges (microstereo run --record FILE --edges NODE/OUTPUT) or replace other nodes",
+        path.display(),
+        problems.join("; "),
+        if have.is_empty() {
+            "no edges".to_string()
+        } else {
+            have.join(", ")
+        }
+    ))
+}

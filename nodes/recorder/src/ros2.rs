@@ -1,0 +1,761 @@
+//! Edge messages as ROS 2 messages in CDR: standard `sensor_msgs` types where they exist,
+//! `microstereo_msgs` for cells and targets, each with its full `ros2msg` definition.
+//!
+//! A message with two images (a stereo frame, a pair of label images or disparity maps)
+//! becomes two `sensor_msgs/msg/Image` messages, one per camera, so that every viewer shows
+//! them as images. [`encode`] and [`decode`] are exact inverses: the bytes a node sent come
+//! back bit for bit.
+
+use schemas::wire::{CLOUD_POINT_BYTES, CellLists, Targets, cloud_header, json_header};
+use schemas::{BoundingBox, Cell, Cell3, FrameHeader, MessageKind, PixelFormat};
+use serde::{Deserialize, Serialize};
+use serde_bytes::ByteBuf;
+
+/// A ROS 2 message type: its name and its full `ros2msg` definition (dependencies appended
+/// after `=` separator lines, as rosbag2 writes them).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct MsgType {
+    /// `package/msg/Name`.
+    pub name: &'static str,
+    /// The definition text.
+    pub definition: &'static str,
+}
+
+macro_rules! sep {
+    () => {
+        "================================================================================\n"
+    };
+}
+
+macro_rules! header_defs {
+    () => {
+        concat!(
+            sep!(),
+            "MSG: std_msgs/Header\n",
+            "builtin_interfaces/Time stamp\n",
+            "string frame_id\n",
+            sep!(),
+            "MSG: builtin_interfaces/Time\n",
+            "int32 sec\n",
+            "uint32 nanosec\n"
+        )
+    };
+}
+
+/// `sensor_msgs/msg/Image`: camera frames, disparity (32FC1) and labels (32SC1).
+pub const IMAGE: MsgType = MsgType {
+    name: "sensor_msgs/msg/Image",
+    definition: concat!(
+        "std_msgs/Header header\n",
+        "uint32 height\n",
+        "uint32 width\n",
+        "string encoding\n",
+        "uint8 is_bigendian\n",
+        "uint32 step\n",
+        "uint8[] data\n",
+        header_defs!()
+    ),
+};
+
+/// `sensor_msgs/msg/PointCloud2`: the metric point cloud.
+pub const POINT_CLOUD2: MsgType = MsgType {
+    name: "sensor_msgs/msg/PointCloud2",
+    definition: concat!(
+        "std_msgs/Header header\n",
+        "uint32 height\n",
+        "uint32 width\n",
+        "PointField[] fields\n",
+        "bool is_bigendian\n",
+        "uint32 point_step\n",
+        "uint32 row_step\n",
+        "uint8[] data\n",
+        "bool is_dense\n",
+        header_defs!(),
+        sep!(),
+        "MSG: sensor_msgs/PointField\n",
+        "uint8 INT8=1\n",
+        "uint8 UINT8=2\n",
+        "uint8 INT16=3\n",
+        "uint8 UINT16=4\n",
+        "uint8 INT32=5\n",
+        "uint8 UINT32=6\n",
+        "uint8 FLOAT32=7\n",
+        "uint8 FLOAT64=8\n",
+        "string name\n",
+        "uint32 offset\n",
+        "uint8 datatype\n",
+        "uint32 count\n"
+    ),
+};
+
+macro_rules! cell_def {
+    () => {
+        concat!(
+            "uint32 id\n",
+            "uint64 area\n",
+            "float64[2] centroid\n",
+            "uint32 x0\n",
+            "uint32 y0\n",
+            "uint32 x1\n",
+            "uint32 y1\n",
+            "uint32[] contour\n",
+            "float64 perimeter\n"
+        )
+    };
+}
+
+/// `microstereo_msgs/msg/Cell`: one segmented cell in one image, in pixels; `contour` is
+/// `x, y` interleaved.
+pub const CELL: MsgType = MsgType {
+    name: "microstereo_msgs/msg/Cell",
+    definition: cell_def!(),
+};
+
+/// `microstereo_msgs/msg/CellArray`: the cells of both views of one frame.
+pub const CELL_ARRAY: MsgType = MsgType {
+    name: "microstereo_msgs/msg/CellArray",
+    definition: concat!(
+        "std_msgs/Header header\n",
+        "Cell[] left\n",
+        "Cell[] right\n",
+        header_defs!(),
+        sep!(),
+        "MSG: microstereo_msgs/Cell\n",
+        cell_def!()
+    ),
+};
+
+macro_rules! cell3_def {
+    () => {
+        concat!(
+            "uint32 id\n",
+            "uint32 right_id\n",
+            "uint64 area_px\n",
+            "float64[2] centroid_px\n",
+            "float64 disparity\n",
+            "float64[3] centroid\n",
+            "float64 substrate_z\n",
+            "float64 height\n",
+            "float64 volume\n",
+            "float64[] contour\n",
+            "float64 valid_share\n"
+        )
+    };
+}
+
+/// `microstereo_msgs/msg/Cell3`: one cell in 3D; `contour` is `x, y, z` interleaved.
+pub const CELL3: MsgType = MsgType {
+    name: "microstereo_msgs/msg/Cell3",
+    definition: cell3_def!(),
+};
+
+/// `microstereo_msgs/msg/Targets`: the 3D cells of one frame, for the manipulator.
+pub const TARGETS: MsgType = MsgType {
+    name: "microstereo_msgs/msg/Targets",
+    definition: concat!(
+        "std_msgs/Header header\n",
+        "uint64 frame\n",
+        "uint64 capture_ns\n",
+        "string unit\n",
+        "Cell3[] cells\n",
+        header_defs!(),
+        sep!(),
+        "MSG: microstereo_msgs/Cell3\n",
+        cell3_def!()
+    ),
+};
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+struct Time {
+    sec: i32,
+    nanosec: u32,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+struct Header {
+    stamp: Time,
+    frame_id: String,
+}
+
+impl Header {
+    fn new(capture_ns: u64, frame_id: &str) -> Self {
+        Self {
+            stamp: Time {
+                sec: (capture_ns / 1_000_000_000) as i32,
+                nanosec: (capture_ns % 1_000_000_000) as u32,
+            },
+            frame_id: frame_id.into(),
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+struct Image {
+    header: Header,
+    height: u32,
+    width: u32,
+    encoding: String,
+    is_bigendian: u8,
+    step: u32,
+    data: ByteBuf,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+struct PointField {
+    name: String,
+    offset: u32,
+    datatype: u8,
+    count: u32,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+struct PointCloud2 {
+    header: Header,
+    height: u32,
+    width: u32,
+    fields: Vec<PointField>,
+    is_bigendian: bool,
+    point_step: u32,
+    row_step: u32,
+    data: ByteBuf,
+    is_dense: bool,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+struct RosCell {
+    id: u32,
+    area: u64,
+    centroid: [f64; 2],
+    x0: u32,
+    y0: u32,
+    x1: u32,
+    y1: u32,
+    contour: Vec<u32>,
+    perimeter: f64,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+struct RosCellArray {
+    header: Header,
+    left: Vec<RosCell>,
+    right: Vec<RosCell>,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+struct RosCell3 {
+    id: u32,
+    right_id: u32,
+    area_px: u64,
+    centroid_px: [f64; 2],
+    disparity: f64,
+    centroid: [f64; 3],
+    substrate_z: f64,
+    height: f64,
+    volume: f64,
+    contour: Vec<f64>,
+    valid_share: f64,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+struct RosTargets {
+    header: Header,
+    frame: u64,
+    capture_ns: u64,
+    unit: String,
+    cells: Vec<RosCell3>,
+}
+
+impl From<&Cell> for RosCell {
+    fn from(c: &Cell) -> Self {
+        Self {
+            id: c.id,
+            area: c.area,
+            centroid: c.centroid,
+            x0: c.bbox.x0,
+            y0: c.bbox.y0,
+            x1: c.bbox.x1,
+            y1: c.bbox.y1,
+            contour: c.contour.iter().flatten().copied().collect(),
+            perimeter: c.perimeter,
+        }
+    }
+}
+
+impl RosCell {
+    fn into_cell(self) -> Result<Cell, String> {
+        if self.contour.len() % 2 != 0 {
+            return Err(format!(
+                "cell {}: contour of {} numbers is not x, y pairs",
+                self.id,
+                self.contour.len()
+            ));
+        }
+        Ok(Cell {
+            id: self.id,
+            area: self.area,
+            centroid: self.centroid,
+            bbox: BoundingBox {
+                x0: self.x0,
+                y0: self.y0,
+                x1: self.x1,
+                y1: self.y1,
+            },
+            contour: self.contour.chunks_exact(2).map(|p| [p[0], p[1]]).collect(),
+            perimeter: self.perimeter,
+        })
+    }
+}
+
+impl From<&Cell3> for RosCell3 {
+    fn from(c: &Cell3) -> Self {
+        Self {
+            id: c.id,
+            right_id: c.right_id,
+            area_px: c.area_px,
+            centroid_px: c.centroid_px,
+            disparity: c.disparity,
+            centroid: c.centroid,
+            substrate_z: c.substrate_z,
+            height: c.height,
+            volume: c.volume,
+            contour: c.contour.iter().flatten().copied().collect(),
+            valid_share: c.valid_share,
+        }
+    }
+}
+
+impl RosCell3 {
+    fn into_cell3(self) -> Result<Cell3, String> {
+        if self.contour.len() % 3 != 0 {
+            return Err(format!(
+                "cell {}: contour of {} numbers is not x, y, z triples",
+                self.id,
+                self.contour.len()
+            ));
+        }
+        Ok(Cell3 {
+            id: self.id,
+            right_id: self.right_id,
+            area_px: self.area_px,
+            centroid_px: self.centroid_px,
+            disparity: self.disparity,
+            centroid: self.centroid,
+            substrate_z: self.substrate_z,
+            height: self.height,
+            volume: self.volume,
+            contour: self
+                .contour
+                .chunks_exact(3)
+                .map(|p| [p[0], p[1], p[2]])
+                .collect(),
+            valid_share: self.valid_share,
+        })
+    }
+}
+
+/// One ROS 2 message of an edge message: which camera it belongs to (`None` for a message
+/// of one part), its type and its CDR bytes.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Part {
+    /// `left` or `right` for messages with two images, `None` otherwise.
+    pub side: Option<&'static str>,
+    /// Its ROS 2 type.
+    pub msg: MsgType,
+    /// The CDR encoding (with its 4-byte encapsulation header).
+    pub cdr: Vec<u8>,
+}
+
+/// The sides of a message with `images` images.
+fn sides(images: u32) -> &'static [&'static str] {
+    if images == 2 { &["left", "right"] } else { &[] }
+}
+
+/// The ROS 2 type of the parts of a message of `kind`.
+pub fn msg_type(kind: MessageKind) -> MsgType {
+    match kind {
+        MessageKind::StereoFrame
+        | MessageKind::Image
+        | MessageKind::Disparity
+        | MessageKind::Labels
+        | MessageKind::DisparityPair => IMAGE,
+        MessageKind::PointCloud => POINT_CLOUD2,
+        MessageKind::CellList => CELL_ARRAY,
+        MessageKind::Targets => TARGETS,
+    }
+}
+
+/// The sides a message of `kind` is split into (`[]` for one part).
+pub fn kind_sides(kind: MessageKind) -> &'static [&'static str] {
+    match kind {
+        MessageKind::StereoFrame | MessageKind::Labels | MessageKind::DisparityPair => {
+            sides(2)
+        }
+        _ => sides(1),
+    }
+}
+
+fn image_encoding(format: PixelFormat) -> Option<&'static str> {
+    Some(match format {
+        PixelFormat::Mono8 => "mono8",
+        PixelFormat::F32 => "32FC1",
+        // Labels: ROS has no unsigned 32-bit encoding; label values stay below 2^31.
+        PixelFormat::U32 => "32SC1",
+        PixelFormat::Rgb8 => "rgb8",
+        PixelFormat::None => return None,
+    })
+}
+
+fn image_format(encoding: &str) -> Option<PixelFormat> {
+    [
+        PixelFormat::Mono8,
+        PixelFormat::F32,
+        PixelFormat::U32,
+        PixelFormat::Rgb8,
+    ]
+    .into_iter()
+    .find(|f| image_encoding(*f) == Some(encoding))
+}
+
+fn to_cdr<T: Serialize>(v: &T) -> Result<Vec<u8>, String> {
+    cdr::serialize::<_, _, cdr::CdrLe>(v, cdr::Infinite).map_err(|e| format!("CDR: {e}"))
+}
+
+fn from_cdr<'de, T: Deserialize<'de>>(b: &'de [u8], what: &str) -> Result<T, String> {
+    cdr::deserialize(b).map_err(|e| format!("not a CDR {what}: {e}"))
+}
+
+/// Encodes one edge message of `kind` as its ROS 2 message(s).
+pub fn encode(kind: MessageKind, h: &FrameHeader, payload: &[u8]) -> Result<Vec<Part>, String> {
+    let header = |side: &str| Header::new(h.capture_ns, side);
+    let one = |msg, cdr| {
+        Ok(vec![Part {
+            side: None,
+            msg,
+            cdr,
+        }])
+    };
+    match msg_type(kind) {
+        IMAGE => {
+            let format = PixelFormat::from_u32(h.format)
+                .and_then(image_encoding)
+                .ok_or_else(|| format!("{kind:?} message with pixel format {}", h.format))?;
+            let want = kind_sides(kind);
+            if h.images as usize != want.len().max(1) {
+                return Err(format!("{kind:?} message with {} image(s)", h.images));
+            }
+            if payload.len() != h.image_bytes() {
+                return Err(format!(
+                    "{kind:?} message of {} bytes where its header says {}",
+                    payload.len(),
+                    h.image_bytes()
+                ));
+            }
+            let size = h.stride as usize * h.height as usize;
+            let names: &[&'static str] = if want.is_empty() { &[""] } else { want };
+            names
+                .iter()
+                .zip(payload.chunks(size.max(1)))
+                .map(|(side, data)| {
+                    let img = Image {
+                        header: header(if side.is_empty() { "left" } else { side }),
+                        height: h.height,
+                        width: h.width,
+                        encoding: format.into(),
+                        is_bigendian: 0,
+                        step: h.stride,
+                        data: ByteBuf::from(data.to_vec()),
+                    };
+                    Ok(Part {
+                        side: (!side.is_empty()).then_some(*side),
+                        msg: IMAGE,
+                        cdr: to_cdr(&img)?,
+                    })
+                })
+                .collect()
+        }
+        POINT_CLOUD2 => {
+            if payload.len() != h.width as usize * CLOUD_POINT_BYTES {
+                return Err(format!(
+                    "point cloud of {} bytes for {} points",
+                    payload.len(),
+                    h.width
+                ));
+            }
+            let field = |name: &str, offset, datatype| PointField {
+                name: name.into(),
+                offset,
+                datatype,
+                count: 1,
+            };
+            let cloud = PointCloud2 {
+                header: header("world"),
+                height: 1,
+                width: h.width,
+                fields: vec![
+                    field("x", 0, 7),
+                    field("y", 4, 7),
+                    field("z", 8, 7),
+                    field("r", 12, 2),
+                    field("g", 13, 2),
+                    field("b", 14, 2),
+                ],
+                is_bigendian: false,
+                point_step: CLOUD_POINT_BYTES as u32,
+                row_step: payload.len() as u32,
+                data: ByteBuf::from(payload.to_vec()),
+                is_dense: true,
+            };
+            one(POINT_CLOUD2, to_cdr(&cloud)?)
+        }
+        CELL_ARRAY => {
+            let lists: CellLists =
+                serde_json::from_slice(payload).map_err(|e| format!("cell list: {e}"))?;
+            let msg = RosCellArray {
+                header: header("left"),
+                left: lists.left.iter().map(RosCell::from).collect(),
+                right: lists.right.iter().map(RosCell::from).collect(),
+            };
+            one(CELL_ARRAY, to_cdr(&msg)?)
+        }
+        _ => {
+            let t: Targets =
+                serde_json::from_slice(payload).map_err(|e| format!("targets: {e}"))?;
+            let msg = RosTargets {
+                header: header("world"),
+                frame: t.frame,
+                capture_ns: t.capture_ns,
+                unit: t.unit,
+                cells: t.cells.iter().map(RosCell3::from).collect(),
+            };
+            one(TARGETS, to_cdr(&msg)?)
+        }
+    }
+}
+
+/// Decodes the ROS 2 message(s) of one edge message of `kind` (in [`kind_sides`] order)
+/// back into the header and payload the node sent, stamped `(sequence, capture_ns)`.
+pub fn decode(
+    kind: MessageKind,
+    parts: &[&[u8]],
+    (sequence, capture_ns): (u64, u64),
+) -> Result<(FrameHeader, Vec<u8>), String> {
+    let stamp = |h: FrameHeader| FrameHeader {
+        sequence,
+        capture_ns,
+        ..h
+    };
+    let want = kind_sides(kind).len().max(1);
+    if parts.len() != want {
+        return Err(format!(
+            "{kind:?} message in {} part(s), not {want}",
+            parts.len()
+        ));
+    }
+    match msg_type(kind) {
+        IMAGE => {
+            let imgs = parts
+                .iter()
+                .map(|p| from_cdr::<Image>(p, IMAGE.name))
+                .collect::<Result<Vec<_>, _>>()?;
+            let first = &imgs[0];
+            let format = image_format(&first.encoding)
+                .ok_or_else(|| format!("image encoding '{}' is not one of ours", first.encoding))?;
+            let h = FrameHeader::image(
+                kind,
+                format,
+                first.width as usize,
+                first.height as usize,
+                imgs.len() as u32,
+            );
+            let mut payload = Vec::with_capacity(h.image_bytes());
+            for i in &imgs {
+                if (i.width, i.height, i.step, &i.encoding)
+                    != (first.width, first.height, h.stride, &first.encoding)
+                    || i.data.len() != h.stride as usize * h.height as usize
+                {
+                    return Err(format!(
+                        "image of {}×{} ({}, step {}, {} bytes) does not fit a {}×{} {} image",
+                        i.width,
+                        i.height,
+                        i.encoding,
+                        i.step,
+                        i.data.len(),
+                        first.width,
+                        first.height,
+                        first.encoding
+                    ));
+                }
+                payload.extend_from_slice(&i.data);
+            }
+            Ok((stamp(h), payload))
+        }
+        POINT_CLOUD2 => {
+            let c: PointCloud2 = from_cdr(parts[0], POINT_CLOUD2.name)?;
+            if c.point_step as usize != CLOUD_POINT_BYTES
+                || c.data.len() != c.width as usize * CLOUD_POINT_BYTES
+            {
+                return Err(format!(
+                    "point cloud with {}-byte points and {} bytes for {} points; ours have {CLOUD_POINT_BYTES}-byte points",
+                    c.point_step,
+                    c.data.len(),
+                    c.width
+                ));
+            }
+            Ok((stamp(cloud_header(c.width as usize)), c.data.into_vec()))
+        }
+        CELL_ARRAY => {
+            let m: RosCellArray = from_cdr(parts[0], CELL_ARRAY.name)?;
+            let cells = |v: Vec<RosCell>| -> Result<Vec<Cell>, String> {
+                v.into_iter().map(RosCell::into_cell).collect()
+            };
+            let lists = CellLists {
+                left: cells(m.left)?,
+                right: cells(m.right)?,
+            };
+            let json = serde_json::to_vec(&lists).map_err(|e| e.to_string())?;
+            Ok((stamp(json_header(kind)), json))
+        }
+        _ => {
+            let m: RosTargets = from_cdr(parts[0], TARGETS.name)?;
+            let t = Targets {
+                frame: m.frame,
+                capture_ns: m.capture_ns,
+                unit: m.unit,
+                cells: m
+                    .cells
+                    .into_iter()
+                    .map(RosCell3::into_cell3)
+                    .collect::<Result<_, _>>()?,
+            };
+            let json = serde_json::to_vec(&t).map_err(|e| e.to_string())?;
+            Ok((stamp(json_header(kind)), json))
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn stamped(h: FrameHeader) -> FrameHeader {
+        FrameHeader {
+            sequence: 7,
+            capture_ns: 1_700_000_000_123_456_789,
+            ..h
+        }
+    }
+
+    fn round_trip(kind: MessageKind, h: FrameHeader, payload: &[u8]) -> Vec<Part> {
+        let parts = encode(kind, &h, payload).unwrap();
+        let cdrs: Vec<&[u8]> = parts.iter().map(|p| p.cdr.as_slice()).collect();
+        let (back, bytes) = decode(kind, &cdrs, (h.sequence, h.capture_ns)).unwrap();
+        assert_eq!(back, h, "{kind:?} header");
+        assert_eq!(bytes, payload, "{kind:?} payload");
+        parts
+    }
+
+    #[test]
+    fn every_kind_comes_back_bit_for_bit() {
+        let px = |n: usize| (0..n).map(|i| (i * 37 % 251) as u8).collect::<Vec<_>>();
+        for (kind, format, images) in [
+            (MessageKind::StereoFrame, PixelFormat::Mono8, 2),
+            (MessageKind::Image, PixelFormat::Mono8, 1),
+            (MessageKind::Disparity, PixelFormat::F32, 1),
+            (MessageKind::Labels, PixelFormat::U32, 2),
+            (MessageKind::DisparityPair, PixelFormat::F32, 2),
+        ] {
+            let h = stamped(FrameHeader::image(kind, format, 5, 3, images));
+            let parts = round_trip(kind, h, &px(h.image_bytes()));
+            let sides: Vec<_> = parts.iter().map(|p| p.side).collect();
+            let want = if images == 2 {
+                vec![Some("left"), Some("right")]
+            } else {
+                vec![None]
+            };
+            assert_eq!(sides, want);
+        }
+        let h = stamped(cloud_header(4));
+        round_trip(MessageKind::PointCloud, h, &px(4 * CLOUD_POINT_BYTES));
+        let cell = Cell {
+            id: 3,
+            area: 120,
+            centroid: [10.25, 0.1 + 0.2],
+            bbox: BoundingBox {
+                x0: 1,
+                y0: 2,
+                x1: 20,
+                y1: 30,
+            },
+            contour: vec![[1, 2], [2, 2], [3, 4]],
+            perimeter: 2.0 + std::f64::consts::SQRT_2,
+        };
+        let lists = CellLists {
+            left: vec![cell.clone()],
+            right: vec![cell.clone(), Cell { id: 4, ..cell }],
+        };
+        let h = stamped(json_header(MessageKind::CellList));
+        round_trip(MessageKind::CellList, h, &serde_json::to_vec(&lists).unwrap());
+        let targets = Targets {
+            frame: 7,
+            capture_ns: 12,
+            unit: "µm".into(),
+            cells: vec![Cell3 {
+                id: 1,
+                right_id: 2,
+                area_px: 300,
+                centroid_px: [1.0 / 3.0, 2.5],
+                disparity: 4.125,
+                centroid: [1e-7, -3.25, 1234.5678901234],
+                substrate_z: 1000.0,
+                height: 12.3,
+                volume: 4567.0,
+                contour: vec![[1.0, 2.0, 3.0], [0.1, 0.2, 0.3]],
+                valid_share: 0.97,
+            }],
+        };
+        let h = stamped(json_header(MessageKind::Targets));
+        round_trip(MessageKind::Targets, h, &serde_json::to_vec(&targets).unwrap());
+    }
+
+    #[test]
+    fn an_image_is_standard_cdr() {
+        // The bytes a ROS 2 reader expects: encapsulation CDR_LE, then the fields aligned
+        // to their size from the start of the data.
+        let h = FrameHeader {
+            capture_ns: 3_000_000_005,
+            ..FrameHeader::image(MessageKind::Image, PixelFormat::Mono8, 2, 1, 1)
+        };
+        let parts = encode(MessageKind::Image, &h, &[9, 8]).unwrap();
+        let b = &parts[0].cdr;
+        let mut want = vec![0u8, 1, 0, 0];
+        want.extend(3i32.to_le_bytes()); // stamp.sec
+        want.extend(5u32.to_le_bytes()); // stamp.nanosec
+        want.extend(5u32.to_le_bytes()); // frame_id length with its NUL
+        want.extend(b"left\0");
+        want.extend([0, 0, 0]); // align to 4
+        want.extend(1u32.to_le_bytes()); // height
+        want.extend(2u32.to_le_bytes()); // width
+        want.extend(6u32.to_le_bytes());
+        want.extend(b"mono8\0");
+        want.push(0); // is_bigendian
+        want.push(0); // align to 4
+        want.extend(2u32.to_le_bytes()); // step
+        want.extend(2u32.to_le_bytes()); // data length
+        want.extend([9, 8]);
+        assert_eq!(b, &want);
+    }
+
+    #[test]
+    fn malformed_messages_are_refused_with_a_reason() {
+        let h = FrameHeader::image(MessageKind::Image, PixelFormat::Mono8, 4, 4, 1);
+        let e = encode(MessageKind::Image, &h, &[0; 3]).unwrap_err();
+        assert!(e.contains("3 bytes"), "{e}");
+        let e = decode(MessageKind::Image, &[&[0, 1, 0, 0, 9]], (0, 0)).unwrap_err();
+        assert!(e.contains("not a CDR sensor_msgs/msg/Image"), "{e}");
+        let e = decode(MessageKind::StereoFrame, &[&[0, 1, 0, 0]], (0, 0)).unwrap_err();
+        assert!(e.contains("1 part(s), not 2"), "{e}");
+        let e = encode(MessageKind::CellList, &json_header(MessageKind::CellList), b"{")
+            .unwrap_err();
+        assert!(e.starts_with("cell list"), "{e}");
+    }
+}
