@@ -38,6 +38,12 @@ enum Command {
     Node(crate::graph::NodeArgs),
     /// Times one edge: 0.3, 1.3 and 5 MP frames over iceoryx2 and over a Unix-domain socket.
     BenchTransport(crate::graph::BenchTransportArgs),
+    /// Lists a recording's channels, types, message counts, duration and rates.
+    Inspect(crate::recording::InspectArgs),
+    /// Runs the graph with recorded edges in place of the nodes that made them.
+    Replay(crate::recording::ReplayArgs),
+    /// Feeds one node its recorded inputs and compares its outputs with the recorded ones.
+    TestNode(crate::recording::TestNodeArgs),
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -321,7 +327,7 @@ struct BenchArgs {
     paths: Option<String>,
 }
 
-/// A command failure: printed once, exit code 2.
+/// A command failure: printed once, exit code 2 (1 for [`CliError::Failed`]).
 #[derive(Debug, thiserror::Error)]
 pub enum CliError {
     /// A file problem.
@@ -333,6 +339,9 @@ pub enum CliError {
     /// Anything else, already phrased for the user.
     #[error("{0}")]
     Other(String),
+    /// A check ran and found a difference (exit code 1, not 2).
+    #[error("{0}")]
+    Failed(String),
 }
 
 /// Runs the CLI and returns the process exit code.
@@ -348,9 +357,16 @@ pub fn main() -> i32 {
         Command::CalibrateDepth(a) => crate::calibrate::calibrate_depth(a),
         Command::Run(a) => crate::graph::run_cmd(a),
         Command::Node(a) => crate::graph::node_cmd(a),
+        Command::Inspect(a) => crate::recording::inspect(a),
+        Command::Replay(a) => crate::recording::replay(a),
+        Command::TestNode(a) => crate::recording::test_node_cmd(a),
     };
     match result {
         Ok(()) => 0,
+        Err(CliError::Failed(e)) => {
+            eprintln!("FAIL: {e}");
+            1
+        }
         Err(e) => {
             eprintln!("error: {e}");
             2

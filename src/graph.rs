@@ -148,14 +148,7 @@ pub fn build_all(graph: &Graph) -> Result<Vec<Box<dyn GraphNode>>, CliError> {
     graph
         .nodes
         .iter()
-        .map(|n| match &n.runner {
-            Runner::Builtin(k) => build(k, &n.params).map_err(CliError::Other),
-            Runner::Exec(p) => Err(CliError::Other(format!(
-                "node '{}' runs '{}', which cannot run in-process",
-                n.id,
-                p.display()
-            ))),
-        })
+        .map(|n| crate::recording::build_spec(n).map_err(CliError::Other))
         .collect()
 }
 
@@ -174,12 +167,15 @@ pub struct NodeArgs {
     /// The running graph this node belongs to (names its shared memory).
     #[arg(long, default_value = "default")]
     pub instance: String,
+    /// How the run changed the launch file's graph.
+    #[command(flatten)]
+    pub opts: crate::recording::GraphOpts,
 }
 
 /// Runs one node as this process.
 pub fn node_cmd(a: NodeArgs) -> Result<(), CliError> {
     set_parent_death_signal();
-    let graph = load(&a.launch)?;
+    let graph = crate::recording::load_with(&a.launch, &a.opts)?;
     let spec = graph
         .node(&a.id)
         .ok_or_else(|| CliError::Other(format!("no node '{}' in {}", a.id, a.launch.display())))?;
@@ -189,7 +185,16 @@ pub fn node_cmd(a: NodeArgs) -> Result<(), CliError> {
             a.id
         )));
     };
-    let mut node = build(kind, &spec.params).map_err(CliError::Other)?;
+    if kind == recorder::node::RECORDER_KIND {
+        let stats = recorder::node::run_recorder(&graph, &a.instance, &a.id, a.frames)
+            .map_err(|e| CliError::Other(format!("node '{}': {e}", a.id)))?;
+        println!(
+            "{STATS_PREFIX}{}",
+            serde_json::to_string(&stats).expect("serialises")
+        );
+        return Ok(());
+    }
+    let mut node = crate::recording::build_spec(spec).map_err(CliError::Other)?;
     let fps = spec
         .params
         .get("fps")
@@ -222,7 +227,7 @@ pub fn exec_main(
     set_parent_death_signal();
     let a = ExecCli::parse().args;
     let run = || -> Result<NodeStats, CliError> {
-        let graph = load(&a.launch)?;
+        let graph = crate::recording::load_with(&a.launch, &a.opts)?;
         let spec = graph.node(&a.id).ok_or_else(|| {
             CliError::Other(format!("no node '{}' in {}", a.id, a.launch.display()))
         })?;
@@ -270,11 +275,15 @@ pub struct RunArgs {
     /// graphs running side by side do not share edges; readers outside the graph use it.
     #[arg(long)]
     pub instance: Option<String>,
+    /// Recording (and, from `replay`, replay) of edges.
+    #[command(flatten)]
+    pub opts: crate::recording::GraphOpts,
 }
 
 /// Runs the graph: one process per node, logs prefixed, restarts, clean stop, summary.
 pub fn run_cmd(a: RunArgs) -> Result<(), CliError> {
-    let graph = load(&a.launch)?;
+    crate::recording::check_record_target(&a.opts)?;
+    let graph = crate::recording::load_with(&a.launch, &a.opts)?;
     let stale = runtime::process::remove_stale_resources();
     if stale.removed > 0 || stale.empty_files > 0 {
         eprintln!(
@@ -297,6 +306,16 @@ pub fn run_cmd(a: RunArgs) -> Result<(), CliError> {
         .map_err(|e| CliError::Other(format!("cannot start the supervisor: {e}")))?;
     let (stats, wall) = rt.block_on(supervise(&graph, &a))?;
     print_summary(&graph, &stats, wall, a.frames);
+    if let Some(path) = &a.opts.record {
+        let written = stats.get(crate::recording::RECORDER_ID).map_or(0, |s| s.frames_out);
+        let size = std::fs::metadata(path).map_or(0, |m| m.len());
+        println!(
+            "recorded {written} message(s) into {} ({:.1} MB); `microstereo inspect {}` lists them",
+            path.display(),
+            size as f64 / 1e6,
+            path.display()
+        );
+    }
     Ok(())
 }
 
@@ -311,6 +330,7 @@ fn spawn(
     instance: &str,
     id: &str,
     frames: Option<u64>,
+    opts: &crate::recording::GraphOpts,
 ) -> Result<tokio::process::Child, CliError> {
     let spec = graph.node(id).expect("validated");
     let mut cmd = match &spec.runner {
@@ -332,6 +352,7 @@ fn spawn(
     if let Some(n) = frames {
         cmd.arg("--frames").arg(n.to_string());
     }
+    cmd.args(opts.to_args());
     cmd.stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .kill_on_drop(true);
@@ -401,7 +422,7 @@ async fn supervise(
     let start = Instant::now();
     let mut children = Vec::new();
     for n in &graph.nodes {
-        let mut proc = spawn(graph, &instance, &n.id, a.frames)?;
+        let mut proc = spawn(graph, &instance, &n.id, a.frames, &a.opts)?;
         forward_logs(&n.id, &mut proc, &stats);
         children.push(Child {
             id: n.id.clone(),
@@ -480,7 +501,7 @@ async fn supervise(
                     eprintln!("[{}] warning: its shared memory could not be removed", c.id);
                 }
             }
-            let mut proc = spawn(graph, &instance, &c.id, a.frames)?;
+            let mut proc = spawn(graph, &instance, &c.id, a.frames, &a.opts)?;
             forward_logs(&c.id, &mut proc, &stats);
             children.push(Child {
                 id: c.id,

@@ -22,6 +22,7 @@ pub mod graph;
 pub mod io;
 pub mod nodes;
 pub mod pipeline;
+pub mod recording;
 pub mod render;
 pub mod synthcmd;
 pub mod synthetic;
