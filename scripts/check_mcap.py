@@ -1,0 +1,67 @@
+#!/usr/bin/env python3
+"""Decodes every message of a microstereo recording with the reference MCAP readers
+(the `mcap` and `mcap-ros2-support` packages): proof that tools other than ours read it.
+
+Usage: check_mcap.py FILE.mcap [FILE.mcap ...]. Exit 0 when every message decodes and
+the decoded fields agree with the channel's type; 1 otherwise.
+"""
+import sys
+from collections import Counter
+
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+
+BYTES_PER_PIXEL = {"mono8": 1, "rgb8": 3, "32FC1": 4, "32SC1": 4}
+
+
+def check(path):
+    counts = Counter()
+    problems = []
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        header = reader.get_header()
+        if header.profile != "ros2":
+            problems.append(f"profile {header.profile!r}, not 'ros2'")
+        for schema, channel, message, ros in reader.iter_decoded_messages():
+            counts[(channel.topic, schema.name)] += 1
+            if channel.message_encoding != "cdr" or schema.encoding != "ros2msg":
+                problems.append(f"{channel.topic}: {channel.message_encoding}/{schema.encoding}")
+            stamp = ros.header.stamp.sec * 10**9 + ros.header.stamp.nanosec
+            if stamp != message.publish_time:
+                problems.append(f"{channel.topic}: header stamp {stamp} ≠ publish time")
+            if schema.name == "sensor_msgs/msg/Image":
+                bpp = BYTES_PER_PIXEL.get(ros.encoding)
+                if bpp is None or ros.step != ros.width * bpp or len(ros.data) != ros.step * ros.height:
+                    problems.append(f"{channel.topic}: image {ros.width}x{ros.height} {ros.encoding} step {ros.step}, {len(ros.data)} bytes")
+            elif schema.name == "sensor_msgs/msg/PointCloud2":
+                names = [fld.name for fld in ros.fields]
+                if names[:3] != ["x", "y", "z"] or len(ros.data) != ros.point_step * ros.width * ros.height:
+                    problems.append(f"{channel.topic}: cloud fields {names}, {len(ros.data)} bytes")
+            elif schema.name == "microstereo_msgs/msg/CellArray":
+                for c in list(ros.left) + list(ros.right):
+                    if len(c.contour) % 2 or not (c.x0 <= c.centroid[0] <= c.x1):
+                        problems.append(f"{channel.topic}: cell {c.id} malformed")
+            elif schema.name == "microstereo_msgs/msg/Targets":
+                if ros.capture_ns != message.publish_time:
+                    problems.append(f"{channel.topic}: capture_ns {ros.capture_ns} ≠ publish time")
+                for c in ros.cells:
+                    if len(c.contour) % 3:
+                        problems.append(f"{channel.topic}: cell {c.id} contour not x,y,z")
+            else:
+                problems.append(f"{channel.topic}: unexpected type {schema.name}")
+    total = sum(counts.values())
+    print(f"{path}: {total} messages on {len(counts)} channels decoded by mcap + mcap-ros2-support")
+    for (topic, name), n in sorted(counts.items()):
+        print(f"  {topic:<26} {name:<32} {n}")
+    if total == 0:
+        problems.append("no messages")
+    for p in problems[:20]:
+        print(f"  PROBLEM: {p}")
+    return not problems
+
+
+if __name__ == "__main__":
+    if len(sys.argv) < 2:
+        sys.exit(__doc__)
+    ok = all([check(p) for p in sys.argv[1:]])
+    sys.exit(0 if ok else 1)

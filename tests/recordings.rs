@@ -1,0 +1,124 @@
+//! Every node on the bundled recording: fed its recorded inputs, it must send exactly the
+//! recorded outputs (recordings/default.mcap, made by recordings/make.sh).
+
+use microstereo::recording::{NodeCheck, test_node};
+use std::path::{Path, PathBuf};
+
+fn bundled() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("recordings/default.mcap")
+}
+
+/// Frames in the bundled recording.
+const FRAMES: u64 = 2;
+
+fn check(node: &str, outputs: &[&str]) -> NodeCheck {
+    let c = test_node(&bundled(), None, node, 0.0).unwrap_or_else(|e| panic!("{node}: {e}"));
+    let edges: Vec<&str> = c.outputs.iter().map(|o| o.edge.as_str()).collect();
+    assert_eq!(edges, outputs, "{node}");
+    assert_eq!((c.frames, c.incomplete), (FRAMES, 0), "{node}: {c:?}");
+    for o in &c.outputs {
+        assert_eq!(
+            (o.compared, o.identical),
+            (FRAMES, FRAMES),
+            "{node} {}: {:?}",
+            o.edge,
+            o.first_difference
+        );
+    }
+    assert!(c.passed());
+    c
+}
+
+#[test]
+fn capture_renders_the_recorded_frames() {
+    check("capture", &["capture/frame"]);
+}
+
+#[test]
+fn rectify_reproduces_its_recorded_output() {
+    check("rectify", &["rectify/frame"]);
+}
+
+#[test]
+fn segment_reproduces_labels_and_cells() {
+    check("segment", &["segment/labels", "segment/cells"]);
+}
+
+#[test]
+fn both_matchers_reproduce_their_disparity_maps() {
+    check("match-lr", &["match-lr/disparity"]);
+    check("match-rl", &["match-rl/disparity"]);
+}
+
+#[test]
+fn validate_reproduces_the_checked_map_and_occlusions() {
+    check("validate", &["validate/disparity", "validate/occlusion"]);
+}
+
+#[test]
+fn postprocess_reproduces_the_final_map() {
+    check("postprocess", &["postprocess/disparity"]);
+}
+
+#[test]
+fn triangulate_reproduces_the_cloud_and_the_targets() {
+    check("triangulate", &["triangulate/cloud", "triangulate/targets"]);
+}
+
+#[test]
+fn the_bridge_serves_the_recorded_targets_over_tcp() {
+    check("manipulator-bridge", &["TCP lines"]);
+}
+
+#[test]
+fn a_changed_parameter_is_caught_as_a_difference() {
+    // The same recording against a launch file whose post-processing differs: the check
+    // must fail, with the frame and the value that differ.
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("recordings/default.toml"),
+    )
+    .unwrap()
+    .replace(
+        "id = \"postprocess\"\nkind = \"postprocess\"\n",
+        "id = \"postprocess\"\nkind = \"postprocess\"\nparams = { median_radius = 0 }\n",
+    );
+    assert!(text.contains("median_radius = 0"));
+    let launch = dir.path().join("changed.toml");
+    std::fs::write(&launch, text).unwrap();
+    let c = test_node(&bundled(), Some(&launch), "postprocess", 0.0).unwrap();
+    assert!(!c.passed());
+    let o = &c.outputs[0];
+    assert_eq!((o.compared, o.identical), (FRAMES, 0));
+    assert!(o.max_diff > 0.0);
+    let d = o.first_difference.as_deref().unwrap();
+    assert!(d.starts_with("frame 0: value "), "{d}");
+    // A tolerance for float noise does not hide it: the difference is whole pixels.
+    let c = test_node(&bundled(), Some(&launch), "postprocess", 1e-3).unwrap();
+    assert!(!c.passed());
+}
+
+#[test]
+fn test_node_refuses_a_recording_without_the_nodes_edges() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("only-frames.mcap");
+    let mut w = recorder::RecordingWriter::create(&path, false).unwrap();
+    let text = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("recordings/default.toml"),
+    )
+    .unwrap();
+    w.write_launch(Path::new("default.toml"), &text).unwrap();
+    for m in recorder::EdgeReader::open(&bundled(), Some(vec!["rectify/frame".into()])).unwrap() {
+        let m = m.unwrap();
+        w.write(&m.edge, m.kind, &m.header, &m.payload, m.log_time)
+            .unwrap();
+    }
+    w.finish().unwrap();
+    let e = test_node(&path, None, "segment", 0.0).unwrap_err().to_string();
+    assert!(
+        e.contains("no channel for edge 'segment/labels'") && e.contains("it holds: rectify/frame"),
+        "{e}"
+    );
+    let e = test_node(&path, None, "nope", 0.0).unwrap_err().to_string();
+    assert!(e.contains("no node 'nope'") && e.contains("capture, rectify"), "{e}");
+}
