@@ -307,7 +307,9 @@ pub fn run_cmd(a: RunArgs) -> Result<(), CliError> {
     let (stats, wall) = rt.block_on(supervise(&graph, &a))?;
     print_summary(&graph, &stats, wall, a.frames);
     if let Some(path) = &a.opts.record {
-        let written = stats.get(crate::recording::RECORDER_ID).map_or(0, |s| s.frames_out);
+        let written = stats
+            .get(crate::recording::RECORDER_ID)
+            .map_or(0, |s| s.frames_out);
         let size = std::fs::metadata(path).map_or(0, |m| m.len());
         println!(
             "recorded {written} message(s) into {} ({:.1} MB); `microstereo inspect {}` lists them",

@@ -96,7 +96,10 @@ impl GraphOpts {
                     "path".to_string(),
                     toml::Value::String(path.display().to_string()),
                 ),
-                ("overwrite".to_string(), toml::Value::Boolean(self.overwrite)),
+                (
+                    "overwrite".to_string(),
+                    toml::Value::Boolean(self.overwrite),
+                ),
             ]);
             graph.add_tap(RECORDER_ID, RECORDER_KIND, &self.edges, params)?;
         }
@@ -182,10 +185,9 @@ pub struct InspectArgs {
 /// Lists a recording's channels: type, messages, rate; says when the file is truncated.
 pub fn inspect(a: InspectArgs) -> Result<(), CliError> {
     let o = recorder::overview(&a.file).map_err(|e| CliError::Other(e.to_string()))?;
-    let (first, last) = o
-        .channels
-        .iter()
-        .fold((u64::MAX, 0u64), |(f, l), c| (f.min(c.first_ns), l.max(c.last_ns)));
+    let (first, last) = o.channels.iter().fold((u64::MAX, 0u64), |(f, l), c| {
+        (f.min(c.first_ns), l.max(c.last_ns))
+    });
     let span = if o.channels.is_empty() {
         0.0
     } else {
@@ -405,10 +407,9 @@ impl NodeCheck {
     /// Whether every compared frame matched.
     pub fn passed(&self) -> bool {
         self.frames > 0
-            && self
-                .outputs
-                .iter()
-                .all(|o| o.compared == self.frames && o.identical + o.within_tolerance == o.compared)
+            && self.outputs.iter().all(|o| {
+                o.compared == self.frames && o.identical + o.within_tolerance == o.compared
+            })
     }
 }
 
@@ -428,8 +429,9 @@ fn compare(
     };
     let (gh, wh) = (norm(got.0), norm(want.0));
     if gh != wh {
-        out.first_difference
-            .get_or_insert_with(|| format!("frame {}: header {gh:?} ≠ recorded {wh:?}", wh.sequence));
+        out.first_difference.get_or_insert_with(|| {
+            format!("frame {}: header {gh:?} ≠ recorded {wh:?}", wh.sequence)
+        });
         return;
     }
     if got.1 == want.1 {
@@ -442,7 +444,12 @@ fn compare(
     let mut worst = 0f64;
     let mut first = None;
     if floats {
-        for (i, (a, b)) in got.1.chunks_exact(4).zip(want.1.chunks_exact(4)).enumerate() {
+        for (i, (a, b)) in got
+            .1
+            .chunks_exact(4)
+            .zip(want.1.chunks_exact(4))
+            .enumerate()
+        {
             let a = f32::from_le_bytes([a[0], a[1], a[2], a[3]]);
             let b = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
             let d = if a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan()) {
@@ -461,7 +468,11 @@ fn compare(
         let i = got.1.iter().zip(want.1).position(|(a, b)| a != b);
         worst = f64::INFINITY;
         first = Some(match i {
-            Some(i) => format!("byte {i} differs ({} bytes against {})", got.1.len(), want.1.len()),
+            Some(i) => format!(
+                "byte {i} differs ({} bytes against {})",
+                got.1.len(),
+                want.1.len()
+            ),
             None => format!("{} bytes against {}", got.1.len(), want.1.len()),
         });
     }
@@ -618,7 +629,9 @@ pub fn test_node(
             let want = &f[edge];
             let c = &mut check.outputs[port];
             match out.ports.get(port).and_then(|p| p.first()) {
-                Some((h, p)) => compare(c, (h, p), (&want.header, &want.payload), tolerance, source),
+                Some((h, p)) => {
+                    compare(c, (h, p), (&want.header, &want.payload), tolerance, source)
+                }
                 None => {
                     c.compared += 1;
                     c.first_difference

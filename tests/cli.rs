@@ -708,3 +708,145 @@ fn bench_transport_prints_both_edges_per_frame_size() {
     }
     assert_clean_failure(&run(&["bench-transport", "--frames", "1"]), "too few");
 }
+
+fn bundled_recording() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("recordings/default.mcap")
+}
+
+/// A copy of the bundled recording with only `edges` (and its launch file).
+fn recording_of(dir: &Path, name: &str, edges: &[&str]) -> PathBuf {
+    let path = dir.join(name);
+    let mut w = recorder::RecordingWriter::create(&path, false).unwrap();
+    let launch = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("recordings/default.toml");
+    w.write_launch(&launch, &std::fs::read_to_string(&launch).unwrap())
+        .unwrap();
+    let want = edges.iter().map(|e| e.to_string()).collect();
+    for m in recorder::EdgeReader::open(&bundled_recording(), Some(want)).unwrap() {
+        let m = m.unwrap();
+        w.write(&m.edge, m.kind, &m.header, &m.payload, m.log_time)
+            .unwrap();
+    }
+    w.finish().unwrap();
+    path
+}
+
+#[test]
+fn inspect_lists_the_bundled_recording() {
+    let out = run(&["inspect", s(&bundled_recording())]);
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(said.contains("28 messages on 14 channels"), "{said}");
+    assert!(said.contains("frames 0–1"), "{said}");
+    for (topic, ty) in [
+        ("/rectify/frame/left", "sensor_msgs/msg/Image"),
+        ("/triangulate/cloud", "sensor_msgs/msg/PointCloud2"),
+        ("/segment/cells", "microstereo_msgs/msg/CellArray"),
+        ("/triangulate/targets", "microstereo_msgs/msg/Targets"),
+    ] {
+        let line = said
+            .lines()
+            .find(|l| l.trim_start().starts_with(topic))
+            .unwrap();
+        assert!(line.contains(ty), "{line}");
+        assert_eq!(line.split_whitespace().nth(2), Some("2"), "{line}");
+    }
+}
+
+#[test]
+fn bad_recordings_get_one_clear_error_and_exit_2() {
+    let dir = tempfile::tempdir().unwrap();
+    // Not an MCAP file.
+    let junk = dir.path().join("junk.mcap");
+    std::fs::write(&junk, "P6 this is no recording").unwrap();
+    for cmd in ["inspect", "replay"] {
+        assert_clean_failure(&run(&[cmd, s(&junk)]), "not an MCAP file");
+    }
+    assert_clean_failure(
+        &run(&["test-node", s(&junk), "segment"]),
+        "not an MCAP file",
+    );
+    // Truncated: the first half of the bundled recording.
+    let bytes = std::fs::read(bundled_recording()).unwrap();
+    let cut = dir.path().join("cut.mcap");
+    std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
+    assert_clean_failure(&run(&["replay", s(&cut)]), "truncated");
+    let out = run(&["inspect", s(&cut)]);
+    assert_clean_failure(&out, "truncated");
+    assert!(String::from_utf8_lossy(&out.stdout).contains("topic"));
+    // Missing channels: the recording has no capture frames to replay.
+    let maps = recording_of(dir.path(), "maps.mcap", &["match-lr/disparity"]);
+    assert_clean_failure(
+        &run(&["replay", s(&maps)]),
+        "no channel for edge 'capture/frame'; it holds: match-lr/disparity",
+    );
+    // A schema mismatch: replacing the matcher with a recording whose match-lr/disparity
+    // channel is in fact a stereo frame.
+    let odd = dir.path().join("odd.mcap");
+    let mut w = recorder::RecordingWriter::create(&odd, false).unwrap();
+    for m in recorder::EdgeReader::open(&bundled_recording(), Some(vec!["capture/frame".into()]))
+        .unwrap()
+    {
+        let m = m.unwrap();
+        w.write(
+            "match-lr/disparity",
+            m.kind,
+            &m.header,
+            &m.payload,
+            m.log_time,
+        )
+        .unwrap();
+    }
+    w.finish().unwrap();
+    let launch = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("recordings/default.toml");
+    assert_clean_failure(
+        &run(&[
+            "replay",
+            s(&odd),
+            "--launch",
+            s(&launch),
+            "--replace",
+            "match-lr",
+        ]),
+        "edge 'match-lr/disparity' carries stereo-frame in the recording (sensor_msgs/msg/Image) but disparity in the launch file",
+    );
+    // No launch file stored and none given.
+    assert_clean_failure(
+        &run(&["replay", s(&odd)]),
+        "holds no launch file; give one with --launch",
+    );
+    // A bad rate and an unknown node.
+    assert_clean_failure(&run(&["replay", s(&maps), "--rate", "fast"]), "--rate");
+    assert_clean_failure(
+        &run(&["replay", s(&maps), "--replace", "nope"]),
+        "has no node 'nope'",
+    );
+}
+
+#[test]
+fn recording_never_overwrites_an_existing_file_by_accident() {
+    let dir = tempfile::tempdir().unwrap();
+    let old = dir.path().join("old.mcap");
+    std::fs::write(&old, b"an earlier recording").unwrap();
+    let out = run(&["run", "--frames", "1", "--record", s(&old)]);
+    assert_clean_failure(
+        &out,
+        "the file exists; choose another name or add --overwrite",
+    );
+    assert_eq!(std::fs::read(&old).unwrap(), b"an earlier recording");
+    let out = run(&["run", "--frames", "1", "--record", "/no/such/dir/x.mcap"]);
+    assert_clean_failure(&out, "the folder /no/such/dir does not exist");
+    let out = run(&[
+        "run",
+        "--frames",
+        "1",
+        "--record",
+        s(&dir.path().join("n.mcap")),
+        "--edges",
+        "nope/*",
+    ]);
+    assert_clean_failure(&out, "no edge matches 'nope/*'; the edges: capture/frame");
+}

@@ -665,3 +665,147 @@ inputs = {{ frame = {{ from = "invert/frame", depth = 8, overflow = "block" }} }
     );
     assert!(summary.contains("5 frame(s) of 5"), "{summary}");
 }
+
+/// Every message of a recording by `(edge, frame)`.
+fn recorded(
+    path: &Path,
+) -> std::collections::BTreeMap<(String, u64), (schemas::FrameHeader, Vec<u8>)> {
+    recorder::EdgeReader::open(path, None)
+        .unwrap()
+        .map(|m| {
+            let m = m.unwrap();
+            ((m.edge, m.header.sequence), (m.header, m.payload))
+        })
+        .collect()
+}
+
+#[test]
+fn a_replayed_recording_reproduces_every_downstream_edge_bit_for_bit() {
+    let file = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/graph/small.toml");
+    let dir = tempfile::tempdir().unwrap();
+    let (a, b) = (dir.path().join("a.mcap"), dir.path().join("b.mcap"));
+    let id = std::process::id();
+    let out = run(&[
+        "run",
+        file.to_str().unwrap(),
+        "--frames",
+        "4",
+        "--record",
+        a.to_str().unwrap(),
+        "--instance",
+        &format!("rec{id}"),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    // The capture node is replaced by the recording; every other node computes again.
+    let out = run(&[
+        "replay",
+        a.to_str().unwrap(),
+        "--rate",
+        "max",
+        "--record",
+        b.to_str().unwrap(),
+        "--instance",
+        &format!("replay{id}"),
+    ]);
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(said.contains("4 frame(s) of 4"), "{said}");
+    let (first, second) = (recorded(&a), recorded(&b));
+    let edges: std::collections::BTreeSet<&str> = first.keys().map(|(e, _)| e.as_str()).collect();
+    assert_eq!(edges.len(), 10, "{edges:?}");
+    assert_eq!(first.len(), 40);
+    assert_eq!(
+        first.keys().collect::<Vec<_>>(),
+        second.keys().collect::<Vec<_>>()
+    );
+    for (key, (h, p)) in &first {
+        let (h2, p2) = &second[key];
+        assert_eq!(h, h2, "{key:?}");
+        assert!(p == p2, "{key:?}: payloads differ");
+    }
+}
+
+#[test]
+fn a_recorder_killed_with_sigkill_leaves_a_file_readable_to_its_last_flush() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/graph/small.toml"),
+    )
+    .unwrap()
+    .replace(
+        "seed = 5, drift = 2.0 }",
+        "seed = 5, drift = 2.0, fps = 5.0 }",
+    );
+    assert!(text.contains("fps = 5.0"));
+    let file = dir.path().join("paced.toml");
+    std::fs::write(&file, text).unwrap();
+    let rec = dir.path().join("killed.mcap");
+    let sup = start(&[
+        "run",
+        file.to_str().unwrap(),
+        "--record",
+        rec.to_str().unwrap(),
+        "--instance",
+        &format!("sigkill{}", std::process::id()),
+    ]);
+    let is_recorder = |pid: &u32| {
+        std::fs::read(format!("/proc/{pid}/cmdline")).is_ok_and(|c| {
+            c.split(|b| *b == 0)
+                .collect::<Vec<_>>()
+                .windows(2)
+                .any(|w| w == [b"--id".as_slice(), b"recorder"])
+        })
+    };
+    let start = Instant::now();
+    let recorder = loop {
+        if let Some(p) = children_of(sup.id()).into_iter().find(is_recorder) {
+            break p;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(20),
+            "no recorder process"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    // Several flushes' worth of frames (5 per second), then no chance to close the file.
+    std::thread::sleep(Duration::from_millis(3500));
+    // SAFETY: kill(2) on a process this test started.
+    unsafe {
+        libc::kill(recorder as i32, libc::SIGKILL);
+    }
+    let out = finish(sup, Duration::from_secs(30));
+    assert_eq!(
+        out.status.code(),
+        Some(2),
+        "the run fails: its recorder died"
+    );
+    let got: Vec<_> = recorder::EdgeReader::open(&rec, None).unwrap().collect();
+    let (ok, bad): (Vec<_>, Vec<_>) = got.into_iter().partition(Result::is_ok);
+    // 10 edges at 5 frames/s for 3.5 s; at most the last second can be lost.
+    assert!(ok.len() >= 10, "{} messages readable", ok.len());
+    assert_eq!(bad.len(), 1);
+    let e = bad[0].as_ref().unwrap_err().to_string();
+    assert!(e.contains("truncated"), "{e}");
+    let out = run(&["inspect", rec.to_str().unwrap()]);
+    let (said, err) = (
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr),
+    );
+    assert_eq!(out.status.code(), Some(2));
+    assert!(
+        said.contains("/capture/frame/left") && said.contains("sensor_msgs/msg/Image"),
+        "{said}"
+    );
+    assert!(
+        err.contains("truncated") && !err.contains("panicked"),
+        "{err}"
+    );
+}

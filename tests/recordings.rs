@@ -114,11 +114,16 @@ fn test_node_refuses_a_recording_without_the_nodes_edges() {
             .unwrap();
     }
     w.finish().unwrap();
-    let e = test_node(&path, None, "segment", 0.0).unwrap_err().to_string();
+    let e = test_node(&path, None, "segment", 0.0)
+        .unwrap_err()
+        .to_string();
     assert!(
         e.contains("no channel for edge 'segment/labels'") && e.contains("it holds: rectify/frame"),
         "{e}"
     );
     let e = test_node(&path, None, "nope", 0.0).unwrap_err().to_string();
-    assert!(e.contains("no node 'nope'") && e.contains("capture, rectify"), "{e}");
+    assert!(
+        e.contains("no node 'nope'") && e.contains("capture, rectify"),
+        "{e}"
+    );
 }

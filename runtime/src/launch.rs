@@ -360,7 +360,8 @@ impl Graph {
             n.runner = Runner::Builtin(kind.into());
             n.inputs.clear();
             n.params = params.clone();
-            n.params.insert("node".into(), toml::Value::String(id.clone()));
+            n.params
+                .insert("node".into(), toml::Value::String(id.clone()));
             n.restart = Restart::default();
         }
         // A node that fed only replaced nodes has nobody to feed now.
@@ -823,21 +824,35 @@ inputs = { frame = "b/frame" }
             }]
         );
         let mut g = chain();
-        g.add_tap("rec", "recorder", &[], toml::Table::new()).unwrap();
-        let ports: Vec<_> = g.node("rec").unwrap().inputs.iter().map(|i| i.port.as_str()).collect();
+        g.add_tap("rec", "recorder", &[], toml::Table::new())
+            .unwrap();
+        let ports: Vec<_> = g
+            .node("rec")
+            .unwrap()
+            .inputs
+            .iter()
+            .map(|i| i.port.as_str())
+            .collect();
         assert_eq!(ports, ["a.frame", "b.frame", "c.frame"]);
-        assert_eq!(g.node("rec").unwrap().inputs[0].edge.overflow, Overflow::Block);
+        assert_eq!(
+            g.node("rec").unwrap().inputs[0].edge.overflow,
+            Overflow::Block
+        );
         let e = chain()
             .add_tap("rec", "recorder", &["x/*".into()], toml::Table::new())
             .unwrap_err();
-        assert!(e.contains("no edge matches 'x/*'") && e.contains("a/frame, b/frame"), "{e}");
+        assert!(
+            e.contains("no edge matches 'x/*'") && e.contains("a/frame, b/frame"),
+            "{e}"
+        );
     }
 
     #[test]
     fn replaced_nodes_become_sources_and_what_fed_only_them_goes() {
         let mut g = chain();
         let params = toml::Table::from_iter([("file".to_string(), toml::Value::from("r.mcap"))]);
-        g.replace_with_sources(&["b".into()], "replay", &params).unwrap();
+        g.replace_with_sources(&["b".into()], "replay", &params)
+            .unwrap();
         let ids: Vec<_> = g.nodes.iter().map(|n| n.id.as_str()).collect();
         assert_eq!(ids, ["b", "c"]);
         let b = g.node("b").unwrap();

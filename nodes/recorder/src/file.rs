@@ -223,14 +223,13 @@ impl RecordingWriter {
         payload: &[u8],
         log_time: u64,
     ) -> Result<(), RecordingError> {
-        let parts = ros2::encode(kind, header, payload).map_err(|reason| {
-            RecordingError::Message {
+        let parts =
+            ros2::encode(kind, header, payload).map_err(|reason| RecordingError::Message {
                 path: self.path.clone(),
                 topic: topic(edge, None),
                 sequence: header.sequence,
                 reason,
-            }
-        })?;
+            })?;
         for p in parts {
             let channel_id = self.channel(edge, kind, p.side, p.msg)?;
             let err = self.mcap_err("writing a message");
@@ -690,7 +689,9 @@ mod tests {
             capture_ns: 1_000 + seq,
             ..FrameHeader::image(MessageKind::StereoFrame, PixelFormat::Mono8, w, 2, 2)
         };
-        let p = (0..h.image_bytes()).map(|i| (i as u64 * 7 + seq) as u8).collect();
+        let p = (0..h.image_bytes())
+            .map(|i| (i as u64 * 7 + seq) as u8)
+            .collect();
         (h, p)
     }
 
@@ -717,13 +718,20 @@ mod tests {
         assert_eq!(back.len(), 3);
         for (seq, m) in back.iter().enumerate() {
             let (h, p) = frame(seq as u64, 4);
-            assert_eq!((m.edge.as_str(), m.header, &m.payload), ("cam/frame", h, &p));
+            assert_eq!(
+                (m.edge.as_str(), m.header, &m.payload),
+                ("cam/frame", h, &p)
+            );
             assert_eq!(m.log_time, 50 + seq as u64);
         }
         let o = overview(&path).unwrap();
         assert_eq!(o.error, None);
         assert!(!o.truncated);
-        let topics: Vec<_> = o.channels.iter().map(|c| (c.topic.as_str(), c.messages)).collect();
+        let topics: Vec<_> = o
+            .channels
+            .iter()
+            .map(|c| (c.topic.as_str(), c.messages))
+            .collect();
         assert_eq!(topics, [("/cam/frame/left", 3), ("/cam/frame/right", 3)]);
         assert_eq!(o.channels[0].schema, "sensor_msgs/msg/Image");
         assert_eq!(o.edge("cam/frame").len(), 2);

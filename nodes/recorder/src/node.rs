@@ -120,10 +120,7 @@ pub fn run_recorder(
         .map_err(|_| "the writer thread panicked".to_string())?
         .map_err(|e| e.to_string());
     let mut stats = match (tapped, written) {
-        (Ok(s), Ok(n)) => NodeStats {
-            frames_out: n,
-            ..s
-        },
+        (Ok(s), Ok(n)) => NodeStats { frames_out: n, ..s },
         (Err(e), Err(w)) => return Err(format!("{e}; {w}")),
         (Err(e), _) | (_, Err(e)) => return Err(e),
     };
@@ -210,7 +207,8 @@ impl ReplayNode {
             .iter()
             .map(|o| format!("{}/{o}", params.node))
             .collect();
-        let reader = EdgeReader::open(&params.file, Some(edges.clone())).map_err(|e| e.to_string())?;
+        let reader =
+            EdgeReader::open(&params.file, Some(edges.clone())).map_err(|e| e.to_string())?;
         Ok(Self {
             params,
             rate,
@@ -245,7 +243,11 @@ impl ReplayNode {
             }
             match self.reader.next() {
                 Some(Ok(m)) => {
-                    let port = self.edges.iter().position(|e| *e == m.edge).expect("filtered");
+                    let port = self
+                        .edges
+                        .iter()
+                        .position(|e| *e == m.edge)
+                        .expect("filtered");
                     let n = self.edges.len();
                     let seq = m.header.sequence;
                     self.ahead.entry(seq).or_insert_with(|| vec![None; n])[port] = Some(m);
@@ -261,8 +263,8 @@ impl ReplayNode {
     }
 
     fn rewind(&mut self) -> Result<(), String> {
-        self.reader =
-            EdgeReader::open(&self.params.file, Some(self.edges.clone())).map_err(|e| e.to_string())?;
+        self.reader = EdgeReader::open(&self.params.file, Some(self.edges.clone()))
+            .map_err(|e| e.to_string())?;
         Ok(())
     }
 }
@@ -304,7 +306,9 @@ impl GraphNode for ReplayNode {
                 capture_ns: ns_out,
                 ..m.header
             };
-            out.send(port, h, m.payload.len(), &mut |b| b.copy_from_slice(&m.payload))?;
+            out.send(port, h, m.payload.len(), &mut |b| {
+                b.copy_from_slice(&m.payload)
+            })?;
         }
         self.sent_any = true;
         Ok(true)

@@ -387,9 +387,7 @@ pub fn msg_type(kind: MessageKind) -> MsgType {
 /// The sides a message of `kind` is split into (`[]` for one part).
 pub fn kind_sides(kind: MessageKind) -> &'static [&'static str] {
     match kind {
-        MessageKind::StereoFrame | MessageKind::Labels | MessageKind::DisparityPair => {
-            sides(2)
-        }
+        MessageKind::StereoFrame | MessageKind::Labels | MessageKind::DisparityPair => sides(2),
         _ => sides(1),
     }
 }
@@ -694,7 +692,11 @@ mod tests {
             right: vec![cell.clone(), Cell { id: 4, ..cell }],
         };
         let h = stamped(json_header(MessageKind::CellList));
-        round_trip(MessageKind::CellList, h, &serde_json::to_vec(&lists).unwrap());
+        round_trip(
+            MessageKind::CellList,
+            h,
+            &serde_json::to_vec(&lists).unwrap(),
+        );
         let targets = Targets {
             frame: 7,
             capture_ns: 12,
@@ -714,7 +716,11 @@ mod tests {
             }],
         };
         let h = stamped(json_header(MessageKind::Targets));
-        round_trip(MessageKind::Targets, h, &serde_json::to_vec(&targets).unwrap());
+        round_trip(
+            MessageKind::Targets,
+            h,
+            &serde_json::to_vec(&targets).unwrap(),
+        );
     }
 
     #[test]
@@ -754,8 +760,12 @@ mod tests {
         assert!(e.contains("not a CDR sensor_msgs/msg/Image"), "{e}");
         let e = decode(MessageKind::StereoFrame, &[&[0, 1, 0, 0]], (0, 0)).unwrap_err();
         assert!(e.contains("1 part(s), not 2"), "{e}");
-        let e = encode(MessageKind::CellList, &json_header(MessageKind::CellList), b"{")
-            .unwrap_err();
+        let e = encode(
+            MessageKind::CellList,
+            &json_header(MessageKind::CellList),
+            b"{",
+        )
+        .unwrap_err();
         assert!(e.starts_with("cell list"), "{e}");
     }
 }
