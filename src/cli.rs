@@ -44,6 +44,8 @@ enum Command {
     Replay(crate::recording::ReplayArgs),
     /// Feeds one node its recorded inputs and compares its outputs with the recorded ones.
     TestNode(crate::recording::TestNodeArgs),
+    /// Shows a recording in Rerun (or writes it as an .rrd file).
+    View(crate::recording::ViewArgs),
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -360,6 +362,7 @@ pub fn main() -> i32 {
         Command::Inspect(a) => crate::recording::inspect(a),
         Command::Replay(a) => crate::recording::replay(a),
         Command::TestNode(a) => crate::recording::test_node_cmd(a),
+        Command::View(a) => crate::recording::view(a),
     };
     match result {
         Ok(()) => 0,

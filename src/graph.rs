@@ -283,6 +283,7 @@ pub struct RunArgs {
 /// Runs the graph: one process per node, logs prefixed, restarts, clean stop, summary.
 pub fn run_cmd(a: RunArgs) -> Result<(), CliError> {
     crate::recording::check_record_target(&a.opts)?;
+    crate::recording::check_viewer_target(&a.opts)?;
     let graph = crate::recording::load_with(&a.launch, &a.opts)?;
     let stale = runtime::process::remove_stale_resources();
     if stale.removed > 0 || stale.empty_files > 0 {

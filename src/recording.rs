@@ -20,6 +20,129 @@ use std::path::{Path, PathBuf};
 /// The recorder's node id in a graph run with `--record`.
 pub const RECORDER_ID: &str = "recorder";
 
+/// The Rerun viewer tap's node id in a graph run with `--viewer`.
+pub const VIEWER_ID: &str = "viewer";
+
+/// The viewer binary: next to this program (`cargo build --release -p viewer` builds it;
+/// it alone links rerun).
+pub fn viewer_exe() -> PathBuf {
+    std::env::current_exe()
+        .ok()
+        .and_then(|p| p.parent().map(|d| d.join("microstereo-viewer")))
+        .unwrap_or_else(|| PathBuf::from("microstereo-viewer"))
+}
+
+fn check_viewer_words(w: &[String]) -> Result<(), String> {
+    match w {
+        [m] if m == "spawn" => Ok(()),
+        [m, _] if m == "connect" || m == "save" => Ok(()),
+        _ => Err(format!(
+            "--viewer {}: give spawn, connect HOST:PORT or save FILE.rrd",
+            w.join(" ")
+        )),
+    }
+}
+
+/// Checks, before anything starts, that `--viewer` can work: the viewer binary is built,
+/// a viewer to spawn is installed, a viewer to connect to is listening, a file to save
+/// does not exist yet.
+pub fn check_viewer_target(opts: &GraphOpts) -> Result<(), CliError> {
+    if opts.viewer.is_empty() {
+        return Ok(());
+    }
+    check_viewer_words(&opts.viewer).map_err(CliError::Other)?;
+    let exe = viewer_exe();
+    if !exe.is_file() {
+        return Err(CliError::Other(format!(
+            "--viewer needs {}, which is not built; run `cargo build --release -p viewer` (it holds the rerun dependency)",
+            exe.display()
+        )));
+    }
+    match opts.viewer[0].as_str() {
+        "spawn" => {
+            let found = std::env::var_os("PATH")
+                .is_some_and(|p| std::env::split_paths(&p).any(|d| d.join("rerun").is_file()));
+            if !found {
+                return Err(CliError::Other(
+                    "--viewer spawn starts the `rerun` viewer, which is not on PATH; install it with `pip install rerun-sdk==0.36.*`, or use --viewer save FILE.rrd".into(),
+                ));
+            }
+        }
+        "connect" => {
+            let addr = &opts.viewer[1];
+            let hp = addr
+                .split_once("://")
+                .map_or(addr.as_str(), |(_, r)| r)
+                .split('/')
+                .next()
+                .unwrap_or(addr);
+            let reachable = std::net::ToSocketAddrs::to_socket_addrs(hp)
+                .ok()
+                .and_then(|mut a| a.next())
+                .is_some_and(|a| {
+                    std::net::TcpStream::connect_timeout(&a, std::time::Duration::from_secs(2)).is_ok()
+                });
+            if !reachable {
+                return Err(CliError::Other(format!(
+                    "--viewer connect {addr}: no Rerun viewer is listening there; start one with `rerun` (it listens on 127.0.0.1:9876) or use --viewer spawn"
+                )));
+            }
+        }
+        _ => {
+            let path = Path::new(&opts.viewer[1]);
+            if path.exists() {
+                return Err(CliError::Other(format!(
+                    "--viewer save {}: the file exists; choose another name",
+                    path.display()
+                )));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Arguments of `microstereo view`.
+#[derive(Args, Debug)]
+pub struct ViewArgs {
+    /// The recording.
+    pub file: PathBuf,
+    /// Write an .rrd file instead of showing it in a new viewer.
+    #[arg(short, long)]
+    pub output: Option<PathBuf>,
+    /// Send it to a running viewer (HOST:PORT).
+    #[arg(long, conflicts_with = "output")]
+    pub connect: Option<String>,
+}
+
+/// Shows a recording in Rerun, through the viewer binary (the same code as `--viewer`).
+pub fn view(a: ViewArgs) -> Result<(), CliError> {
+    readable(&a.file)?;
+    let mut opts = GraphOpts {
+        viewer: match (&a.output, &a.connect) {
+            (Some(p), _) => vec!["save".into(), p.display().to_string()],
+            (None, Some(c)) => vec!["connect".into(), c.clone()],
+            (None, None) => vec!["spawn".into()],
+        },
+        ..GraphOpts::default()
+    };
+    check_viewer_target(&opts)?;
+    let mut cmd = std::process::Command::new(viewer_exe());
+    cmd.arg("view").arg(&a.file);
+    match opts.viewer.remove(0).as_str() {
+        "save" => cmd.arg("-o").arg(&opts.viewer[0]),
+        "connect" => cmd.arg("--connect").arg(&opts.viewer[0]),
+        _ => &mut cmd,
+    };
+    let status = cmd
+        .status()
+        .map_err(|e| CliError::Other(format!("cannot run {}: {e}", viewer_exe().display())))?;
+    if status.success() {
+        Ok(())
+    } else {
+        Err(CliError::Other(format!("the viewer failed ({status})")))
+    }
+}
+
 /// How a run changes its launch file's graph: a recorder tap, replay sources.
 #[derive(Args, Debug, Clone, Default)]
 pub struct GraphOpts {
@@ -33,6 +156,10 @@ pub struct GraphOpts {
     /// Replace the file given to --record if it exists.
     #[arg(long, requires = "record")]
     pub overwrite: bool,
+    /// Show the graph in Rerun: `spawn` a viewer, `connect HOST:PORT` to a running one, or
+    /// `save FILE.rrd` (needs the viewer binary: cargo build --release -p viewer).
+    #[arg(long, num_args = 1..=2, value_names = ["MODE", "WHERE"])]
+    pub viewer: Vec<String>,
     /// Replay this recording in place of the --replace nodes (set by `replay`).
     #[arg(long, hide = true)]
     pub replay: Option<PathBuf>,
@@ -61,6 +188,10 @@ impl GraphOpts {
             if self.overwrite {
                 v.push("--overwrite".into());
             }
+        }
+        if !self.viewer.is_empty() {
+            v.push("--viewer".into());
+            v.extend(self.viewer.iter().cloned());
         }
         if let Some(r) = &self.replay {
             v.push("--replay".into());
@@ -102,6 +233,14 @@ impl GraphOpts {
                 ),
             ]);
             graph.add_tap(RECORDER_ID, RECORDER_KIND, &self.edges, params)?;
+        }
+        if !self.viewer.is_empty() {
+            check_viewer_words(&self.viewer)?;
+            let words = self.viewer.iter().cloned().map(toml::Value::String).collect();
+            let params = toml::Table::from_iter([("target".to_string(), toml::Value::Array(words))]);
+            graph.add_tap(VIEWER_ID, "viewer", &[], params)?;
+            let n = graph.nodes.last_mut().expect("added");
+            n.runner = Runner::Exec(viewer_exe());
         }
         Ok(())
     }
@@ -308,6 +447,9 @@ pub struct ReplayArgs {
     /// Replace the file given to --record if it exists.
     #[arg(long, requires = "record")]
     pub overwrite: bool,
+    /// Show the replayed graph in Rerun: spawn, connect HOST:PORT or save FILE.rrd.
+    #[arg(long, num_args = 1..=2, value_names = ["MODE", "WHERE"])]
+    pub viewer: Vec<String>,
 }
 
 /// Runs a launch file's graph with recorded edges in place of the replaced nodes.
@@ -335,6 +477,7 @@ fn replay_with(a: &ReplayArgs, o: &Overview, launch: PathBuf) -> Result<(), CliE
         replace: a.replace.clone(),
         rate: a.rate.clone(),
         looped: a.looped,
+        viewer: a.viewer.clone(),
     };
     check_record_target(&opts)?;
     let base = crate::graph::load(&launch)?;

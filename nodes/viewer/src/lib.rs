@@ -1,0 +1,450 @@
+//! The graph in Rerun, from live edges or from a recording: one code path ([`Sink::log`]).
+//!
+//! Every edge message becomes Rerun data with its meaning: camera frames as images under
+//! `/left` and `/right`, label images as `SegmentationImage`s and cell contours as
+//! `LineStrips2D` on top of them, disparity maps as colour-mapped `DepthImage`s under
+//! `/disparity`, occlusion masks under `/occlusion`, the point cloud and the targets as
+//! `Points3D` under `/world` in metres, and one `TextLog` line per message under `/logs`.
+//! Timelines: `frame` (the frame number) and `capture_time`. The blueprint lays out
+//! left | right | disparity | 3D over the log.
+//!
+//! This crate is the only one that depends on `rerun`; the `microstereo` CLI runs its
+//! binary, `microstereo-viewer`, as a process.
+
+use rerun::RecordingStream;
+use rerun::blueprint::{
+    Blueprint, Horizontal, Spatial2DView, Spatial3DView, TextLogView, Vertical,
+};
+use schemas::wire::{CLOUD_POINT_BYTES, CellLists, Targets};
+use schemas::{FrameHeader, MessageKind, PixelFormat};
+use std::collections::HashMap;
+use std::path::PathBuf;
+
+/// Where the Rerun data goes.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Target {
+    /// A new viewer process (the `rerun` program on PATH).
+    Spawn,
+    /// A running viewer at this gRPC URL (`rerun+http://HOST:PORT/proxy`).
+    Connect(String),
+    /// An `.rrd` file.
+    Save(PathBuf),
+}
+
+impl Target {
+    /// Reads the `--viewer` words: `spawn`, `connect ADDR`, `save FILE.rrd`.
+    pub fn parse(words: &[String]) -> Result<Self, String> {
+        match words {
+            [m] if m == "spawn" => Ok(Self::Spawn),
+            [m, a] if m == "connect" => Ok(Self::Connect(grpc_url(a))),
+            [m, f] if m == "save" => Ok(Self::Save(f.into())),
+            _ => Err(format!(
+                "--viewer {}: give spawn, connect HOST:PORT or save FILE.rrd",
+                words.join(" ")
+            )),
+        }
+    }
+}
+
+/// The gRPC URL of a viewer given as `HOST:PORT` or as a full `rerun+http://…` URL.
+pub fn grpc_url(addr: &str) -> String {
+    if addr.contains("://") {
+        addr.to_string()
+    } else {
+        format!("rerun+http://{addr}/proxy")
+    }
+}
+
+/// The `HOST:PORT` of a viewer URL (to check that something listens there).
+pub fn host_port(url: &str) -> &str {
+    let rest = url.split_once("://").map_or(url, |(_, r)| r);
+    rest.split('/').next().unwrap_or(rest)
+}
+
+/// The layout: left | right | disparity | 3D above the log.
+pub fn blueprint() -> Blueprint {
+    Blueprint::new(
+        Vertical::new([
+            Horizontal::new([
+                Spatial2DView::new("left").with_origin("/left").into(),
+                Spatial2DView::new("right").with_origin("/right").into(),
+                Spatial2DView::new("disparity")
+                    .with_origin("/disparity")
+                    .into(),
+                Spatial3DView::new("3D (m)").with_origin("/world").into(),
+            ])
+            .into(),
+            TextLogView::new("log").with_origin("/logs").into(),
+        ])
+        .with_row_shares([4.0, 1.0]),
+    )
+}
+
+/// Opens a Rerun stream to `target` with the blueprint.
+pub fn open(target: &Target) -> Result<RecordingStream, String> {
+    let b = rerun::RecordingStreamBuilder::new("microstereo").with_blueprint(blueprint());
+    match target {
+        Target::Spawn => b.spawn(),
+        Target::Connect(url) => b.connect_grpc_opts(url.clone()),
+        Target::Save(p) => b.save(p),
+    }
+    .map_err(|e| format!("Rerun: {e}"))
+}
+
+/// A recording stream that the graph's messages are logged to.
+pub struct Sink {
+    rec: RecordingStream,
+    /// Metres per unit of the calibration, once a targets message has said which.
+    metres: Option<f64>,
+    /// Clouds waiting for their frame's targets (which carry the unit).
+    clouds: HashMap<u64, (String, FrameHeader, Vec<u8>)>,
+}
+
+impl std::fmt::Debug for Sink {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Sink").field("metres", &self.metres).finish()
+    }
+}
+
+fn metres_per(unit: &str) -> f64 {
+    match unit {
+        "µm" | "um" => 1e-6,
+        "mm" => 1e-3,
+        _ => 1.0,
+    }
+}
+
+fn err(e: impl std::fmt::Display) -> String {
+    format!("Rerun: {e}")
+}
+
+impl Sink {
+    /// Logs into `rec`.
+    pub fn new(rec: RecordingStream) -> Self {
+        Self {
+            rec,
+            metres: None,
+            clouds: HashMap::new(),
+        }
+    }
+
+    /// The stream.
+    pub fn stream(&self) -> &RecordingStream {
+        &self.rec
+    }
+
+    /// Logs one message of `edge` (`NODE/OUTPUT`).
+    pub fn log(
+        &mut self,
+        edge: &str,
+        kind: MessageKind,
+        h: &FrameHeader,
+        payload: &[u8],
+    ) -> Result<(), String> {
+        self.rec.set_time_sequence("frame", h.sequence as i64);
+        self.rec
+            .set_timestamp_nanos_since_epoch("capture_time", h.capture_ns as i64);
+        let (w, ht) = (h.width, h.height);
+        let plane = (h.stride as usize) * (ht as usize);
+        let sides = ["left", "right"];
+        let summary = match kind {
+            MessageKind::StereoFrame | MessageKind::Image => {
+                let format = PixelFormat::from_u32(h.format);
+                for (i, data) in payload.chunks(plane.max(1)).take(h.images as usize).enumerate() {
+                    let path = match kind {
+                        MessageKind::Image => format!("/occlusion/{edge}"),
+                        _ => format!("/{}/{edge}", sides[i.min(1)]),
+                    };
+                    let img = match format {
+                        Some(PixelFormat::Rgb8) => rerun::Image::from_rgb24(data.to_vec(), [w, ht]),
+                        _ => rerun::Image::from_l8(data.to_vec(), [w, ht]),
+                    };
+                    self.rec.log(path, &img).map_err(err)?;
+                }
+                format!("{w}×{ht}, {} image(s)", h.images)
+            }
+            MessageKind::Labels => {
+                let mut cells = 0;
+                for (i, data) in payload.chunks(plane.max(1)).take(2).enumerate() {
+                    let img = rerun::SegmentationImage::new(
+                        data.to_vec(),
+                        rerun::datatypes::ImageFormat::segmentation(
+                            [w, ht],
+                            rerun::datatypes::ChannelDatatype::U32,
+                        ),
+                    )
+                    .with_opacity(0.4);
+                    cells = cells.max(
+                        data.chunks_exact(4)
+                            .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                            .max()
+                            .unwrap_or(0),
+                    );
+                    self.rec
+                        .log(format!("/{}/{edge}", sides[i]), &img)
+                        .map_err(err)?;
+                }
+                format!("labels up to {cells}")
+            }
+            MessageKind::Disparity | MessageKind::DisparityPair => {
+                let mut valid = 0usize;
+                for (i, data) in payload.chunks(plane.max(1)).take(h.images as usize).enumerate() {
+                    let d: Vec<f32> = data
+                        .chunks_exact(4)
+                        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                        .collect();
+                    let finite = d.iter().copied().filter(|v| v.is_finite());
+                    let (lo, hi) = finite.fold((f32::MAX, f32::MIN), |(a, b), v| (a.min(v), b.max(v)));
+                    valid += d.iter().filter(|v| v.is_finite()).count();
+                    // Rerun reads 0 as "no depth": invalid pixels become 0; the colour range
+                    // is the map's own.
+                    let bytes: Vec<u8> = d
+                        .iter()
+                        .flat_map(|v| if v.is_finite() { *v } else { 0.0 }.to_le_bytes())
+                        .collect();
+                    let mut img = rerun::DepthImage::from_data_type_and_bytes(
+                        bytes,
+                        [w, ht],
+                        rerun::datatypes::ChannelDatatype::F32,
+                    )
+                    .with_meter(1.0)
+                    .with_colormap(rerun::components::Colormap::Turbo);
+                    if lo <= hi {
+                        img = img.with_depth_range(rerun::datatypes::Range1D::new(
+                            f64::from(lo),
+                            f64::from(hi),
+                        ));
+                    }
+                    let path = if h.images == 2 {
+                        format!("/disparity/{edge}/{}", sides[i])
+                    } else {
+                        format!("/disparity/{edge}")
+                    };
+                    self.rec.log(path, &img).map_err(err)?;
+                }
+                format!(
+                    "{w}×{ht}, {:.1} % valid",
+                    100.0 * valid as f64 / (w as f64 * ht as f64 * f64::from(h.images.max(1)))
+                )
+            }
+            MessageKind::CellList => {
+                let lists: CellLists =
+                    serde_json::from_slice(payload).map_err(|e| format!("{edge}: {e}"))?;
+                for (side, cells) in [("left", &lists.left), ("right", &lists.right)] {
+                    let strips: Vec<Vec<[f32; 2]>> = cells
+                        .iter()
+                        .map(|c| {
+                            let mut s: Vec<[f32; 2]> =
+                                c.contour.iter().map(|p| [p[0] as f32, p[1] as f32]).collect();
+                            if let Some(&f) = s.first() {
+                                s.push(f);
+                            }
+                            s
+                        })
+                        .collect();
+                    let labels: Vec<String> = cells.iter().map(|c| format!("cell {}", c.id)).collect();
+                    self.rec
+                        .log(
+                            format!("/{side}/{edge}/contours"),
+                            &rerun::LineStrips2D::new(strips)
+                                .with_labels(labels)
+                                .with_class_ids(cells.iter().map(|c| c.id as u16)),
+                        )
+                        .map_err(err)?;
+                }
+                format!("{} + {} cells", lists.left.len(), lists.right.len())
+            }
+            MessageKind::PointCloud => match self.metres {
+                Some(m) => self.log_cloud(edge, h, payload, m)?,
+                None => {
+                    self.clouds
+                        .insert(h.sequence, (edge.to_string(), *h, payload.to_vec()));
+                    return Ok(());
+                }
+            },
+            MessageKind::Targets => {
+                let t: Targets =
+                    serde_json::from_slice(payload).map_err(|e| format!("{edge}: {e}"))?;
+                let m = metres_per(&t.unit);
+                self.metres = Some(m);
+                if let Some((e, ch, p)) = self.clouds.remove(&h.sequence) {
+                    self.log_cloud(&e, &ch, &p, m)?;
+                    self.rec.set_time_sequence("frame", h.sequence as i64);
+                }
+                let tops: Vec<[f32; 3]> = t
+                    .cells
+                    .iter()
+                    .map(|c| {
+                        [
+                            (c.centroid[0] * m) as f32,
+                            (c.centroid[1] * m) as f32,
+                            ((c.substrate_z - c.height) * m) as f32,
+                        ]
+                    })
+                    .collect();
+                let labels: Vec<String> = t
+                    .cells
+                    .iter()
+                    .map(|c| format!("cell {}: {:.1} {} high", c.id, c.height, t.unit))
+                    .collect();
+                self.rec
+                    .log(
+                        format!("/world/{edge}"),
+                        &rerun::Points3D::new(tops)
+                            .with_labels(labels)
+                            .with_radii([rerun::components::Radius::new_ui_points(6.0)])
+                            .with_class_ids(t.cells.iter().map(|c| c.id as u16)),
+                    )
+                    .map_err(err)?;
+                let rings: Vec<Vec<[f32; 3]>> = t
+                    .cells
+                    .iter()
+                    .map(|c| {
+                        c.contour
+                            .iter()
+                            .map(|p| [(p[0] * m) as f32, (p[1] * m) as f32, (p[2] * m) as f32])
+                            .collect()
+                    })
+                    .collect();
+                self.rec
+                    .log(
+                        format!("/world/{edge}/contours"),
+                        &rerun::LineStrips3D::new(rings)
+                            .with_class_ids(t.cells.iter().map(|c| c.id as u16)),
+                    )
+                    .map_err(err)?;
+                format!("{} target cell(s)", t.cells.len())
+            }
+        };
+        self.rec
+            .log(
+                format!("/logs/{}", edge.split('/').next().unwrap_or(edge)),
+                &rerun::TextLog::new(format!("{edge}: frame {}: {summary}", h.sequence))
+                    .with_level(rerun::TextLogLevel::INFO),
+            )
+            .map_err(err)
+    }
+
+    fn log_cloud(
+        &mut self,
+        edge: &str,
+        h: &FrameHeader,
+        payload: &[u8],
+        m: f64,
+    ) -> Result<String, String> {
+        self.rec.set_time_sequence("frame", h.sequence as i64);
+        self.rec
+            .set_timestamp_nanos_since_epoch("capture_time", h.capture_ns as i64);
+        let f = |b: &[u8]| f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+        let (pos, col): (Vec<[f32; 3]>, Vec<rerun::Color>) = payload
+            .chunks_exact(CLOUD_POINT_BYTES)
+            .map(|p| {
+                (
+                    [
+                        (f64::from(f(&p[0..4])) * m) as f32,
+                        (f64::from(f(&p[4..8])) * m) as f32,
+                        (f64::from(f(&p[8..12])) * m) as f32,
+                    ],
+                    rerun::Color::from_rgb(p[12], p[13], p[14]),
+                )
+            })
+            .unzip();
+        let n = pos.len();
+        self.rec
+            .log(
+                format!("/world/{edge}"),
+                &rerun::Points3D::new(pos).with_colors(col),
+            )
+            .map_err(err)?;
+        Ok(format!("{n} points"))
+    }
+
+    /// Logs clouds still waiting for a unit (in the calibration's unit) and flushes.
+    pub fn finish(mut self) -> Result<(), String> {
+        let waiting: Vec<_> = self.clouds.drain().collect();
+        for (_, (e, h, p)) in waiting {
+            self.log_cloud(&e, &h, &p, self.metres.unwrap_or(1.0))?;
+        }
+        self.rec.flush_blocking().map_err(err)
+    }
+}
+
+/// Logs every message of a recording (what `microstereo view` shows).
+pub fn log_recording(sink: &mut Sink, path: &std::path::Path) -> Result<u64, String> {
+    let mut n = 0;
+    for m in recorder::EdgeReader::open(path, None).map_err(|e| e.to_string())? {
+        let m = m.map_err(|e| e.to_string())?;
+        sink.log(&m.edge, m.kind, &m.header, &m.payload)?;
+        n += 1;
+    }
+    Ok(n)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::collections::{BTreeMap, BTreeSet};
+
+    #[test]
+    fn viewer_words_and_addresses() {
+        let w = |s: &str| s.split(' ').map(String::from).collect::<Vec<_>>();
+        assert_eq!(Target::parse(&w("spawn")), Ok(Target::Spawn));
+        assert_eq!(
+            Target::parse(&w("connect 127.0.0.1:9876")),
+            Ok(Target::Connect("rerun+http://127.0.0.1:9876/proxy".into()))
+        );
+        assert_eq!(
+            Target::parse(&w("save out.rrd")),
+            Ok(Target::Save("out.rrd".into()))
+        );
+        assert!(Target::parse(&w("connect")).is_err());
+        assert_eq!(host_port("rerun+http://10.0.0.2:9000/proxy"), "10.0.0.2:9000");
+    }
+
+    #[test]
+    fn the_bundled_recording_becomes_images_depth_segmentation_and_points() {
+        let (rec, storage) = rerun::RecordingStreamBuilder::new("microstereo-test")
+            .memory()
+            .unwrap();
+        let mut sink = Sink::new(rec);
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../recordings/default.mcap");
+        assert_eq!(log_recording(&mut sink, &path).unwrap(), 28);
+        sink.finish().unwrap();
+        let mut seen: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
+        let mut frames = BTreeSet::new();
+        for msg in storage.take() {
+            if let rerun::log::LogMsg::ArrowMsg(_, a) = msg {
+                let chunk = rerun::log::Chunk::from_arrow_msg(&a).unwrap();
+                if let Some(col) = chunk.timelines().get(&"frame".into()) {
+                    frames.extend(col.times_raw().iter().copied());
+                }
+                let entry = seen.entry(chunk.entity_path().to_string()).or_default();
+                for d in chunk.component_descriptors() {
+                    if let Some(a) = d.archetype {
+                        entry.insert(a.short_name().to_string());
+                    }
+                }
+            }
+        }
+        let has = |path: &str, arch: &str| {
+            assert!(
+                seen.get(path).is_some_and(|s| s.contains(arch)),
+                "{path} should hold {arch}; seen: {seen:#?}"
+            )
+        };
+        has("/left/rectify/frame", "Image");
+        has("/right/rectify/frame", "Image");
+        has("/left/segment/labels", "SegmentationImage");
+        has("/left/segment/cells/contours", "LineStrips2D");
+        has("/right/segment/cells/contours", "LineStrips2D");
+        has("/disparity/postprocess/disparity", "DepthImage");
+        has("/disparity/match-rl/disparity", "DepthImage");
+        has("/occlusion/validate/occlusion", "Image");
+        has("/world/triangulate/cloud", "Points3D");
+        has("/world/triangulate/targets", "Points3D");
+        has("/world/triangulate/targets/contours", "LineStrips3D");
+        has("/logs/segment", "TextLog");
+        assert_eq!(frames, BTreeSet::from([0, 1]));
+    }
+}
