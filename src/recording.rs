@@ -80,7 +80,8 @@ pub fn check_viewer_target(opts: &GraphOpts) -> Result<(), CliError> {
                 .ok()
                 .and_then(|mut a| a.next())
                 .is_some_and(|a| {
-                    std::net::TcpStream::connect_timeout(&a, std::time::Duration::from_secs(2)).is_ok()
+                    std::net::TcpStream::connect_timeout(&a, std::time::Duration::from_secs(2))
+                        .is_ok()
                 });
             if !reachable {
                 return Err(CliError::Other(format!(
@@ -236,8 +237,14 @@ impl GraphOpts {
         }
         if !self.viewer.is_empty() {
             check_viewer_words(&self.viewer)?;
-            let words = self.viewer.iter().cloned().map(toml::Value::String).collect();
-            let params = toml::Table::from_iter([("target".to_string(), toml::Value::Array(words))]);
+            let words = self
+                .viewer
+                .iter()
+                .cloned()
+                .map(toml::Value::String)
+                .collect();
+            let params =
+                toml::Table::from_iter([("target".to_string(), toml::Value::Array(words))]);
             graph.add_tap(VIEWER_ID, "viewer", &[], params)?;
             let n = graph.nodes.last_mut().expect("added");
             n.runner = Runner::Exec(viewer_exe());
@@ -583,7 +590,7 @@ fn compare(
     }
     let floats = PixelFormat::from_u32(wh.format) == Some(PixelFormat::F32)
         && got.1.len() == want.1.len()
-        && got.1.len() % 4 == 0;
+        && got.1.len().is_multiple_of(4);
     let mut worst = 0f64;
     let mut first = None;
     if floats {

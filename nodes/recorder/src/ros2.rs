@@ -283,7 +283,7 @@ impl From<&Cell> for RosCell {
 
 impl RosCell {
     fn into_cell(self) -> Result<Cell, String> {
-        if self.contour.len() % 2 != 0 {
+        if !self.contour.len().is_multiple_of(2) {
             return Err(format!(
                 "cell {}: contour of {} numbers is not x, y pairs",
                 self.id,
@@ -326,7 +326,7 @@ impl From<&Cell3> for RosCell3 {
 
 impl RosCell3 {
     fn into_cell3(self) -> Result<Cell3, String> {
-        if self.contour.len() % 3 != 0 {
+        if !self.contour.len().is_multiple_of(3) {
             return Err(format!(
                 "cell {}: contour of {} numbers is not x, y, z triples",
                 self.id,

@@ -102,7 +102,9 @@ pub struct Sink {
 
 impl std::fmt::Debug for Sink {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Sink").field("metres", &self.metres).finish()
+        f.debug_struct("Sink")
+            .field("metres", &self.metres)
+            .finish()
     }
 }
 
@@ -150,7 +152,11 @@ impl Sink {
         let summary = match kind {
             MessageKind::StereoFrame | MessageKind::Image => {
                 let format = PixelFormat::from_u32(h.format);
-                for (i, data) in payload.chunks(plane.max(1)).take(h.images as usize).enumerate() {
+                for (i, data) in payload
+                    .chunks(plane.max(1))
+                    .take(h.images as usize)
+                    .enumerate()
+                {
                     let path = match kind {
                         MessageKind::Image => format!("/occlusion/{edge}"),
                         _ => format!("/{}/{edge}", sides[i.min(1)]),
@@ -188,13 +194,18 @@ impl Sink {
             }
             MessageKind::Disparity | MessageKind::DisparityPair => {
                 let mut valid = 0usize;
-                for (i, data) in payload.chunks(plane.max(1)).take(h.images as usize).enumerate() {
+                for (i, data) in payload
+                    .chunks(plane.max(1))
+                    .take(h.images as usize)
+                    .enumerate()
+                {
                     let d: Vec<f32> = data
                         .chunks_exact(4)
                         .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
                         .collect();
                     let finite = d.iter().copied().filter(|v| v.is_finite());
-                    let (lo, hi) = finite.fold((f32::MAX, f32::MIN), |(a, b), v| (a.min(v), b.max(v)));
+                    let (lo, hi) =
+                        finite.fold((f32::MAX, f32::MIN), |(a, b), v| (a.min(v), b.max(v)));
                     valid += d.iter().filter(|v| v.is_finite()).count();
                     // Rerun reads 0 as "no depth": invalid pixels become 0; the colour range
                     // is the map's own.
@@ -234,15 +245,19 @@ impl Sink {
                     let strips: Vec<Vec<[f32; 2]>> = cells
                         .iter()
                         .map(|c| {
-                            let mut s: Vec<[f32; 2]> =
-                                c.contour.iter().map(|p| [p[0] as f32, p[1] as f32]).collect();
+                            let mut s: Vec<[f32; 2]> = c
+                                .contour
+                                .iter()
+                                .map(|p| [p[0] as f32, p[1] as f32])
+                                .collect();
                             if let Some(&f) = s.first() {
                                 s.push(f);
                             }
                             s
                         })
                         .collect();
-                    let labels: Vec<String> = cells.iter().map(|c| format!("cell {}", c.id)).collect();
+                    let labels: Vec<String> =
+                        cells.iter().map(|c| format!("cell {}", c.id)).collect();
                     self.rec
                         .log(
                             format!("/{side}/{edge}/contours"),
@@ -398,7 +413,10 @@ mod tests {
             Ok(Target::Save("out.rrd".into()))
         );
         assert!(Target::parse(&w("connect")).is_err());
-        assert_eq!(host_port("rerun+http://10.0.0.2:9000/proxy"), "10.0.0.2:9000");
+        assert_eq!(
+            host_port("rerun+http://10.0.0.2:9000/proxy"),
+            "10.0.0.2:9000"
+        );
     }
 
     #[test]
@@ -407,8 +425,8 @@ mod tests {
             .memory()
             .unwrap();
         let mut sink = Sink::new(rec);
-        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("../../recordings/default.mcap");
+        let path =
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../recordings/default.mcap");
         assert_eq!(log_recording(&mut sink, &path).unwrap(), 28);
         sink.finish().unwrap();
         let mut seen: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();

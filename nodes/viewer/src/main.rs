@@ -62,7 +62,11 @@ fn tap(a: NodeCli) -> Result<(), String> {
         .params
         .get("target")
         .and_then(|v| v.as_array())
-        .map(|v| v.iter().filter_map(|s| s.as_str().map(String::from)).collect())
+        .map(|v| {
+            v.iter()
+                .filter_map(|s| s.as_str().map(String::from))
+                .collect()
+        })
         .unwrap_or_default();
     let target = Target::parse(&words)?;
     let edges: Vec<(String, schemas::MessageKind)> = spec
