@@ -221,7 +221,7 @@ impl Sink {
                     .with_meter(1.0)
                     .with_colormap(rerun::components::Colormap::Turbo);
                     if lo <= hi {
-                        img = img.with_depth_range(rerun::datatypes::Range1D::new(
+                        img = img.with_depth_range(rerun::components::ValueRange::new(
                             f64::from(lo),
                             f64::from(hi),
                         ));
@@ -427,7 +427,8 @@ mod tests {
         let mut sink = Sink::new(rec);
         let path =
             std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../recordings/default.mcap");
-        assert_eq!(log_recording(&mut sink, &path).unwrap(), 28);
+        // 28 MCAP messages: the stereo frames and label pairs are one edge message each.
+        assert_eq!(log_recording(&mut sink, &path).unwrap(), 22);
         sink.finish().unwrap();
         let mut seen: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
         let mut frames = BTreeSet::new();
