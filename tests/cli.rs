@@ -850,3 +850,88 @@ fn recording_never_overwrites_an_existing_file_by_accident() {
     ]);
     assert_clean_failure(&out, "no edge matches 'nope/*'; the edges: capture/frame");
 }
+
+#[test]
+fn a_live_run_and_a_recording_turn_into_rerun_files() {
+    let dir = tempfile::tempdir().unwrap();
+    let small = data("graph/small.toml");
+    let (rrd, rec, viewed) = (
+        dir.path().join("live.rrd"),
+        dir.path().join("live.mcap"),
+        dir.path().join("viewed.rrd"),
+    );
+    let instance = format!("viewer{}", std::process::id());
+    let out = run(&[
+        "run",
+        s(&small),
+        "--frames",
+        "2",
+        "--instance",
+        &instance,
+        "--viewer",
+        "save",
+        s(&rrd),
+        "--record",
+        s(&rec),
+    ]);
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    // The viewer took every message of every edge: 10 edges, 2 frames.
+    let row = said.lines().find(|l| l.starts_with("viewer ")).unwrap();
+    assert_eq!(row.split_whitespace().nth(1), Some("20"), "{row}");
+    let out = run(&["view", s(&rec), "-o", s(&viewed)]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    for f in [&rrd, &viewed] {
+        let b = std::fs::read(f).unwrap();
+        assert!(
+            b.len() > 100_000 && b.starts_with(b"RRF2"),
+            "{}: {} bytes",
+            f.display(),
+            b.len()
+        );
+    }
+}
+
+#[test]
+fn a_viewer_that_cannot_work_is_refused_before_the_graph_starts() {
+    let dir = tempfile::tempdir().unwrap();
+    // Nothing listens on port 1.
+    assert_clean_failure(
+        &run(&["run", "--frames", "1", "--viewer", "connect", "127.0.0.1:1"]),
+        "--viewer connect 127.0.0.1:1: no Rerun viewer is listening there",
+    );
+    let old = dir.path().join("old.rrd");
+    std::fs::write(&old, b"kept").unwrap();
+    assert_clean_failure(
+        &run(&["run", "--frames", "1", "--viewer", "save", s(&old)]),
+        "the file exists",
+    );
+    assert_eq!(std::fs::read(&old).unwrap(), b"kept");
+    assert_clean_failure(
+        &run(&["run", "--frames", "1", "--viewer", "show"]),
+        "give spawn, connect HOST:PORT or save FILE.rrd",
+    );
+    let out = bin()
+        .args(["run", "--frames", "1", "--viewer", "spawn"])
+        .env("PATH", dir.path())
+        .output()
+        .unwrap();
+    assert_clean_failure(
+        &out,
+        "which is not on PATH; install it with `pip install rerun-sdk==0.36.*`",
+    );
+    let junk = dir.path().join("junk.mcap");
+    std::fs::write(&junk, b"no").unwrap();
+    assert_clean_failure(
+        &run(&["view", s(&junk), "-o", s(&dir.path().join("x.rrd"))]),
+        "not an MCAP file",
+    );
+}
