@@ -41,6 +41,9 @@ def check(path):
                 for c in list(ros.left) + list(ros.right):
                     if len(c.contour) % 2 or not (c.x0 <= c.centroid[0] <= c.x1):
                         problems.append(f"{channel.topic}: cell {c.id} malformed")
+            elif schema.name == "sensor_msgs/msg/CameraInfo":
+                if len(ros.k) != 9 or len(ros.p) != 12 or ros.k[0] <= 0 or ros.width == 0:
+                    problems.append(f"{channel.topic}: camera info k={list(ros.k)} p={list(ros.p)}")
             elif schema.name == "microstereo_msgs/msg/Targets":
                 if ros.capture_ns != message.publish_time:
                     problems.append(f"{channel.topic}: capture_ns {ros.capture_ns} ≠ publish time")

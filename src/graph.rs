@@ -186,8 +186,14 @@ pub fn node_cmd(a: NodeArgs) -> Result<(), CliError> {
         )));
     };
     if kind == recorder::node::RECORDER_KIND {
-        let stats = recorder::node::run_recorder(&graph, &a.instance, &a.id, a.frames)
-            .map_err(|e| CliError::Other(format!("node '{}': {e}", a.id)))?;
+        let stats = recorder::node::run_recorder(
+            &graph,
+            &a.instance,
+            &a.id,
+            a.frames,
+            graph_calibration(&graph),
+        )
+        .map_err(|e| CliError::Other(format!("node '{}': {e}", a.id)))?;
         println!(
             "{STATS_PREFIX}{}",
             serde_json::to_string(&stats).expect("serialises")
@@ -207,6 +213,40 @@ pub fn node_cmd(a: NodeArgs) -> Result<(), CliError> {
         serde_json::to_string(&stats).expect("serialises")
     );
     Ok(())
+}
+
+/// The calibration the graph's triangulate node uses, with the image size, when the launch
+/// file says both (a synthetic capture, or a capture with `width` and `height`).
+pub fn graph_calibration(graph: &Graph) -> Option<(schemas::Calibration, (usize, usize))> {
+    let of_kind = |kind: &str| {
+        graph
+            .nodes
+            .iter()
+            .find(|n| matches!(&n.runner, Runner::Builtin(k) if k == kind))
+    };
+    let (tri, cap) = (of_kind("triangulate")?, of_kind("capture")?);
+    let size = match cap.params.get("source").and_then(|s| s.as_str()) {
+        None | Some("synthetic") => {
+            let p = capture::synthetic::SyntheticParams::from_table(&cap.params).ok()?;
+            (p.width, p.height)
+        }
+        _ => {
+            let dim = |k: &str| cap.params.get(k)?.as_integer().map(|v| v as usize);
+            (dim("width")?, dim("height")?)
+        }
+    };
+    let p = crate::nodes::TriangulateParams::from_table(&tri.params).ok()?;
+    let calib = if p.calibration == "synthetic" {
+        synth::Optics {
+            width: size.0,
+            height: size.1,
+            ..synth::Optics::default()
+        }
+        .calibration()
+    } else {
+        crate::cli::load_calibration(Path::new(&p.calibration), size.0, size.1).ok()?
+    };
+    Some((calib, size))
 }
 
 /// The command line the supervisor gives an `exec` node.

@@ -739,7 +739,7 @@ fn inspect_lists_the_bundled_recording() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    assert!(said.contains("28 messages on 14 channels"), "{said}");
+    assert!(said.contains("30 messages on 16 channels"), "{said}");
     assert!(said.contains("frames 0–1"), "{said}");
     for (topic, ty) in [
         ("/rectify/frame/left", "sensor_msgs/msg/Image"),
@@ -754,6 +754,13 @@ fn inspect_lists_the_bundled_recording() {
         assert!(line.contains(ty), "{line}");
         assert_eq!(line.split_whitespace().nth(2), Some("2"), "{line}");
     }
+    // The calibration, once per camera.
+    let line = said
+        .lines()
+        .find(|l| l.trim_start().starts_with("/calibration/right"))
+        .unwrap();
+    assert!(line.contains("sensor_msgs/msg/CameraInfo"), "{line}");
+    assert_eq!(line.split_whitespace().nth(2), Some("1"), "{line}");
 }
 
 #[test]

@@ -731,6 +731,25 @@ fn a_replayed_recording_reproduces_every_downstream_edge_bit_for_bit() {
         assert_eq!(h, h2, "{key:?}");
         assert!(p == p2, "{key:?}: payloads differ");
     }
+    // In a loop the four recorded frames come round again with frame numbers running on.
+    let out = run(&[
+        "replay",
+        a.to_str().unwrap(),
+        "--rate",
+        "max",
+        "--loop",
+        "--frames",
+        "10",
+        "--instance",
+        &format!("loop{id}"),
+    ]);
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(said.contains("10 frame(s) of 10"), "{said}");
 }
 
 #[test]

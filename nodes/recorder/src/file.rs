@@ -22,6 +22,8 @@ pub const META_EDGE: &str = "microstereo.edge";
 pub const META_KIND: &str = "microstereo.kind";
 /// Channel metadata key: `left` or `right` for one image of a two-image message.
 pub const META_SIDE: &str = "microstereo.side";
+/// Channel metadata key of a calibration channel: the camera (`left` or `right`).
+pub const META_CAMERA: &str = "microstereo.camera";
 /// Name of the metadata record holding the run's launch file (`text`, `path`).
 pub const META_LAUNCH: &str = "microstereo.launch";
 
@@ -173,6 +175,54 @@ impl RecordingWriter {
                 metadata,
             })
             .map_err(err)
+    }
+
+    /// Writes each rectified camera's `sensor_msgs/msg/CameraInfo` from `calib` on
+    /// `/calibration/left` and `/calibration/right`.
+    pub fn write_calibration(
+        &mut self,
+        calib: &schemas::Calibration,
+        size: (usize, usize),
+        log_time: u64,
+    ) -> Result<(), RecordingError> {
+        let err = self.mcap_err("writing the calibration");
+        let schema = self
+            .mcap
+            .add_schema(
+                ros2::CAMERA_INFO.name,
+                "ros2msg",
+                ros2::CAMERA_INFO.definition.as_bytes(),
+            )
+            .map_err(err)?;
+        for side in ["left", "right"] {
+            let cdr = ros2::camera_info(calib, size, side, log_time).map_err(|reason| {
+                RecordingError::Message {
+                    path: self.path.clone(),
+                    topic: format!("/calibration/{side}"),
+                    sequence: 0,
+                    reason,
+                }
+            })?;
+            let meta = BTreeMap::from([(META_CAMERA.to_string(), side.to_string())]);
+            let err = self.mcap_err("writing the calibration");
+            let channel_id = self
+                .mcap
+                .add_channel(schema, &format!("/calibration/{side}"), "cdr", &meta)
+                .map_err(err)?;
+            let err = self.mcap_err("writing the calibration");
+            self.mcap
+                .write_to_known_channel(
+                    &MessageHeader {
+                        channel_id,
+                        sequence: 0,
+                        log_time,
+                        publish_time: log_time,
+                    },
+                    &cdr,
+                )
+                .map_err(err)?;
+        }
+        Ok(())
     }
 
     fn channel(

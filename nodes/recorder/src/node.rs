@@ -42,12 +42,14 @@ struct Taken {
 
 /// Runs node `id` of `graph` as the recorder: every message on its inputs is copied out of
 /// shared memory at once and written by a second thread (CDR, zstd chunks, a flush at least
-/// every second). Messages that found the writer's queue full count as dropped.
+/// every second). Messages that found the writer's queue full count as dropped. With a
+/// `calibration` (and its image size), each camera's CameraInfo is recorded first.
 pub fn run_recorder(
     graph: &Graph,
     instance: &str,
     id: &str,
     frames: Option<u64>,
+    calibration: Option<(schemas::Calibration, (usize, usize))>,
 ) -> Result<NodeStats, String> {
     let spec = graph
         .node(id)
@@ -69,6 +71,11 @@ pub fn run_recorder(
     if let Ok(text) = std::fs::read_to_string(&graph.file) {
         writer
             .write_launch(&graph.file, &text)
+            .map_err(|e| e.to_string())?;
+    }
+    if let Some((c, size)) = &calibration {
+        writer
+            .write_calibration(c, *size, now_ns())
             .map_err(|e| e.to_string())?;
     }
     let (tx, rx) = sync_channel::<Taken>(QUEUE);

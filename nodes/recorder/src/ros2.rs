@@ -88,6 +88,97 @@ pub const POINT_CLOUD2: MsgType = MsgType {
     ),
 };
 
+/// `sensor_msgs/msg/CameraInfo`: each rectified camera's projection, from the calibration.
+pub const CAMERA_INFO: MsgType = MsgType {
+    name: "sensor_msgs/msg/CameraInfo",
+    definition: concat!(
+        "std_msgs/Header header\n",
+        "uint32 height\n",
+        "uint32 width\n",
+        "string distortion_model\n",
+        "float64[] d\n",
+        "float64[9] k\n",
+        "float64[9] r\n",
+        "float64[12] p\n",
+        "uint32 binning_x\n",
+        "uint32 binning_y\n",
+        "RegionOfInterest roi\n",
+        header_defs!(),
+        sep!(),
+        "MSG: sensor_msgs/RegionOfInterest\n",
+        "uint32 x_offset\n",
+        "uint32 y_offset\n",
+        "uint32 height\n",
+        "uint32 width\n",
+        "bool do_rectify\n"
+    ),
+};
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+struct RegionOfInterest {
+    x_offset: u32,
+    y_offset: u32,
+    height: u32,
+    width: u32,
+    do_rectify: bool,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+struct CameraInfo {
+    header: Header,
+    height: u32,
+    width: u32,
+    distortion_model: String,
+    d: Vec<f64>,
+    k: [f64; 9],
+    r: [f64; 9],
+    p: [f64; 12],
+    binning_x: u32,
+    binning_y: u32,
+    roi: RegionOfInterest,
+}
+
+/// The `sensor_msgs/msg/CameraInfo` of one rectified camera (`left` or `right`) of
+/// `calib` for `width × height` images, in the ROS convention: no distortion, identity
+/// rectification, and the right camera's `P[3] = −f·baseline` with the baseline in metres.
+pub fn camera_info(
+    calib: &schemas::Calibration,
+    (width, height): (usize, usize),
+    side: &str,
+    capture_ns: u64,
+) -> Result<Vec<u8>, String> {
+    let f = calib.focal_px;
+    let metres = match calib.unit {
+        schemas::LengthUnit::Um => 1e-6,
+        schemas::LengthUnit::Mm => 1e-3,
+        schemas::LengthUnit::M => 1.0,
+    };
+    let (cx, tx) = if side == "right" {
+        (calib.cx_right, -f * calib.baseline * metres)
+    } else {
+        (calib.cx, 0.0)
+    };
+    to_cdr(&CameraInfo {
+        header: Header::new(capture_ns, side),
+        height: height as u32,
+        width: width as u32,
+        distortion_model: "plumb_bob".into(),
+        d: vec![0.0; 5],
+        k: [f, 0.0, cx, 0.0, f, calib.cy, 0.0, 0.0, 1.0],
+        r: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+        p: [f, 0.0, cx, tx, 0.0, f, calib.cy, 0.0, 0.0, 0.0, 1.0, 0.0],
+        binning_x: 0,
+        binning_y: 0,
+        roi: RegionOfInterest {
+            x_offset: 0,
+            y_offset: 0,
+            height: 0,
+            width: 0,
+            do_rectify: false,
+        },
+    })
+}
+
 macro_rules! cell_def {
     () => {
         concat!(
@@ -749,6 +840,27 @@ mod tests {
         want.extend(2u32.to_le_bytes()); // data length
         want.extend([9, 8]);
         assert_eq!(b, &want);
+    }
+
+    #[test]
+    fn camera_info_holds_the_projection_with_the_baseline_in_metres() {
+        let calib = schemas::Calibration {
+            baseline: 2000.0,
+            focal_px: 4000.0,
+            cx: 320.0,
+            cy: 256.0,
+            cx_right: 330.0,
+            unit: schemas::LengthUnit::Um,
+        };
+        let b = camera_info(&calib, (640, 512), "right", 5).unwrap();
+        let c: CameraInfo = from_cdr(&b, CAMERA_INFO.name).unwrap();
+        assert_eq!((c.width, c.height), (640, 512));
+        assert_eq!(c.k, [4000.0, 0.0, 330.0, 0.0, 4000.0, 256.0, 0.0, 0.0, 1.0]);
+        // −f·B with B = 2000 µm = 0.002 m.
+        assert!((c.p[3] + 8.0).abs() < 1e-12, "{}", c.p[3]);
+        let l: CameraInfo =
+            from_cdr(&camera_info(&calib, (640, 512), "left", 5).unwrap(), "").unwrap();
+        assert_eq!((l.k[2], l.p[3]), (320.0, 0.0));
     }
 
     #[test]
