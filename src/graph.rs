@@ -398,6 +398,11 @@ fn spawn(
     cmd.args(opts.to_args());
     cmd.stdout(Stdio::piped())
         .stderr(Stdio::piped())
+        .stdin(if id == crate::recording::VIEWER_ID {
+            Stdio::piped()
+        } else {
+            Stdio::null()
+        })
         .kill_on_drop(true);
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: only async-signal-safe prctl between fork and exec.
@@ -413,9 +418,13 @@ fn spawn(
 
 type StatsSink = std::sync::Arc<std::sync::Mutex<HashMap<String, NodeStats>>>;
 
-fn forward_logs(id: &str, child: &mut tokio::process::Child, stats: &StatsSink) {
+/// Where node log lines go besides the terminal: the Rerun viewer node's stdin, as
+/// `NODE<TAB>LEVEL<TAB>LINE`.
+type LogTap = Option<tokio::sync::mpsc::UnboundedSender<String>>;
+
+fn forward_logs(id: &str, child: &mut tokio::process::Child, stats: &StatsSink, tap: &LogTap) {
     if let Some(out) = child.stdout.take() {
-        let (id, stats) = (id.to_string(), stats.clone());
+        let (id, stats, tap) = (id.to_string(), stats.clone(), tap.clone());
         tokio::spawn(async move {
             let mut lines = BufReader::new(out).lines();
             while let Ok(Some(l)) = lines.next_line().await {
@@ -425,21 +434,49 @@ fn forward_logs(id: &str, child: &mut tokio::process::Child, stats: &StatsSink) 
                             stats.lock().expect("stats").insert(id.clone(), s);
                         }
                     }
-                    None => println!("[{id}] {l}"),
+                    None => {
+                        if let Some(t) = &tap {
+                            let _ = t.send(format!("{id}\tINFO\t{l}"));
+                        }
+                        println!("[{id}] {l}")
+                    }
                 }
             }
         });
     }
     if let Some(err) = child.stderr.take() {
-        let id = id.to_string();
+        let (id, tap) = (id.to_string(), tap.clone());
         tokio::spawn(async move {
             let mut lines = BufReader::new(err).lines();
             while let Ok(Some(l)) = lines.next_line().await {
+                if let Some(t) = &tap {
+                    let _ = t.send(format!("{id}\tWARN\t{l}"));
+                }
                 eprintln!("[{id}] {l}");
             }
         });
     }
+    // The viewer reads the other nodes' log lines on its stdin.
+    if id == crate::recording::VIEWER_ID
+        && let Some(mut stdin) = child.stdin.take()
+        && let Some(rx) = VIEWER_LOGS.lock().expect("logs").take()
+    {
+        use tokio::io::AsyncWriteExt;
+        let mut rx: tokio::sync::mpsc::UnboundedReceiver<String> = rx;
+        tokio::spawn(async move {
+            while let Some(mut line) = rx.recv().await {
+                line.push('\n');
+                if stdin.write_all(line.as_bytes()).await.is_err() {
+                    break;
+                }
+            }
+        });
+    }
 }
+
+/// The receiving end of the log tap, taken by the first viewer process started.
+static VIEWER_LOGS: std::sync::Mutex<Option<tokio::sync::mpsc::UnboundedReceiver<String>>> =
+    std::sync::Mutex::new(None);
 
 fn terminate(children: &[Child]) {
     for c in children {
@@ -463,10 +500,15 @@ async fn supervise(
         .clone()
         .unwrap_or_else(|| format!("run{}", std::process::id()));
     let start = Instant::now();
+    let tap: LogTap = graph.node(crate::recording::VIEWER_ID).map(|_| {
+        let (tx, rx) = tokio::sync::mpsc::unbounded_channel();
+        *VIEWER_LOGS.lock().expect("logs") = Some(rx);
+        tx
+    });
     let mut children = Vec::new();
     for n in &graph.nodes {
         let mut proc = spawn(graph, &instance, &n.id, a.frames, &a.opts)?;
-        forward_logs(&n.id, &mut proc, &stats);
+        forward_logs(&n.id, &mut proc, &stats, &tap);
         children.push(Child {
             id: n.id.clone(),
             proc,
@@ -545,7 +587,7 @@ async fn supervise(
                 }
             }
             let mut proc = spawn(graph, &instance, &c.id, a.frames, &a.opts)?;
-            forward_logs(&c.id, &mut proc, &stats);
+            forward_logs(&c.id, &mut proc, &stats, &tap);
             children.push(Child {
                 id: c.id,
                 proc,

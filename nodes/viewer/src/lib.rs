@@ -384,6 +384,24 @@ impl Sink {
     }
 }
 
+/// Logs one line a node wrote, as the supervisor forwards it (`NODE<TAB>LEVEL<TAB>LINE`),
+/// under `/logs/nodes/NODE`.
+pub fn log_node_line(rec: &RecordingStream, line: &str) {
+    let mut parts = line.splitn(3, '\t');
+    let (Some(node), Some(level), Some(text)) = (parts.next(), parts.next(), parts.next()) else {
+        return;
+    };
+    let level = if level == "WARN" {
+        rerun::TextLogLevel::WARN
+    } else {
+        rerun::TextLogLevel::INFO
+    };
+    let _ = rec.log(
+        format!("/logs/nodes/{node}"),
+        &rerun::TextLog::new(text).with_level(level),
+    );
+}
+
 /// Logs every message of a recording (what `microstereo view` shows).
 pub fn log_recording(sink: &mut Sink, path: &std::path::Path) -> Result<u64, String> {
     let mut n = 0;
@@ -399,6 +417,31 @@ pub fn log_recording(sink: &mut Sink, path: &std::path::Path) -> Result<u64, Str
 mod tests {
     use super::*;
     use std::collections::{BTreeMap, BTreeSet};
+
+    #[test]
+    fn node_log_lines_become_text_logs_per_node() {
+        let (rec, storage) = rerun::RecordingStreamBuilder::new("microstereo-test")
+            .memory()
+            .unwrap();
+        log_node_line(&rec, "segment\tWARN\tslow frame");
+        log_node_line(&rec, "not a forwarded line");
+        rec.flush_blocking().unwrap();
+        let paths: Vec<String> = storage
+            .take()
+            .into_iter()
+            .filter_map(|m| match m {
+                rerun::log::LogMsg::ArrowMsg(_, a) => Some(
+                    rerun::log::Chunk::from_arrow_msg(&a)
+                        .unwrap()
+                        .entity_path()
+                        .to_string(),
+                ),
+                _ => None,
+            })
+            .filter(|p| p.starts_with("/logs"))
+            .collect();
+        assert_eq!(paths, ["/logs/nodes/segment"]);
+    }
 
     #[test]
     fn viewer_words_and_addresses() {

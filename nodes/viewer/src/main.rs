@@ -82,6 +82,14 @@ fn tap(a: NodeCli) -> Result<(), String> {
         })
         .collect::<Result<_, String>>()?;
     let mut sink = Sink::new(viewer::open(&target)?);
+    // The supervisor writes the other nodes' log lines to this process's stdin.
+    let rec = sink.stream().clone();
+    std::thread::spawn(move || {
+        use std::io::BufRead;
+        for line in std::io::stdin().lock().lines().map_while(Result::ok) {
+            viewer::log_node_line(&rec, &line);
+        }
+    });
     let stats = runtime::process::run_tap(
         &graph,
         &a.instance,
