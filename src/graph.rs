@@ -322,8 +322,8 @@ pub struct RunArgs {
 
 /// Runs the graph: one process per node, logs prefixed, restarts, clean stop, summary.
 pub fn run_cmd(a: RunArgs) -> Result<(), CliError> {
-    crate::recording::check_record_target(&a.opts)?;
-    crate::recording::check_viewer_target(&a.opts)?;
+    crate::recording::check_record_target(&a.opts.out)?;
+    crate::recording::check_viewer_target(&a.opts.out)?;
     let graph = crate::recording::load_with(&a.launch, &a.opts)?;
     let stale = runtime::process::remove_stale_resources();
     if stale.removed > 0 || stale.empty_files > 0 {
@@ -347,7 +347,7 @@ pub fn run_cmd(a: RunArgs) -> Result<(), CliError> {
         .map_err(|e| CliError::Other(format!("cannot start the supervisor: {e}")))?;
     let (stats, wall) = rt.block_on(supervise(&graph, &a))?;
     print_summary(&graph, &stats, wall, a.frames);
-    if let Some(path) = &a.opts.record {
+    if let Some(path) = &a.opts.out.record {
         let written = stats
             .get(crate::recording::RECORDER_ID)
             .map_or(0, |s| s.frames_out);

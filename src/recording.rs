@@ -46,7 +46,7 @@ fn check_viewer_words(w: &[String]) -> Result<(), String> {
 /// Checks, before anything starts, that `--viewer` can work: the viewer binary is built,
 /// a viewer to spawn is installed, a viewer to connect to is listening, a file to save
 /// does not exist yet.
-pub fn check_viewer_target(opts: &GraphOpts) -> Result<(), CliError> {
+pub fn check_viewer_target(opts: &OutputOpts) -> Result<(), CliError> {
     if opts.viewer.is_empty() {
         return Ok(());
     }
@@ -118,13 +118,13 @@ pub struct ViewArgs {
 /// Shows a recording in Rerun, through the viewer binary (the same code as `--viewer`).
 pub fn view(a: ViewArgs) -> Result<(), CliError> {
     readable(&a.file)?;
-    let mut opts = GraphOpts {
+    let mut opts = OutputOpts {
         viewer: match (&a.output, &a.connect) {
             (Some(p), _) => vec!["save".into(), p.display().to_string()],
             (None, Some(c)) => vec!["connect".into(), c.clone()],
             (None, None) => vec!["spawn".into()],
         },
-        ..GraphOpts::default()
+        ..OutputOpts::default()
     };
     check_viewer_target(&opts)?;
     let mut cmd = std::process::Command::new(viewer_exe());
@@ -144,9 +144,9 @@ pub fn view(a: ViewArgs) -> Result<(), CliError> {
     }
 }
 
-/// How a run changes its launch file's graph: a recorder tap, replay sources.
+/// Where a run's edges go besides the graph: a recording, a Rerun viewer.
 #[derive(Args, Debug, Clone, Default)]
-pub struct GraphOpts {
+pub struct OutputOpts {
     /// Record the graph's edges into this MCAP file (ros2 profile, CDR messages).
     #[arg(long)]
     pub record: Option<PathBuf>,
@@ -161,6 +161,14 @@ pub struct GraphOpts {
     /// `save FILE.rrd` (needs the viewer binary: cargo build --release -p viewer).
     #[arg(long, num_args = 1..=2, value_names = ["MODE", "WHERE"])]
     pub viewer: Vec<String>,
+}
+
+/// How a run changes its launch file's graph: a recorder tap, a viewer tap, replay sources.
+#[derive(Args, Debug, Clone, Default)]
+pub struct GraphOpts {
+    /// Recording and viewer.
+    #[command(flatten)]
+    pub out: OutputOpts,
     /// Replay this recording in place of the --replace nodes (set by `replay`).
     #[arg(long, hide = true)]
     pub replay: Option<PathBuf>,
@@ -179,20 +187,21 @@ impl GraphOpts {
     /// The same options as arguments for a node process.
     pub fn to_args(&self) -> Vec<String> {
         let mut v = Vec::new();
-        if let Some(r) = &self.record {
+        let out = &self.out;
+        if let Some(r) = &out.record {
             v.push("--record".into());
             v.push(r.display().to_string());
-            if !self.edges.is_empty() {
+            if !out.edges.is_empty() {
                 v.push("--edges".into());
-                v.extend(self.edges.iter().cloned());
+                v.extend(out.edges.iter().cloned());
             }
-            if self.overwrite {
+            if out.overwrite {
                 v.push("--overwrite".into());
             }
         }
-        if !self.viewer.is_empty() {
+        if !out.viewer.is_empty() {
             v.push("--viewer".into());
-            v.extend(self.viewer.iter().cloned());
+            v.extend(out.viewer.iter().cloned());
         }
         if let Some(r) = &self.replay {
             v.push("--replay".into());
@@ -222,22 +231,20 @@ impl GraphOpts {
             ]);
             graph.replace_with_sources(&self.replace, REPLAY_KIND, &params)?;
         }
-        if let Some(path) = &self.record {
+        let out = &self.out;
+        if let Some(path) = &out.record {
             let params = toml::Table::from_iter([
                 (
                     "path".to_string(),
                     toml::Value::String(path.display().to_string()),
                 ),
-                (
-                    "overwrite".to_string(),
-                    toml::Value::Boolean(self.overwrite),
-                ),
+                ("overwrite".to_string(), toml::Value::Boolean(out.overwrite)),
             ]);
-            graph.add_tap(RECORDER_ID, RECORDER_KIND, &self.edges, params)?;
+            graph.add_tap(RECORDER_ID, RECORDER_KIND, &out.edges, params)?;
         }
-        if !self.viewer.is_empty() {
-            check_viewer_words(&self.viewer)?;
-            let words = self
+        if !out.viewer.is_empty() {
+            check_viewer_words(&out.viewer)?;
+            let words = out
                 .viewer
                 .iter()
                 .cloned()
@@ -278,7 +285,7 @@ pub fn build_spec(spec: &NodeSpec) -> Result<Box<dyn GraphNode>, String> {
 }
 
 /// Checks, before anything starts, that `--record` can create its file.
-pub fn check_record_target(opts: &GraphOpts) -> Result<(), CliError> {
+pub fn check_record_target(opts: &OutputOpts) -> Result<(), CliError> {
     let Some(path) = &opts.record else {
         return Ok(());
     };
@@ -445,18 +452,9 @@ pub struct ReplayArgs {
     /// Names this run's shared memory (default: the supervisor's process id).
     #[arg(long)]
     pub instance: Option<String>,
-    /// Record the replayed graph's edges into this MCAP file.
-    #[arg(long)]
-    pub record: Option<PathBuf>,
-    /// Record only the edges that match one of these.
-    #[arg(long, num_args = 1.., requires = "record")]
-    pub edges: Vec<String>,
-    /// Replace the file given to --record if it exists.
-    #[arg(long, requires = "record")]
-    pub overwrite: bool,
-    /// Show the replayed graph in Rerun: spawn, connect HOST:PORT or save FILE.rrd.
-    #[arg(long, num_args = 1..=2, value_names = ["MODE", "WHERE"])]
-    pub viewer: Vec<String>,
+    /// Recording and viewer of the replayed graph.
+    #[command(flatten)]
+    pub out: OutputOpts,
 }
 
 /// Runs a launch file's graph with recorded edges in place of the replaced nodes.
@@ -477,16 +475,13 @@ pub fn replay(a: ReplayArgs) -> Result<(), CliError> {
 fn replay_with(a: &ReplayArgs, o: &Overview, launch: PathBuf) -> Result<(), CliError> {
     let file = std::path::absolute(&a.file).unwrap_or(a.file.clone());
     let opts = GraphOpts {
-        record: a.record.clone(),
-        edges: a.edges.clone(),
-        overwrite: a.overwrite,
+        out: a.out.clone(),
         replay: Some(file),
         replace: a.replace.clone(),
         rate: a.rate.clone(),
         looped: a.looped,
-        viewer: a.viewer.clone(),
     };
-    check_record_target(&opts)?;
+    check_record_target(&opts.out)?;
     let base = crate::graph::load(&launch)?;
     let replaced: Vec<(String, MessageKind)> = a
         .replace
@@ -684,18 +679,7 @@ pub fn test_node(
             "node '{id}' is an exec node; test-node runs built-in kinds"
         )));
     };
-    let inputs: Vec<(String, MessageKind)> = spec
-        .inputs
-        .iter()
-        .map(|i| {
-            let k = graph
-                .node(&i.node)
-                .and_then(|n| n.outputs.iter().find(|(p, _)| *p == i.output))
-                .map(|(_, k)| *k)
-                .expect("validated");
-            (format!("{}/{}", i.node, i.output), k)
-        })
-        .collect();
+    let inputs = graph.input_edges(id);
     let outputs: Vec<(String, MessageKind)> = spec
         .outputs
         .iter()

@@ -279,6 +279,23 @@ impl Graph {
             .collect()
     }
 
+    /// The inputs of node `id` as `(NODE/OUTPUT, message)`, in its port order.
+    pub fn input_edges(&self, id: &str) -> Vec<(String, MessageKind)> {
+        self.node(id).map_or_else(Vec::new, |n| {
+            n.inputs
+                .iter()
+                .filter_map(|i| {
+                    let (_, kind) = self
+                        .node(&i.node)?
+                        .outputs
+                        .iter()
+                        .find(|(o, _)| *o == i.output)?;
+                    Some((format!("{}/{}", i.node, i.output), *kind))
+                })
+                .collect()
+        })
+    }
+
     /// Adds node `id` of built-in `kind` reading every edge that matches one of `patterns`
     /// (`NODE/OUTPUT`, `*` for any characters; no pattern: every edge), each under the port
     /// `NODE.OUTPUT` and with the edge's own queue settings. A pattern that matches nothing

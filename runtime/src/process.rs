@@ -91,6 +91,39 @@ fn reader_name(id: &str, port: &str) -> String {
     format!("{id}.{port}")
 }
 
+/// The reading ends of node `spec`'s inputs in run `instance`, named so its writers see them.
+fn readers(
+    transport: &Transport,
+    graph: &Graph,
+    instance: &str,
+    spec: &crate::launch::NodeSpec,
+) -> Result<Vec<EdgeSubscriber>, String> {
+    spec.inputs
+        .iter()
+        .map(|i| {
+            transport.reader(
+                &Graph::edge_name(instance, &i.node, &i.output),
+                &graph.edge_config(&i.node, &i.output),
+                Some(&reader_name(&spec.id, &i.port)),
+            )
+        })
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| e.to_string())
+}
+
+/// What each input of `spec` lost, from its reading end.
+fn input_stats(spec: &crate::launch::NodeSpec, subs: &[EdgeSubscriber]) -> Vec<InputStats> {
+    spec.inputs
+        .iter()
+        .zip(subs)
+        .map(|(i, s)| InputStats {
+            port: i.port.clone(),
+            dropped: s.dropped(),
+            missing: s.missing(),
+        })
+        .collect()
+}
+
 /// The `q` quantile of `v` (sorted in place; 0 when empty).
 pub(crate) fn percentile(v: &mut [f64], q: f64) -> f64 {
     if v.is_empty() {
@@ -125,18 +158,7 @@ pub fn run_node(
         })
         .collect::<Result<Vec<_>, _>>()
         .map_err(|e| e.to_string())?;
-    let subs = spec
-        .inputs
-        .iter()
-        .map(|i| {
-            transport.reader(
-                &Graph::edge_name(instance, &i.node, &i.output),
-                &graph.edge_config(&i.node, &i.output),
-                Some(&reader_name(id, &i.port)),
-            )
-        })
-        .collect::<Result<Vec<_>, _>>()
-        .map_err(|e| e.to_string())?;
+    let subs = readers(&transport, graph, instance, spec)?;
     // A frame sent before a reader connects never reaches it (edges keep no history): wait
     // until every reader the graph names is there (readers outside the graph, such as a
     // recorder or a test, do not count). Only at start, so a short sleep is fine.
@@ -280,16 +302,7 @@ pub fn run_node(
         frames_out: out.sent,
         mean_ms,
         p99_ms: percentile(&mut times, 0.99),
-        inputs: spec
-            .inputs
-            .iter()
-            .zip(&subs)
-            .map(|(i, s)| InputStats {
-                port: i.port.clone(),
-                dropped: s.dropped(),
-                missing: s.missing(),
-            })
-            .collect(),
+        inputs: input_stats(spec, &subs),
         latency_ms: if latencies.is_empty() {
             0.0
         } else {
@@ -315,18 +328,7 @@ pub fn run_tap(
         .node(id)
         .ok_or_else(|| format!("no node '{id}' in {}", graph.file.display()))?;
     let transport = Transport::new(&format!("{instance}/{id}")).map_err(|e| e.to_string())?;
-    let subs = spec
-        .inputs
-        .iter()
-        .map(|i| {
-            transport.reader(
-                &Graph::edge_name(instance, &i.node, &i.output),
-                &graph.edge_config(&i.node, &i.output),
-                Some(&reader_name(id, &i.port)),
-            )
-        })
-        .collect::<Result<Vec<_>, _>>()
-        .map_err(|e| e.to_string())?;
+    let subs = readers(&transport, graph, instance, spec)?;
     let refs: Vec<&EdgeSubscriber> = subs.iter().collect();
     let mut finished = vec![false; subs.len()];
     let mut times = Vec::new();
@@ -362,16 +364,7 @@ pub fn run_tap(
         frames_out: 0,
         mean_ms,
         p99_ms: percentile(&mut times, 0.99),
-        inputs: spec
-            .inputs
-            .iter()
-            .zip(&subs)
-            .map(|(i, s)| InputStats {
-                port: i.port.clone(),
-                dropped: s.dropped(),
-                missing: s.missing(),
-            })
-            .collect(),
+        inputs: input_stats(spec, &subs),
         latency_ms: 0.0,
         last_frame,
     })

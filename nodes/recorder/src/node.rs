@@ -55,18 +55,7 @@ pub fn run_recorder(
         .node(id)
         .ok_or_else(|| format!("no node '{id}' in {}", graph.file.display()))?;
     let p: RecorderParams = params(&spec.params)?;
-    let edges: Vec<(String, MessageKind)> = spec
-        .inputs
-        .iter()
-        .map(|i| {
-            let kind = graph
-                .node(&i.node)
-                .and_then(|n| n.outputs.iter().find(|(o, _)| *o == i.output))
-                .map(|(_, k)| *k)
-                .ok_or_else(|| format!("no output {}/{}", i.node, i.output))?;
-            Ok((format!("{}/{}", i.node, i.output), kind))
-        })
-        .collect::<Result<_, String>>()?;
+    let edges = graph.input_edges(id);
     let mut writer = RecordingWriter::create(&p.path, p.overwrite).map_err(|e| e.to_string())?;
     if let Ok(text) = std::fs::read_to_string(&graph.file) {
         writer

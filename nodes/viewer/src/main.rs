@@ -69,18 +69,7 @@ fn tap(a: NodeCli) -> Result<(), String> {
         })
         .unwrap_or_default();
     let target = Target::parse(&words)?;
-    let edges: Vec<(String, schemas::MessageKind)> = spec
-        .inputs
-        .iter()
-        .map(|i| {
-            let kind = graph
-                .node(&i.node)
-                .and_then(|n| n.outputs.iter().find(|(o, _)| *o == i.output))
-                .map(|(_, k)| *k)
-                .ok_or_else(|| format!("no output {}/{}", i.node, i.output))?;
-            Ok((format!("{}/{}", i.node, i.output), kind))
-        })
-        .collect::<Result<_, String>>()?;
+    let edges = graph.input_edges(&a.id);
     let mut sink = Sink::new(viewer::open(&target)?);
     // The supervisor writes the other nodes' log lines to this process's stdin.
     let rec = sink.stream().clone();
