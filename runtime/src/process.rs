@@ -124,6 +124,15 @@ fn input_stats(spec: &crate::launch::NodeSpec, subs: &[EdgeSubscriber]) -> Vec<I
         .collect()
 }
 
+/// The mean of `v` (0 when empty).
+fn mean(v: &[f64]) -> f64 {
+    if v.is_empty() {
+        0.0
+    } else {
+        v.iter().sum::<f64>() / v.len() as f64
+    }
+}
+
 /// The `q` quantile of `v` (sorted in place; 0 when empty).
 pub(crate) fn percentile(v: &mut [f64], q: f64) -> f64 {
     if v.is_empty() {
@@ -291,23 +300,14 @@ pub fn run_node(
         }
     }
     let steps = times.len() as u64;
-    let mean_ms = if times.is_empty() {
-        0.0
-    } else {
-        times.iter().sum::<f64>() / times.len() as f64
-    };
     Ok(NodeStats {
         id: id.into(),
         frames_in: steps,
         frames_out: out.sent,
-        mean_ms,
+        mean_ms: mean(&times),
         p99_ms: percentile(&mut times, 0.99),
         inputs: input_stats(spec, &subs),
-        latency_ms: if latencies.is_empty() {
-            0.0
-        } else {
-            latencies.iter().sum::<f64>() / latencies.len() as f64
-        },
+        latency_ms: mean(&latencies),
         last_frame,
     })
 }
@@ -353,16 +353,11 @@ pub fn run_tap(
         }
         Ok(!(frames.is_some() && finished.iter().all(|f| *f)))
     })?;
-    let mean_ms = if times.is_empty() {
-        0.0
-    } else {
-        times.iter().sum::<f64>() / times.len() as f64
-    };
     Ok(NodeStats {
         id: id.into(),
         frames_in: received,
         frames_out: 0,
-        mean_ms,
+        mean_ms: mean(&times),
         p99_ms: percentile(&mut times, 0.99),
         inputs: input_stats(spec, &subs),
         latency_ms: 0.0,
