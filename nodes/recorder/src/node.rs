@@ -9,7 +9,7 @@ use schemas::{FrameHeader, MessageKind};
 use serde::Deserialize;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::sync::mpsc::{RecvTimeoutError, TrySendError, sync_channel};
+use std::sync::mpsc::{RecvTimeoutError, sync_channel};
 use std::time::{Duration, Instant};
 
 /// The built-in kind name of the recorder.
@@ -18,7 +18,8 @@ pub const RECORDER_KIND: &str = "recorder";
 pub const REPLAY_KIND: &str = "replay";
 
 /// Messages the recorder may hold between taking them from shared memory and writing them;
-/// beyond that it drops (and counts) rather than hold up the graph.
+/// beyond that it takes no more until the writer catches up, so a message that reached the
+/// recorder is always written and any loss happens on the edge, where it is counted.
 const QUEUE: usize = 64;
 
 /// `params` of a recorder node.
@@ -42,7 +43,9 @@ struct Taken {
 
 /// Runs node `id` of `graph` as the recorder: every message on its inputs is copied out of
 /// shared memory at once and written by a second thread (CDR, zstd chunks, a flush at least
-/// every second). Messages that found the writer's queue full count as dropped. With a
+/// every second). When the writer falls behind, the recorder waits and its edges' own
+/// queues take the strain: a lossy edge drops (and counts) there, a lossless one holds its
+/// writer back. With a
 /// `calibration` (and its image size), each camera's CameraInfo is recorded first.
 pub fn run_recorder(
     graph: &Graph,
@@ -84,7 +87,6 @@ pub fn run_recorder(
         writer.finish()?;
         Ok(n)
     });
-    let mut full = vec![0u64; edges.len()];
     let tapped = runtime::process::run_tap(
         graph,
         instance,
@@ -97,16 +99,8 @@ pub fn run_recorder(
                 payload: payload.to_vec(),
                 log_time: now_ns(),
             };
-            match tx.try_send(t) {
-                Ok(()) => Ok(()),
-                Err(TrySendError::Full(_)) => {
-                    full[input] += 1;
-                    Ok(())
-                }
-                Err(TrySendError::Disconnected(_)) => {
-                    Err("the writer stopped (see its error below)".into())
-                }
-            }
+            tx.send(t)
+                .map_err(|_| "the writer stopped (see its error below)".to_string())
         },
         || Ok(()),
     );
@@ -115,16 +109,11 @@ pub fn run_recorder(
         .join()
         .map_err(|_| "the writer thread panicked".to_string())?
         .map_err(|e| e.to_string());
-    let mut stats = match (tapped, written) {
-        (Ok(s), Ok(n)) => NodeStats { frames_out: n, ..s },
-        (Err(e), Err(w)) => return Err(format!("{e}; {w}")),
-        (Err(e), _) | (_, Err(e)) => return Err(e),
-    };
-    for (s, f) in stats.inputs.iter_mut().zip(&full) {
-        s.dropped += f;
-        s.missing += f;
+    match (tapped, written) {
+        (Ok(s), Ok(n)) => Ok(NodeStats { frames_out: n, ..s }),
+        (Err(e), Err(w)) => Err(format!("{e}; {w}")),
+        (Err(e), _) | (_, Err(e)) => Err(e),
     }
-    Ok(stats)
 }
 
 /// How fast a replay runs.

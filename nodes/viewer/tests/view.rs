@@ -1,0 +1,56 @@
+//! The `microstereo-viewer` binary on the bundled recording and on bad input. (Having an
+//! integration test also makes `cargo test --workspace` build the binary, which
+//! `microstereo run --viewer` and `microstereo view` run.)
+
+use std::path::Path;
+use std::process::Command;
+
+fn viewer() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_microstereo-viewer"))
+}
+
+#[test]
+fn a_recording_becomes_an_rrd_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("default.rrd");
+    let rec = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../recordings/default.mcap");
+    let o = viewer()
+        .args(["view", rec.to_str().unwrap(), "-o", out.to_str().unwrap()])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(err.contains("22 message(s)"), "{err}");
+    let b = std::fs::read(&out).unwrap();
+    assert!(
+        b.len() > 1_000_000 && b.starts_with(b"RRF2"),
+        "{} bytes",
+        b.len()
+    );
+}
+
+#[test]
+fn bad_input_is_one_error_and_exit_2() {
+    let dir = tempfile::tempdir().unwrap();
+    let junk = dir.path().join("junk.mcap");
+    std::fs::write(&junk, b"not mcap").unwrap();
+    let o = viewer()
+        .args([
+            "view",
+            junk.to_str().unwrap(),
+            "-o",
+            dir.path().join("x.rrd").to_str().unwrap(),
+        ])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("not an MCAP file") && !err.contains("panicked"),
+        "{err}"
+    );
+    assert!(!dir.path().join("x.rrd").exists());
+    // As a graph node it needs the node arguments.
+    let o = viewer().arg("--launch").output().unwrap();
+    assert_eq!(o.status.code(), Some(2));
+}
