@@ -374,13 +374,18 @@ impl Sink {
         Ok(format!("{n} points"))
     }
 
-    /// Logs clouds still waiting for a unit (in the calibration's unit) and flushes.
+    /// Logs clouds still waiting for a unit (in the calibration's unit), flushes and closes
+    /// the sink.
     pub fn finish(mut self) -> Result<(), String> {
         let waiting: Vec<_> = self.clouds.drain().collect();
         for (_, (e, h, p)) in waiting {
             self.log_cloud(&e, &h, &p, self.metres.unwrap_or(1.0))?;
         }
-        self.rec.flush_blocking().map_err(err)
+        self.rec.flush_blocking().map_err(err)?;
+        // Closes the file (its footer) or connection now, even while another thread still
+        // holds a clone of the stream (the node-log reader does).
+        self.rec.disconnect();
+        Ok(())
     }
 }
 
