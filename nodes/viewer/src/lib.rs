@@ -477,10 +477,13 @@ mod tests {
             std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../recordings/default.mcap");
         // 28 MCAP messages: the stereo frames and label pairs are one edge message each.
         assert_eq!(log_recording(&mut sink, &path).unwrap(), 22);
+        // Closing a memory stream moves what it holds to the next sink: take it first.
+        sink.stream().flush_blocking().unwrap();
+        let msgs = storage.take();
         sink.finish().unwrap();
         let mut seen: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
         let mut frames = BTreeSet::new();
-        for msg in storage.take() {
+        for msg in msgs {
             if let rerun::log::LogMsg::ArrowMsg(_, a) = msg {
                 let chunk = rerun::log::Chunk::from_arrow_msg(&a).unwrap();
                 if let Some(col) = chunk.timelines().get(&"frame".into()) {
