@@ -344,6 +344,9 @@ pub enum CliError {
     /// A check ran and found a difference (exit code 1, not 2).
     #[error("{0}")]
     Failed(String),
+    /// A child program failed and has said why already: exit with its code, print nothing.
+    #[error("exit code {0}")]
+    Reported(i32),
 }
 
 /// Runs the CLI and returns the process exit code.
@@ -366,6 +369,7 @@ pub fn main() -> i32 {
     };
     match result {
         Ok(()) => 0,
+        Err(CliError::Reported(code)) => code,
         Err(CliError::Failed(e)) => {
             eprintln!("FAIL: {e}");
             1

@@ -219,6 +219,11 @@ impl BridgeNode {
         });
         Ok(Self { clients, addr })
     }
+
+    /// Controllers connected now.
+    pub fn controllers(&self) -> usize {
+        self.clients.lock().expect("clients").len()
+    }
 }
 
 impl GraphNode for BridgeNode {

@@ -8,12 +8,11 @@
 use crate::cli::CliError;
 use crate::graph::{KINDS, build, kind_spec};
 use clap::Args;
-use recorder::file::{EdgeMessage, EdgeReader, Overview};
+use recorder::file::{FrameReader, Overview};
 use recorder::node::{RECORDER_KIND, REPLAY_KIND, ReplayNode, ReplayParams, check_channels};
 use runtime::launch::{Graph, LaunchFile, NodeSpec, Runner};
 use runtime::step::{Collected, GraphNode, Msg};
 use schemas::{FrameHeader, MessageKind, PixelFormat};
-use std::collections::{BTreeMap, HashMap};
 use std::io::BufRead;
 use std::path::{Path, PathBuf};
 
@@ -117,30 +116,30 @@ pub struct ViewArgs {
 
 /// Shows a recording in Rerun, through the viewer binary (the same code as `--viewer`).
 pub fn view(a: ViewArgs) -> Result<(), CliError> {
-    readable(&a.file)?;
-    let mut opts = OutputOpts {
-        viewer: match (&a.output, &a.connect) {
-            (Some(p), _) => vec!["save".into(), p.display().to_string()],
-            (None, Some(c)) => vec!["connect".into(), c.clone()],
-            (None, None) => vec!["spawn".into()],
-        },
-        ..OutputOpts::default()
+    let viewer = match (&a.output, &a.connect) {
+        (Some(p), _) => vec!["save".into(), p.display().to_string()],
+        (None, Some(c)) => vec!["connect".into(), c.clone()],
+        (None, None) => vec!["spawn".into()],
     };
-    check_viewer_target(&opts)?;
+    check_viewer_target(&OutputOpts {
+        viewer,
+        ..OutputOpts::default()
+    })?;
+    // The viewer binary checks the recording itself before it shows anything.
     let mut cmd = std::process::Command::new(viewer_exe());
     cmd.arg("view").arg(&a.file);
-    match opts.viewer.remove(0).as_str() {
-        "save" => cmd.arg("-o").arg(&opts.viewer[0]),
-        "connect" => cmd.arg("--connect").arg(&opts.viewer[0]),
-        _ => &mut cmd,
-    };
+    if let Some(o) = &a.output {
+        cmd.arg("-o").arg(o);
+    } else if let Some(c) = &a.connect {
+        cmd.arg("--connect").arg(c);
+    }
     let status = cmd
         .status()
         .map_err(|e| CliError::Other(format!("cannot run {}: {e}", viewer_exe().display())))?;
-    if status.success() {
-        Ok(())
-    } else {
-        Err(CliError::Other(format!("the viewer failed ({status})")))
+    match status.code() {
+        Some(0) => Ok(()),
+        Some(code) => Err(CliError::Reported(code)),
+        None => Err(CliError::Other(format!("the viewer failed ({status})"))),
     }
 }
 
@@ -313,19 +312,28 @@ pub fn check_record_target(opts: &OutputOpts) -> Result<(), CliError> {
 /// error that says what was read.
 fn readable(path: &Path) -> Result<Overview, CliError> {
     let o = recorder::overview(path).map_err(|e| CliError::Other(e.to_string()))?;
-    if let Some(e) = &o.error {
+    if let Some(why) = stopped(path, &o) {
         return Err(CliError::Other(format!(
-            "{}: {e}{}; `microstereo inspect {}` shows what it holds",
+            "{why}; `microstereo inspect {}` shows what it holds",
+            path.display()
+        )));
+    }
+    Ok(o)
+}
+
+/// Why reading `path` stopped before its end, if it did.
+fn stopped(path: &Path, o: &Overview) -> Option<String> {
+    o.error.as_ref().map(|e| {
+        format!(
+            "{}: {e}{}",
             path.display(),
             if o.truncated {
                 " (the file is truncated: its recorder did not close it)"
             } else {
                 ""
-            },
-            path.display()
-        )));
-    }
-    Ok(o)
+            }
+        )
+    })
 }
 
 /// Arguments of `microstereo inspect`.
@@ -387,16 +395,10 @@ pub fn inspect(a: InspectArgs) -> Result<(), CliError> {
             c.bytes as f64 / 1e6
         );
     }
-    match &o.error {
+    match stopped(&a.file, &o) {
         None => Ok(()),
-        Some(e) => Err(CliError::Other(format!(
-            "{}: {e}{}; the figures above are what could be read",
-            a.file.display(),
-            if o.truncated {
-                " (the file is truncated: its recorder did not close it)"
-            } else {
-                ""
-            }
+        Some(why) => Err(CliError::Other(format!(
+            "{why}; the figures above are what could be read"
         ))),
     }
 }
@@ -483,26 +485,16 @@ fn replay_with(a: &ReplayArgs, o: &Overview, launch: PathBuf) -> Result<(), CliE
     };
     check_record_target(&opts.out)?;
     let base = crate::graph::load(&launch)?;
-    let replaced: Vec<(String, MessageKind)> = a
-        .replace
-        .iter()
-        .map(|id| {
-            base.node(id)
-                .map(|n| {
-                    n.outputs
-                        .iter()
-                        .map(|(p, k)| (format!("{id}/{p}"), *k))
-                        .collect::<Vec<_>>()
-                })
-                .ok_or_else(|| {
-                    CliError::Other(format!(
-                        "--replace {id}: {} has no node '{id}'",
-                        launch.display()
-                    ))
-                })
-        })
-        .collect::<Result<Vec<_>, _>>()?
-        .concat();
+    let mut replaced: Vec<(String, MessageKind)> = Vec::new();
+    for id in &a.replace {
+        if base.node(id).is_none() {
+            return Err(CliError::Other(format!(
+                "--replace {id}: {} has no node '{id}'",
+                launch.display()
+            )));
+        }
+        replaced.extend(base.output_edges(id));
+    }
     check_channels(&a.file, o, &replaced).map_err(CliError::Other)?;
     let frames = match (a.frames, a.looped) {
         (Some(n), _) => Some(n),
@@ -680,11 +672,7 @@ pub fn test_node(
         )));
     };
     let inputs = graph.input_edges(id);
-    let outputs: Vec<(String, MessageKind)> = spec
-        .outputs
-        .iter()
-        .map(|(p, k)| (format!("{id}/{p}"), *k))
-        .collect();
+    let outputs = graph.output_edges(id);
     let all: Vec<(String, MessageKind)> = inputs.iter().chain(&outputs).cloned().collect();
     check_channels(file, &o, &all).map_err(CliError::Other)?;
     let bridge = kind == "manipulator-bridge";
@@ -706,7 +694,15 @@ pub fn test_node(
             .map_err(|e| CliError::Other(e.to_string()))?;
         served = Some(std::io::BufReader::new(client));
         // The bridge takes controllers on its own thread: wait until it holds this one.
-        std::thread::sleep(std::time::Duration::from_millis(100));
+        let t0 = std::time::Instant::now();
+        while b.controllers() == 0 {
+            if t0.elapsed() > std::time::Duration::from_secs(10) {
+                return Err(CliError::Other(
+                    "the bridge did not take a controller within 10 s".into(),
+                ));
+            }
+            std::thread::sleep(std::time::Duration::from_millis(1));
+        }
         Box::new(b)
     } else {
         build(kind, &params).map_err(CliError::Other)?
@@ -729,38 +725,30 @@ pub fn test_node(
         });
     }
     let edges: Vec<String> = all.iter().map(|(e, _)| e.clone()).collect();
-    let reader =
-        EdgeReader::open(file, Some(edges.clone())).map_err(|e| CliError::Other(e.to_string()))?;
-    let mut frames: BTreeMap<u64, HashMap<String, EdgeMessage>> = BTreeMap::new();
+    let mut frames = FrameReader::open(file, edges).map_err(|e| CliError::Other(e.to_string()))?;
     let source = inputs.is_empty();
-    for m in reader {
-        let m = m.map_err(|e| CliError::Other(e.to_string()))?;
-        let seq = m.header.sequence;
-        let f = frames.entry(seq).or_default();
-        f.insert(m.edge.clone(), m);
-        if f.len() < edges.len() {
-            continue;
-        }
-        let f = frames.remove(&seq).expect("present");
+    // Each frame holds the inputs' messages, then the outputs'.
+    for f in frames.by_ref() {
+        let f = f.map_err(|e| CliError::Other(e.to_string()))?;
+        let seq = f[0].header.sequence;
         let mut out = Collected::default();
         if source {
             if !node.produce(seq, &mut out).map_err(CliError::Other)? {
                 break;
             }
         } else {
-            let msgs: Vec<Msg<'_>> = inputs
+            let msgs: Vec<Msg<'_>> = f[..inputs.len()]
                 .iter()
-                .map(|(e, _)| Msg {
-                    header: f[e].header,
-                    payload: &f[e].payload,
+                .map(|m| Msg {
+                    header: m.header,
+                    payload: &m.payload,
                 })
                 .collect();
             node.step(&msgs, &mut out)
                 .map_err(|e| CliError::Other(format!("{id}, frame {seq}: {e}")))?;
         }
         check.frames += 1;
-        for (port, (edge, _)) in outputs.iter().enumerate() {
-            let want = &f[edge];
+        for (port, want) in f[inputs.len()..].iter().enumerate() {
             let c = &mut check.outputs[port];
             match out.ports.get(port).and_then(|p| p.first()) {
                 Some((h, p)) => {
@@ -774,7 +762,7 @@ pub fn test_node(
             }
         }
         if let Some(r) = served.as_mut() {
-            let want = &f[&inputs[0].0];
+            let want = &f[0];
             let mut line = String::new();
             let c = check.outputs.last_mut().expect("pushed");
             c.compared += 1;
@@ -794,7 +782,7 @@ pub fn test_node(
             }
         }
     }
-    check.incomplete = frames.len() as u64;
+    check.incomplete = frames.incomplete;
     Ok(check)
 }
 

@@ -275,8 +275,18 @@ impl Graph {
     pub fn edges(&self) -> Vec<(String, MessageKind)> {
         self.nodes
             .iter()
-            .flat_map(|n| n.outputs.iter().map(|(p, k)| (format!("{}/{p}", n.id), *k)))
+            .flat_map(|n| self.output_edges(&n.id))
             .collect()
+    }
+
+    /// The outputs of node `id` as `(NODE/OUTPUT, message)`, in its port order.
+    pub fn output_edges(&self, id: &str) -> Vec<(String, MessageKind)> {
+        self.node(id).map_or_else(Vec::new, |n| {
+            n.outputs
+                .iter()
+                .map(|(p, k)| (format!("{id}/{p}"), *k))
+                .collect()
+        })
     }
 
     /// The inputs of node `id` as `(NODE/OUTPUT, message)`, in its port order.

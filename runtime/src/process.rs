@@ -170,7 +170,7 @@ pub fn run_node(
     let subs = readers(&transport, graph, instance, spec)?;
     // A frame sent before a reader connects never reaches it (edges keep no history): wait
     // until every reader the graph names is there (readers outside the graph, such as a
-    // recorder or a test, do not count). Only at start, so a short sleep is fine.
+    // test, do not count). Only at start, so a short sleep is fine.
     let expected: Vec<Vec<String>> = spec
         .outputs
         .iter()
@@ -314,15 +314,14 @@ pub fn run_node(
 
 /// Runs node `id` of `graph` as a tap (a recorder or a viewer): every message on each of
 /// its inputs goes to `on_msg` (input index, header, payload) as it arrives, not joined by
-/// frame; `on_idle` runs when a second passes with nothing. Ends on a stop request, or,
-/// given a frame count, once every input has delivered the last frame.
+/// frame. Ends on a stop request, or, given a frame count, once every input has delivered
+/// the last frame.
 pub fn run_tap(
     graph: &Graph,
     instance: &str,
     id: &str,
     frames: Option<u64>,
     mut on_msg: impl FnMut(usize, &FrameHeader, &[u8]) -> Result<(), String>,
-    mut on_idle: impl FnMut() -> Result<(), String>,
 ) -> Result<NodeStats, String> {
     let spec = graph
         .node(id)
@@ -335,10 +334,8 @@ pub fn run_tap(
     let mut last_frame = None;
     let mut received = 0u64;
     wait_loop::<String>(&refs, Duration::from_secs(1), |wake, _| {
-        match wake {
-            Wake::Stop => return Ok(false),
-            Wake::Timeout => on_idle()?,
-            Wake::Ready => {}
+        if wake == Wake::Stop {
+            return Ok(false);
         }
         for (i, s) in subs.iter().enumerate() {
             while let Some(m) = s.receive()? {

@@ -361,7 +361,7 @@ pub struct ChannelInfo {
     pub kind: Option<MessageKind>,
     /// Messages on it.
     pub messages: u64,
-    /// First and last log time, ns.
+    /// First log time, ns.
     pub first_ns: u64,
     /// Last log time, ns.
     pub last_ns: u64,
@@ -428,8 +428,7 @@ fn open(path: &Path) -> Result<(File, bool), RecordingError> {
     Ok((f, !complete))
 }
 
-/// The raw MCAP messages of `path`, with whether the file lacks its footer; the metadata
-/// record with the launch file is handed to `on_launch`.
+/// The raw MCAP messages of `path`, with whether the file lacks its footer.
 fn raw_messages(path: &Path) -> Result<(RawMessages, bool), RecordingError> {
     let (f, truncated) = open(path)?;
     let opts = mcap::sans_io::LinearReaderOptions::default().with_skip_end_magic(true);
@@ -728,6 +727,73 @@ impl Iterator for EdgeReader {
     }
 }
 
+/// Whole frames of chosen edges: for each frame number, its message on every edge, in the
+/// order the edges were given. Each edge's messages are recorded in frame order, so a frame
+/// is complete before any later one; a frame that some edge lacks is skipped (and counted)
+/// once a later frame is complete or the file ends.
+#[derive(Debug)]
+pub struct FrameReader {
+    reader: EdgeReader,
+    edges: Vec<String>,
+    /// Frames read but not complete yet: frame number → message per edge.
+    ahead: BTreeMap<u64, Vec<Option<EdgeMessage>>>,
+    /// Frames skipped because some edge lacks them.
+    pub incomplete: u64,
+}
+
+impl FrameReader {
+    /// Opens `path` for the frames of `edges` (`NODE/OUTPUT`).
+    pub fn open(path: &Path, edges: Vec<String>) -> Result<Self, RecordingError> {
+        Ok(Self {
+            reader: EdgeReader::open(path, Some(edges.clone()))?,
+            edges,
+            ahead: BTreeMap::new(),
+            incomplete: 0,
+        })
+    }
+}
+
+impl Iterator for FrameReader {
+    type Item = Result<Vec<EdgeMessage>, RecordingError>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        loop {
+            if let Some(seq) = self
+                .ahead
+                .iter()
+                .find(|(_, m)| m.iter().all(Option::is_some))
+                .map(|(s, _)| *s)
+            {
+                let older: Vec<u64> = self.ahead.range(..seq).map(|(s, _)| *s).collect();
+                self.incomplete += older.len() as u64;
+                for s in older {
+                    self.ahead.remove(&s);
+                }
+                let msgs = self.ahead.remove(&seq).expect("present");
+                return Some(Ok(msgs.into_iter().map(|m| m.expect("complete")).collect()));
+            }
+            match self.reader.next() {
+                Some(Ok(m)) => {
+                    let i = self
+                        .edges
+                        .iter()
+                        .position(|e| *e == m.edge)
+                        .expect("filtered");
+                    let n = self.edges.len();
+                    let seq = m.header.sequence;
+                    self.ahead.entry(seq).or_insert_with(|| vec![None; n])[i] = Some(m);
+                }
+                Some(Err(e)) => return Some(Err(e)),
+                None => {
+                    self.incomplete += self.ahead.len() as u64;
+                    self.ahead.clear();
+                    return None;
+                }
+            }
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -787,6 +853,12 @@ mod tests {
         assert_eq!(o.edge("cam/frame").len(), 2);
         assert_eq!((o.first_sequence, o.last_sequence), (Some(0), Some(2)));
         assert_eq!(o.launch, Some(("g.toml".into(), "[[node]]\n".into())));
+        let mut frames = FrameReader::open(&path, vec!["cam/frame".into()]).unwrap();
+        let seqs: Vec<u64> = frames
+            .by_ref()
+            .map(|f| f.unwrap()[0].header.sequence)
+            .collect();
+        assert_eq!((seqs, frames.incomplete), (vec![0, 1, 2], 0));
         // An existing file is not overwritten by accident.
         let e = RecordingWriter::create(&path, false).unwrap_err();
         assert!(e.to_string().contains("exists"), "{e}");

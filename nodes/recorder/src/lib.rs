@@ -11,4 +11,6 @@ pub mod file;
 pub mod node;
 pub mod ros2;
 
-pub use file::{EdgeMessage, EdgeReader, Overview, RecordingError, RecordingWriter, overview};
+pub use file::{
+    EdgeMessage, EdgeReader, FrameReader, Overview, RecordingError, RecordingWriter, overview,
+};

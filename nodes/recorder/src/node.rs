@@ -1,13 +1,12 @@
 //! The recorder node (a tap on the graph's edges that writes them to MCAP) and the replay
 //! source (recorded edges sent again in place of the node that made them).
 
-use crate::file::{EdgeMessage, EdgeReader, RecordingError, RecordingWriter};
+use crate::file::{EdgeMessage, FrameReader, RecordingError, RecordingWriter};
 use runtime::launch::Graph;
 use runtime::process::{NodeStats, now_ns};
 use runtime::step::{GraphNode, Outputs, params};
 use schemas::{FrameHeader, MessageKind};
 use serde::Deserialize;
-use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::mpsc::{RecvTimeoutError, sync_channel};
 use std::time::{Duration, Instant};
@@ -87,12 +86,8 @@ pub fn run_recorder(
         writer.finish()?;
         Ok(n)
     });
-    let tapped = runtime::process::run_tap(
-        graph,
-        instance,
-        id,
-        frames,
-        |input, header, payload| {
+    let tapped =
+        runtime::process::run_tap(graph, instance, id, frames, |input, header, payload| {
             let t = Taken {
                 input,
                 header: *header,
@@ -101,9 +96,7 @@ pub fn run_recorder(
             };
             tx.send(t)
                 .map_err(|_| "the writer stopped (see its error below)".to_string())
-        },
-        || Ok(()),
-    );
+        });
     drop(tx);
     let written = writing
         .join()
@@ -168,20 +161,17 @@ pub struct ReplayNode {
     rate: Rate,
     /// The node's outputs, in port order, as `NODE/OUTPUT`.
     edges: Vec<String>,
-    reader: EdgeReader,
-    /// Frames read but not sent yet: sequence → message per output port.
-    ahead: BTreeMap<u64, Vec<Option<EdgeMessage>>>,
+    frames: FrameReader,
     /// The first frame's capture time and when it was sent.
     clock: Option<(u64, Instant)>,
     /// Added to frame numbers and capture times after each loop.
     offset: (u64, u64),
-    /// The span of one pass: frames, and capture time.
-    span: (u64, u64),
-    /// Last frame and capture time seen in this pass.
+    /// The first frame of the recording: number and capture time.
+    first: Option<(u64, u64)>,
+    /// The last frame sent from the recording: number and capture time.
     last: Option<(u64, u64)>,
-    /// Frames the recording holds only in part (some output missing): skipped.
-    pub incomplete: u64,
-    sent_any: bool,
+    /// Frames skipped in earlier passes (some output missing).
+    skipped: u64,
 }
 
 impl ReplayNode {
@@ -192,92 +182,57 @@ impl ReplayNode {
             .iter()
             .map(|o| format!("{}/{o}", params.node))
             .collect();
-        let reader =
-            EdgeReader::open(&params.file, Some(edges.clone())).map_err(|e| e.to_string())?;
+        let frames = FrameReader::open(&params.file, edges.clone()).map_err(|e| e.to_string())?;
         Ok(Self {
             params,
             rate,
             edges,
-            reader,
-            ahead: BTreeMap::new(),
+            frames,
             clock: None,
             offset: (0, 0),
-            span: (0, 0),
+            first: None,
             last: None,
-            incomplete: 0,
-            sent_any: false,
+            skipped: 0,
         })
     }
 
-    /// The next whole frame, or `None` at the end of the recording.
+    /// The next whole frame of this pass, or `None` at its end.
     fn next_frame(&mut self) -> Result<Option<Vec<EdgeMessage>>, String> {
-        loop {
-            // The oldest frame complete on every output goes; older partial ones never will.
-            if let Some((&seq, _)) = self
-                .ahead
-                .iter()
-                .find(|(_, m)| m.iter().all(Option::is_some))
-            {
-                let older: Vec<u64> = self.ahead.range(..seq).map(|(s, _)| *s).collect();
-                self.incomplete += older.len() as u64;
-                for s in older {
-                    self.ahead.remove(&s);
-                }
-                let msgs = self.ahead.remove(&seq).expect("present");
-                return Ok(Some(msgs.into_iter().map(Option::unwrap).collect()));
-            }
-            match self.reader.next() {
-                Some(Ok(m)) => {
-                    let port = self
-                        .edges
-                        .iter()
-                        .position(|e| *e == m.edge)
-                        .expect("filtered");
-                    let n = self.edges.len();
-                    let seq = m.header.sequence;
-                    self.ahead.entry(seq).or_insert_with(|| vec![None; n])[port] = Some(m);
-                }
-                Some(Err(e)) => return Err(e.to_string()),
-                None => {
-                    self.incomplete += self.ahead.len() as u64;
-                    self.ahead.clear();
-                    return Ok(None);
-                }
-            }
-        }
-    }
-
-    fn rewind(&mut self) -> Result<(), String> {
-        self.reader = EdgeReader::open(&self.params.file, Some(self.edges.clone()))
-            .map_err(|e| e.to_string())?;
-        Ok(())
+        self.frames.next().transpose().map_err(|e| e.to_string())
     }
 }
 
 impl GraphNode for ReplayNode {
     fn produce(&mut self, _seq: u64, out: &mut dyn Outputs) -> Result<bool, String> {
-        let msgs = match self.next_frame()? {
-            Some(m) => m,
-            None if self.params.r#loop && self.sent_any => {
+        let mut msgs = self.next_frame()?;
+        if msgs.is_none() {
+            self.skipped += self.frames.incomplete;
+            if let (true, Some((first_seq, first_ns)), Some((last_seq, last_ns))) =
+                (self.params.r#loop, self.first, self.last)
+            {
                 // Frame numbers and times run on past the end of the last pass.
-                let (first_seq, first_ns) = self.span;
-                let (last_seq, last_ns) = self.last.expect("sent one");
                 let frames = last_seq - first_seq + 1;
                 let period = (last_ns - first_ns) / frames.saturating_sub(1).max(1);
                 self.offset.0 += frames;
                 self.offset.1 += last_ns - first_ns + period;
-                self.rewind()?;
-                match self.next_frame()? {
-                    Some(m) => m,
-                    None => return Ok(false),
-                }
+                self.frames = FrameReader::open(&self.params.file, self.edges.clone())
+                    .map_err(|e| e.to_string())?;
+                msgs = self.next_frame()?;
             }
-            None => return Ok(false),
+        }
+        let Some(msgs) = msgs else {
+            if self.skipped > 0 {
+                eprintln!(
+                    "{}: {} recorded frame(s) lack some of {} and were skipped",
+                    self.params.file.display(),
+                    self.skipped,
+                    self.edges.join(", ")
+                );
+            }
+            return Ok(false);
         };
         let (seq, ns) = (msgs[0].header.sequence, msgs[0].header.capture_ns);
-        if !self.sent_any {
-            self.span = (seq, ns);
-        }
+        self.first.get_or_insert((seq, ns));
         self.last = Some((seq, ns));
         let ns_out = ns + self.offset.1;
         if let Rate::Times(r) = self.rate {
@@ -295,7 +250,6 @@ impl GraphNode for ReplayNode {
                 b.copy_from_slice(&m.payload)
             })?;
         }
-        self.sent_any = true;
         Ok(true)
     }
 }

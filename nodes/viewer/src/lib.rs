@@ -199,20 +199,19 @@ impl Sink {
                     .take(h.images as usize)
                     .enumerate()
                 {
-                    let d: Vec<f32> = data
-                        .chunks_exact(4)
-                        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-                        .collect();
-                    let finite = d.iter().copied().filter(|v| v.is_finite());
-                    let (lo, hi) =
-                        finite.fold((f32::MAX, f32::MIN), |(a, b), v| (a.min(v), b.max(v)));
-                    valid += d.iter().filter(|v| v.is_finite()).count();
                     // Rerun reads 0 as "no depth": invalid pixels become 0; the colour range
                     // is the map's own.
-                    let bytes: Vec<u8> = d
-                        .iter()
-                        .flat_map(|v| if v.is_finite() { *v } else { 0.0 }.to_le_bytes())
-                        .collect();
+                    let (mut lo, mut hi) = (f32::MAX, f32::MIN);
+                    let mut bytes = data.to_vec();
+                    for b in bytes.chunks_exact_mut(4) {
+                        let v = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+                        if v.is_finite() {
+                            (lo, hi) = (lo.min(v), hi.max(v));
+                            valid += 1;
+                        } else {
+                            b.fill(0);
+                        }
+                    }
                     let mut img = rerun::DepthImage::from_data_type_and_bytes(
                         bytes,
                         [w, ht],
@@ -283,8 +282,8 @@ impl Sink {
                 let m = metres_per(&t.unit);
                 self.metres = Some(m);
                 if let Some((e, ch, p)) = self.clouds.remove(&h.sequence) {
+                    // The cloud's frame and capture time are this message's.
                     self.log_cloud(&e, &ch, &p, m)?;
-                    self.rec.set_time_sequence("frame", h.sequence as i64);
                 }
                 let tops: Vec<[f32; 3]> = t
                     .cells

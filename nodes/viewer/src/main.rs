@@ -79,14 +79,9 @@ fn tap(a: NodeCli) -> Result<(), String> {
             viewer::log_node_line(&rec, &line);
         }
     });
-    let stats = runtime::process::run_tap(
-        &graph,
-        &a.instance,
-        &a.id,
-        a.frames,
-        |i, h, p| sink.log(&edges[i].0, edges[i].1, h, p),
-        || Ok(()),
-    )?;
+    let stats = runtime::process::run_tap(&graph, &a.instance, &a.id, a.frames, |i, h, p| {
+        sink.log(&edges[i].0, edges[i].1, h, p)
+    })?;
     sink.finish()?;
     println!(
         "{STATS_PREFIX}{}",
