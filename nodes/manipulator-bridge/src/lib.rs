@@ -6,6 +6,8 @@
 //!   body keeps a clearance from every cell but its target.
 //! - [`geom`]: the exact distances the planner relies on.
 
+pub mod device;
 pub mod geom;
+pub mod mp285;
 pub mod plan;
 pub mod scene;
