@@ -48,7 +48,7 @@ fn ok_triangulate(t: &toml::Table) -> Result<(), String> {
     crate::nodes::TriangulateParams::from_table(t).map(|_| ())
 }
 fn ok_bridge(t: &toml::Table) -> Result<(), String> {
-    crate::nodes::BridgeParams::from_table(t).map(|_| ())
+    manipulator_bridge::node::BridgeParams::from_table(t).map(|_| ())
 }
 
 /// Ports and parameter check of a built-in kind.
@@ -57,11 +57,16 @@ pub fn kind_spec(kind: &str) -> Option<KindSpec> {
                 outputs: Vec<(&'static str, M)>,
                 check_params: fn(&toml::Table) -> Result<(), String>| KindSpec {
         inputs,
+        feedback: vec![],
         outputs,
         check_params,
     };
     Some(match kind {
-        "capture" => spec(vec![], vec![("frame", M::StereoFrame)], ok_capture),
+        "capture" => KindSpec {
+            // The manipulator's state, so that a synthetic scene draws the pipette.
+            feedback: vec![("tip", M::ManipulatorState)],
+            ..spec(vec![], vec![("frame", M::StereoFrame)], ok_capture)
+        },
         "rectify" => spec(
             vec![("frame", M::StereoFrame)],
             vec![("frame", M::StereoFrame)],
@@ -98,7 +103,11 @@ pub fn kind_spec(kind: &str) -> Option<KindSpec> {
             vec![("cloud", M::PointCloud), ("targets", M::Targets)],
             ok_triangulate,
         ),
-        "manipulator-bridge" => spec(vec![("targets", M::Targets)], vec![], ok_bridge),
+        "manipulator-bridge" => spec(
+            vec![("targets", M::Targets)],
+            vec![("state", M::ManipulatorState)],
+            ok_bridge,
+        ),
         _ => return None,
     })
 }
@@ -124,8 +133,8 @@ pub fn build(kind: &str, params: &toml::Table) -> Result<Box<dyn GraphNode>, Str
         "triangulate" => Box::new(crate::nodes::TriangulateNode::new(
             crate::nodes::TriangulateParams::from_table(params)?,
         )),
-        "manipulator-bridge" => Box::new(crate::nodes::BridgeNode::new(
-            &crate::nodes::BridgeParams::from_table(params)?,
+        "manipulator-bridge" => Box::new(manipulator_bridge::node::BridgeNode::new(
+            &manipulator_bridge::node::BridgeParams::from_table(params)?,
         )?),
         other => return Err(format!("unknown kind '{other}'")),
     })
@@ -673,14 +682,19 @@ fn print_summary(
     for (edge, lost) in &rows {
         println!("{:<width$} {:>8} {:>14}", edge, lost.dropped, lost.missing);
     }
+    // The graph's own ends: nodes no other node reads, taps (recorder, viewer) and
+    // feedback inputs aside.
+    let tap = |id: &str| id == crate::recording::RECORDER_ID || id == crate::recording::VIEWER_ID;
     let sinks: Vec<&NodeStats> = graph
         .nodes
         .iter()
+        .filter(|n| !tap(&n.id))
         .filter(|n| {
             !graph
                 .nodes
                 .iter()
-                .any(|m| m.inputs.iter().any(|i| i.node == n.id))
+                .filter(|m| !tap(&m.id))
+                .any(|m| m.inputs.iter().any(|i| i.node == n.id && !i.feedback))
         })
         .filter_map(|n| stats.get(&n.id))
         .collect();

@@ -1,16 +1,13 @@
 //! Graph nodes whose work spans several node libraries: `triangulate` (point cloud and
-//! per-cell 3D targets, with the cells code `reconstruct --cells` uses) and
-//! `manipulator-bridge` (the targets served over TCP as newline-delimited JSON).
+//! per-cell 3D targets, with the cells code `reconstruct --cells` uses). The
+//! `manipulator-bridge` node lives in its own crate.
 
 use crate::cells::{cell_heights, measure, pair_cells};
 use runtime::step::{GraphNode, Msg, Outputs, params, send_json};
 use schemas::wire::{CLOUD_POINT_BYTES, CellLists, Targets, cloud_header};
 use schemas::{Calibration, DisparityRange, FrameHeader, MessageKind, Plane};
 use serde::Deserialize;
-use std::io::Write;
-use std::net::{TcpListener, TcpStream};
 use std::path::PathBuf;
-use std::sync::{Arc, Mutex};
 
 /// `params` of a triangulate node.
 #[derive(Clone, Debug, Deserialize)]
@@ -168,74 +165,5 @@ impl GraphNode for TriangulateNode {
         })
         .map_err(|e| e.to_string())?;
         send_json(out, 1, MessageKind::Targets, frame.stamp(), &scene)
-    }
-}
-
-/// `params` of a manipulator-bridge node.
-#[derive(Clone, Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct BridgeParams {
-    /// Address to listen on for controllers.
-    #[serde(default = "default_listen")]
-    pub listen: String,
-}
-
-fn default_listen() -> String {
-    "127.0.0.1:7878".into()
-}
-
-impl BridgeParams {
-    /// Reads and checks a `params` table.
-    pub fn from_table(t: &toml::Table) -> Result<Self, String> {
-        let p: Self = params(t)?;
-        p.listen
-            .parse::<std::net::SocketAddr>()
-            .map_err(|e| format!("listen '{}' is not an address: {e}", p.listen))?;
-        Ok(p)
-    }
-}
-
-/// Serves each frame's scene to every connected controller as one JSON line.
-#[derive(Debug)]
-pub struct BridgeNode {
-    clients: Arc<Mutex<Vec<TcpStream>>>,
-    /// Where it listens (the port is chosen by the system when the address says 0).
-    pub addr: std::net::SocketAddr,
-}
-
-impl BridgeNode {
-    /// Starts listening; controllers may connect at any time.
-    pub fn new(p: &BridgeParams) -> Result<Self, String> {
-        let listener = TcpListener::bind(&p.listen)
-            .map_err(|e| format!("cannot listen on {}: {e}", p.listen))?;
-        let addr = listener.local_addr().map_err(|e| e.to_string())?;
-        let clients: Arc<Mutex<Vec<TcpStream>>> = Arc::default();
-        let c = clients.clone();
-        std::thread::spawn(move || {
-            for s in listener.incoming().flatten() {
-                let _ = s.set_nodelay(true);
-                c.lock().expect("clients").push(s);
-            }
-        });
-        Ok(Self { clients, addr })
-    }
-
-    /// Controllers connected now.
-    pub fn controllers(&self) -> usize {
-        self.clients.lock().expect("clients").len()
-    }
-}
-
-impl GraphNode for BridgeNode {
-    fn step(&mut self, inputs: &[Msg<'_>], _out: &mut dyn Outputs) -> Result<(), String> {
-        let scene = &inputs[0];
-        let mut line = scene.payload.to_vec();
-        line.push(b'\n');
-        // A controller that went away is dropped; the others keep their feed.
-        self.clients
-            .lock()
-            .expect("clients")
-            .retain_mut(|s| s.write_all(&line).is_ok());
-        Ok(())
     }
 }

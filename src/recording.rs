@@ -683,8 +683,9 @@ pub fn test_node(
         params.insert("listen".into(), toml::Value::String("127.0.0.1:0".into()));
     }
     let mut node: Box<dyn GraphNode> = if bridge {
-        let b = crate::nodes::BridgeNode::new(
-            &crate::nodes::BridgeParams::from_table(&params).map_err(CliError::Other)?,
+        let b = manipulator_bridge::node::BridgeNode::new(
+            &manipulator_bridge::node::BridgeParams::from_table(&params)
+                .map_err(CliError::Other)?,
         )
         .map_err(CliError::Other)?;
         let client = std::net::TcpStream::connect(b.addr)

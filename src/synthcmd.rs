@@ -219,6 +219,7 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
             height: h,
             tip_radius: 1.5,
             taper: 0.08,
+            elevation: 0.0,
         });
     }
     if scene.cells.len() < a.cells {

@@ -828,3 +828,195 @@ fn a_recorder_killed_with_sigkill_leaves_a_file_readable_to_its_last_flush() {
         "{err}"
     );
 }
+
+/// The closed loop: the graph runs with the simulated manipulator, the capture draws the
+/// pipette where the sim says it is, a controller sends `approach` over TCP, then
+/// `retract`. The recorded state edge shows the tip reaching the injection point within
+/// 1 µm without the body ever coming within the clearance of another cell (checked against
+/// the recorded scene of each frame), and the retract bringing it out above every cell.
+#[test]
+fn the_sim_manipulator_approaches_a_cell_and_retracts_in_closed_loop() {
+    use manipulator_bridge::geom::dist;
+    use manipulator_bridge::node::BridgeParams;
+    use manipulator_bridge::scene::Scene;
+    use schemas::wire::{ManipulatorState, Targets};
+    use std::io::{BufRead, Write};
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/graph/manipulator.toml"),
+    )
+    .unwrap()
+    .replace("127.0.0.1:0", &format!("127.0.0.1:{port}"));
+    let file = dir.path().join("manipulator.toml");
+    std::fs::write(&file, &text).unwrap();
+    let rec = dir.path().join("loop.mcap");
+    let run = start(&[
+        "run",
+        file.to_str().unwrap(),
+        "--frames",
+        "120",
+        "--instance",
+        "manipulator-loop",
+        "--record",
+        rec.to_str().unwrap(),
+        "--edges",
+        "triangulate/targets",
+        "manipulator-bridge/state",
+    ]);
+    let t0 = Instant::now();
+    let stream = loop {
+        match std::net::TcpStream::connect(("127.0.0.1", port)) {
+            Ok(s) => break s,
+            Err(_) if t0.elapsed() < Duration::from_secs(30) => {
+                std::thread::sleep(Duration::from_millis(20))
+            }
+            Err(e) => panic!("no bridge on port {port}: {e}"),
+        }
+    };
+    stream
+        .set_read_timeout(Some(Duration::from_secs(20)))
+        .unwrap();
+    let mut w = stream.try_clone().unwrap();
+    let mut lines = std::io::BufReader::new(stream).lines();
+    let mut next_event = |want: &[&str]| -> serde_json::Value {
+        loop {
+            let l = lines
+                .next()
+                .expect("the bridge closed")
+                .expect("a line in time");
+            let v: serde_json::Value = serde_json::from_str(&l).unwrap();
+            let e = v["event"].as_str().unwrap().to_string();
+            if want.contains(&e.as_str()) {
+                return v;
+            }
+            assert!(e != "error", "{l}");
+        }
+    };
+    let scene = next_event(&["scene"]);
+    let cell = scene["cells"][0]["id"].as_u64().unwrap();
+    // A malformed line gets an error on this connection, which stays usable.
+    w.write_all(b"{\"cmd\": \"dance\"}\n").unwrap();
+    let e = next_event(&["error"]);
+    assert!(
+        e["message"]
+            .as_str()
+            .unwrap()
+            .contains("unknown command 'dance'"),
+        "{e}"
+    );
+    writeln!(w, "{{\"cmd\": \"approach\", \"cell\": {cell}}}").unwrap();
+    let plan = next_event(&["plan", "blocked"]);
+    assert_eq!(plan["event"], "plan", "{plan}");
+    let arrived = next_event(&["arrived", "blocked"]);
+    assert_eq!(arrived["event"], "arrived", "{arrived}");
+    assert_eq!(arrived["plan"]["goal"], "approach");
+    assert!(arrived["error_um"].as_f64().unwrap() < 1.0, "{arrived}");
+    w.write_all(b"{\"cmd\": \"retract\"}\n").unwrap();
+    let back = next_event(&["arrived", "blocked"]);
+    assert_eq!(back["event"], "arrived", "{back}");
+    assert_eq!(back["plan"]["goal"], "retract");
+    drop(w);
+    let out = finish(run, Duration::from_secs(90));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+
+    // What the recording says.
+    let params = BridgeParams::from_table(
+        text.parse::<toml::Table>().unwrap()["node"]
+            .as_array()
+            .unwrap()
+            .last()
+            .unwrap()["params"]
+            .as_table()
+            .unwrap(),
+    )
+    .unwrap();
+    let cfg = params.config().planner;
+    let u = cfg.pipette.axis();
+    let mut scenes = std::collections::HashMap::new();
+    let mut states = Vec::new();
+    for m in recorder::file::EdgeReader::open(&rec, None).unwrap() {
+        let m = m.unwrap();
+        if m.edge == "triangulate/targets" {
+            let t: Targets = serde_json::from_slice(&m.payload).unwrap();
+            scenes.insert(t.frame, Scene::from_targets(&t).unwrap());
+        } else {
+            let s: ManipulatorState = serde_json::from_slice(&m.payload).unwrap();
+            states.push(s);
+        }
+    }
+    assert!(states.len() > 60, "{} states", states.len());
+    let approach = states
+        .iter()
+        .filter_map(|s| s.plan.clone())
+        .filter(|p| p.goal == "approach")
+        .last()
+        .expect("an approach plan");
+    let retract = states.iter().rev().find_map(|s| s.plan.clone()).unwrap();
+    assert_eq!(retract.goal, "retract");
+    let samples: Vec<(u64, [f64; 3])> = states
+        .iter()
+        .flat_map(|s| s.trajectory.iter().map(|t| (s.frame, [t[1], t[2], t[3]])))
+        .collect();
+    assert!(samples.len() > 50, "{} samples", samples.len());
+    // Arrival: the tip stood within 1 µm of the injection point.
+    let closest = samples
+        .iter()
+        .map(|(_, p)| dist(*p, approach.end))
+        .fold(f64::INFINITY, f64::min);
+    assert!(closest < 1.0, "closest approach {closest} µm");
+    // Clearance: every sample, against the cells of its frame other than the target (the
+    // cell nearest the injection point) and the objects taken for the pipette itself.
+    let mut checked = 0;
+    for (frame, tip) in &samples {
+        let state = states.iter().find(|s| s.frame == *frame).unwrap();
+        let scene = &scenes[frame];
+        let target = scene
+            .nearest([approach.end[0], approach.end[1]], 15.0)
+            .map(|c| c.id);
+        for c in &scene.cells {
+            if Some(c.id) == target || state.ignored.contains(&c.id) {
+                continue;
+            }
+            let d = c.prism.dist_segment(*tip, u, cfg.pipette.length);
+            assert!(
+                d >= cfg.clearance - 0.1,
+                "frame {frame}: tip {tip:?} is {d} µm from cell {}",
+                c.id
+            );
+            checked += 1;
+        }
+        assert!(cfg.workspace.contains(*tip));
+    }
+    assert!(checked > 100, "{checked} checks");
+    // Out: the last sample is the retract's end, above every cell top by the clearance.
+    let last = samples.last().unwrap().1;
+    assert!(
+        dist(last, retract.end) < 1e-6,
+        "{last:?} vs {:?}",
+        retract.end
+    );
+    // (Objects taken for the pipette itself are not cells.)
+    let tallest = states
+        .iter()
+        .flat_map(|st| {
+            scenes[&st.frame]
+                .cells
+                .iter()
+                .filter(|c| !st.ignored.contains(&c.id))
+                .map(|c| c.top)
+        })
+        .fold(f64::MIN, f64::max);
+    assert!(
+        last[2] > tallest + cfg.clearance,
+        "{last:?} below {tallest}"
+    );
+}

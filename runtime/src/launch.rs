@@ -155,6 +155,10 @@ struct FileDecl {
 pub struct KindSpec {
     /// Input ports and the message each expects; all are required.
     pub inputs: Vec<(&'static str, MessageKind)>,
+    /// Feedback ports: optional inputs that may close a loop (a sink's state back to a
+    /// source). The node takes their newest message when it has one, never waits for them,
+    /// and they do not count as edges for the order of the graph or for its cycles.
+    pub feedback: Vec<(&'static str, MessageKind)>,
     /// Output ports and the message each carries.
     pub outputs: Vec<(&'static str, MessageKind)>,
     /// Checks the `params` table; `Err` says what is wrong.
@@ -181,6 +185,8 @@ pub struct Input {
     pub output: String,
     /// Queue settings.
     pub edge: EdgeConfig,
+    /// A feedback input (see [`KindSpec::feedback`]): newest message only, never joined.
+    pub feedback: bool,
 }
 
 /// One node after validation.
@@ -238,11 +244,12 @@ impl Graph {
         self.nodes.iter().find(|n| n.id == id)
     }
 
-    /// Whether some node of the graph reads an output of node `id`.
+    /// Whether some node of the graph reads an output of node `id` (feedback inputs do
+    /// not count: they take the newest message and lose nothing when a writer leaves).
     pub fn is_read(&self, id: &str) -> bool {
         self.nodes
             .iter()
-            .any(|n| n.inputs.iter().any(|i| i.node == id))
+            .any(|n| n.inputs.iter().any(|i| i.node == id && !i.feedback))
     }
 }
 
@@ -343,6 +350,7 @@ impl Graph {
                     node: node.into(),
                     output: output.into(),
                     edge: self.edge_config(node, output),
+                    feedback: false,
                 }
             })
             .collect();
@@ -502,7 +510,7 @@ impl LaunchFile {
                 );
                 continue;
             }
-            let (runner, spec_inputs, outputs) = match (&n.kind, &n.exec) {
+            let (runner, spec_inputs, spec_feedback, outputs) = match (&n.kind, &n.exec) {
                 (Some(k), None) => match kinds(k.get_ref()) {
                     Some(spec) => {
                         let params = n.params.as_ref().map(|p| p.get_ref().clone());
@@ -514,6 +522,10 @@ impl LaunchFile {
                         (
                             Runner::Builtin(k.get_ref().clone()),
                             spec.inputs
+                                .iter()
+                                .map(|(p, m)| (p.to_string(), *m))
+                                .collect::<Vec<_>>(),
+                            spec.feedback
                                 .iter()
                                 .map(|(p, m)| (p.to_string(), *m))
                                 .collect::<Vec<_>>(),
@@ -545,6 +557,7 @@ impl LaunchFile {
                     (
                         Runner::Exec(PathBuf::from(e.get_ref())),
                         ports.inputs.into_iter().collect(),
+                        Vec::new(),
                         ports.outputs.into_iter().collect(),
                     )
                 }
@@ -561,13 +574,20 @@ impl LaunchFile {
             let mut wanted = Vec::new();
             for (port, decl) in &n.inputs {
                 let iat = decl.span().start;
-                let Some((_, kind)) = spec_inputs.iter().find(|(p, _)| p == port) else {
+                let is_feedback = spec_feedback.iter().any(|(p, _)| p == port);
+                let Some((_, kind)) = spec_inputs
+                    .iter()
+                    .chain(&spec_feedback)
+                    .find(|(p, _)| p == port)
+                else {
+                    let all: Vec<(String, MessageKind)> =
+                        spec_inputs.iter().chain(&spec_feedback).cloned().collect();
                     err(
                         &mut errs,
                         iat,
                         format!(
                             "node '{id}' has no input '{port}'; its inputs: {}",
-                            names(&spec_inputs)
+                            names(&all)
                         ),
                     );
                     continue;
@@ -602,16 +622,38 @@ impl LaunchFile {
                 if let Some(o) = overflow {
                     edge.overflow = o;
                 }
+                if is_feedback {
+                    if depth.is_some_and(|d| d != 1) || overflow == Some(Overflow::Block) {
+                        err(
+                            &mut errs,
+                            iat,
+                            format!(
+                                "node '{id}' input '{port}' is a feedback input: it always takes the newest message (depth 1, drop-oldest); remove depth and overflow"
+                            ),
+                        );
+                    }
+                    edge = EdgeConfig {
+                        depth: 1,
+                        overflow: Overflow::DropOldest,
+                    };
+                }
                 wanted.push((format!("{src}/{out}"), *kind, iat));
                 inputs.push(Input {
                     port: port.clone(),
                     node: src.into(),
                     output: out.into(),
                     edge,
+                    feedback: is_feedback,
                 });
             }
             // A node reads its inputs in the order its kind declares them.
-            inputs.sort_by_key(|i| spec_inputs.iter().position(|(p, _)| *p == i.port));
+            // Required inputs in the kind's order, then feedback inputs in theirs.
+            inputs.sort_by_key(|i| {
+                spec_inputs
+                    .iter()
+                    .chain(&spec_feedback)
+                    .position(|(p, _)| *p == i.port)
+            });
             for (p, _) in &spec_inputs {
                 if !n.inputs.contains_key(p) {
                     err(
@@ -683,7 +725,7 @@ impl LaunchFile {
             let before = order.len();
             for (i, (n, _)) in nodes.iter().enumerate() {
                 if !placed[i]
-                    && n.inputs.iter().all(|inp| {
+                    && n.inputs.iter().filter(|i| !i.feedback).all(|inp| {
                         nodes
                             .iter()
                             .position(|(m, _)| m.id == inp.node)
@@ -775,17 +817,20 @@ mod tests {
         Some(match k {
             "source" => KindSpec {
                 inputs: vec![],
+                feedback: vec![("state", MessageKind::Disparity)],
                 outputs: vec![("frame", MessageKind::StereoFrame)],
                 check_params: seed_param,
             },
             "filter" => KindSpec {
                 inputs: vec![("frame", MessageKind::StereoFrame)],
+                feedback: vec![],
                 outputs: vec![("frame", MessageKind::StereoFrame)],
                 check_params: no_params,
             },
             "sink" => KindSpec {
                 inputs: vec![("disparity", MessageKind::Disparity)],
-                outputs: vec![],
+                feedback: vec![],
+                outputs: vec![("disparity", MessageKind::Disparity)],
                 check_params: no_params,
             },
             _ => return None,
@@ -848,6 +893,7 @@ inputs = { frame = "b/frame" }
                 node: "b".into(),
                 output: "frame".into(),
                 edge: EdgeConfig::default(),
+                feedback: false,
             }]
         );
         let mut g = chain();
@@ -928,7 +974,8 @@ ports = { inputs = { frame = "stereo-frame" }, outputs = { cloud = "point-cloud"
                 edge: EdgeConfig {
                     depth: 4,
                     overflow: Overflow::Block
-                }
+                },
+                feedback: false,
             }]
         );
         assert_eq!(b.restart.policy, RestartPolicy::OnFailure);

@@ -124,6 +124,23 @@ fn input_stats(spec: &crate::launch::NodeSpec, subs: &[EdgeSubscriber]) -> Vec<I
         .collect()
 }
 
+/// What the joined inputs of `spec` lost (`order`: their indices among its inputs).
+fn input_stats_of(
+    spec: &crate::launch::NodeSpec,
+    order: &[usize],
+    subs: &[EdgeSubscriber],
+) -> Vec<InputStats> {
+    order
+        .iter()
+        .zip(subs)
+        .map(|(&k, s)| InputStats {
+            port: spec.inputs[k].port.clone(),
+            dropped: s.dropped(),
+            missing: s.missing(),
+        })
+        .collect()
+}
+
 /// The mean of `v` (0 when empty).
 fn mean(v: &[f64]) -> f64 {
     if v.is_empty() {
@@ -167,7 +184,37 @@ pub fn run_node(
         })
         .collect::<Result<Vec<_>, _>>()
         .map_err(|e| e.to_string())?;
-    let subs = readers(&transport, graph, instance, spec)?;
+    let all_subs = readers(&transport, graph, instance, spec)?;
+    // Feedback inputs are polled for their newest message; the others are joined by frame.
+    let (mut subs, mut feedback): (Vec<(usize, EdgeSubscriber)>, Vec<(usize, EdgeSubscriber)>) =
+        (Vec::new(), Vec::new());
+    for (k, s) in all_subs.into_iter().enumerate() {
+        if spec.inputs[k].feedback {
+            feedback.push((k, s));
+        } else {
+            subs.push((k, s));
+        }
+    }
+    let stats_order: Vec<usize> = subs.iter().chain(&feedback).map(|(k, _)| *k).collect();
+    let subs: Vec<EdgeSubscriber> = subs.drain(..).map(|(_, s)| s).collect();
+    let mut feed = |node: &mut dyn GraphNode| -> Result<(), String> {
+        for (k, s) in &mut feedback {
+            let mut newest = None;
+            while let Some(m) = s.receive().map_err(|e| e.to_string())? {
+                newest = Some(m);
+            }
+            if let Some(m) = newest {
+                node.feedback(
+                    *k,
+                    Msg {
+                        header: *m.user_header(),
+                        payload: m.payload(),
+                    },
+                )?;
+            }
+        }
+        Ok(())
+    };
     // A frame sent before a reader connects never reaches it (edges keep no history): wait
     // until every reader the graph names is there (readers outside the graph, such as a
     // test, do not count). Only at start, so a short sleep is fine.
@@ -219,6 +266,7 @@ pub fn run_node(
                 stopped = true;
                 break;
             }
+            feed(node)?;
             let (t, t_ns) = (Instant::now(), now_ns());
             if !node.produce(seq, &mut out)? {
                 break;
@@ -280,6 +328,7 @@ pub fn run_node(
                         }
                     })
                     .collect();
+                feed(node)?;
                 let t = Instant::now();
                 node.step(&msgs, &mut out)?;
                 times.push(t.elapsed().as_secs_f64() * 1e3);
@@ -300,13 +349,15 @@ pub fn run_node(
         }
     }
     let steps = times.len() as u64;
+    let mut inputs = input_stats_of(spec, &stats_order, &subs);
+    inputs.sort_by_key(|i| spec.inputs.iter().position(|s| s.port == i.port));
     Ok(NodeStats {
         id: id.into(),
         frames_in: steps,
         frames_out: out.sent,
         mean_ms: mean(&times),
         p99_ms: percentile(&mut times, 0.99),
-        inputs: input_stats(spec, &subs),
+        inputs,
         latency_ms: mean(&latencies),
         last_frame,
     })

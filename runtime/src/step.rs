@@ -98,7 +98,14 @@ pub trait GraphNode {
         Err("this node has inputs: it steps, it does not produce".into())
     }
 
-    /// One step on one frame's inputs, in the order of the node's input ports.
+    /// The newest message of feedback input `port` (its index among the node's inputs),
+    /// given before the next step or production whenever a new one arrived.
+    fn feedback(&mut self, _port: usize, _msg: Msg<'_>) -> Result<(), String> {
+        Ok(())
+    }
+
+    /// One step on one frame's inputs, in the order of the node's input ports (feedback
+    /// inputs left out).
     fn step(&mut self, _inputs: &[Msg<'_>], _out: &mut dyn Outputs) -> Result<(), String> {
         Err("this node is a source: it produces, it does not step".into())
     }
@@ -172,7 +179,24 @@ pub fn run_in_process(
         let mut this: HashMap<(String, String), (FrameHeader, Vec<u8>)> = HashMap::new();
         for (spec, node) in graph.nodes.iter().zip(nodes.iter_mut()) {
             let mut out = Collected::default();
-            if spec.inputs.is_empty() {
+            // Feedback: the newest message its producer sent so far (this frame's when the
+            // producer came first, else the last frame's).
+            for (k, i) in spec.inputs.iter().enumerate().filter(|(_, i)| i.feedback) {
+                if let Some((h, p)) = log
+                    .get(&(i.node.clone(), i.output.clone()))
+                    .and_then(|v| v.last())
+                {
+                    node.feedback(
+                        k,
+                        Msg {
+                            header: *h,
+                            payload: p,
+                        },
+                    )
+                    .map_err(|e| format!("{}: {e}", spec.id))?;
+                }
+            }
+            if spec.inputs.iter().all(|i| i.feedback) {
                 if !node
                     .produce(seq, &mut out)
                     .map_err(|e| format!("{}: {e}", spec.id))?
@@ -183,6 +207,7 @@ pub fn run_in_process(
                 let msgs: Vec<Msg<'_>> = spec
                     .inputs
                     .iter()
+                    .filter(|i| !i.feedback)
                     .map(|i| {
                         this.get(&(i.node.clone(), i.output.clone()))
                             .map(|(h, p)| Msg {

@@ -68,11 +68,13 @@ pub enum MessageKind {
     Targets = 7,
     /// Left- and right-based disparity maps after matching (F32), left first.
     DisparityPair = 8,
+    /// Where the manipulator's pipette is and what it is doing (JSON).
+    ManipulatorState = 9,
 }
 
 impl MessageKind {
     /// Every kind, in wire order.
-    pub const ALL: [MessageKind; 8] = [
+    pub const ALL: [MessageKind; 9] = [
         Self::StereoFrame,
         Self::Image,
         Self::Disparity,
@@ -81,6 +83,7 @@ impl MessageKind {
         Self::PointCloud,
         Self::Targets,
         Self::DisparityPair,
+        Self::ManipulatorState,
     ];
 
     /// Its name in launch files and recordings (`stereo-frame`, `disparity`, …).
@@ -94,6 +97,7 @@ impl MessageKind {
             Self::PointCloud => "point-cloud",
             Self::Targets => "targets",
             Self::DisparityPair => "disparity-pair",
+            Self::ManipulatorState => "manipulator-state",
         }
     }
 
@@ -113,6 +117,7 @@ impl MessageKind {
             6 => Self::PointCloud,
             7 => Self::Targets,
             8 => Self::DisparityPair,
+            9 => Self::ManipulatorState,
             _ => return None,
         })
     }
@@ -364,6 +369,57 @@ pub struct Targets {
     pub unit: String,
     /// Per-cell 3D figures.
     pub cells: Vec<crate::Cell3>,
+}
+
+/// A planned pipette path as the bridge reports it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PathPlan {
+    /// `approach`, `retract` or `goto`.
+    pub goal: String,
+    /// The target cell's id in the frame it was planned in (approach only).
+    pub target: Option<u32>,
+    /// The frame whose scene it was planned in.
+    pub frame: u64,
+    /// Tip waypoints `[x, y, up]`, µm, the start first.
+    pub waypoints: Vec<[f64; 3]>,
+    /// Legs from this waypoint on run along the pipette axis (target exempt).
+    pub axial_from: u32,
+    /// Where it ends (the injection point of an approach).
+    pub end: [f64; 3],
+    /// Length, µm.
+    pub length: f64,
+    /// Least distance between the body and a cell other than the target, µm (none
+    /// without such cells).
+    pub min_clearance: Option<f64>,
+}
+
+/// What the manipulator bridge sends on `state` once per frame (JSON). Positions are in
+/// the scene frame: `[X, Y, −Z]` of the triangulation in µm, so the third grows upward.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ManipulatorState {
+    /// Frame number of the scene it answers.
+    pub frame: u64,
+    /// Capture time of that frame, ns since the Unix epoch.
+    pub capture_ns: u64,
+    /// The device (`sim`, `MP-285 on …`, or `none` when it is missing).
+    pub device: String,
+    /// `idle`, `moving`, `arrived`, `stopped`, `blocked` or `error`.
+    pub status: String,
+    /// Tip position `[x, y, up]`, µm.
+    pub tip: [f64; 3],
+    /// Pipette elevation above the horizontal, degrees.
+    pub elevation_deg: f64,
+    /// Direction the body extends to from the tip, degrees from +x.
+    pub azimuth_deg: f64,
+    /// Clearance the planner keeps, µm.
+    pub clearance: f64,
+    /// Tip samples `[t, x, y, up]` since the previous message (t: seconds since the bridge
+    /// started), at the bridge's polling rate.
+    pub trajectory: Vec<[f64; 4]>,
+    /// The plan being executed or last executed.
+    pub plan: Option<PathPlan>,
+    /// Objects of this frame taken for the pipette itself (they touch its body).
+    pub ignored: Vec<u32>,
 }
 
 /// Bytes per point of a point-cloud message: `x, y, z` as little-endian f32, then `r, g, b`.

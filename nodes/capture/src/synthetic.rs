@@ -1,9 +1,12 @@
 //! The capture node's synthetic source: one rendered stereo-microscope frame per step, the
-//! cells drifting and an optional pipette advancing from frame to frame.
+//! cells drifting and an optional pipette advancing from frame to frame. Given the
+//! manipulator's state on its `tip` feedback input, it draws the pipette where the
+//! manipulator says the tip is (a closed loop with a simulated manipulator).
 
 use runtime::process::now_ns;
-use runtime::step::{GraphNode, Outputs, params, send_planes};
+use runtime::step::{GraphNode, Msg, Outputs, params, send_planes};
 use schemas::MessageKind;
+use schemas::wire::ManipulatorState;
 use serde::Deserialize;
 use synth::{CellSpec, Look, Optics, Pipette, Scene};
 
@@ -79,6 +82,8 @@ pub struct SyntheticCapture {
     scene: Scene,
     drift: f64,
     step: f64,
+    /// The pipette where the manipulator last said it was.
+    manipulated: Option<Pipette>,
 }
 
 impl SyntheticCapture {
@@ -100,11 +105,13 @@ impl SyntheticCapture {
             height: h,
             tip_radius: 1.5,
             taper: 0.08,
+            elevation: 0.0,
         });
         Self {
             scene,
             drift: p.drift,
             step: 4.0 * s,
+            manipulated: None,
         }
     }
 
@@ -114,12 +121,33 @@ impl SyntheticCapture {
     }
 }
 
+/// The pipette a manipulator state describes in a scene whose substrate lies at depth `z0`
+/// (the state's third coordinate is `−Z`, µm).
+pub fn pipette_at(m: &ManipulatorState, z0: f64) -> Pipette {
+    Pipette {
+        tip: [m.tip[0], m.tip[1]],
+        height: m.tip[2] + z0,
+        tip_radius: 1.5,
+        taper: 0.08,
+        elevation: m.elevation_deg.to_radians(),
+    }
+}
+
 impl GraphNode for SyntheticCapture {
+    fn feedback(&mut self, _port: usize, msg: Msg<'_>) -> Result<(), String> {
+        let m: ManipulatorState =
+            serde_json::from_slice(msg.payload).map_err(|e| format!("manipulator state: {e}"))?;
+        // Drawn as coming from −x, the only direction the renderer knows.
+        self.manipulated = Some(pipette_at(&m, self.scene.optics.working_distance()));
+        Ok(())
+    }
+
     fn produce(&mut self, seq: u64, out: &mut dyn Outputs) -> Result<bool, String> {
-        let (left, right) = self
-            .scene
-            .at_frame(seq as usize, self.drift, self.step)
-            .render_views();
+        let mut scene = self.scene.at_frame(seq as usize, self.drift, self.step);
+        if self.manipulated.is_some() {
+            scene.pipette = self.manipulated;
+        }
+        let (left, right) = scene.render_views();
         send_planes(
             out,
             0,

@@ -5,9 +5,16 @@
 //! - [`plan`]: obstacle-avoiding approach, retract and goto paths for a pipette whose whole
 //!   body keeps a clearance from every cell but its target.
 //! - [`geom`]: the exact distances the planner relies on.
+//! - [`device`]: the manipulator trait and the simulated manipulator; [`mp285`]: the
+//!   Sutter MP-285 serial driver and its emulator.
+//! - [`protocol`], [`bridge`], [`node`]: the TCP commands and events, the controller that
+//!   executes them safely, and the graph node.
 
+pub mod bridge;
 pub mod device;
 pub mod geom;
 pub mod mp285;
+pub mod node;
 pub mod plan;
+pub mod protocol;
 pub mod scene;

@@ -6,7 +6,9 @@
 //! them as images. [`encode`] and [`decode`] are exact inverses: the bytes a node sent come
 //! back bit for bit.
 
-use schemas::wire::{CLOUD_POINT_BYTES, CellLists, Targets, cloud_header, json_header};
+use schemas::wire::{
+    CLOUD_POINT_BYTES, CellLists, ManipulatorState, PathPlan, Targets, cloud_header, json_header,
+};
 use schemas::{BoundingBox, Cell, Cell3, FrameHeader, MessageKind, PixelFormat};
 use serde::{Deserialize, Serialize};
 use serde_bytes::ByteBuf;
@@ -256,6 +258,129 @@ pub const TARGETS: MsgType = MsgType {
     ),
 };
 
+/// `microstereo_msgs/msg/ManipulatorState`: the pipette and its plan, once per frame.
+/// Positions are `[x, y, up]` in µm; `trajectory` is `t, x, y, up` interleaved and
+/// `plan_waypoints` `x, y, up`; `has_plan` false leaves the `plan_` fields empty, and a
+/// negative `plan_target` or `plan_min_clearance` means none.
+pub const MANIPULATOR_STATE: MsgType = MsgType {
+    name: "microstereo_msgs/msg/ManipulatorState",
+    definition: concat!(
+        "std_msgs/Header header\n",
+        "uint64 frame\n",
+        "uint64 capture_ns\n",
+        "string device\n",
+        "string status\n",
+        "float64[3] tip\n",
+        "float64 elevation_deg\n",
+        "float64 azimuth_deg\n",
+        "float64 clearance\n",
+        "float64[] trajectory\n",
+        "bool has_plan\n",
+        "string plan_goal\n",
+        "int64 plan_target\n",
+        "uint64 plan_frame\n",
+        "float64[] plan_waypoints\n",
+        "uint32 plan_axial_from\n",
+        "float64[3] plan_end\n",
+        "float64 plan_length\n",
+        "float64 plan_min_clearance\n",
+        "uint32[] ignored\n",
+        header_defs!()
+    ),
+};
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+struct RosManipulatorState {
+    header: Header,
+    frame: u64,
+    capture_ns: u64,
+    device: String,
+    status: String,
+    tip: [f64; 3],
+    elevation_deg: f64,
+    azimuth_deg: f64,
+    clearance: f64,
+    trajectory: Vec<f64>,
+    has_plan: bool,
+    plan_goal: String,
+    plan_target: i64,
+    plan_frame: u64,
+    plan_waypoints: Vec<f64>,
+    plan_axial_from: u32,
+    plan_end: [f64; 3],
+    plan_length: f64,
+    plan_min_clearance: f64,
+    ignored: Vec<u32>,
+}
+
+impl RosManipulatorState {
+    fn new(m: &ManipulatorState, header: Header) -> Self {
+        let p = m.plan.as_ref();
+        Self {
+            header,
+            frame: m.frame,
+            capture_ns: m.capture_ns,
+            device: m.device.clone(),
+            status: m.status.clone(),
+            tip: m.tip,
+            elevation_deg: m.elevation_deg,
+            azimuth_deg: m.azimuth_deg,
+            clearance: m.clearance,
+            trajectory: m.trajectory.iter().flatten().copied().collect(),
+            has_plan: p.is_some(),
+            plan_goal: p.map(|p| p.goal.clone()).unwrap_or_default(),
+            plan_target: p.and_then(|p| p.target).map_or(-1, i64::from),
+            plan_frame: p.map_or(0, |p| p.frame),
+            plan_waypoints: p
+                .map(|p| p.waypoints.iter().flatten().copied().collect())
+                .unwrap_or_default(),
+            plan_axial_from: p.map_or(0, |p| p.axial_from),
+            plan_end: p.map_or([0.0; 3], |p| p.end),
+            plan_length: p.map_or(0.0, |p| p.length),
+            plan_min_clearance: p.and_then(|p| p.min_clearance).unwrap_or(-1.0),
+            ignored: m.ignored.clone(),
+        }
+    }
+
+    fn into_state(self) -> Result<ManipulatorState, String> {
+        if !self.trajectory.len().is_multiple_of(4) || !self.plan_waypoints.len().is_multiple_of(3)
+        {
+            return Err("manipulator state: trajectory or waypoints not in whole points".into());
+        }
+        let plan = self.has_plan.then(|| PathPlan {
+            goal: self.plan_goal,
+            target: u32::try_from(self.plan_target).ok(),
+            frame: self.plan_frame,
+            waypoints: self
+                .plan_waypoints
+                .chunks(3)
+                .map(|c| [c[0], c[1], c[2]])
+                .collect(),
+            axial_from: self.plan_axial_from,
+            end: self.plan_end,
+            length: self.plan_length,
+            min_clearance: (self.plan_min_clearance >= 0.0).then_some(self.plan_min_clearance),
+        });
+        Ok(ManipulatorState {
+            frame: self.frame,
+            capture_ns: self.capture_ns,
+            device: self.device,
+            status: self.status,
+            tip: self.tip,
+            elevation_deg: self.elevation_deg,
+            azimuth_deg: self.azimuth_deg,
+            clearance: self.clearance,
+            trajectory: self
+                .trajectory
+                .chunks(4)
+                .map(|c| [c[0], c[1], c[2], c[3]])
+                .collect(),
+            plan,
+            ignored: self.ignored,
+        })
+    }
+}
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 struct Time {
     sec: i32,
@@ -472,6 +597,7 @@ pub fn msg_type(kind: MessageKind) -> MsgType {
         MessageKind::PointCloud => POINT_CLOUD2,
         MessageKind::CellList => CELL_ARRAY,
         MessageKind::Targets => TARGETS,
+        MessageKind::ManipulatorState => MANIPULATOR_STATE,
     }
 }
 
@@ -606,6 +732,14 @@ pub fn encode(kind: MessageKind, h: &FrameHeader, payload: &[u8]) -> Result<Vec<
             };
             one(CELL_ARRAY, to_cdr(&msg)?)
         }
+        MANIPULATOR_STATE => {
+            let m: ManipulatorState =
+                serde_json::from_slice(payload).map_err(|e| format!("manipulator state: {e}"))?;
+            one(
+                MANIPULATOR_STATE,
+                to_cdr(&RosManipulatorState::new(&m, header("world")))?,
+            )
+        }
         _ => {
             let t: Targets =
                 serde_json::from_slice(payload).map_err(|e| format!("targets: {e}"))?;
@@ -702,6 +836,11 @@ pub fn decode(
                 right: cells(m.right)?,
             };
             let json = serde_json::to_vec(&lists).map_err(|e| e.to_string())?;
+            Ok((stamp(json_header(kind)), json))
+        }
+        MANIPULATOR_STATE => {
+            let m: RosManipulatorState = from_cdr(parts[0], MANIPULATOR_STATE.name)?;
+            let json = serde_json::to_vec(&m.into_state()?).map_err(|e| e.to_string())?;
             Ok((stamp(json_header(kind)), json))
         }
         _ => {
@@ -811,6 +950,40 @@ mod tests {
             MessageKind::Targets,
             h,
             &serde_json::to_vec(&targets).unwrap(),
+        );
+        let mut state = ManipulatorState {
+            frame: 9,
+            capture_ns: 77,
+            device: "sim".into(),
+            status: "moving".into(),
+            tip: [-300.0, 0.125, -3850.5],
+            elevation_deg: 30.0,
+            azimuth_deg: 180.0,
+            clearance: 5.0,
+            trajectory: vec![[0.5, 1.0, 2.0, 3.0], [0.51, 1.5, 2.0, 3.0]],
+            plan: Some(PathPlan {
+                goal: "approach".into(),
+                target: Some(3),
+                frame: 8,
+                waypoints: vec![[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]],
+                axial_from: 1,
+                end: [4.0, 5.0, 6.0],
+                length: 5.196,
+                min_clearance: Some(12.5),
+            }),
+            ignored: vec![4],
+        };
+        let h = stamped(json_header(MessageKind::ManipulatorState));
+        round_trip(
+            MessageKind::ManipulatorState,
+            h,
+            &serde_json::to_vec(&state).unwrap(),
+        );
+        state.plan = None;
+        round_trip(
+            MessageKind::ManipulatorState,
+            h,
+            &serde_json::to_vec(&state).unwrap(),
         );
     }
 

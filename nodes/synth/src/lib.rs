@@ -115,7 +115,8 @@ pub struct CellShape {
     pub brightness: f64,
 }
 
-/// A pipette: a tapered glass tip at a constant height above the substrate, pointing `+x`.
+/// A pipette: a tapered glass tip pointing `+x`, its body rising toward `−x` at
+/// `elevation` (0: level with the substrate).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Pipette {
     /// Tip position `[x, y]`, µm.
@@ -126,6 +127,9 @@ pub struct Pipette {
     pub tip_radius: f64,
     /// Radius growth per µm back from the tip.
     pub taper: f64,
+    /// Angle of the body above the horizontal, radians.
+    #[serde(default)]
+    pub elevation: f64,
 }
 
 /// Where cell texture comes from.
@@ -472,14 +476,15 @@ impl Scene {
             // A chain of spheres along the axis, radius growing back from the tip.
             let step = 0.5 * p.tip_radius.max(0.5);
             let len = 2.0 * (self.optics.width as f64 * self.optics.um_per_px());
-            let hmax = p.height + p.tip_radius + p.taper * len;
+            let (ce, se) = (p.elevation.cos(), p.elevation.sin());
+            let hmax = p.height + p.tip_radius + (p.taper + se) * len;
             // Only spheres the ray can reach: where it passes the heights 0..hmax its x and
             // y span these intervals, and a sphere at t reaches r(t) around its centre.
             let span = |a: f64, b: f64| (a.min(b), a.max(b));
             let (xlo, xhi) = span(ox + sx * z0, ox + sx * (z0 - hmax));
             let (ylo, yhi) = span(sy * z0, sy * (z0 - hmax));
             let dy = (ylo - p.tip[1]).max(p.tip[1] - yhi).max(0.0);
-            let mut t_lo = ((p.tip[0] - xhi - p.tip_radius) / (1.0 + p.taper)).max(0.0);
+            let mut t_lo = ((p.tip[0] - xhi - p.tip_radius) / (ce + p.taper)).max(0.0);
             if dy > p.tip_radius {
                 t_lo = t_lo.max(if p.taper > 0.0 {
                     (dy - p.tip_radius) / p.taper
@@ -487,8 +492,8 @@ impl Scene {
                     len
                 });
             }
-            let t_hi = if p.taper < 1.0 {
-                ((p.tip[0] - xlo + p.tip_radius) / (1.0 - p.taper)).min(len)
+            let t_hi = if p.taper < ce {
+                ((p.tip[0] - xlo + p.tip_radius) / (ce - p.taper)).min(len)
             } else {
                 len
             };
@@ -497,7 +502,7 @@ impl Scene {
                 let t = k as f64 * step;
                 k += 1;
                 let r = p.tip_radius + p.taper * t;
-                let (ccx, ccy, ccs) = (p.tip[0] - t, p.tip[1], p.height);
+                let (ccx, ccy, ccs) = (p.tip[0] - t * ce, p.tip[1], p.height + t * se);
                 // Ray point at height s: (ox + sx(z0−s), sy(z0−s), s).
                 let (ax, ay) = (ox + sx * z0 - ccx, sy * z0 - ccy);
                 let qa = sx * sx + sy * sy + 1.0;

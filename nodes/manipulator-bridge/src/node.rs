@@ -1,0 +1,279 @@
+//! The `manipulator-bridge` graph node: its launch-file parameters and its step.
+
+use crate::bridge::{Bridge, BridgeConfig};
+use crate::device::{Device, DeviceError, SimDevice, wall_clock};
+use crate::geom::{P3, axpy};
+use crate::mp285::Mp285;
+use crate::plan::{Entry, PipetteGeometry, PlannerConfig};
+use crate::scene::Workspace;
+use runtime::step::{GraphNode, Msg, Outputs, params, send_json};
+use schemas::MessageKind;
+use schemas::wire::Targets;
+use serde::Deserialize;
+use std::time::Duration;
+
+/// `params` of a manipulator-bridge node (positions in the scene frame: `[X, Y, −Z]` of
+/// the triangulation, µm).
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BridgeParams {
+    /// Address to listen on for controllers.
+    #[serde(default = "default_listen")]
+    pub listen: String,
+    /// `sim`, `mp285` or `none`.
+    #[serde(default = "default_device")]
+    pub device: String,
+    /// Serial port of an MP-285.
+    #[serde(default)]
+    pub port: Option<String>,
+    /// Where the tip starts (sim) and where `home` goes.
+    #[serde(default = "default_home")]
+    pub home: P3,
+    /// Device position = scene position + offset.
+    #[serde(default)]
+    pub offset: P3,
+    /// Fastest tip speed the bridge commands, µm/s.
+    #[serde(default = "default_max_speed")]
+    pub max_speed: f64,
+    /// The sim's acceleration limit, µm/s².
+    #[serde(default = "default_max_accel")]
+    pub max_accel: f64,
+    /// No frame for this long stops the manipulator, ms.
+    #[serde(default = "default_stale_ms")]
+    pub stale_ms: u64,
+    /// Device polling period, ms.
+    #[serde(default = "default_poll_ms")]
+    pub poll_ms: u64,
+    /// Pipette elevation above the horizontal, degrees.
+    #[serde(default = "default_elevation")]
+    pub elevation_deg: f64,
+    /// Direction the pipette body extends to, degrees from +x.
+    #[serde(default = "default_azimuth")]
+    pub azimuth_deg: f64,
+    /// Length of the body the planner keeps clear, µm.
+    #[serde(default = "default_length")]
+    pub pipette_length: f64,
+    /// Least distance between the body and any cell but the target, µm.
+    #[serde(default = "default_clearance")]
+    pub clearance: f64,
+    /// Extra height of traverses above the tallest cell + clearance, µm.
+    #[serde(default = "default_safe_margin")]
+    pub safe_margin: f64,
+    /// Pre-injection point distance back along the axis, µm.
+    #[serde(default = "default_pre")]
+    pub pre_distance: f64,
+    /// How far past the cell's surface the tip goes, µm.
+    #[serde(default)]
+    pub depth: f64,
+    /// Least tip height above the substrate, µm.
+    #[serde(default = "default_floor")]
+    pub floor_margin: f64,
+    /// `top` or `side`.
+    #[serde(default)]
+    pub entry: Entry,
+    /// The box the tip may move in.
+    #[serde(default = "default_workspace")]
+    pub workspace: Workspace,
+    /// Objects this close to the pipette's recent body are the pipette itself, µm.
+    #[serde(default = "default_self_margin")]
+    pub self_margin: f64,
+    /// How far a target may move between frames and stay the same cell, µm.
+    #[serde(default = "default_track")]
+    pub track_radius: f64,
+    /// A target whose injection point moved farther than this is replanned, µm.
+    #[serde(default = "default_replan")]
+    pub replan_tolerance: f64,
+}
+
+fn default_listen() -> String {
+    "127.0.0.1:7878".into()
+}
+fn default_device() -> String {
+    "sim".into()
+}
+fn default_home() -> P3 {
+    [-300.0, 0.0, -3850.0]
+}
+fn default_max_speed() -> f64 {
+    200.0
+}
+fn default_max_accel() -> f64 {
+    2000.0
+}
+fn default_stale_ms() -> u64 {
+    2000
+}
+fn default_poll_ms() -> u64 {
+    10
+}
+fn default_elevation() -> f64 {
+    PipetteGeometry::default().elevation_deg
+}
+fn default_azimuth() -> f64 {
+    PipetteGeometry::default().azimuth_deg
+}
+fn default_length() -> f64 {
+    PipetteGeometry::default().length
+}
+fn default_clearance() -> f64 {
+    PlannerConfig::default().clearance
+}
+fn default_safe_margin() -> f64 {
+    PlannerConfig::default().safe_margin
+}
+fn default_pre() -> f64 {
+    PlannerConfig::default().pre_distance
+}
+fn default_floor() -> f64 {
+    PlannerConfig::default().floor_margin
+}
+fn default_workspace() -> Workspace {
+    PlannerConfig::default().workspace
+}
+fn default_self_margin() -> f64 {
+    3.0
+}
+fn default_track() -> f64 {
+    15.0
+}
+fn default_replan() -> f64 {
+    // Measured injection points wander by 2–3 µm from frame to frame.
+    5.0
+}
+
+impl BridgeParams {
+    /// Reads and checks a `params` table.
+    pub fn from_table(t: &toml::Table) -> Result<Self, String> {
+        let p: Self = params(t)?;
+        p.listen
+            .parse::<std::net::SocketAddr>()
+            .map_err(|e| format!("listen '{}' is not an address: {e}", p.listen))?;
+        match (p.device.as_str(), &p.port) {
+            ("sim" | "none", _) | ("mp285", Some(_)) => {}
+            ("mp285", None) => {
+                return Err(
+                    "device = \"mp285\" needs port = \"/dev/ttyUSB0\" (its serial port)".into(),
+                );
+            }
+            (d, _) => return Err(format!("unknown device '{d}'; devices: sim, mp285, none")),
+        }
+        let c = p.config();
+        c.planner.check()?;
+        if !c.planner.workspace.contains(p.home) {
+            return Err(format!(
+                "home {:?} is outside the workspace {:?} .. {:?}",
+                p.home, c.planner.workspace.min, c.planner.workspace.max
+            ));
+        }
+        for (name, v) in [
+            ("max_speed", p.max_speed),
+            ("max_accel", p.max_accel),
+            ("self_margin", p.self_margin),
+            ("track_radius", p.track_radius),
+            ("replan_tolerance", p.replan_tolerance),
+        ] {
+            if !v.is_finite() || v <= 0.0 {
+                return Err(format!("{name} {v} must be positive"));
+            }
+        }
+        if p.poll_ms == 0 || p.stale_ms == 0 {
+            return Err("poll_ms and stale_ms must be positive".into());
+        }
+        Ok(p)
+    }
+
+    /// The bridge settings these parameters give.
+    pub fn config(&self) -> BridgeConfig {
+        BridgeConfig {
+            planner: PlannerConfig {
+                pipette: PipetteGeometry {
+                    elevation_deg: self.elevation_deg,
+                    azimuth_deg: self.azimuth_deg,
+                    length: self.pipette_length,
+                },
+                clearance: self.clearance,
+                safe_margin: self.safe_margin,
+                pre_distance: self.pre_distance,
+                depth: self.depth,
+                floor_margin: self.floor_margin,
+                entry: self.entry,
+                workspace: self.workspace,
+            },
+            home: self.home,
+            max_speed: self.max_speed,
+            offset: self.offset,
+            stale: Duration::from_millis(self.stale_ms),
+            poll: Duration::from_millis(self.poll_ms),
+            self_margin: self.self_margin,
+            track_radius: self.track_radius,
+            replan_tolerance: self.replan_tolerance,
+        }
+    }
+
+    /// Opens the configured device.
+    pub fn open_device(&self) -> Result<Box<dyn Device>, DeviceError> {
+        match self.device.as_str() {
+            // The sim's own limit sits above the bridge's, as a real device's would.
+            "sim" => Ok(Box::new(SimDevice::new(
+                axpy(self.home, 1.0, self.offset),
+                self.max_speed * 2.0,
+                self.max_accel,
+                wall_clock(),
+            ))),
+            "mp285" => Ok(Box::new(Mp285::open(
+                self.port.as_deref().unwrap_or_default(),
+                Duration::from_secs(2),
+            )?)),
+            _ => Err(DeviceError("device = \"none\" in the launch file".into())),
+        }
+    }
+}
+
+/// Serves each frame's scene to the controllers, moves the pipette on their commands and
+/// sends the manipulator state on its one output.
+pub struct BridgeNode {
+    bridge: Bridge,
+    /// Where it listens (the port is chosen by the system when the address says 0).
+    pub addr: std::net::SocketAddr,
+}
+
+impl BridgeNode {
+    /// Opens the device and starts listening; a device that cannot be opened is reported
+    /// on stderr and the bridge serves the scene without it.
+    pub fn new(p: &BridgeParams) -> Result<Self, String> {
+        let device = p.open_device();
+        if let Err(e) = &device {
+            eprintln!("manipulator-bridge: no manipulator: {e}; serving the scene only");
+        }
+        let bridge = Bridge::start(p.config(), &p.listen, device)?;
+        let addr = bridge.addr;
+        Ok(Self { bridge, addr })
+    }
+
+    /// Controllers connected now.
+    pub fn controllers(&self) -> usize {
+        self.bridge.controllers()
+    }
+}
+
+impl GraphNode for BridgeNode {
+    fn step(&mut self, inputs: &[Msg<'_>], out: &mut dyn Outputs) -> Result<(), String> {
+        let [targets] = inputs else {
+            return Err(format!(
+                "manipulator-bridge takes 1 input, not {}",
+                inputs.len()
+            ));
+        };
+        let t: Targets =
+            serde_json::from_slice(targets.payload).map_err(|e| format!("targets: {e}"))?;
+        let state = self.bridge.on_targets(&t, targets.payload)?;
+        let json = serde_json::to_vec(&state).map_err(|e| e.to_string())?;
+        send_json(
+            out,
+            0,
+            MessageKind::ManipulatorState,
+            targets.stamp(),
+            &json,
+        )
+    }
+}
