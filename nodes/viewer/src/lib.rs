@@ -15,7 +15,7 @@ use rerun::RecordingStream;
 use rerun::blueprint::{
     Blueprint, Horizontal, Spatial2DView, Spatial3DView, TextLogView, Vertical,
 };
-use schemas::wire::{CLOUD_POINT_BYTES, CellLists, Targets};
+use schemas::wire::{CLOUD_POINT_BYTES, CellLists, ManipulatorState, Targets};
 use schemas::{FrameHeader, MessageKind, PixelFormat};
 use std::collections::HashMap;
 use std::path::PathBuf;
@@ -276,6 +276,72 @@ impl Sink {
                     return Ok(());
                 }
             },
+            MessageKind::ManipulatorState => {
+                let st: ManipulatorState =
+                    serde_json::from_slice(payload).map_err(|e| format!("{edge}: {e}"))?;
+                // The state's frame is [X, Y, −Z] in µm; the 3D view's is [X, Y, Z] in m.
+                let w = |p: [f64; 3]| {
+                    [
+                        (p[0] * 1e-6) as f32,
+                        (p[1] * 1e-6) as f32,
+                        (-p[2] * 1e-6) as f32,
+                    ]
+                };
+                let (e, a) = (st.elevation_deg.to_radians(), st.azimuth_deg.to_radians());
+                // 200 µm of the body, enough to see where it points.
+                let back = [
+                    st.tip[0] + 200.0 * e.cos() * a.cos(),
+                    st.tip[1] + 200.0 * e.cos() * a.sin(),
+                    st.tip[2] + 200.0 * e.sin(),
+                ];
+                self.rec
+                    .log(
+                        format!("/world/{edge}/pipette"),
+                        &rerun::LineStrips3D::new([vec![w(st.tip), w(back)]])
+                            .with_labels([format!("pipette ({}, {})", st.device, st.status)]),
+                    )
+                    .map_err(err)?;
+                self.rec
+                    .log(
+                        format!("/world/{edge}/tip"),
+                        &rerun::Points3D::new([w(st.tip)])
+                            .with_radii([rerun::components::Radius::new_ui_points(5.0)]),
+                    )
+                    .map_err(err)?;
+                if let Some(plan) = &st.plan {
+                    self.rec
+                        .log(
+                            format!("/world/{edge}/plan"),
+                            &rerun::LineStrips3D::new([plan
+                                .waypoints
+                                .iter()
+                                .map(|p| w(*p))
+                                .collect::<Vec<_>>()])
+                            .with_labels([format!("{} ({:.0} µm)", plan.goal, plan.length)]),
+                        )
+                        .map_err(err)?;
+                }
+                if !st.trajectory.is_empty() {
+                    self.rec
+                        .log(
+                            format!("/world/{edge}/trajectory"),
+                            &rerun::Points3D::new(
+                                st.trajectory.iter().map(|t| w([t[1], t[2], t[3]])),
+                            )
+                            .with_radii([rerun::components::Radius::new_ui_points(1.5)]),
+                        )
+                        .map_err(err)?;
+                }
+                format!(
+                    "{} {}: tip ({:.1}, {:.1}, {:.1}) µm, {} sample(s)",
+                    st.device,
+                    st.status,
+                    st.tip[0],
+                    st.tip[1],
+                    st.tip[2],
+                    st.trajectory.len()
+                )
+            }
             MessageKind::Targets => {
                 let t: Targets =
                     serde_json::from_slice(payload).map_err(|e| format!("{edge}: {e}"))?;

@@ -1,0 +1,238 @@
+//! The bridge's safety over real TCP with the simulated manipulator: the emergency stop
+//! wins over queued commands, a stale scene stops a move, the workspace and speed limits
+//! hold in the bridge, and a missing device leaves the scene served.
+
+use manipulator_bridge::bridge::{Bridge, BridgeConfig};
+use manipulator_bridge::device::{Device, DeviceError, SimDevice, wall_clock};
+use manipulator_bridge::node::BridgeParams;
+use schemas::Cell3;
+use schemas::wire::Targets;
+use serde_json::Value;
+use std::io::{BufRead, BufReader, Write};
+use std::net::TcpStream;
+use std::time::{Duration, Instant};
+
+/// A round cell of radius `r` and height `h` at `(x, y)` on the substrate at depth 4000 µm.
+fn cell(id: u32, x: f64, y: f64, r: f64, h: f64) -> Cell3 {
+    Cell3 {
+        id,
+        right_id: id,
+        area_px: 1,
+        centroid_px: [0.0, 0.0],
+        disparity: 0.0,
+        centroid: [x, y, 4000.0 - h / 2.0],
+        substrate_z: 4000.0,
+        height: h,
+        volume: 0.0,
+        contour: (0..24)
+            .map(|k| {
+                let a = k as f64 * std::f64::consts::TAU / 24.0;
+                [x + r * a.cos(), y + r * a.sin(), 4000.0]
+            })
+            .collect(),
+        valid_share: 1.0,
+    }
+}
+
+fn targets(frame: u64) -> Targets {
+    Targets {
+        frame,
+        capture_ns: runtime::process::now_ns(),
+        unit: "um".into(),
+        cells: vec![
+            cell(1, 0.0, 0.0, 10.0, 12.0),
+            cell(2, 100.0, 50.0, 12.0, 20.0),
+        ],
+    }
+}
+
+fn config(stale_ms: u64) -> BridgeConfig {
+    let mut t = toml::Table::new();
+    t.insert("stale_ms".into(), toml::Value::Integer(stale_ms as i64));
+    t.insert("max_speed".into(), toml::Value::Float(100.0));
+    BridgeParams::from_table(&t).unwrap().config()
+}
+
+fn sim(cfg: &BridgeConfig) -> Result<Box<dyn Device>, DeviceError> {
+    Ok(Box::new(SimDevice::new(
+        cfg.home,
+        1000.0,
+        2000.0,
+        wall_clock(),
+    )))
+}
+
+struct Client {
+    w: TcpStream,
+    lines: std::io::Lines<BufReader<TcpStream>>,
+}
+
+impl Client {
+    fn connect(b: &Bridge) -> Self {
+        let s = TcpStream::connect(b.addr).unwrap();
+        s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+        let t0 = Instant::now();
+        while b.controllers() == 0 {
+            assert!(t0.elapsed() < Duration::from_secs(5));
+            std::thread::sleep(Duration::from_millis(1));
+        }
+        Self {
+            w: s.try_clone().unwrap(),
+            lines: BufReader::new(s).lines(),
+        }
+    }
+
+    fn send(&mut self, line: &str) {
+        self.w.write_all(line.as_bytes()).unwrap();
+        self.w.write_all(b"\n").unwrap();
+    }
+
+    /// The next event of one of these kinds (scenes and progress skipped unless asked).
+    fn next(&mut self, want: &[&str]) -> Value {
+        loop {
+            let l = self.lines.next().expect("open").expect("a line in time");
+            let v: Value = serde_json::from_str(&l).unwrap();
+            if want.contains(&v["event"].as_str().unwrap()) {
+                return v;
+            }
+        }
+    }
+}
+
+/// Feeds the bridge a fresh scene every 50 ms until `stop` is set.
+fn feed(b: &Bridge, stop: &std::sync::atomic::AtomicBool) {
+    let mut f = 0;
+    while !stop.load(std::sync::atomic::Ordering::SeqCst) {
+        let t = targets(f);
+        b.on_targets(&t, &serde_json::to_vec(&t).unwrap()).unwrap();
+        f += 1;
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+#[test]
+fn an_emergency_stop_wins_over_queued_commands_and_halts_the_pipette() {
+    let cfg = config(2000);
+    let b = Bridge::start(cfg.clone(), "127.0.0.1:0", sim(&cfg)).unwrap();
+    let stop = std::sync::atomic::AtomicBool::new(false);
+    std::thread::scope(|s| {
+        s.spawn(|| feed(&b, &stop));
+        let mut c = Client::connect(&b);
+        c.next(&["scene"]);
+        c.send(r#"{"cmd":"approach","cell":1,"speed":50}"#);
+        c.next(&["plan"]);
+        // Three more moves queued behind a stop in one write: the stop comes first.
+        c.w.write_all(
+            b"{\"cmd\":\"home\"}\n{\"cmd\":\"goto\",\"x\":0,\"y\":200,\"z\":-3900}\n{\"cmd\":\"stop\"}\n",
+        )
+        .unwrap();
+        let ev = c.next(&["stopped", "arrived"]);
+        assert_eq!(ev["event"], "stopped", "{ev}");
+        // The moves behind it never ran.
+        assert!(ev["dropped"].as_u64().unwrap() >= 1, "{ev}");
+        // Stands still afterwards, and nothing queued runs.
+        let tip = || {
+            let t = targets(999);
+            b.on_targets(&t, &serde_json::to_vec(&t).unwrap())
+                .unwrap()
+                .tip
+        };
+        std::thread::sleep(Duration::from_millis(100));
+        let a = tip();
+        std::thread::sleep(Duration::from_millis(300));
+        assert_eq!(a, tip());
+        for _ in 0..10 {
+            let v = c.next(&["scene", "plan", "arrived"]);
+            assert_eq!(v["event"], "scene", "moved after the stop: {v}");
+        }
+        stop.store(true, std::sync::atomic::Ordering::SeqCst);
+    });
+}
+
+#[test]
+fn a_stale_scene_stops_the_move_and_refuses_new_ones() {
+    let cfg = config(300);
+    let b = Bridge::start(cfg.clone(), "127.0.0.1:0", sim(&cfg)).unwrap();
+    let mut c = Client::connect(&b);
+    let t = targets(0);
+    b.on_targets(&t, &serde_json::to_vec(&t).unwrap()).unwrap();
+    // Slow, so that the scene goes stale on the way.
+    c.send(r#"{"cmd":"approach","cell":1,"speed":20}"#);
+    c.next(&["plan"]);
+    let ev = c.next(&["blocked", "arrived"]);
+    assert_eq!(ev["event"], "blocked", "{ev}");
+    assert!(
+        ev["reason"].as_str().unwrap().contains("stale scene"),
+        "{ev}"
+    );
+    c.send(r#"{"cmd":"home"}"#);
+    let ev = c.next(&["error", "plan"]);
+    assert!(
+        ev["message"]
+            .as_str()
+            .unwrap()
+            .contains("the scene is stale"),
+        "{ev}"
+    );
+}
+
+#[test]
+fn workspace_and_speed_limits_hold_in_the_bridge() {
+    let cfg = config(5000);
+    let b = Bridge::start(cfg.clone(), "127.0.0.1:0", sim(&cfg)).unwrap();
+    let mut c = Client::connect(&b);
+    let t = targets(0);
+    b.on_targets(&t, &serde_json::to_vec(&t).unwrap()).unwrap();
+    c.send(r#"{"cmd":"goto","x":5000,"y":0,"z":-3900}"#);
+    let ev = c.next(&["blocked", "plan"]);
+    assert!(
+        ev["reason"].as_str().unwrap().contains("out of reach"),
+        "{ev}"
+    );
+    // 10 000 µm/s asked, the bridge's 100 given.
+    c.send(r#"{"cmd":"goto","x":-290,"y":0,"z":-3850,"speed":10000}"#);
+    let ev = c.next(&["plan"]);
+    assert_eq!(ev["speed"], 100.0, "{ev}");
+    let ev = c.next(&["arrived"]);
+    assert!(ev["error_um"].as_f64().unwrap() < 1e-9, "{ev}");
+    // Into cell 2, which stands 20 µm high: refused at the goal.
+    c.send(r#"{"cmd":"goto","x":100,"y":50,"z":-3985}"#);
+    let ev = c.next(&["blocked", "plan"]);
+    assert_eq!(ev["cells"], serde_json::json!([2]), "{ev}");
+}
+
+#[test]
+fn without_its_device_the_bridge_still_serves_the_scene() {
+    let cfg = config(2000);
+    let b = Bridge::start(
+        cfg,
+        "127.0.0.1:0",
+        Err(DeviceError(
+            "cannot open the MP-285 port /dev/ttyUSB9".into(),
+        )),
+    )
+    .unwrap();
+    let mut c = Client::connect(&b);
+    let t = targets(4);
+    let state = b.on_targets(&t, &serde_json::to_vec(&t).unwrap()).unwrap();
+    assert_eq!(
+        (state.device.as_str(), state.status.as_str()),
+        ("none", "error")
+    );
+    let scene = c.next(&["scene"]);
+    assert_eq!(scene["frame"], 4);
+    assert_eq!(scene["cells"].as_array().unwrap().len(), 2);
+    c.send(r#"{"cmd":"approach","cell":1}"#);
+    let ev = c.next(&["error"]);
+    assert!(
+        ev["message"]
+            .as_str()
+            .unwrap()
+            .contains("no manipulator: cannot open the MP-285 port /dev/ttyUSB9"),
+        "{ev}"
+    );
+    // Still connected and served.
+    let t = targets(5);
+    b.on_targets(&t, &serde_json::to_vec(&t).unwrap()).unwrap();
+    assert_eq!(c.next(&["scene"])["frame"], 5);
+}
