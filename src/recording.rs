@@ -375,8 +375,15 @@ pub fn inspect(a: InspectArgs) -> Result<(), CliError> {
         .max()
         .unwrap_or(5)
         .max(5);
+    let tw = o
+        .channels
+        .iter()
+        .map(|c| c.schema.chars().count())
+        .max()
+        .unwrap_or(4)
+        .max(4);
     println!(
-        "  {:<w$} {:<32} {:>8} {:>9} {:>10}",
+        "  {:<w$} {:<tw$} {:>8} {:>9} {:>10}",
         "topic", "type", "messages", "rate Hz", "MB"
     );
     for c in &o.channels {
@@ -387,7 +394,7 @@ pub fn inspect(a: InspectArgs) -> Result<(), CliError> {
             "-".into()
         };
         println!(
-            "  {:<w$} {:<32} {:>8} {:>9} {:>10.2}",
+            "  {:<w$} {:<tw$} {:>8} {:>9} {:>10.2}",
             c.topic,
             c.schema,
             c.messages,

@@ -739,7 +739,7 @@ fn inspect_lists_the_bundled_recording() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    assert!(said.contains("30 messages on 16 channels"), "{said}");
+    assert!(said.contains("32 messages on 17 channels"), "{said}");
     assert!(said.contains("frames 0–1"), "{said}");
     for (topic, ty) in [
         ("/rectify/frame/left", "sensor_msgs/msg/Image"),
@@ -887,9 +887,10 @@ fn a_live_run_and_a_recording_turn_into_rerun_files() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    // The viewer took every message of every edge: 10 edges, 2 frames.
+    // The viewer took every message of every edge: 11 edges (the bridge's state too), 2
+    // frames.
     let row = said.lines().find(|l| l.starts_with("viewer ")).unwrap();
-    assert_eq!(row.split_whitespace().nth(1), Some("20"), "{row}");
+    assert_eq!(row.split_whitespace().nth(1), Some("22"), "{row}");
     let out = run(&["view", s(&rec), "-o", s(&viewed)]);
     assert!(
         out.status.success(),

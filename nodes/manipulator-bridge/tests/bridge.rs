@@ -236,3 +236,36 @@ fn without_its_device_the_bridge_still_serves_the_scene() {
     b.on_targets(&t, &serde_json::to_vec(&t).unwrap()).unwrap();
     assert_eq!(c.next(&["scene"])["frame"], 5);
 }
+
+#[test]
+fn a_cell_moving_into_the_path_stops_the_move_and_a_walled_target_ends_blocked() {
+    let cfg = config(5000);
+    let b = Bridge::start(cfg.clone(), "127.0.0.1:0", sim(&cfg)).unwrap();
+    let mut c = Client::connect(&b);
+    let t = targets(0);
+    b.on_targets(&t, &serde_json::to_vec(&t).unwrap()).unwrap();
+    c.send(r#"{"cmd":"approach","cell":1,"speed":30}"#);
+    let plan = c.next(&["plan"]);
+    assert_eq!(plan["plan"]["target"], 1, "{plan}");
+    std::thread::sleep(Duration::from_millis(200));
+    // A tall cell drifts onto the pipette axis, 60 µm on the pipette's side of the target.
+    let mut t = targets(1);
+    t.cells.push(cell(3, -60.0, 0.0, 12.0, 100.0));
+    let before = b
+        .on_targets(&t, &serde_json::to_vec(&t).unwrap())
+        .unwrap()
+        .tip;
+    let ev = c.next(&["blocked", "arrived", "plan"]);
+    assert_eq!(ev["event"], "blocked", "{ev}");
+    assert_eq!(ev["cells"], serde_json::json!([3]), "{ev}");
+    assert!(ev["reason"].as_str().unwrap().contains("walled in"), "{ev}");
+    // Stopped where it was (within the braking distance at 30 µm/s).
+    let t = targets(2);
+    let after = b.on_targets(&t, &serde_json::to_vec(&t).unwrap()).unwrap();
+    assert_eq!(after.status, "blocked");
+    assert!(
+        manipulator_bridge::geom::dist(before, after.tip) < 5.0,
+        "{before:?} {:?}",
+        after.tip
+    );
+}
