@@ -540,8 +540,8 @@ mod tests {
         let mut sink = Sink::new(rec);
         let path =
             std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../recordings/default.mcap");
-        // 28 MCAP messages: the stereo frames and label pairs are one edge message each.
-        assert_eq!(log_recording(&mut sink, &path).unwrap(), 22);
+        // 30 MCAP messages: the stereo frames and label pairs are one edge message each.
+        assert_eq!(log_recording(&mut sink, &path).unwrap(), 24);
         // Closing a memory stream moves what it holds to the next sink: take it first.
         sink.stream().flush_blocking().unwrap();
         let msgs = storage.take();
@@ -580,6 +580,8 @@ mod tests {
         has("/world/triangulate/targets", "Points3D");
         has("/world/triangulate/targets/contours", "LineStrips3D");
         has("/logs/segment", "TextLog");
+        has("/world/manipulator-bridge/state/pipette", "LineStrips3D");
+        has("/world/manipulator-bridge/state/tip", "Points3D");
         assert_eq!(frames, BTreeSet::from([0, 1]));
     }
 }
