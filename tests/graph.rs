@@ -957,9 +957,9 @@ fn the_sim_manipulator_approaches_a_cell_and_retracts_in_closed_loop() {
     assert!(states.len() > 60, "{} states", states.len());
     let approach = states
         .iter()
+        .rev()
         .filter_map(|s| s.plan.clone())
-        .filter(|p| p.goal == "approach")
-        .last()
+        .find(|p| p.goal == "approach")
         .expect("an approach plan");
     let retract = states.iter().rev().find_map(|s| s.plan.clone()).unwrap();
     assert_eq!(retract.goal, "retract");

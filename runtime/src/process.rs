@@ -186,8 +186,8 @@ pub fn run_node(
         .map_err(|e| e.to_string())?;
     let all_subs = readers(&transport, graph, instance, spec)?;
     // Feedback inputs are polled for their newest message; the others are joined by frame.
-    let (mut subs, mut feedback): (Vec<(usize, EdgeSubscriber)>, Vec<(usize, EdgeSubscriber)>) =
-        (Vec::new(), Vec::new());
+    let mut subs: Vec<(usize, EdgeSubscriber)> = Vec::new();
+    let mut feedback: Vec<(usize, EdgeSubscriber)> = Vec::new();
     for (k, s) in all_subs.into_iter().enumerate() {
         if spec.inputs[k].feedback {
             feedback.push((k, s));
