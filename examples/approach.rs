@@ -20,7 +20,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             }
             (Some("arrived"), Some("approach")) => writeln!(out, r#"{{"cmd":"retract"}}"#)?,
             (Some("arrived" | "blocked" | "error"), _) => {
-                println!("{}", ev["event"]);
+                println!("{ev}");
                 break;
             }
             _ => {}
