@@ -50,12 +50,17 @@ def check(path):
                 for c in ros.cells:
                     if len(c.contour) % 3:
                         problems.append(f"{channel.topic}: cell {c.id} contour not x,y,z")
+            elif schema.name == "microstereo_msgs/msg/ManipulatorState":
+                if ros.capture_ns != message.publish_time or len(ros.tip) != 3:
+                    problems.append(f"{channel.topic}: capture_ns {ros.capture_ns} or tip {list(ros.tip)}")
+                if len(ros.trajectory) % 4 or len(ros.plan_waypoints) % 3:
+                    problems.append(f"{channel.topic}: trajectory or waypoints not whole points")
             else:
                 problems.append(f"{channel.topic}: unexpected type {schema.name}")
     total = sum(counts.values())
     print(f"{path}: {total} messages on {len(counts)} channels decoded by mcap + mcap-ros2-support")
     for (topic, name), n in sorted(counts.items()):
-        print(f"  {topic:<26} {name:<32} {n}")
+        print(f"  {topic:<26} {name:<38} {n}")
     if total == 0:
         problems.append("no messages")
     for p in problems[:20]:
