@@ -543,15 +543,31 @@ restart = {{ policy = "on-failure", max = 2, backoff_ms = 50 }}
     assert!(String::from_utf8_lossy(&out.stderr).contains("node 'flaky' failed (exit status: 3)"));
 }
 
-#[test]
-fn the_bridge_serves_one_json_scene_per_frame_to_a_tcp_controller() {
-    use std::io::BufRead;
-    // A free port for the bridge.
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
+/// A TCP port free right now, for a bridge to listen on.
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
         .unwrap()
         .local_addr()
         .unwrap()
-        .port();
+        .port()
+}
+
+/// Connects to the bridge on `port`, retrying while its graph starts.
+fn connect_to_bridge(port: u16, within: Duration) -> std::net::TcpStream {
+    let t0 = Instant::now();
+    loop {
+        match std::net::TcpStream::connect(("127.0.0.1", port)) {
+            Ok(s) => return s,
+            Err(_) if t0.elapsed() < within => std::thread::sleep(Duration::from_millis(20)),
+            Err(e) => panic!("no bridge on port {port}: {e}"),
+        }
+    }
+}
+
+#[test]
+fn the_bridge_serves_one_json_scene_per_frame_to_a_tcp_controller() {
+    use std::io::BufRead;
+    let port = free_port();
     let dir = tempfile::tempdir().unwrap();
     let small = std::fs::read_to_string(
         Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/graph/small.toml"),
@@ -563,16 +579,7 @@ fn the_bridge_serves_one_json_scene_per_frame_to_a_tcp_controller() {
     let file = dir.path().join("bridge.toml");
     std::fs::write(&file, small).unwrap();
     let run = start(&["run", file.to_str().unwrap(), "--frames", "6"]);
-    let start = Instant::now();
-    let stream = loop {
-        match std::net::TcpStream::connect(("127.0.0.1", port)) {
-            Ok(s) => break s,
-            Err(_) if start.elapsed() < Duration::from_secs(20) => {
-                std::thread::sleep(Duration::from_millis(20))
-            }
-            Err(e) => panic!("no bridge on port {port}: {e}"),
-        }
-    };
+    let stream = connect_to_bridge(port, Duration::from_secs(20));
     stream
         .set_read_timeout(Some(Duration::from_secs(30)))
         .unwrap();
@@ -842,11 +849,7 @@ fn the_sim_manipulator_approaches_a_cell_and_retracts_in_closed_loop() {
     use manipulator_bridge::scene::Scene;
     use schemas::wire::{ManipulatorState, Targets};
     use std::io::{BufRead, Write};
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
+    let port = free_port();
     let dir = tempfile::tempdir().unwrap();
     let text = std::fs::read_to_string(
         Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/graph/manipulator.toml"),
@@ -869,16 +872,7 @@ fn the_sim_manipulator_approaches_a_cell_and_retracts_in_closed_loop() {
         "triangulate/targets",
         "manipulator-bridge/state",
     ]);
-    let t0 = Instant::now();
-    let stream = loop {
-        match std::net::TcpStream::connect(("127.0.0.1", port)) {
-            Ok(s) => break s,
-            Err(_) if t0.elapsed() < Duration::from_secs(30) => {
-                std::thread::sleep(Duration::from_millis(20))
-            }
-            Err(e) => panic!("no bridge on port {port}: {e}"),
-        }
-    };
+    let stream = connect_to_bridge(port, Duration::from_secs(30));
     stream
         .set_read_timeout(Some(Duration::from_secs(20)))
         .unwrap();

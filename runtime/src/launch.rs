@@ -196,7 +196,7 @@ pub struct NodeSpec {
     pub id: String,
     /// How it runs.
     pub runner: Runner,
-    /// Its inputs, in the order its kind declares its input ports.
+    /// Its inputs, in the order its kind declares its input ports, feedback inputs last.
     pub inputs: Vec<Input>,
     /// Its output ports and their messages.
     pub outputs: Vec<(String, MessageKind)>,
@@ -225,6 +225,8 @@ impl Graph {
 
     /// Queue settings of output `port` of node `id`, the same for every port of the edge:
     /// the deepest queue any reader asks for, and blocking if any reader asks for it.
+    /// An edge no node reads (one only a recorder or viewer taps) follows its writer's
+    /// inputs: lossless when they all are, so a lossless graph records every frame.
     pub fn edge_config(&self, id: &str, port: &str) -> EdgeConfig {
         let mut cfg: Option<EdgeConfig> = None;
         for i in self.nodes.iter().flat_map(|n| &n.inputs) {
@@ -236,7 +238,24 @@ impl Graph {
                 }
             }
         }
-        cfg.unwrap_or_default()
+        cfg.unwrap_or_else(|| self.writer_config(id))
+    }
+
+    /// Queue settings for an unread output of node `id`: blocking with its inputs' deepest
+    /// queue when every joined input blocks, the default otherwise (a source's included).
+    fn writer_config(&self, id: &str) -> EdgeConfig {
+        let joined: Vec<&Input> = self
+            .node(id)
+            .map(|n| n.inputs.iter().filter(|i| !i.feedback).collect())
+            .unwrap_or_default();
+        if !joined.is_empty() && joined.iter().all(|i| i.edge.overflow == Overflow::Block) {
+            EdgeConfig {
+                depth: joined.iter().map(|i| i.edge.depth).max().unwrap_or(1),
+                overflow: Overflow::Block,
+            }
+        } else {
+            EdgeConfig::default()
+        }
     }
 
     /// The node with this id.
@@ -918,6 +937,36 @@ inputs = { frame = "b/frame" }
             e.contains("no edge matches 'x/*'") && e.contains("a/frame, b/frame"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn an_unread_edge_follows_its_writers_inputs() {
+        let lossless = check(
+            r#"
+[[node]]
+id = "a"
+kind = "source"
+
+[[node]]
+id = "b"
+kind = "filter"
+inputs = { frame = { from = "a/frame", depth = 6, overflow = "block" } }
+"#,
+        )
+        .unwrap();
+        // Nothing reads b/frame: a recorder on it must not lose what the graph keeps.
+        assert_eq!(
+            lossless.edge_config("b", "frame"),
+            EdgeConfig {
+                depth: 6,
+                overflow: Overflow::Block
+            }
+        );
+        // A lossy writer (c reads b/frame with the default queue) records lossy.
+        assert_eq!(chain().edge_config("c", "frame"), EdgeConfig::default());
+        // A source with no reader has nothing to follow.
+        let lone = check("[[node]]\nid = \"a\"\nkind = \"source\"\n").unwrap();
+        assert_eq!(lone.edge_config("a", "frame"), EdgeConfig::default());
     }
 
     #[test]

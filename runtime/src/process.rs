@@ -112,29 +112,15 @@ fn readers(
 }
 
 /// What each input of `spec` lost, from its reading end.
-fn input_stats(spec: &crate::launch::NodeSpec, subs: &[EdgeSubscriber]) -> Vec<InputStats> {
+fn input_stats<'a>(
+    spec: &crate::launch::NodeSpec,
+    subs: impl IntoIterator<Item = &'a EdgeSubscriber>,
+) -> Vec<InputStats> {
     spec.inputs
         .iter()
         .zip(subs)
         .map(|(i, s)| InputStats {
             port: i.port.clone(),
-            dropped: s.dropped(),
-            missing: s.missing(),
-        })
-        .collect()
-}
-
-/// What the joined inputs of `spec` lost (`order`: their indices among its inputs).
-fn input_stats_of(
-    spec: &crate::launch::NodeSpec,
-    order: &[usize],
-    subs: &[EdgeSubscriber],
-) -> Vec<InputStats> {
-    order
-        .iter()
-        .zip(subs)
-        .map(|(&k, s)| InputStats {
-            port: spec.inputs[k].port.clone(),
             dropped: s.dropped(),
             missing: s.missing(),
         })
@@ -184,19 +170,16 @@ pub fn run_node(
         })
         .collect::<Result<Vec<_>, _>>()
         .map_err(|e| e.to_string())?;
-    let all_subs = readers(&transport, graph, instance, spec)?;
-    // Feedback inputs are polled for their newest message; the others are joined by frame.
-    let mut subs: Vec<(usize, EdgeSubscriber)> = Vec::new();
-    let mut feedback: Vec<(usize, EdgeSubscriber)> = Vec::new();
-    for (k, s) in all_subs.into_iter().enumerate() {
-        if spec.inputs[k].feedback {
-            feedback.push((k, s));
-        } else {
-            subs.push((k, s));
-        }
-    }
-    let stats_order: Vec<usize> = subs.iter().chain(&feedback).map(|(k, _)| *k).collect();
-    let subs: Vec<EdgeSubscriber> = subs.drain(..).map(|(_, s)| s).collect();
+    // Feedback inputs come after the joined ones: they are polled for their newest
+    // message, the others are joined by frame.
+    let mut subs = readers(&transport, graph, instance, spec)?;
+    let joined = spec.inputs.iter().filter(|i| !i.feedback).count();
+    let mut feedback: Vec<(usize, EdgeSubscriber)> = subs
+        .split_off(joined)
+        .into_iter()
+        .enumerate()
+        .map(|(j, s)| (joined + j, s))
+        .collect();
     let mut feed = |node: &mut dyn GraphNode| -> Result<(), String> {
         for (k, s) in &mut feedback {
             let mut newest = None;
@@ -349,15 +332,13 @@ pub fn run_node(
         }
     }
     let steps = times.len() as u64;
-    let mut inputs = input_stats_of(spec, &stats_order, &subs);
-    inputs.sort_by_key(|i| spec.inputs.iter().position(|s| s.port == i.port));
     Ok(NodeStats {
         id: id.into(),
         frames_in: steps,
         frames_out: out.sent,
         mean_ms: mean(&times),
         p99_ms: percentile(&mut times, 0.99),
-        inputs,
+        inputs: input_stats(spec, subs.iter().chain(feedback.iter().map(|(_, s)| s))),
         latency_ms: mean(&latencies),
         last_frame,
     })

@@ -236,16 +236,8 @@ impl Bridge {
             .map(|(_, p)| *p)
             .collect();
         tips.push(sh.tip);
-        let mut ignored = Vec::new();
-        scene.cells.retain(|c| {
-            let near = tips.iter().any(|&tip| {
-                c.prism.dist_segment(tip, u, cfg.pipette.length) < self.cfg.self_margin
-            });
-            if near {
-                ignored.push(c.id);
-            }
-            !near
-        });
+        let ignored = scene.touching(&tips, u, cfg.pipette.length, self.cfg.self_margin);
+        scene.cells.retain(|c| !ignored.contains(&c.id));
         // The substrate does not rise: a fit that puts it higher than before was led astray
         // (by the pipette's own image), so the lowest one seen stands.
         if let Some((prev, _, _)) = &sh.scene
@@ -514,12 +506,9 @@ impl Controller {
             sh.plan = Some(plan_view(&plan));
             sh.status = "moving".into();
         }
-        if !matches!(plan.goal, Goal::Approach { .. }) {
-            self.inside = if matches!(plan.goal, Goal::Retract) {
-                self.inside
-            } else {
-                None
-            };
+        // A goto leaves the cell behind; a retract still needs to know which it leaves.
+        if plan.goal == Goal::Goto {
+            self.inside = None;
         }
         self.job = Some(Job {
             next: 0,

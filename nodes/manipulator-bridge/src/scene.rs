@@ -9,7 +9,7 @@
 //! clearance from the prism is at least clearance from the cell. The convex hull keeps
 //! every distance a convex function, which the planner's exact searches rely on.
 
-use crate::geom::{P3, Prism, convex_hull, dist};
+use crate::geom::{P3, Prism, convex_hull};
 use schemas::Cell3;
 use schemas::wire::Targets;
 use serde::{Deserialize, Serialize};
@@ -163,22 +163,17 @@ impl Scene {
             .map(|(c, _)| c)
     }
 
-    /// Cells within `margin` of the body `tip + s·u` (`s ∈ [0, len]`): where the pipette
-    /// itself was segmented as an object, or a cell it touches.
-    pub fn touching(&self, tip: P3, u: P3, len: f64, margin: f64) -> Vec<u32> {
+    /// Cells within `margin` of the body `tip + s·u` (`s ∈ [0, len]`) at any of `tips`:
+    /// where the pipette itself was segmented as an object, or a cell it touches.
+    pub fn touching(&self, tips: &[P3], u: P3, len: f64, margin: f64) -> Vec<u32> {
         self.cells
             .iter()
-            .filter(|c| c.prism.dist_segment(tip, u, len) < margin)
+            .filter(|c| {
+                tips.iter()
+                    .any(|&t| c.prism.dist_segment(t, u, len) < margin)
+            })
             .map(|c| c.id)
             .collect()
-    }
-
-    /// The distance of `p` to the nearest cell centre (infinite without cells).
-    pub fn nearest_centre_dist(&self, p: P3) -> f64 {
-        self.cells
-            .iter()
-            .map(|c| dist([c.centre[0], c.centre[1], c.top], p))
-            .fold(f64::INFINITY, f64::min)
     }
 }
 
