@@ -968,15 +968,18 @@ fn the_sim_manipulator_approaches_a_cell_and_retracts_in_closed_loop() {
         .map(|(_, p)| dist(*p, approach.end))
         .fold(f64::INFINITY, f64::min);
     assert!(closest < 1.0, "closest approach {closest} µm");
+    let target_of = |scene: &Scene| {
+        scene
+            .nearest([approach.end[0], approach.end[1]], 15.0)
+            .map(|c| c.id)
+    };
     // Clearance: every sample, against the cells of its frame other than the target (the
     // cell nearest the injection point) and the objects taken for the pipette itself.
     let mut checked = 0;
     for (frame, tip) in &samples {
         let state = states.iter().find(|s| s.frame == *frame).unwrap();
         let scene = &scenes[frame];
-        let target = scene
-            .nearest([approach.end[0], approach.end[1]], 15.0)
-            .map(|c| c.id);
+        let target = target_of(scene);
         for c in &scene.cells {
             if Some(c.id) == target || state.ignored.contains(&c.id) {
                 continue;
@@ -999,17 +1002,29 @@ fn the_sim_manipulator_approaches_a_cell_and_retracts_in_closed_loop() {
         "{last:?} vs {:?}",
         retract.end
     );
-    // (Objects taken for the pipette itself are not cells.)
+    // Above every other cell of every frame (objects taken for the pipette itself are not
+    // cells) and above the target as measured when the approach was planned: once the
+    // pipette is over it, the target's image holds the pipette's too, and its measured top
+    // rises towards the tip.
+    let planned = &scenes[&approach.frame];
+    let target_top = planned
+        .cells
+        .iter()
+        .find(|c| Some(c.id) == target_of(planned))
+        .expect("the target in the plan's scene")
+        .top;
     let tallest = states
         .iter()
         .flat_map(|st| {
-            scenes[&st.frame]
+            let scene = &scenes[&st.frame];
+            let target = target_of(scene);
+            scene
                 .cells
                 .iter()
-                .filter(|c| !st.ignored.contains(&c.id))
+                .filter(move |c| Some(c.id) != target && !st.ignored.contains(&c.id))
                 .map(|c| c.top)
         })
-        .fold(f64::MIN, f64::max);
+        .fold(target_top, f64::max);
     assert!(
         last[2] > tallest + cfg.clearance,
         "{last:?} below {tallest}"

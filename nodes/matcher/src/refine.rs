@@ -105,6 +105,19 @@ fn huber(e: f64, k: f64) -> f64 {
     if e.abs() <= k { 1.0 } else { k / e.abs() }
 }
 
+/// Tukey's biweight at `c`: near 1 for small residuals, 0 beyond `c`.
+fn tukey(e: f64, c: f64) -> f64 {
+    let t = e / c;
+    if t.abs() < 1.0 {
+        (1.0 - t * t).powi(2)
+    } else {
+        0.0
+    }
+}
+
+/// The biweight's cut-off in standard deviations (95 % efficiency under Gaussian noise).
+const TUKEY_C: f64 = 4.685;
+
 /// Median absolute value, scaled to a Gaussian standard deviation.
 fn robust_scale(mut res: Vec<f64>) -> f64 {
     if res.is_empty() {
@@ -119,6 +132,50 @@ fn robust_scale(mut res: Vec<f64>) -> f64 {
 const PLANE_MIN_PIXELS: u64 = 2000;
 /// Most pixels a plane is fitted on (an even sample of the usable ones).
 const PLANE_MAX_PIXELS: usize = 300_000;
+
+/// The whole disparity in `range` with the smallest mean truncated squared difference of
+/// the band-passed views over `sample`. Truncated, because a few hundred pixels of a strong
+/// object off the plane (a pipette's image too small to segment) would otherwise outweigh a
+/// whole frame of faint substrate texture; the cap is three times the spread of the
+/// difference of two unrelated pixels, so the substrate's own differences pass whole.
+fn integer_start(
+    hl: &Plane<f32>,
+    hr: &Plane<f32>,
+    sample: &[[usize; 2]],
+    range: DisparityRange,
+) -> Option<i32> {
+    let w = hl.width;
+    let cap = {
+        let c = 3.0
+            * std::f64::consts::SQRT_2
+            * robust_scale(sample.iter().map(|&[x, y]| *hl.get(x, y) as f64).collect());
+        c * c
+    };
+    Some(
+        (range.min..=range.max)
+            .map(|d| {
+                let (s, n) = ordered_sum(
+                    sample,
+                    || (0.0f64, 0u64),
+                    |a, &[x, y]| {
+                        let xr = x as i64 - d as i64;
+                        if xr >= 0 && xr < w as i64 {
+                            let e = (hl.get(x, y) - hr.get(xr as usize, y)) as f64;
+                            a.0 += (e * e).min(cap);
+                            a.1 += 1;
+                        }
+                    },
+                    |a, b| {
+                        a.0 += b.0;
+                        a.1 += b.1;
+                    },
+                );
+                (if n > 0 { s / n as f64 } else { f64::INFINITY }, d)
+            })
+            .min_by(|a, b| a.0.total_cmp(&b.0))?
+            .1,
+    )
+}
 
 /// Fits one disparity plane to the pixels where `usable` is non-zero (the background, well
 /// clear of cells in both views): an integer search over `range` on band-passed images,
@@ -152,32 +209,10 @@ pub fn fit_disparity_plane(
         .copied()
         .step_by(all.len().div_ceil(PLANE_MAX_PIXELS))
         .collect();
-    // Integer start: the disparity with the smallest mean squared difference (a sparse
-    // sample is plenty for one number).
+    // A sparse sample is plenty for one integer.
     let sparse = pixels.len().div_ceil(PLANE_MAX_PIXELS / 8);
     let sample: Vec<[usize; 2]> = pixels.iter().step_by(sparse).copied().collect();
-    let d_start = (range.min..=range.max)
-        .map(|d| {
-            let (s, n) = ordered_sum(
-                &sample,
-                || (0.0f64, 0u64),
-                |a, &[x, y]| {
-                    let xr = x as i64 - d as i64;
-                    if xr >= 0 && xr < w as i64 {
-                        let e = (hl.get(x, y) - hr.get(xr as usize, y)) as f64;
-                        a.0 += e * e;
-                        a.1 += 1;
-                    }
-                },
-                |a, b| {
-                    a.0 += b.0;
-                    a.1 += b.1;
-                },
-            );
-            (if n > 0 { s / n as f64 } else { f64::INFINITY }, d)
-        })
-        .min_by(|a, b| a.0.total_cmp(&b.0))?
-        .1;
+    let d_start = integer_start(&hl, &hr, &sample, range)?;
     let n = pixels.len() as f64;
     let centre = pixels.iter().fold([0.0, 0.0], |a, p| {
         [a[0] + p[0] as f64 / n, a[1] + p[1] as f64 / n]
@@ -213,13 +248,21 @@ pub fn fit_disparity_plane(
     };
     let mut k_huber = 1.5 * scale_at(&p);
     let mut solved = None;
+    // Huber until converged, then Tukey's biweight from there: Huber still lets each far
+    // outlier pull with its (large) gradient, and a few hundred sharp pixels off the plane
+    // would shift it by hundredths of a pixel; the biweight drops them.
+    let mut redescend = false;
     for it in 1..=80 {
         let (jtj, jte, used) = ordered_sum(
             &pixels,
             || ([[0.0f64; 3]; 3], [0.0f64; 3], 0u64),
             |(a, b, n), &[x, y]| {
                 if let Some((r, j)) = term(&p, x, y) {
-                    let wt = huber(r, k_huber);
+                    let wt = if redescend {
+                        tukey(r, TUKEY_C / 1.5 * k_huber)
+                    } else {
+                        huber(r, k_huber)
+                    };
                     for i in 0..3 {
                         b[i] += wt * j[i] * r;
                         for c in 0..3 {
@@ -258,9 +301,10 @@ pub fn fit_disparity_plane(
             k_huber = 1.5 * scale_at(&p);
         }
         solved = Some((jtj, k_huber / 1.5));
-        if done {
+        if done && redescend {
             break;
         }
+        redescend |= done;
     }
     let (info, sigma) = solved?;
     let cov = info.try_inverse()?;
@@ -634,6 +678,63 @@ mod tests {
             );
         }
         assert!(p.std > 0.0 && p.std < 0.02, "{}", p.std);
+    }
+
+    #[test]
+    fn a_small_sharp_object_off_the_plane_does_not_tilt_it() {
+        // A pipette's image too small to segment: 300 px of sharp stripes at 5 px, over a
+        // faint substrate at 1.37 px. With Huber weights alone, its edges tilt the plane
+        // by more than 2 px at the frame's corner.
+        let plane = |x: f64, y: f64| 1.37 + 0.002 * (x - 160.0) - 0.0015 * (y - 120.0);
+        let usable = Plane::filled(320, 240, 255u8);
+        let fit = |l: &Plane<u8>, r: &Plane<u8>| {
+            fit_disparity_plane(l, r, &usable, DisparityRange::new(-3, 6), 0.05).expect("a plane")
+        };
+        for amplitude in [1.0, 2.0] {
+            let t = texture(3, amplitude);
+            let (mut l, mut r) = pair(320, 240, &t, &plane, 1.5, 4);
+            let clean = fit(&l, &r);
+            assert!((clean.d0 - plane(clean.centre[0], clean.centre[1])).abs() < 0.03);
+            for y in 100..110 {
+                for x in 10..40 {
+                    // Glass edges and their halo: dark and bright stripes.
+                    let v = if (x / 3) % 2 == 0 { 50 } else { 200 };
+                    *l.get_mut(x, y) = v;
+                    *r.get_mut(x - 5, y) = v;
+                }
+            }
+            let with = fit(&l, &r);
+            for (x, y) in [(0.0, 0.0), (319.0, 0.0), (0.0, 239.0), (319.0, 239.0)] {
+                assert!(
+                    (with.at(x, y) - clean.at(x, y)).abs() < 0.05,
+                    "texture {amplitude}, at ({x}, {y}): {with:?} vs {clean:?}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn the_integer_start_is_the_substrate_not_a_small_strong_object() {
+        // The synthetic closed loop's case: faint substrate texture at 0 px and a pipette
+        // 40 µm up (12 px), too small to segment: a dark 8 × 28 px bar with bright rims.
+        let t = texture(9, 1.0);
+        let (mut l, mut r) = pair(480, 360, &t, &|_, _| 0.0, 1.5, 11);
+        for y in 176..184 {
+            for x in 12..40 {
+                let v = if y == 176 || y == 183 { 200 } else { 58 };
+                *l.get_mut(x, y) = v;
+                *r.get_mut(x - 12, y) = v;
+            }
+        }
+        let (hl, hr) = (band_pass(&l, 4), band_pass(&r, 4));
+        let sample: Vec<[usize; 2]> = (0..360)
+            .flat_map(|y| (1..479).map(move |x| [x, y]))
+            .step_by(4)
+            .collect();
+        assert_eq!(
+            integer_start(&hl, &hr, &sample, DisparityRange::new(-4, 12)),
+            Some(0)
+        );
     }
 
     #[test]
