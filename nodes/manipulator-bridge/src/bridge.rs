@@ -238,14 +238,6 @@ impl Bridge {
         tips.push(sh.tip);
         let ignored = scene.touching(&tips, u, cfg.pipette.length, self.cfg.self_margin);
         scene.cells.retain(|c| !ignored.contains(&c.id));
-        // The substrate does not rise: a fit that puts it higher than before was led astray
-        // (by the pipette's own image), so the lowest one seen stands.
-        if let Some((prev, _, _)) = &sh.scene
-            && let (Some(p), Some(n)) = (prev.substrate, scene.substrate)
-            && p[2] < n[2]
-        {
-            scene.substrate = Some(p);
-        }
         let seq = sh.scene.as_ref().map_or(0, |s| s.2 + 1);
         sh.scene = Some((scene, Instant::now(), seq));
         let state = ManipulatorState {

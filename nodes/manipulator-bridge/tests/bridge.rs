@@ -269,3 +269,34 @@ fn a_cell_moving_into_the_path_stops_the_move_and_a_walled_target_ends_blocked()
         after.tip
     );
 }
+
+#[test]
+fn the_floor_follows_the_substrate_when_the_stage_moves() {
+    let cfg = config(5000);
+    let b = Bridge::start(cfg.clone(), "127.0.0.1:0", sim(&cfg)).unwrap();
+    let mut c = Client::connect(&b);
+    let feed_one = |t: &Targets| b.on_targets(t, &serde_json::to_vec(t).unwrap()).unwrap();
+    feed_one(&targets(0));
+    // 10 µm above the substrate, clear of the cells: a place the pipette may go.
+    let goto = r#"{"cmd":"goto","x":-200,"y":-200,"z":-3990}"#;
+    c.send(goto);
+    assert_eq!(c.next(&["blocked", "plan"])["event"], "plan");
+    c.next(&["arrived"]);
+    // The stage rises 40 µm, the cells with it: the same place is now below the substrate.
+    let mut t = targets(1);
+    for cell in &mut t.cells {
+        cell.substrate_z -= 40.0;
+        cell.centroid[2] -= 40.0;
+        for p in &mut cell.contour {
+            p[2] -= 40.0;
+        }
+    }
+    feed_one(&t);
+    c.send(goto);
+    let ev = c.next(&["blocked", "plan"]);
+    assert_eq!(ev["event"], "blocked", "{ev}");
+    assert!(
+        ev["reason"].as_str().unwrap().contains("floor margin"),
+        "{ev}"
+    );
+}
