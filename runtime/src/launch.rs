@@ -14,13 +14,15 @@
 //! ```
 //!
 //! [`LaunchFile::parse`] reads it; [`LaunchFile::validate`] checks it against the kinds the
-//! binary knows ([`KindSpec`]): unknown kinds, unknown or duplicate ids, inputs from unknown
-//! nodes or outputs, message-type mismatches, missing inputs, cycles and bad parameters —
-//! each reported as `file:line: what; how to fix`.
+//! binary knows (a [`Catalog`], the registry of node types) and against what an `exec`
+//! node's program declares (it is asked with `--describe`): unknown kinds, unknown or
+//! duplicate ids, inputs from unknown nodes or outputs, unknown input ports, message-type
+//! mismatches, missing inputs, cycles and bad parameters — each reported as
+//! `file:line: what; how to fix`.
 
-use crate::transport::{EdgeConfig, Overflow};
+use crate::edge::{EdgeConfig, Overflow};
 use schemas::MessageKind;
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 use toml::Spanned;
@@ -56,7 +58,7 @@ impl std::fmt::Display for LaunchErrors {
 impl std::error::Error for LaunchErrors {}
 
 /// When a node that ended is started again.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum RestartPolicy {
     /// Never (the default): the graph stops when a node fails.
@@ -69,7 +71,7 @@ pub enum RestartPolicy {
 }
 
 /// A node's restart settings.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Restart {
     /// When to restart.
@@ -150,23 +152,52 @@ struct FileDecl {
     node: Vec<Spanned<NodeDecl>>,
 }
 
-/// What a built-in node kind consumes, produces and accepts as parameters.
-#[derive(Clone, Debug)]
+/// One port of a node kind: its name and the message it carries.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Port {
+    /// Name in launch files.
+    pub name: String,
+    /// Message kind.
+    pub kind: MessageKind,
+    /// An input that may stay unconnected.
+    #[serde(default)]
+    pub optional: bool,
+}
+
+/// What a node kind consumes and produces.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct KindSpec {
-    /// Input ports and the message each expects; all are required.
-    pub inputs: Vec<(&'static str, MessageKind)>,
+    /// Input ports and the message each expects.
+    pub inputs: Vec<Port>,
     /// Feedback ports: optional inputs that may close a loop (a sink's state back to a
     /// source). The node takes their newest message when it has one, never waits for them,
     /// and they do not count as edges for the order of the graph or for its cycles.
-    pub feedback: Vec<(&'static str, MessageKind)>,
+    pub feedback: Vec<Port>,
     /// Output ports and the message each carries.
-    pub outputs: Vec<(&'static str, MessageKind)>,
-    /// Checks the `params` table; `Err` says what is wrong.
-    pub check_params: fn(&toml::Table) -> Result<(), String>,
+    pub outputs: Vec<Port>,
+}
+
+/// The node kinds a launch file is checked against (the registry of node types).
+pub trait Catalog {
+    /// Kinds a launch file may name, in the order to list them.
+    fn kinds(&self) -> Vec<String>;
+    /// Ports of `kind`.
+    fn spec(&self, kind: &str) -> Option<KindSpec>;
+    /// Checks `params` of a node of `kind` whose inputs `connected` are connected.
+    fn check(&self, kind: &str, params: &toml::Table, connected: &[&str]) -> Result<(), String>;
+    /// Ports of an `exec` node's program (which checks `params` and `connected` too).
+    fn exec(
+        &self,
+        program: &Path,
+        params: &toml::Table,
+        connected: &[&str],
+    ) -> Result<KindSpec, String> {
+        crate::process::describe_exec(program, params, connected)
+    }
 }
 
 /// How a node runs.
-#[derive(Clone, Debug, PartialEq, Eq)]
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub enum Runner {
     /// `microstereo node KIND …`.
     Builtin(String),
@@ -175,7 +206,7 @@ pub enum Runner {
 }
 
 /// One input after validation.
-#[derive(Clone, Debug, PartialEq, Eq)]
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Input {
     /// Input port name.
     pub port: String,
@@ -189,8 +220,24 @@ pub struct Input {
     pub feedback: bool,
 }
 
+/// A `params` table as TOML text inside the graph's JSON (JSON has no TOML types).
+mod toml_text {
+    use serde::{Deserialize, Deserializer, Serialize, Serializer};
+
+    pub fn serialize<S: Serializer>(t: &toml::Table, s: S) -> Result<S::Ok, S::Error> {
+        toml::to_string(t)
+            .map_err(serde::ser::Error::custom)?
+            .serialize(s)
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<toml::Table, D::Error> {
+        let text = String::deserialize(d)?;
+        toml::from_str(&text).map_err(serde::de::Error::custom)
+    }
+}
+
 /// One node after validation.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct NodeSpec {
     /// Unique id.
     pub id: String,
@@ -201,14 +248,32 @@ pub struct NodeSpec {
     /// Its output ports and their messages.
     pub outputs: Vec<(String, MessageKind)>,
     /// Its parameters.
+    #[serde(with = "toml_text")]
     pub params: toml::Table,
     /// Restart settings.
     pub restart: Restart,
+    /// A tap added by a rewrite (recorder, viewer): it reads edges as they come and is
+    /// not one of the graph's own ends.
+    #[serde(default)]
+    pub tap: bool,
+    /// Takes every other node's log lines on its stdin (`NODE<TAB>LEVEL<TAB>LINE`).
+    #[serde(default)]
+    pub logs: bool,
+}
+
+impl NodeSpec {
+    /// Its built-in kind (`None` for an `exec` node).
+    pub fn kind(&self) -> Option<&str> {
+        match &self.runner {
+            Runner::Builtin(k) => Some(k),
+            Runner::Exec(_) => None,
+        }
+    }
 }
 
 /// A launch file that passed validation: nodes in an order where every producer comes
 /// before its consumers.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Graph {
     /// Where it was read from.
     pub file: PathBuf,
@@ -380,6 +445,8 @@ impl Graph {
             outputs: Vec::new(),
             params,
             restart: Restart::default(),
+            tap: true,
+            logs: false,
         });
         Ok(())
     }
@@ -485,12 +552,9 @@ impl LaunchFile {
         })
     }
 
-    /// Checks the whole graph against the built-in `kinds`; every problem is reported.
-    pub fn validate(
-        &self,
-        kinds: &dyn Fn(&str) -> Option<KindSpec>,
-        known_kinds: &[&str],
-    ) -> Result<Graph, LaunchErrors> {
+    /// Checks the whole graph against the node kinds of `catalog`; every problem is
+    /// reported.
+    pub fn validate(&self, catalog: &dyn Catalog) -> Result<Graph, LaunchErrors> {
         let mut errs = Vec::new();
         let file = self.path.display().to_string();
         let err = |errs: &mut Vec<LaunchError>, at: usize, message: String| {
@@ -508,6 +572,7 @@ impl LaunchFile {
             let id = n.id.get_ref().clone();
             let id_at = n.id.span().start;
             if id.is_empty()
+                || id.len() > 64
                 || !id
                     .chars()
                     .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_')
@@ -515,7 +580,7 @@ impl LaunchFile {
                 err(
                     &mut errs,
                     id_at,
-                    format!("node id '{id}' must be letters, digits, '-' or '_'"),
+                    format!("node id '{id}' must be 1 to 64 letters, digits, '-' or '_'"),
                 );
             }
             if let Some(first) = seen.insert(id.clone(), id_at) {
@@ -529,30 +594,20 @@ impl LaunchFile {
                 );
                 continue;
             }
-            let (runner, spec_inputs, spec_feedback, outputs) = match (&n.kind, &n.exec) {
-                (Some(k), None) => match kinds(k.get_ref()) {
+            let params = n
+                .params
+                .as_ref()
+                .map(|p| p.get_ref().clone())
+                .unwrap_or_default();
+            let params_at = n.params.as_ref().map_or(at, |p| p.span().start);
+            let connected: Vec<&str> = n.inputs.keys().map(String::as_str).collect();
+            let (runner, spec) = match (&n.kind, &n.exec) {
+                (Some(k), None) => match catalog.spec(k.get_ref()) {
                     Some(spec) => {
-                        let params = n.params.as_ref().map(|p| p.get_ref().clone());
-                        let check = (spec.check_params)(&params.unwrap_or_default());
-                        if let Err(m) = &check {
-                            let pat = n.params.as_ref().map_or(at, |p| p.span().start);
-                            err(&mut errs, pat, format!("node '{id}': bad params: {m}"));
+                        if let Err(m) = catalog.check(k.get_ref(), &params, &connected) {
+                            err(&mut errs, params_at, format!("node '{id}': bad params: {m}"));
                         }
-                        (
-                            Runner::Builtin(k.get_ref().clone()),
-                            spec.inputs
-                                .iter()
-                                .map(|(p, m)| (p.to_string(), *m))
-                                .collect::<Vec<_>>(),
-                            spec.feedback
-                                .iter()
-                                .map(|(p, m)| (p.to_string(), *m))
-                                .collect::<Vec<_>>(),
-                            spec.outputs
-                                .iter()
-                                .map(|(p, m)| (p.to_string(), *m))
-                                .collect::<Vec<_>>(),
-                        )
+                        (Runner::Builtin(k.get_ref().clone()), spec)
                     }
                     None => {
                         err(
@@ -561,24 +616,54 @@ impl LaunchFile {
                             format!(
                                 "node '{id}': unknown kind '{}'; known kinds: {}, or use exec = \"path\"",
                                 k.get_ref(),
-                                known_kinds.join(", ")
+                                catalog.kinds().join(", ")
                             ),
                         );
                         continue;
                     }
                 },
                 (None, Some(e)) => {
-                    let ports = n
-                        .ports
-                        .as_ref()
-                        .map(|p| p.get_ref().clone())
-                        .unwrap_or_default();
-                    (
-                        Runner::Exec(PathBuf::from(e.get_ref())),
-                        ports.inputs.into_iter().collect(),
-                        Vec::new(),
-                        ports.outputs.into_iter().collect(),
-                    )
+                    let program = PathBuf::from(e.get_ref());
+                    let spec = match catalog.exec(&program, &params, &connected) {
+                        Ok(spec) => spec,
+                        Err(m) => {
+                            err(&mut errs, e.span().start, format!("node '{id}': {m}"));
+                            continue;
+                        }
+                    };
+                    // Ports written in the launch file must be the ones the program declares.
+                    if let Some(p) = &n.ports {
+                        let said = p.get_ref();
+                        let of = |v: &[Port]| -> BTreeMap<String, MessageKind> {
+                            v.iter().map(|p| (p.name.clone(), p.kind)).collect()
+                        };
+                        let inputs: BTreeMap<String, MessageKind> =
+                            of(&spec.inputs).into_iter().chain(of(&spec.feedback)).collect();
+                        for (what, written, declared) in [
+                            ("inputs", &said.inputs, inputs),
+                            ("outputs", &said.outputs, of(&spec.outputs)),
+                        ] {
+                            if *written != declared {
+                                let show = |m: &BTreeMap<String, MessageKind>| {
+                                    m.iter()
+                                        .map(|(k, v)| format!("{k} = \"{}\"", v.name()))
+                                        .collect::<Vec<_>>()
+                                        .join(", ")
+                                };
+                                err(
+                                    &mut errs,
+                                    p.span().start,
+                                    format!(
+                                        "node '{id}': ports say {what} {{ {} }} but {} declares {{ {} }}; fix or remove ports",
+                                        show(written),
+                                        program.display(),
+                                        show(&declared)
+                                    ),
+                                );
+                            }
+                        }
+                    }
+                    (Runner::Exec(program), spec)
                 }
                 _ => {
                     err(
@@ -593,24 +678,25 @@ impl LaunchFile {
             let mut wanted = Vec::new();
             for (port, decl) in &n.inputs {
                 let iat = decl.span().start;
-                let is_feedback = spec_feedback.iter().any(|(p, _)| p == port);
-                let Some((_, kind)) = spec_inputs
+                let is_feedback = spec.feedback.iter().any(|p| p.name == *port);
+                let Some(declared) = spec
+                    .inputs
                     .iter()
-                    .chain(&spec_feedback)
-                    .find(|(p, _)| p == port)
+                    .chain(&spec.feedback)
+                    .find(|p| p.name == *port)
                 else {
-                    let all: Vec<(String, MessageKind)> =
-                        spec_inputs.iter().chain(&spec_feedback).cloned().collect();
+                    let all: Vec<&Port> = spec.inputs.iter().chain(&spec.feedback).collect();
                     err(
                         &mut errs,
                         iat,
                         format!(
                             "node '{id}' has no input '{port}'; its inputs: {}",
-                            names(&all)
+                            port_names(&all)
                         ),
                     );
                     continue;
                 };
+                let kind = declared.kind;
                 let (from, depth, overflow) = match decl.get_ref() {
                     InputDecl::Source(s) => (s.clone(), None, None),
                     InputDecl::Full {
@@ -656,7 +742,7 @@ impl LaunchFile {
                         overflow: Overflow::DropOldest,
                     };
                 }
-                wanted.push((format!("{src}/{out}"), *kind, iat));
+                wanted.push((format!("{src}/{out}"), kind, iat));
                 inputs.push(Input {
                     port: port.clone(),
                     node: src.into(),
@@ -665,21 +751,22 @@ impl LaunchFile {
                     feedback: is_feedback,
                 });
             }
-            // A node reads its inputs in the order its kind declares them.
-            // Required inputs in the kind's order, then feedback inputs in theirs.
+            // A node reads its inputs in the order its kind declares them: joined inputs
+            // first, then feedback inputs.
             inputs.sort_by_key(|i| {
-                spec_inputs
+                spec.inputs
                     .iter()
-                    .chain(&spec_feedback)
-                    .position(|(p, _)| *p == i.port)
+                    .chain(&spec.feedback)
+                    .position(|p| p.name == i.port)
             });
-            for (p, _) in &spec_inputs {
-                if !n.inputs.contains_key(p) {
+            for p in spec.inputs.iter().filter(|p| !p.optional) {
+                if !n.inputs.contains_key(&p.name) {
                     err(
                         &mut errs,
                         at,
                         format!(
-                            "node '{id}': input '{p}' is not connected; add inputs = {{ {p} = \"NODE/OUTPUT\" }}"
+                            "node '{id}': input '{}' is not connected; add inputs = {{ {} = \"NODE/OUTPUT\" }}",
+                            p.name, p.name
                         ),
                     );
                 }
@@ -689,13 +776,15 @@ impl LaunchFile {
                     id,
                     runner,
                     inputs,
-                    outputs,
-                    params: n
-                        .params
-                        .as_ref()
-                        .map(|p| p.get_ref().clone())
-                        .unwrap_or_default(),
+                    outputs: spec
+                        .outputs
+                        .iter()
+                        .map(|p| (p.name.clone(), p.kind))
+                        .collect(),
+                    params,
                     restart: n.restart.as_ref().map(|r| *r.get_ref()).unwrap_or_default(),
+                    tap: false,
+                    logs: false,
                 },
                 wanted,
             ));
@@ -798,6 +887,18 @@ impl LaunchFile {
     }
 }
 
+fn port_names(ports: &[&Port]) -> String {
+    if ports.is_empty() {
+        "none".into()
+    } else {
+        ports
+            .iter()
+            .map(|p| p.name.as_str())
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+}
+
 fn names(ports: &[(String, MessageKind)]) -> String {
     if ports.is_empty() {
         "none".into()
@@ -832,34 +933,67 @@ mod tests {
         Ok(())
     }
 
-    fn kinds(k: &str) -> Option<KindSpec> {
-        Some(match k {
-            "source" => KindSpec {
-                inputs: vec![],
-                feedback: vec![("state", MessageKind::Disparity)],
-                outputs: vec![("frame", MessageKind::StereoFrame)],
-                check_params: seed_param,
-            },
-            "filter" => KindSpec {
-                inputs: vec![("frame", MessageKind::StereoFrame)],
-                feedback: vec![],
-                outputs: vec![("frame", MessageKind::StereoFrame)],
-                check_params: no_params,
-            },
-            "sink" => KindSpec {
-                inputs: vec![("disparity", MessageKind::Disparity)],
-                feedback: vec![],
-                outputs: vec![("disparity", MessageKind::Disparity)],
-                check_params: no_params,
-            },
-            _ => return None,
-        })
+    fn port(name: &str, kind: MessageKind) -> Port {
+        Port {
+            name: name.into(),
+            kind,
+            optional: false,
+        }
     }
 
-    const KNOWN: &[&str] = &["source", "filter", "sink"];
+    struct Kinds;
+
+    impl Catalog for Kinds {
+        fn kinds(&self) -> Vec<String> {
+            vec!["source".into(), "filter".into(), "sink".into()]
+        }
+        fn spec(&self, k: &str) -> Option<KindSpec> {
+            Some(match k {
+                "source" => KindSpec {
+                    inputs: vec![],
+                    feedback: vec![Port {
+                        optional: true,
+                        ..port("state", MessageKind::Disparity)
+                    }],
+                    outputs: vec![port("frame", MessageKind::StereoFrame)],
+                },
+                "filter" => KindSpec {
+                    inputs: vec![
+                        port("frame", MessageKind::StereoFrame),
+                        Port {
+                            optional: true,
+                            ..port("mask", MessageKind::Image)
+                        },
+                    ],
+                    feedback: vec![],
+                    outputs: vec![port("frame", MessageKind::StereoFrame)],
+                },
+                "sink" => KindSpec {
+                    inputs: vec![port("disparity", MessageKind::Disparity)],
+                    feedback: vec![],
+                    outputs: vec![port("disparity", MessageKind::Disparity)],
+                },
+                _ => return None,
+            })
+        }
+        fn check(&self, k: &str, t: &toml::Table, _: &[&str]) -> Result<(), String> {
+            if k == "source" { seed_param(t) } else { no_params(t) }
+        }
+        fn exec(&self, p: &Path, _: &toml::Table, _: &[&str]) -> Result<KindSpec, String> {
+            if p == Path::new("/opt/my-node") {
+                Ok(KindSpec {
+                    inputs: vec![port("frame", MessageKind::StereoFrame)],
+                    feedback: vec![],
+                    outputs: vec![port("cloud", MessageKind::PointCloud)],
+                })
+            } else {
+                Err(format!("{} cannot be started", p.display()))
+            }
+        }
+    }
 
     fn check(text: &str) -> Result<Graph, LaunchErrors> {
-        LaunchFile::parse(Path::new("g.toml"), text)?.validate(&kinds, KNOWN)
+        LaunchFile::parse(Path::new("g.toml"), text)?.validate(&Kinds)
     }
 
     #[test]
@@ -915,6 +1049,7 @@ inputs = { frame = "b/frame" }
                 feedback: false,
             }]
         );
+        assert!(rec.tap);
         let mut g = chain();
         g.add_tap("rec", "recorder", &[], toml::Table::new())
             .unwrap();

@@ -9,8 +9,10 @@
 //! stop, because a publisher that leaves takes its unread frames along. On exit it prints
 //! one [`NodeStats`] line for the supervisor.
 
-use crate::launch::Graph;
-use crate::step::{GraphNode, Msg, Outputs};
+pub use crate::edge::now_ns;
+use crate::launch::{Graph, KindSpec};
+use crate::node::{GraphNode, Msg, Outputs};
+use crate::registry::Registry;
 use crate::transport::{
     EdgePublisher, EdgeSubscriber, Message, Overflow, Transport, Wake, wait_loop,
 };
@@ -18,7 +20,8 @@ use iceoryx2::node::NodeView;
 use iceoryx2::prelude::*;
 use schemas::FrameHeader;
 use serde::{Deserialize, Serialize};
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
 
 /// The line prefix of a node's final statistics on its stdout.
 pub const STATS_PREFIX: &str = "MICROSTEREO-STATS ";
@@ -53,13 +56,6 @@ pub struct InputStats {
     pub dropped: u64,
     /// Frames of the stream it never delivered, lost anywhere.
     pub missing: u64,
-}
-
-/// Nanoseconds since the Unix epoch (capture timestamps).
-pub fn now_ns() -> u64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0, |d| d.as_nanos() as u64)
 }
 
 struct ShmOutputs<'a> {
@@ -128,7 +124,7 @@ fn input_stats<'a>(
 }
 
 /// The mean of `v` (0 when empty).
-fn mean(v: &[f64]) -> f64 {
+pub(crate) fn mean(v: &[f64]) -> f64 {
     if v.is_empty() {
         0.0
     } else {
@@ -152,8 +148,8 @@ pub fn run_node(
     id: &str,
     node: &mut dyn GraphNode,
     frames: Option<u64>,
-    fps: Option<f64>,
 ) -> Result<NodeStats, String> {
+    let fps = node.fps();
     let spec = graph
         .node(id)
         .ok_or_else(|| format!("no node '{id}' in {}", graph.file.display()))?;
@@ -538,4 +534,261 @@ mod tests {
         assert_eq!(n, 1);
         assert_eq!(left, ["iox2_b.dynamic", "iox2_c.dynamic", "other.dynamic"]);
     }
+}
+
+/// How a node process is started: `--graph FILE --id ID --instance NAME [--frames N]`
+/// (the supervisor writes the whole graph, rewrites applied, to FILE as JSON).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct NodeArgs {
+    /// The graph file.
+    pub graph: PathBuf,
+    /// The node's id in it.
+    pub id: String,
+    /// The running graph (names its shared memory).
+    pub instance: String,
+    /// Stop after this many frames.
+    pub frames: Option<u64>,
+}
+
+/// What a node program is asked to do.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Invocation {
+    /// Run as node `id` of a running graph.
+    Run(NodeArgs),
+    /// Print its kind's ports as JSON after checking `params` (TOML) with the inputs
+    /// `connected`; exit code 2 with the reason when they do not fit.
+    Describe {
+        /// The node's `params` table as TOML.
+        params: String,
+        /// Its connected inputs.
+        connected: Vec<String>,
+    },
+}
+
+impl Invocation {
+    /// Reads the arguments the supervisor (or the launch validator) passes.
+    pub fn parse(args: &[String]) -> Result<Self, String> {
+        let mut graph = None;
+        let mut id = None;
+        let mut instance = None;
+        let mut frames = None;
+        let mut describe = false;
+        let mut params = String::new();
+        let mut connected = Vec::new();
+        let mut it = args.iter();
+        while let Some(a) = it.next() {
+            let mut value = |name: &str| {
+                it.next()
+                    .cloned()
+                    .ok_or_else(|| format!("{name} needs a value"))
+            };
+            match a.as_str() {
+                "--graph" => graph = Some(PathBuf::from(value("--graph")?)),
+                "--id" => id = Some(value("--id")?),
+                "--instance" => instance = Some(value("--instance")?),
+                "--frames" => {
+                    let v = value("--frames")?;
+                    frames = Some(
+                        v.parse::<u64>()
+                            .map_err(|_| format!("--frames {v} is not a frame count"))?,
+                    );
+                }
+                "--describe" => describe = true,
+                "--params" => params = value("--params")?,
+                "--connected" => {
+                    connected = value("--connected")?
+                        .split(',')
+                        .filter(|s| !s.is_empty())
+                        .map(String::from)
+                        .collect()
+                }
+                other => return Err(format!("unknown argument '{other}'")),
+            }
+        }
+        if describe {
+            return Ok(Invocation::Describe { params, connected });
+        }
+        match (graph, id) {
+            (Some(graph), Some(id)) => Ok(Invocation::Run(NodeArgs {
+                graph,
+                id,
+                instance: instance.unwrap_or_else(|| "default".into()),
+                frames,
+            })),
+            _ => Err(
+                "a node program runs with --graph FILE --id ID [--instance NAME] [--frames N] (as `microstereo run` starts it), or with --describe"
+                    .into(),
+            ),
+        }
+    }
+}
+
+impl NodeArgs {
+    /// The arguments that start a node with these settings.
+    pub fn to_args(&self) -> Vec<String> {
+        let mut v = vec![
+            "--graph".to_string(),
+            self.graph.display().to_string(),
+            "--id".into(),
+            self.id.clone(),
+            "--instance".into(),
+            self.instance.clone(),
+        ];
+        if let Some(n) = self.frames {
+            v.push("--frames".into());
+            v.push(n.to_string());
+        }
+        v
+    }
+}
+
+/// Reads a graph file that the supervisor wrote.
+pub fn load_graph(path: &Path) -> Result<Graph, String> {
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| format!("cannot read the graph file {}: {e}", path.display()))?;
+    serde_json::from_str(&text).map_err(|e| format!("graph file {}: {e}", path.display()))
+}
+
+/// Writes `graph` for its node processes.
+pub fn write_graph(path: &Path, graph: &Graph) -> Result<(), String> {
+    let json = serde_json::to_string(graph).map_err(|e| e.to_string())?;
+    std::fs::write(path, json).map_err(|e| format!("cannot write {}: {e}", path.display()))
+}
+
+/// Runs node `a.id` of the graph in `a.graph` as this process, with the node kinds of
+/// `registry` (an `exec` node's program holds its one kind there).
+pub fn run_graph_node(registry: &Registry, a: &NodeArgs) -> Result<NodeStats, String> {
+    let graph = load_graph(&a.graph)?;
+    let spec = graph
+        .node(&a.id)
+        .ok_or_else(|| format!("no node '{}' in {}", a.id, a.graph.display()))?;
+    if let Some(main) = spec.kind().and_then(|k| registry.tap_main(k)) {
+        return main(&graph, &a.instance, &a.id, a.frames)
+            .map_err(|e| format!("node '{}': {e}", a.id));
+    }
+    let mut node = match spec.kind() {
+        Some(_) => registry.build(spec),
+        None => registry.build_as_only_kind(spec),
+    }
+    .map_err(|e| format!("node '{}': {e}", a.id))?;
+    run_node(&graph, &a.instance, &a.id, node.as_mut(), a.frames)
+        .map_err(|e| format!("node '{}': {e}", a.id))
+}
+
+/// Prints a node's statistics the way the supervisor reads them.
+pub fn print_stats(stats: &NodeStats) {
+    println!(
+        "{STATS_PREFIX}{}",
+        serde_json::to_string(stats).expect("serialises")
+    );
+}
+
+/// A child dies with its parent, even when the parent is killed with SIGKILL.
+pub fn set_parent_death_signal() {
+    #[cfg(target_os = "linux")]
+    // SAFETY: prctl with PR_SET_PDEATHSIG only sets a flag of this process.
+    unsafe {
+        libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL);
+    }
+}
+
+/// The whole `main` of a node program of its own (an `exec` node in a launch file) that
+/// holds the one kind in `registry`: runs it in the graph as the supervisor asks, or
+/// describes its ports to the launch validator. Returns the process exit code.
+///
+/// ```no_run
+/// # struct Invert;
+/// # impl runtime::node::Task for Invert {
+/// #     const KIND: &'static str = "invert";
+/// #     type Params = runtime::node::NoParams;
+/// #     type Input = runtime::node::NoPorts;
+/// #     type Output = runtime::node::NoPorts;
+/// #     type Error = String;
+/// #     fn new(_: Self::Params) -> Result<Self, String> { Ok(Invert) }
+/// #     fn process(&mut self, _: runtime::node::Stamp, _: runtime::node::NoPorts) -> Result<runtime::node::NoPorts, String> { Ok(runtime::node::NoPorts) }
+/// # }
+/// fn main() {
+///     std::process::exit(runtime::process::exec_main(runtime::registry::Registry::new().task::<Invert>()));
+/// }
+/// ```
+pub fn exec_main(registry: Registry) -> i32 {
+    set_parent_death_signal();
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let result = Invocation::parse(&args).and_then(|inv| match inv {
+        Invocation::Describe { params, connected } => {
+            let params: toml::Table = toml::from_str(&params)
+                .map_err(|e| format!("--params is not a TOML table: {}", e.message()))?;
+            let spec = registry.describe_only_kind(&params, &connected)?;
+            println!("{}", serde_json::to_string(&spec).expect("serialises"));
+            Ok(())
+        }
+        Invocation::Run(a) => run_graph_node(&registry, &a).map(|s| print_stats(&s)),
+    });
+    match result {
+        Ok(()) => 0,
+        Err(e) => {
+            eprintln!("error: {e}");
+            2
+        }
+    }
+}
+
+/// How long an `exec` node's program may take to describe itself.
+const DESCRIBE_LIMIT: Duration = Duration::from_secs(10);
+
+/// Asks an `exec` node's program for its ports, checking `params` with the inputs
+/// `connected` (it runs `PROGRAM --describe --params TOML --connected a,b`).
+pub fn describe_exec(
+    program: &Path,
+    params: &toml::Table,
+    connected: &[&str],
+) -> Result<KindSpec, String> {
+    let mut child = std::process::Command::new(program)
+        .arg("--describe")
+        .arg("--params")
+        .arg(toml::to_string(params).map_err(|e| e.to_string())?)
+        .arg("--connected")
+        .arg(connected.join(","))
+        .stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .map_err(|e| {
+            format!(
+                "cannot start '{}': {e}; build it or give the right path",
+                program.display()
+            )
+        })?;
+    let t0 = Instant::now();
+    loop {
+        match child.try_wait() {
+            Ok(Some(_)) => break,
+            Ok(None) if t0.elapsed() < DESCRIBE_LIMIT => std::thread::sleep(Duration::from_millis(5)),
+            _ => {
+                let _ = child.kill();
+                let _ = child.wait();
+                return Err(format!(
+                    "'{}' did not describe its ports within {} s (is it a microstereo node program?)",
+                    program.display(),
+                    DESCRIBE_LIMIT.as_secs()
+                ));
+            }
+        }
+    }
+    let out = child.wait_with_output().map_err(|e| e.to_string())?;
+    if !out.status.success() {
+        let why = String::from_utf8_lossy(&out.stderr);
+        let why = why.trim().trim_start_matches("error: ");
+        return Err(if why.is_empty() {
+            format!("'{}' refused to describe its ports ({})", program.display(), out.status)
+        } else {
+            format!("bad params: {why}")
+        });
+    }
+    serde_json::from_slice(&out.stdout).map_err(|e| {
+        format!(
+            "'{}' --describe did not print its ports ({e}); is it a microstereo node program (runtime::process::exec_main)?",
+            program.display()
+        )
+    })
 }

@@ -20,8 +20,8 @@ use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use iceoryx2::sample::Sample;
+pub use crate::edge::{EdgeConfig, Overflow};
 use schemas::FrameHeader;
-use serde::{Deserialize, Serialize};
 use std::cell::Cell;
 use std::time::Duration;
 
@@ -30,35 +30,6 @@ pub type Service = ipc::Service;
 
 /// A received message: header and payload live in shared memory until it is dropped.
 pub type Message = Sample<Service, [u8], FrameHeader>;
-
-/// What a full input queue does to the next frame.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum Overflow {
-    /// The oldest queued frame is dropped (live edges).
-    #[default]
-    DropOldest,
-    /// The writer waits until the reader has taken a frame (lossless edges).
-    Block,
-}
-
-/// Queue settings of one edge; every port of the edge must use the same.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub struct EdgeConfig {
-    /// Frames a reader may have queued.
-    pub depth: usize,
-    /// What a full queue does.
-    pub overflow: Overflow,
-}
-
-impl Default for EdgeConfig {
-    fn default() -> Self {
-        Self {
-            depth: 2,
-            overflow: Overflow::DropOldest,
-        }
-    }
-}
 
 /// Why an edge cannot be opened or used.
 #[derive(Debug, thiserror::Error)]
@@ -302,7 +273,7 @@ impl EdgePublisher {
         let mut sample = sample.write_from_fn(|_| 0u8);
         fill(sample.payload_mut());
         if stamp {
-            sample.user_header_mut().capture_ns = crate::process::now_ns();
+            sample.user_header_mut().capture_ns = crate::edge::now_ns();
         }
         sample.send().map_err(|e| fail(&self.edge, "sending")(&e))?;
         self.sent.set(self.sent.get() + 1);

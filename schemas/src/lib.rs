@@ -6,10 +6,15 @@
 //! [`INVALID_DISPARITY`] (+inf, as in Middlebury PFM files) marks "no value", and
 //! [`Calibration`] carries what triangulation needs in explicit units.
 
+pub mod msg;
 pub mod wire;
 
 use serde::{Deserialize, Serialize};
 
+pub use msg::{
+    CellLists, Cloud, CloudPoint, Disparity, DisparityPair, DisparityTile, DisparityTiles, Image,
+    Labels, ManipulatorState, Message, PathPlan, Side, StereoFrame, Targets,
+};
 pub use wire::{FrameHeader, MessageKind, PixelFormat};
 
 /// Marker for "no disparity here": +inf, the Middlebury PFM convention.

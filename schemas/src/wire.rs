@@ -70,11 +70,13 @@ pub enum MessageKind {
     DisparityPair = 8,
     /// Where the manipulator's pipette is and what it is doing (JSON).
     ManipulatorState = 9,
+    /// Disparity maps of a frame in tiles: the whole frame, or one crop per cell pair.
+    DisparityTiles = 10,
 }
 
 impl MessageKind {
     /// Every kind, in wire order.
-    pub const ALL: [MessageKind; 9] = [
+    pub const ALL: [MessageKind; 10] = [
         Self::StereoFrame,
         Self::Image,
         Self::Disparity,
@@ -84,6 +86,7 @@ impl MessageKind {
         Self::Targets,
         Self::DisparityPair,
         Self::ManipulatorState,
+        Self::DisparityTiles,
     ];
 
     /// Its name in launch files and recordings (`stereo-frame`, `disparity`, …).
@@ -98,6 +101,7 @@ impl MessageKind {
             Self::Targets => "targets",
             Self::DisparityPair => "disparity-pair",
             Self::ManipulatorState => "manipulator-state",
+            Self::DisparityTiles => "disparity-tiles",
         }
     }
 
@@ -118,6 +122,7 @@ impl MessageKind {
             7 => Self::Targets,
             8 => Self::DisparityPair,
             9 => Self::ManipulatorState,
+            10 => Self::DisparityTiles,
             _ => return None,
         })
     }
@@ -348,93 +353,5 @@ pub fn json_header(kind: MessageKind) -> FrameHeader {
     }
 }
 
-/// The cells both views hold, as the segment node sends them.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct CellLists {
-    /// Cells of the left view.
-    pub left: Vec<crate::Cell>,
-    /// Cells of the right view.
-    pub right: Vec<crate::Cell>,
-}
-
-/// What the triangulate node sends on `targets` and the manipulator bridge serves: the 3D
-/// cells of one frame (JSON).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct Targets {
-    /// Frame number.
-    pub frame: u64,
-    /// Capture time, ns since the Unix epoch.
-    pub capture_ns: u64,
-    /// Unit of every coordinate.
-    pub unit: String,
-    /// Per-cell 3D figures.
-    pub cells: Vec<crate::Cell3>,
-}
-
-/// A planned pipette path as the bridge reports it.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct PathPlan {
-    /// `approach`, `retract` or `goto`.
-    pub goal: String,
-    /// The target cell's id in the frame it was planned in (approach only).
-    pub target: Option<u32>,
-    /// The frame whose scene it was planned in.
-    pub frame: u64,
-    /// Tip waypoints `[x, y, up]`, µm, the start first.
-    pub waypoints: Vec<[f64; 3]>,
-    /// Legs from this waypoint on run along the pipette axis (target exempt).
-    pub axial_from: u32,
-    /// Where it ends (the injection point of an approach).
-    pub end: [f64; 3],
-    /// Length, µm.
-    pub length: f64,
-    /// Least distance between the body and a cell other than the target, µm (none
-    /// without such cells).
-    pub min_clearance: Option<f64>,
-}
-
-/// What the manipulator bridge sends on `state` once per frame (JSON). Positions are in
-/// the scene frame: `[X, Y, −Z]` of the triangulation in µm, so the third grows upward.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct ManipulatorState {
-    /// Frame number of the scene it answers.
-    pub frame: u64,
-    /// Capture time of that frame, ns since the Unix epoch.
-    pub capture_ns: u64,
-    /// The device (`sim`, `MP-285 on …`, or `none` when it is missing).
-    pub device: String,
-    /// `idle`, `moving`, `arrived`, `stopped`, `blocked` or `error`.
-    pub status: String,
-    /// Tip position `[x, y, up]`, µm.
-    pub tip: [f64; 3],
-    /// Pipette elevation above the horizontal, degrees.
-    pub elevation_deg: f64,
-    /// Direction the body extends to from the tip, degrees from +x.
-    pub azimuth_deg: f64,
-    /// Clearance the planner keeps, µm.
-    pub clearance: f64,
-    /// Tip samples `[t, x, y, up]` since the previous message (t: seconds since the bridge
-    /// started), at the bridge's polling rate.
-    pub trajectory: Vec<[f64; 4]>,
-    /// The plan being executed or last executed.
-    pub plan: Option<PathPlan>,
-    /// Objects of this frame taken for the pipette itself (they touch its body).
-    pub ignored: Vec<u32>,
-}
-
 /// Bytes per point of a point-cloud message: `x, y, z` as little-endian f32, then `r, g, b`.
 pub const CLOUD_POINT_BYTES: usize = 15;
-
-/// The header of a point-cloud message of `points` points (one row of
-/// [`CLOUD_POINT_BYTES`] each).
-pub fn cloud_header(points: usize) -> FrameHeader {
-    FrameHeader {
-        width: points as u32,
-        height: 1,
-        stride: CLOUD_POINT_BYTES as u32,
-        format: PixelFormat::F32 as u32,
-        kind: MessageKind::PointCloud as u32,
-        images: 0,
-        ..FrameHeader::default()
-    }
-}

@@ -1,0 +1,174 @@
+//! The in-process executor: a graph's nodes stepped one after another in this process.
+//!
+//! `reconstruct`, `bench`, the tests and `test-node` run graphs this way; `run` runs the
+//! same node values as processes ([`crate::process`]). Per frame, sources produce and every
+//! other node steps on the messages its producers sent for that frame, in the graph's order
+//! (producers first); a feedback input gets the newest message its producer sent so far.
+
+use crate::launch::Graph;
+use crate::node::{GraphNode, Msg, Outputs};
+use crate::registry::Registry;
+use schemas::FrameHeader;
+use std::collections::HashMap;
+use std::time::Instant;
+
+/// Output messages kept in memory: `(header, payload)` per port.
+#[derive(Debug, Default)]
+pub struct Collected {
+    /// Per output port, the messages sent this step.
+    pub ports: Vec<Vec<(FrameHeader, Vec<u8>)>>,
+}
+
+impl Outputs for Collected {
+    fn send(
+        &mut self,
+        port: usize,
+        header: FrameHeader,
+        len: usize,
+        fill: &mut dyn FnMut(&mut [u8]),
+    ) -> Result<(), String> {
+        if self.ports.len() <= port {
+            self.ports.resize_with(port + 1, Vec::new);
+        }
+        let mut buf = vec![0u8; len];
+        fill(&mut buf);
+        self.ports[port].push((header, buf));
+        Ok(())
+    }
+}
+
+/// One message of an edge.
+pub type Logged = (FrameHeader, Vec<u8>);
+
+/// Every message of every edge, keyed by `(node id, output port)`, in frame order.
+pub type EdgeLog = HashMap<(String, String), Vec<Logged>>;
+
+/// What one frame of an in-process run produced.
+#[derive(Debug, Default)]
+pub struct Frame {
+    /// The messages of this frame, keyed by `(node id, output port)`.
+    pub edges: HashMap<(String, String), Logged>,
+    /// Milliseconds each node took, in the graph's order.
+    pub ms: Vec<(String, f64)>,
+}
+
+impl Frame {
+    /// The message node `id` sent on `port` this frame.
+    pub fn get(&self, id: &str, port: &str) -> Option<Msg<'_>> {
+        self.edges
+            .get(&(id.to_string(), port.to_string()))
+            .map(|(h, p)| Msg {
+                header: *h,
+                payload: p,
+            })
+    }
+
+    /// That message decoded as `M`.
+    pub fn decode<M: schemas::msg::Message>(&self, id: &str, port: &str) -> Result<M, String> {
+        let m = self
+            .get(id, port)
+            .ok_or_else(|| format!("nothing on {id}/{port} this frame"))?;
+        M::decode(&m.header, m.payload).map_err(|e| format!("{id}/{port}: {e}"))
+    }
+}
+
+/// A graph and its node values, run in this process.
+pub struct InProcess {
+    graph: Graph,
+    nodes: Vec<Box<dyn GraphNode>>,
+    /// The newest message of every edge (for feedback inputs).
+    newest: HashMap<(String, String), Logged>,
+    seq: u64,
+}
+
+impl InProcess {
+    /// Builds every node of `graph` from `registry`.
+    pub fn new(graph: &Graph, registry: &Registry) -> Result<Self, String> {
+        let nodes = graph
+            .nodes
+            .iter()
+            .map(|n| registry.build(n).map_err(|e| format!("node '{}': {e}", n.id)))
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(Self::with_nodes(graph, nodes))
+    }
+
+    /// Runs `graph` with the given node values (one per node, in the graph's order).
+    pub fn with_nodes(graph: &Graph, nodes: Vec<Box<dyn GraphNode>>) -> Self {
+        Self {
+            graph: graph.clone(),
+            nodes,
+            newest: HashMap::new(),
+            seq: 0,
+        }
+    }
+
+    /// Runs the next frame; `None` once a source has no more.
+    pub fn step(&mut self) -> Result<Option<Frame>, String> {
+        let seq = self.seq;
+        let mut frame = Frame::default();
+        for (spec, node) in self.graph.nodes.iter().zip(self.nodes.iter_mut()) {
+            let mut out = Collected::default();
+            for (k, i) in spec.inputs.iter().enumerate().filter(|(_, i)| i.feedback) {
+                if let Some((h, p)) = self.newest.get(&(i.node.clone(), i.output.clone())) {
+                    node.feedback(
+                        k,
+                        Msg {
+                            header: *h,
+                            payload: p,
+                        },
+                    )
+                    .map_err(|e| format!("{}: {e}", spec.id))?;
+                }
+            }
+            let t = Instant::now();
+            if spec.inputs.iter().all(|i| i.feedback) {
+                if !node
+                    .produce(seq, &mut out)
+                    .map_err(|e| format!("{}: {e}", spec.id))?
+                {
+                    return Ok(None);
+                }
+            } else {
+                let msgs: Vec<Msg<'_>> = spec
+                    .inputs
+                    .iter()
+                    .filter(|i| !i.feedback)
+                    .map(|i| {
+                        frame
+                            .get(&i.node, &i.output)
+                            .ok_or_else(|| format!("{}: no message on {}/{}", spec.id, i.node, i.output))
+                    })
+                    .collect::<Result<_, _>>()?;
+                node.step(&msgs, &mut out)
+                    .map_err(|e| format!("{}: {e}", spec.id))?;
+            }
+            frame
+                .ms
+                .push((spec.id.clone(), t.elapsed().as_secs_f64() * 1e3));
+            for (port, msgs) in out.ports.into_iter().enumerate() {
+                let name = spec.outputs[port].0.clone();
+                for m in msgs {
+                    let key = (spec.id.clone(), name.clone());
+                    self.newest.insert(key.clone(), m.clone());
+                    frame.edges.insert(key, m);
+                }
+            }
+        }
+        self.seq += 1;
+        Ok(Some(frame))
+    }
+
+    /// Runs up to `frames` frames and returns everything every edge carried.
+    pub fn run(&mut self, frames: u64) -> Result<EdgeLog, String> {
+        let mut log: EdgeLog = HashMap::new();
+        for _ in 0..frames {
+            let Some(f) = self.step()? else { break };
+            let mut edges: Vec<_> = f.edges.into_iter().collect();
+            edges.sort_by(|a, b| a.0.cmp(&b.0));
+            for (k, m) in edges {
+                log.entry(k).or_default().push(m);
+            }
+        }
+        Ok(log)
+    }
+}

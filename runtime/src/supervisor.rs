@@ -1,0 +1,429 @@
+//! The supervisor: runs a graph as one process per node, forwards their logs, restarts
+//! nodes by their policy, stops the graph cleanly and prints the summary.
+//!
+//! The supervisor writes the graph (rewrites applied) to a file in the system's temporary
+//! folder and starts every node with `--graph FILE --id ID --instance NAME`: built-in kinds
+//! as `PROGRAM node …` (the program that holds the registry), `exec` nodes as their own
+//! program. The file is removed when the run ends.
+
+use crate::launch::{Graph, RestartPolicy, Runner};
+use crate::process::{NodeArgs, NodeStats, STATS_PREFIX};
+use std::collections::HashMap;
+use std::ffi::OsString;
+use std::path::PathBuf;
+use std::process::Stdio;
+use std::time::{Duration, Instant};
+use tokio::io::{AsyncBufReadExt, BufReader};
+
+/// How to run a graph.
+#[derive(Clone, Debug)]
+pub struct RunOptions {
+    /// The program and leading arguments that run a built-in node (`microstereo node`).
+    pub builtin: Vec<OsString>,
+    /// Stop after this many frames (until Ctrl-C without it).
+    pub frames: Option<u64>,
+    /// Seconds a node gets to end after SIGTERM before it is killed.
+    pub grace: f64,
+    /// Names the run's shared memory (default: `run` and the supervisor's pid).
+    pub instance: Option<String>,
+}
+
+/// What a run did: each node's statistics and how long it took.
+#[derive(Clone, Debug)]
+pub struct RunReport {
+    /// Per node id.
+    pub stats: HashMap<String, NodeStats>,
+    /// Wall-clock time of the whole run.
+    pub wall: Duration,
+}
+
+/// The graph file of a run, removed when the run ends.
+struct GraphFile(PathBuf);
+
+impl Drop for GraphFile {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.0);
+    }
+}
+
+/// Runs `graph` as processes until its frames are done, Ctrl-C or SIGTERM; a node that
+/// fails beyond its restart policy stops the graph and is the error.
+pub fn run(graph: &Graph, o: &RunOptions) -> Result<RunReport, String> {
+    let stale = crate::process::remove_stale_resources();
+    if stale.removed > 0 || stale.empty_files > 0 {
+        eprintln!(
+            "removed the shared memory of {} dead node(s) and {} unfinished edge(s)",
+            stale.removed, stale.empty_files
+        );
+    }
+    if stale.gave_up {
+        eprintln!(
+            "warning: the shared memory of dead nodes could not be removed within {:?}; \
+             the graph starts anyway (`rm /dev/shm/iox2_*` and `rm -r /tmp/iceoryx2` with \
+             no graph running clears it)",
+            crate::process::STALE_CLEANUP_LIMIT
+        );
+    }
+    let instance = o
+        .instance
+        .clone()
+        .unwrap_or_else(|| format!("run{}", std::process::id()));
+    let file = GraphFile(std::env::temp_dir().join(format!(
+        "microstereo-{}-{}.graph.json",
+        instance.replace(['/', '\\'], "_"),
+        std::process::id()
+    )));
+    crate::process::write_graph(&file.0, graph)?;
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .map_err(|e| format!("cannot start the supervisor: {e}"))?;
+    let (stats, wall) = rt.block_on(supervise(graph, o, &file.0, &instance))?;
+    Ok(RunReport { stats, wall })
+}
+
+struct Child {
+    id: String,
+    proc: tokio::process::Child,
+    restarts: u32,
+}
+
+fn spawn(
+    graph: &Graph,
+    o: &RunOptions,
+    file: &std::path::Path,
+    instance: &str,
+    id: &str,
+) -> Result<tokio::process::Child, String> {
+    let spec = graph.node(id).expect("validated");
+    let mut cmd = match &spec.runner {
+        Runner::Builtin(_) => {
+            let (program, args) = o
+                .builtin
+                .split_first()
+                .ok_or("no program to run built-in nodes with")?;
+            let mut c = tokio::process::Command::new(program);
+            c.args(args);
+            c
+        }
+        Runner::Exec(p) => tokio::process::Command::new(p),
+    };
+    cmd.args(
+        NodeArgs {
+            graph: file.to_path_buf(),
+            id: id.into(),
+            instance: instance.into(),
+            frames: o.frames,
+        }
+        .to_args(),
+    );
+    cmd.stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .stdin(if spec.logs {
+            Stdio::piped()
+        } else {
+            Stdio::null()
+        })
+        .kill_on_drop(true);
+    #[cfg(target_os = "linux")]
+    // SAFETY: only async-signal-safe prctl between fork and exec.
+    unsafe {
+        cmd.pre_exec(|| {
+            libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL);
+            Ok(())
+        });
+    }
+    cmd.spawn()
+        .map_err(|e| format!("cannot start node '{id}': {e}"))
+}
+
+type StatsSink = std::sync::Arc<std::sync::Mutex<HashMap<String, NodeStats>>>;
+
+/// Where node log lines go besides the terminal: the Rerun viewer node's stdin, as
+/// `NODE<TAB>LEVEL<TAB>LINE`.
+type LogTap = Option<tokio::sync::mpsc::UnboundedSender<String>>;
+
+fn forward_logs(
+    id: &str,
+    logs: bool,
+    child: &mut tokio::process::Child,
+    stats: &StatsSink,
+    tap: &LogTap,
+) {
+    if let Some(out) = child.stdout.take() {
+        let (id, stats, tap) = (id.to_string(), stats.clone(), tap.clone());
+        tokio::spawn(async move {
+            let mut lines = BufReader::new(out).lines();
+            while let Ok(Some(l)) = lines.next_line().await {
+                match l.strip_prefix(STATS_PREFIX) {
+                    Some(j) => {
+                        if let Ok(s) = serde_json::from_str::<NodeStats>(j) {
+                            stats.lock().expect("stats").insert(id.clone(), s);
+                        }
+                    }
+                    None => {
+                        if let Some(t) = &tap {
+                            let _ = t.send(format!("{id}\tINFO\t{l}"));
+                        }
+                        println!("[{id}] {l}")
+                    }
+                }
+            }
+        });
+    }
+    if let Some(err) = child.stderr.take() {
+        let (id, tap) = (id.to_string(), tap.clone());
+        tokio::spawn(async move {
+            let mut lines = BufReader::new(err).lines();
+            while let Ok(Some(l)) = lines.next_line().await {
+                if let Some(t) = &tap {
+                    let _ = t.send(format!("{id}\tWARN\t{l}"));
+                }
+                eprintln!("[{id}] {l}");
+            }
+        });
+    }
+    // The viewer reads the other nodes' log lines on its stdin.
+    if logs
+        && let Some(mut stdin) = child.stdin.take()
+        && let Some(rx) = VIEWER_LOGS.lock().expect("logs").take()
+    {
+        use tokio::io::AsyncWriteExt;
+        let mut rx: tokio::sync::mpsc::UnboundedReceiver<String> = rx;
+        tokio::spawn(async move {
+            while let Some(mut line) = rx.recv().await {
+                line.push('\n');
+                if stdin.write_all(line.as_bytes()).await.is_err() {
+                    break;
+                }
+            }
+        });
+    }
+}
+
+/// The receiving end of the log tap, taken by the first viewer process started.
+static VIEWER_LOGS: std::sync::Mutex<Option<tokio::sync::mpsc::UnboundedReceiver<String>>> =
+    std::sync::Mutex::new(None);
+
+fn terminate(children: &[Child]) {
+    for c in children {
+        if let Some(pid) = c.proc.id() {
+            // SAFETY: kill(2) on our own child's pid.
+            unsafe {
+                libc::kill(pid as i32, libc::SIGTERM);
+            }
+        }
+    }
+}
+
+async fn supervise(
+    graph: &Graph,
+    a: &RunOptions,
+    file: &std::path::Path,
+    instance: &str,
+) -> Result<(HashMap<String, NodeStats>, Duration), String> {
+    use tokio::signal::unix::{SignalKind, signal};
+    let stats: StatsSink = Default::default();
+    let start = Instant::now();
+    let tap: LogTap = graph.nodes.iter().find(|n| n.logs).map(|_| {
+        let (tx, rx) = tokio::sync::mpsc::unbounded_channel();
+        *VIEWER_LOGS.lock().expect("logs") = Some(rx);
+        tx
+    });
+    let mut children = Vec::new();
+    for n in &graph.nodes {
+        let mut proc = spawn(graph, a, file, instance, &n.id)?;
+        forward_logs(&n.id, n.logs, &mut proc, &stats, &tap);
+        children.push(Child {
+            id: n.id.clone(),
+            proc,
+            restarts: 0,
+        });
+    }
+    let mut sigterm = signal(SignalKind::terminate())
+        .map_err(|e| format!("cannot watch SIGTERM: {e}"))?;
+    // A node that others read stays after its last frame (its readers may still be taking
+    // them) until it is told to stop.
+    let mut failure: Option<String> = None;
+    let mut stopping = false;
+    loop {
+        if children.is_empty() {
+            break;
+        }
+        // Every node nobody reads is done: the ones they read may go.
+        if !stopping && children.iter().all(|c| graph.is_read(&c.id)) {
+            stopping = true;
+            terminate(&children);
+        }
+        let exited = {
+            let waits = children
+                .iter_mut()
+                .enumerate()
+                .map(|(i, c)| Box::pin(async move { (i, c.proc.wait().await) }));
+            tokio::select! {
+                (r, _, _) = futures_select(waits) => Some(r),
+                _ = tokio::signal::ctrl_c() => None,
+                _ = sigterm.recv() => None,
+                _ = tokio::time::sleep(Duration::from_secs_f64(a.grace)), if stopping => {
+                    for c in &mut children {
+                        let _ = c.proc.start_kill();
+                    }
+                    None
+                }
+            }
+        };
+        let Some((i, status)) = exited else {
+            if !stopping {
+                eprintln!("stopping the graph");
+                stopping = true;
+                terminate(&children);
+            }
+            continue;
+        };
+        let status = status.map_err(|e| format!("waiting for a node: {e}"))?;
+        let c = children.remove(i);
+        let spec = graph.node(&c.id).expect("validated");
+        let failed = !status.success();
+        let restart = !stopping
+            && match spec.restart.policy {
+                RestartPolicy::Never => false,
+                RestartPolicy::OnFailure => failed,
+                RestartPolicy::Always => true,
+            }
+            && c.restarts < spec.restart.max;
+        if restart {
+            let wait = Duration::from_millis(spec.restart.backoff_ms << c.restarts.min(10));
+            eprintln!(
+                "[{}] exited ({status}); restart {} of {} in {:?}",
+                c.id,
+                c.restarts + 1,
+                spec.restart.max,
+                wait
+            );
+            tokio::time::sleep(wait).await;
+            if failed {
+                // A node that died holds its places on its edges (a full queue of a dead
+                // reader blocks a lossless writer): free them before its successor joins.
+                let stale = tokio::task::spawn_blocking(crate::process::remove_stale_resources)
+                    .await
+                    .unwrap_or_default();
+                if stale.gave_up {
+                    eprintln!("[{}] warning: its shared memory could not be removed", c.id);
+                }
+            }
+            let mut proc = spawn(graph, a, file, instance, &c.id)?;
+            forward_logs(&c.id, spec.logs, &mut proc, &stats, &tap);
+            children.push(Child {
+                id: c.id,
+                proc,
+                restarts: c.restarts + 1,
+            });
+        } else if failed && !stopping {
+            failure = Some(format!("node '{}' failed ({status})", c.id));
+            stopping = true;
+            terminate(&children);
+        }
+    }
+    // Give the log forwarders a moment to flush the last lines.
+    tokio::time::sleep(Duration::from_millis(50)).await;
+    let wall = start.elapsed();
+    let stats = stats.lock().expect("stats").clone();
+    match failure {
+        Some(f) => Err(f),
+        None => Ok((stats, wall)),
+    }
+}
+
+/// The first of several futures to finish, with its index.
+async fn futures_select<F, T>(futs: impl Iterator<Item = F>) -> (T, usize, ())
+where
+    F: std::future::Future<Output = T> + Unpin,
+{
+    let mut futs: Vec<F> = futs.collect();
+    std::future::poll_fn(move |cx| {
+        for (i, f) in futs.iter_mut().enumerate() {
+            if let std::task::Poll::Ready(v) = std::pin::Pin::new(f).poll(cx) {
+                return std::task::Poll::Ready((v, i, ()));
+            }
+        }
+        std::task::Poll::Pending
+    })
+    .await
+}
+
+/// Prints the run's summary: per node frames and step times, per edge what was lost, the
+/// frame rate and the latency of the graph's ends.
+pub fn print_summary(
+    graph: &Graph,
+    stats: &HashMap<String, NodeStats>,
+    wall: Duration,
+    frames: Option<u64>,
+) {
+    println!();
+    println!(
+        "{:<20} {:>9} {:>9} {:>10} {:>10} {:>12}",
+        "node", "frames in", "out", "mean ms", "p99 ms", "latency ms"
+    );
+    for n in &graph.nodes {
+        match stats.get(&n.id) {
+            Some(s) => println!(
+                "{:<20} {:>9} {:>9} {:>10.2} {:>10.2} {:>12.1}",
+                n.id, s.frames_in, s.frames_out, s.mean_ms, s.p99_ms, s.latency_ms
+            ),
+            None => println!("{:<20} (no report)", n.id),
+        }
+    }
+    // Per edge: messages its own queue lost, and frames of the stream that never reached
+    // the reader (lost there, upstream, or in a restarted writer).
+    let mut rows = Vec::new();
+    for n in &graph.nodes {
+        if let Some(s) = stats.get(&n.id) {
+            for (i, lost) in n.inputs.iter().zip(&s.inputs) {
+                rows.push((
+                    format!("{}/{} → {}.{}", i.node, i.output, n.id, i.port),
+                    lost,
+                ));
+            }
+        }
+    }
+    let width = rows
+        .iter()
+        .map(|r| r.0.chars().count())
+        .max()
+        .unwrap_or(4)
+        .max(4);
+    println!();
+    println!(
+        "{:<width$} {:>8} {:>14}",
+        "edge", "dropped", "never arrived"
+    );
+    for (edge, lost) in &rows {
+        println!("{:<width$} {:>8} {:>14}", edge, lost.dropped, lost.missing);
+    }
+    // The graph's own ends: nodes no other node reads, taps (recorder, viewer) and
+    // feedback inputs aside.
+    let tap = |id: &str| graph.node(id).is_some_and(|n| n.tap);
+    let sinks: Vec<&NodeStats> = graph
+        .nodes
+        .iter()
+        .filter(|n| !tap(&n.id))
+        .filter(|n| {
+            !graph
+                .nodes
+                .iter()
+                .filter(|m| !tap(&m.id))
+                .any(|m| m.inputs.iter().any(|i| i.node == n.id && !i.feedback))
+        })
+        .filter_map(|n| stats.get(&n.id))
+        .collect();
+    let done = sinks.iter().map(|s| s.frames_in).min().unwrap_or(0);
+    println!(
+        "{done} frame(s){} in {:.2} s: {:.2} frames/s; capture → last output latency {:.1} ms",
+        frames.map_or(String::new(), |n| format!(" of {n}")),
+        wall.as_secs_f64(),
+        done as f64 / wall.as_secs_f64().max(1e-9),
+        sinks.iter().map(|s| s.latency_ms).fold(0.0, f64::max)
+    );
+}
+
