@@ -277,6 +277,9 @@ impl NodeSpec {
 pub struct Graph {
     /// Where it was read from.
     pub file: PathBuf,
+    /// The launch file's text (what a recording stores; empty for a graph built in code).
+    #[serde(default)]
+    pub text: String,
     /// Nodes, producers first.
     pub nodes: Vec<NodeSpec>,
 }
@@ -879,6 +882,7 @@ impl LaunchFile {
         let mut slots: Vec<Option<NodeSpec>> = nodes.into_iter().map(|(n, _)| Some(n)).collect();
         Ok(Graph {
             file: self.path.clone(),
+            text: self.text.clone(),
             nodes: order
                 .into_iter()
                 .map(|i| slots[i].take().expect("once"))

@@ -300,3 +300,28 @@ pub struct Cell3 {
     /// Share of the cell's pixels with a valid disparity after the LR check, 0..1.
     pub valid_share: f64,
 }
+
+/// A disparity plane `d(x, y) = d0 + dx·(x − centre.x) + dy·(y − centre.y)`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct DisparityPlane {
+    /// Disparity at `centre`, px.
+    pub d0: f64,
+    /// Change per pixel along x.
+    pub dx: f64,
+    /// Change per pixel along y.
+    pub dy: f64,
+    /// Where `d0` applies `[x, y]`.
+    pub centre: [f64; 2],
+    /// Formal standard error of `d0` (px); neighbouring residuals correlate, so the real one
+    /// is larger.
+    pub std: f64,
+    /// Pixels used.
+    pub pixels: u64,
+}
+
+impl DisparityPlane {
+    /// The plane's disparity at `(x, y)`.
+    pub fn at(&self, x: f64, y: f64) -> f64 {
+        self.d0 + self.dx * (x - self.centre[0]) + self.dy * (y - self.centre[1])
+    }
+}

@@ -331,6 +331,10 @@ pub struct Targets {
     pub unit: String,
     /// Per-cell 3D figures.
     pub cells: Vec<Cell3>,
+    /// The substrate's disparity plane fitted to the background around the cells (absent
+    /// when the background is too smooth to fix one: each cell's ring stands in).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub substrate: Option<crate::DisparityPlane>,
 }
 
 json_message!(Targets, MessageKind::Targets, "targets");

@@ -1,9 +1,7 @@
 //! Two V4L2 cameras as a frame source (cargo feature `v4l`): each frame is the pair of
 //! grey images whose driver timestamps lie closest, within `max_skew_ms`.
 
-use runtime::process::now_ns;
-use runtime::step::{GraphNode, Outputs, params, send_planes};
-use schemas::{MessageKind, Plane};
+use schemas::{Plane, StereoFrame};
 use serde::Deserialize;
 use v4l::buffer::Type;
 use v4l::io::traits::CaptureStream;
@@ -47,7 +45,7 @@ fn default_skew() -> f64 {
 impl CameraParams {
     /// Reads a `params` table.
     pub fn from_table(t: &toml::Table) -> Result<Self, String> {
-        params(t)
+        crate::read_params(t)
     }
 }
 
@@ -152,8 +150,9 @@ impl CameraCapture {
     }
 }
 
-impl GraphNode for CameraCapture {
-    fn produce(&mut self, seq: u64, out: &mut dyn Outputs) -> Result<bool, String> {
+impl CameraCapture {
+    /// The next pair whose images lie within `max_skew_ms` of each other.
+    pub fn next_frame(&mut self) -> Result<StereoFrame, String> {
         let (mut l, mut tl) = self.left.next()?;
         let (mut r, mut tr) = self.right.next()?;
         // Drop the older image until the two are close enough (a few tries).
@@ -173,8 +172,7 @@ impl GraphNode for CameraCapture {
                 (tl - tr).abs() as f64 / 1000.0
             ));
         }
-        send_planes(out, 0, MessageKind::StereoFrame, (seq, now_ns()), &[&l, &r])?;
-        Ok(true)
+        Ok(StereoFrame { left: l, right: r })
     }
 }
 

@@ -1,8 +1,6 @@
 //! Image pairs on disk as a frame source.
 
-use runtime::process::now_ns;
-use runtime::step::{GraphNode, Outputs, params, send_planes};
-use schemas::{MessageKind, Plane};
+use schemas::StereoFrame;
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
 
@@ -27,7 +25,7 @@ pub struct FileParams {
 impl FileParams {
     /// Reads a `params` table.
     pub fn from_table(t: &toml::Table) -> Result<Self, String> {
-        params(t)
+        crate::read_params(t)
     }
 }
 
@@ -78,14 +76,6 @@ pub struct FileCapture {
     repeat: bool,
 }
 
-fn load(p: &Path) -> Result<Plane<u8>, String> {
-    let img = image::open(p)
-        .map_err(|e| format!("cannot read '{}': {e}", p.display()))?
-        .to_luma8();
-    let (w, h) = img.dimensions();
-    Ok(Plane::from_vec(w as usize, h as usize, img.into_raw()).expect("size"))
-}
-
 impl FileCapture {
     /// Lists the pairs; none, or unequal counts, is an error that says which pattern.
     pub fn new(p: FileParams) -> Result<Self, String> {
@@ -106,14 +96,18 @@ impl FileCapture {
     }
 }
 
-impl GraphNode for FileCapture {
-    fn produce(&mut self, seq: u64, out: &mut dyn Outputs) -> Result<bool, String> {
+impl FileCapture {
+    /// Frame `seq`'s pair (`None` after the last when not repeating).
+    pub fn frame(&mut self, seq: u64) -> Result<Option<StereoFrame>, String> {
         let n = self.pairs.len() as u64;
         if seq >= n && !self.repeat {
-            return Ok(false);
+            return Ok(None);
         }
         let (lp, rp) = &self.pairs[(seq % n) as usize];
-        let (l, r) = (load(lp)?, load(rp)?);
+        let (l, r) = (
+            crate::image::load(lp, "left image")?.grey,
+            crate::image::load(rp, "right image")?.grey,
+        );
         if (l.width, l.height) != (r.width, r.height) {
             return Err(format!(
                 "'{}' is {}×{} but '{}' is {}×{}; a pair must have one size",
@@ -125,16 +119,13 @@ impl GraphNode for FileCapture {
                 r.height
             ));
         }
-        send_planes(out, 0, MessageKind::StereoFrame, (seq, now_ns()), &[&l, &r])?;
-        Ok(true)
+        Ok(Some(StereoFrame { left: l, right: r }))
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use runtime::step::Collected;
-    use schemas::wire::read_planes;
 
     #[test]
     fn patterns_pick_sorted_pairs_and_the_source_sends_them_in_order() {
@@ -157,27 +148,17 @@ mod tests {
             fps: None,
         };
         let mut cap = FileCapture::new(p(false)).unwrap();
-        let mut out = Collected::default();
-        for seq in 0..3 {
-            assert!(cap.produce(seq, &mut out).unwrap());
+        for i in 0..3u8 {
+            let f = cap.frame(i as u64).unwrap().unwrap();
+            assert_eq!((f.left.data[0], f.right.data[0]), (10 * i, 10 * i + 1));
         }
         assert!(
-            !cap.produce(3, &mut out).unwrap(),
+            cap.frame(3).unwrap().is_none(),
             "three pairs, then the end"
         );
-        for (i, (h, b)) in out.ports[0].iter().enumerate() {
-            assert_eq!(h.sequence, i as u64);
-            let v = read_planes::<u8>(h, b).unwrap();
-            assert_eq!(
-                (v[0].data[0], v[1].data[0]),
-                (10 * i as u8, 10 * i as u8 + 1)
-            );
-        }
         let mut looped = FileCapture::new(p(true)).unwrap();
-        let mut out = Collected::default();
-        assert!(looped.produce(4, &mut out).unwrap());
-        let v = read_planes::<u8>(&out.ports[0][0].0, &out.ports[0][0].1).unwrap();
-        assert_eq!(v[0].data[0], 10, "frame 4 of a 3-pair loop is pair 1");
+        let f = looped.frame(4).unwrap().unwrap();
+        assert_eq!(f.left.data[0], 10, "frame 4 of a 3-pair loop is pair 1");
         let bad = FileParams {
             right: format!("{d}/nothing_*.png"),
             ..p(false)

@@ -1,61 +1,253 @@
-//! The capture node: where the graph's stereo frames come from.
+//! Where the graph's stereo frames come from: two source kinds.
 //!
-//! - `source = "synthetic"` ([`synthetic`]): the synthetic stereo microscope, cells drifting
-//!   and an optional pipette advancing from frame to frame (the embedded default);
-//! - `source = "files"` ([`files`]): rectified image pairs on disk, named by two glob
-//!   patterns (`*` and `?` in the file name), paired in sorted order, optionally looped;
-//! - `source = "v4l"` (`camera`, cargo feature `v4l`): two V4L2 cameras, paired by driver
-//!   timestamp.
+//! `capture` (the live graph's source), by its `source` parameter:
+//! - `"synthetic"` ([`synthetic`]): the synthetic stereo microscope, cells drifting and an
+//!   optional pipette advancing from frame to frame (the embedded default); its `tip`
+//!   feedback input draws the pipette where the manipulator says;
+//! - `"files"` ([`files`]): rectified image pairs on disk, named by two glob patterns (`*`
+//!   and `?` in the file name), paired in sorted order, optionally looped;
+//! - `"v4l"` (`camera`, cargo feature `v4l`): two V4L2 cameras, paired by driver timestamp.
+//!
+//! `image-pair` ([`ImagePair`]): one stereo pair from two image files, sent `frames` times,
+//! with the left view in colour for the points (what `reconstruct` runs on).
 
 #[cfg(feature = "v4l")]
 pub mod camera;
 pub mod files;
+pub mod image;
 pub mod synthetic;
 
-use runtime::step::GraphNode;
+use runtime::node::{NodeError, NoPorts, Params, Source};
+use runtime::process::now_ns;
+use schemas::{Image, ManipulatorState, StereoFrame};
+use serde::Deserialize;
+use std::path::PathBuf;
 
-fn source(t: &toml::Table) -> &str {
-    t.get("source")
-        .and_then(|v| v.as_str())
-        .unwrap_or("synthetic")
+/// Reads a `params` table into a settings type.
+pub(crate) fn read_params<T: serde::de::DeserializeOwned>(t: &toml::Table) -> Result<T, String> {
+    toml::Value::Table(t.clone())
+        .try_into()
+        .map_err(|e: toml::de::Error| e.message().to_string())
 }
 
-/// Checks a capture node's `params` without starting anything: every process of a graph
-/// validates the whole launch file, and a camera opened there would be busy for the node.
-pub fn check_params(t: &toml::Table) -> Result<(), String> {
-    match source(t) {
-        "synthetic" => synthetic::SyntheticParams::from_table(t).map(|_| ()),
-        // Listing the files is cheap and finds a wrong pattern before the graph starts.
-        "files" => files::FileCapture::new(files::FileParams::from_table(t)?).map(|_| ()),
-        #[cfg(feature = "v4l")]
-        "v4l" => camera::CameraParams::from_table(t).map(|_| ()),
-        _ => build(t).map(|_| ()),
+/// `params` of a capture node: those of its `source`.
+#[derive(Clone, Debug)]
+pub enum CaptureParams {
+    /// `source = "synthetic"` (the default).
+    Synthetic(synthetic::SyntheticParams),
+    /// `source = "files"`.
+    Files(files::FileParams),
+    /// `source = "v4l"`.
+    #[cfg(feature = "v4l")]
+    V4l(camera::CameraParams),
+}
+
+impl<'de> Deserialize<'de> for CaptureParams {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let t = toml::Table::deserialize(d)?;
+        let source = t
+            .get("source")
+            .map(|v| v.as_str().unwrap_or("?"))
+            .unwrap_or("synthetic");
+        let p = match source {
+            "synthetic" => synthetic::SyntheticParams::from_table(&t).map(Self::Synthetic),
+            "files" => files::FileParams::from_table(&t).map(Self::Files),
+            #[cfg(feature = "v4l")]
+            "v4l" => camera::CameraParams::from_table(&t).map(Self::V4l),
+            #[cfg(not(feature = "v4l"))]
+            "v4l" => Err("this build has no camera support; build with --features v4l".into()),
+            other => Err(format!(
+                "source '{other}' is not available; use \"synthetic\", \"files\" or \"v4l\""
+            )),
+        };
+        p.map_err(serde::de::Error::custom)
     }
 }
 
-/// The capture node its `params` describe.
-pub fn build(t: &toml::Table) -> Result<Box<dyn GraphNode>, String> {
-    match source(t) {
-        "synthetic" => Ok(Box::new(synthetic::SyntheticCapture::new(
-            &synthetic::SyntheticParams::from_table(t)?,
-        ))),
-        "files" => Ok(Box::new(files::FileCapture::new(
-            files::FileParams::from_table(t)?,
-        )?)),
-        #[cfg(feature = "v4l")]
-        "v4l" => Ok(Box::new(camera::CameraCapture::new(
-            &camera::CameraParams::from_table(t)?,
-        )?)),
-        #[cfg(not(feature = "v4l"))]
-        "v4l" => Err("this build has no camera support; build with --features v4l".into()),
-        other => Err(format!(
-            "source '{other}' is not available; use \"synthetic\", \"files\" or \"v4l\""
-        )),
+impl Params for CaptureParams {
+    fn check(&self) -> Result<(), String> {
+        match self {
+            // Listing the files is cheap and finds a wrong pattern before the graph starts;
+            // a camera is opened only by the node (every process of a graph would find it
+            // busy otherwise).
+            Self::Files(p) => files::FileCapture::new(p.clone()).map(|_| ()),
+            _ => Ok(()),
+        }
     }
 }
 
-/// Frames per second a capture node's `params` ask for, if any.
-pub fn fps(t: &toml::Table) -> Option<f64> {
-    t.get("fps")
-        .and_then(|v| v.as_float().or(v.as_integer().map(|i| i as f64)))
+impl CaptureParams {
+    /// The frame size these settings give, where they say it.
+    pub fn frame_size(&self) -> Option<(usize, usize)> {
+        match self {
+            Self::Synthetic(p) => Some((p.width, p.height)),
+            #[cfg(feature = "v4l")]
+            Self::V4l(p) => Some((p.width as usize, p.height as usize)),
+            Self::Files(_) => None,
+        }
+    }
+
+    fn fps(&self) -> Option<f64> {
+        match self {
+            Self::Synthetic(p) => p.fps,
+            Self::Files(p) => p.fps,
+            #[cfg(feature = "v4l")]
+            Self::V4l(p) => p.fps,
+        }
+    }
+}
+
+runtime::ports! {
+    /// What a capture node sends.
+    pub struct CaptureOut {
+        /// The stereo pair.
+        pub frame: StereoFrame,
+    }
+}
+
+runtime::ports! {
+    /// What a capture node takes when it comes.
+    pub struct CaptureFeedback {
+        /// The manipulator's state: a synthetic scene draws the pipette there.
+        pub tip: Option<ManipulatorState>,
+    }
+}
+
+enum Device {
+    Synthetic(Box<synthetic::SyntheticCapture>),
+    Files(files::FileCapture),
+    #[cfg(feature = "v4l")]
+    V4l(Box<camera::CameraCapture>),
+}
+
+/// The capture node.
+pub struct Capture {
+    device: Device,
+    fps: Option<f64>,
+}
+
+impl std::fmt::Debug for Capture {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Capture").field("fps", &self.fps).finish()
+    }
+}
+
+impl Source for Capture {
+    const KIND: &'static str = "capture";
+    type Params = CaptureParams;
+    type Output = CaptureOut;
+    type Feedback = CaptureFeedback;
+    type Error = NodeError;
+
+    fn new(p: CaptureParams) -> Result<Self, NodeError> {
+        let fps = p.fps();
+        let device = match p {
+            CaptureParams::Synthetic(s) => {
+                Device::Synthetic(Box::new(synthetic::SyntheticCapture::new(&s)))
+            }
+            CaptureParams::Files(f) => Device::Files(files::FileCapture::new(f)?),
+            #[cfg(feature = "v4l")]
+            CaptureParams::V4l(c) => Device::V4l(Box::new(camera::CameraCapture::new(&c)?)),
+        };
+        Ok(Self { device, fps })
+    }
+
+    fn produce(&mut self, seq: u64) -> Result<Option<(u64, CaptureOut)>, NodeError> {
+        let frame = match &mut self.device {
+            Device::Synthetic(s) => Some(s.frame(seq)),
+            Device::Files(f) => f.frame(seq)?,
+            #[cfg(feature = "v4l")]
+            Device::V4l(c) => Some(c.next_frame()?),
+        };
+        Ok(frame.map(|frame| (now_ns(), CaptureOut { frame })))
+    }
+
+    fn feedback(&mut self, fb: CaptureFeedback) -> Result<(), NodeError> {
+        if let (Device::Synthetic(s), Some(m)) = (&mut self.device, &fb.tip) {
+            s.set_tip(m);
+        }
+        Ok(())
+    }
+
+    fn fps(&self) -> Option<f64> {
+        self.fps
+    }
+}
+
+/// `params` of an image-pair node.
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ImagePairParams {
+    /// The left image (PNG, JPEG or TIFF; colour is converted to grey for matching).
+    pub left: PathBuf,
+    /// The right image.
+    pub right: PathBuf,
+    /// How many frames to send the pair in (a benchmark repeats it).
+    #[serde(default = "one")]
+    pub frames: u64,
+}
+
+fn one() -> u64 {
+    1
+}
+
+impl Params for ImagePairParams {
+    fn check(&self) -> Result<(), String> {
+        if self.frames == 0 {
+            return Err("frames must be at least 1".into());
+        }
+        Ok(())
+    }
+}
+
+runtime::ports! {
+    /// What an image-pair node sends.
+    pub struct ImagePairOut {
+        /// The grey pair.
+        pub frame: StereoFrame,
+        /// The left view in colour.
+        pub colour: Image,
+    }
+}
+
+/// One stereo pair from two image files, read once.
+#[derive(Debug)]
+pub struct ImagePair {
+    frame: StereoFrame,
+    colour: Image,
+    frames: u64,
+}
+
+impl Source for ImagePair {
+    const KIND: &'static str = "image-pair";
+    type Params = ImagePairParams;
+    type Output = ImagePairOut;
+    type Feedback = NoPorts;
+    type Error = String;
+
+    fn new(p: ImagePairParams) -> Result<Self, String> {
+        let l = image::load(&p.left, "left image")?;
+        let r = image::load(&p.right, "right image")?;
+        Ok(Self {
+            frame: StereoFrame {
+                left: l.grey,
+                right: r.grey,
+            },
+            colour: Image::Rgb(l.rgb),
+            frames: p.frames,
+        })
+    }
+
+    fn produce(&mut self, seq: u64) -> Result<Option<(u64, ImagePairOut)>, String> {
+        if seq >= self.frames {
+            return Ok(None);
+        }
+        Ok(Some((
+            now_ns(),
+            ImagePairOut {
+                frame: self.frame.clone(),
+                colour: self.colour.clone(),
+            },
+        )))
+    }
 }

@@ -3,10 +3,7 @@
 //! manipulator's state on its `tip` feedback input, it draws the pipette where the
 //! manipulator says the tip is (a closed loop with a simulated manipulator).
 
-use runtime::process::now_ns;
-use runtime::step::{GraphNode, Msg, Outputs, params, send_planes};
-use schemas::MessageKind;
-use schemas::wire::ManipulatorState;
+use schemas::{ManipulatorState, StereoFrame};
 use serde::Deserialize;
 use synth::{CellSpec, Look, Optics, Pipette, Scene};
 
@@ -62,7 +59,7 @@ fn default_drift() -> f64 {
 impl SyntheticParams {
     /// Reads and checks a `params` table.
     pub fn from_table(t: &toml::Table) -> Result<Self, String> {
-        let p: Self = params(t)?;
+        let p: Self = crate::read_params(t)?;
         if !(16..=8192).contains(&p.width) || !(16..=8192).contains(&p.height) {
             return Err(format!(
                 "{}×{} is not a frame size (16..8192)",
@@ -133,28 +130,20 @@ pub fn pipette_at(m: &ManipulatorState, z0: f64) -> Pipette {
     }
 }
 
-impl GraphNode for SyntheticCapture {
-    fn feedback(&mut self, _port: usize, msg: Msg<'_>) -> Result<(), String> {
-        let m: ManipulatorState =
-            serde_json::from_slice(msg.payload).map_err(|e| format!("manipulator state: {e}"))?;
+impl SyntheticCapture {
+    /// Draws the pipette where the manipulator says its tip is from now on.
+    pub fn set_tip(&mut self, m: &ManipulatorState) {
         // Drawn as coming from −x, the only direction the renderer knows.
-        self.manipulated = Some(pipette_at(&m, self.scene.optics.working_distance()));
-        Ok(())
+        self.manipulated = Some(pipette_at(m, self.scene.optics.working_distance()));
     }
 
-    fn produce(&mut self, seq: u64, out: &mut dyn Outputs) -> Result<bool, String> {
+    /// Renders frame `seq`.
+    pub fn frame(&mut self, seq: u64) -> StereoFrame {
         let mut scene = self.scene.at_frame(seq as usize, self.drift, self.step);
         if self.manipulated.is_some() {
             scene.pipette = self.manipulated;
         }
         let (left, right) = scene.render_views();
-        send_planes(
-            out,
-            0,
-            MessageKind::StereoFrame,
-            (seq, now_ns()),
-            &[&left, &right],
-        )?;
-        Ok(true)
+        StereoFrame { left, right }
     }
 }

@@ -21,7 +21,7 @@ use crate::plan::{
 };
 use crate::protocol::{Command, parse_command};
 use crate::scene::Scene;
-use schemas::wire::{ManipulatorState, PathPlan, Targets};
+use schemas::{ManipulatorState, PathPlan, Targets};
 use serde_json::{Value, json};
 use std::collections::VecDeque;
 use std::io::{BufRead, BufReader, Write};
@@ -219,9 +219,9 @@ impl Bridge {
         self.clients.lock().expect("clients").list.len()
     }
 
-    /// Takes one frame's targets (`raw`: their JSON as received): updates the scene, serves
+    /// Takes one frame's targets: updates the scene, serves
     /// it to the controllers and returns the manipulator state for this frame.
-    pub fn on_targets(&self, t: &Targets, raw: &[u8]) -> Result<ManipulatorState, String> {
+    pub fn on_targets(&self, t: &Targets) -> Result<ManipulatorState, String> {
         let mut scene = Scene::from_targets(t)?;
         let cfg = &self.cfg.planner;
         let u = cfg.pipette.axis();
@@ -254,7 +254,8 @@ impl Bridge {
             ignored,
         };
         drop(sh);
-        // The scene line: the targets as received, tagged.
+        // The scene line: the targets as they travel (their JSON), tagged.
+        let raw = &serde_json::to_vec(t).map_err(|e| e.to_string())?[..];
         let mut line = Vec::with_capacity(raw.len() + 20);
         line.extend_from_slice(b"{\"event\":\"scene\",");
         line.extend_from_slice(raw.strip_prefix(b"{").unwrap_or(raw));

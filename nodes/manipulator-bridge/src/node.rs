@@ -6,9 +6,8 @@ use crate::geom::{P3, axpy};
 use crate::mp285::Mp285;
 use crate::plan::{Entry, PipetteGeometry, PlannerConfig};
 use crate::scene::Workspace;
-use runtime::step::{GraphNode, Msg, Outputs, params, send_json};
-use schemas::MessageKind;
-use schemas::wire::Targets;
+use runtime::node::{NodeError, Params, Stamp, Task};
+use schemas::{ManipulatorState, Targets};
 use serde::Deserialize;
 use std::time::Duration;
 
@@ -141,10 +140,9 @@ fn default_replan() -> f64 {
     5.0
 }
 
-impl BridgeParams {
-    /// Reads and checks a `params` table.
-    pub fn from_table(t: &toml::Table) -> Result<Self, String> {
-        let p: Self = params(t)?;
+impl Params for BridgeParams {
+    fn check(&self) -> Result<(), String> {
+        let p = self;
         p.listen
             .parse::<std::net::SocketAddr>()
             .map_err(|e| format!("listen '{}' is not an address: {e}", p.listen))?;
@@ -179,7 +177,14 @@ impl BridgeParams {
         if p.poll_ms == 0 || p.stale_ms == 0 {
             return Err("poll_ms and stale_ms must be positive".into());
         }
-        Ok(p)
+        Ok(())
+    }
+}
+
+impl BridgeParams {
+    /// Reads and checks a `params` table.
+    pub fn from_table(t: &toml::Table) -> Result<Self, String> {
+        runtime::registry::parse_params(t)
     }
 
     /// The bridge settings these parameters give.
@@ -256,24 +261,35 @@ impl BridgeNode {
     }
 }
 
-impl GraphNode for BridgeNode {
-    fn step(&mut self, inputs: &[Msg<'_>], out: &mut dyn Outputs) -> Result<(), String> {
-        let [targets] = inputs else {
-            return Err(format!(
-                "manipulator-bridge takes 1 input, not {}",
-                inputs.len()
-            ));
-        };
-        let t: Targets =
-            serde_json::from_slice(targets.payload).map_err(|e| format!("targets: {e}"))?;
-        let state = self.bridge.on_targets(&t, targets.payload)?;
-        let json = serde_json::to_vec(&state).map_err(|e| e.to_string())?;
-        send_json(
-            out,
-            0,
-            MessageKind::ManipulatorState,
-            targets.stamp(),
-            &json,
-        )
+runtime::ports! {
+    /// What the bridge reads.
+    pub struct BridgeIn {
+        /// The frame's cells in 3D.
+        pub targets: Targets,
+    }
+}
+
+runtime::ports! {
+    /// What the bridge sends.
+    pub struct BridgeOut {
+        /// Where the pipette is and what it does.
+        pub state: ManipulatorState,
+    }
+}
+
+impl Task for BridgeNode {
+    const KIND: &'static str = "manipulator-bridge";
+    type Params = BridgeParams;
+    type Input = BridgeIn;
+    type Output = BridgeOut;
+    type Error = NodeError;
+
+    fn new(p: BridgeParams) -> Result<Self, NodeError> {
+        BridgeNode::new(&p).map_err(NodeError::Failed)
+    }
+
+    fn process(&mut self, _: Stamp, i: BridgeIn) -> Result<BridgeOut, NodeError> {
+        let state = self.bridge.on_targets(&i.targets)?;
+        Ok(BridgeOut { state })
     }
 }

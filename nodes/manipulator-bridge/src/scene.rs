@@ -11,7 +11,7 @@
 
 use crate::geom::{P3, Prism, convex_hull};
 use schemas::Cell3;
-use schemas::wire::Targets;
+use schemas::Targets;
 use serde::{Deserialize, Serialize};
 
 /// One cell as an obstacle.
@@ -245,6 +245,7 @@ mod tests {
                 cell(2, 0.1, 0.0, 0.01, 4.0, 0.02),
                 cell(3, 0.0, 0.1, 0.01, 4.0, 0.02),
             ],
+            substrate: None,
         };
         let s = Scene::from_targets(&t).unwrap();
         assert_eq!(s.frame, 3);

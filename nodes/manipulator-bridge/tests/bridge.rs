@@ -6,7 +6,7 @@ use manipulator_bridge::bridge::{Bridge, BridgeConfig};
 use manipulator_bridge::device::{Device, DeviceError, SimDevice, wall_clock};
 use manipulator_bridge::node::BridgeParams;
 use schemas::Cell3;
-use schemas::wire::Targets;
+use schemas::Targets;
 use serde_json::Value;
 use std::io::{BufRead, BufReader, Write};
 use std::net::TcpStream;
@@ -43,6 +43,7 @@ fn targets(frame: u64) -> Targets {
             cell(1, 0.0, 0.0, 10.0, 12.0),
             cell(2, 100.0, 50.0, 12.0, 20.0),
         ],
+        substrate: None,
     }
 }
 
@@ -104,7 +105,7 @@ fn feed(b: &Bridge, stop: &std::sync::atomic::AtomicBool) {
     let mut f = 0;
     while !stop.load(std::sync::atomic::Ordering::SeqCst) {
         let t = targets(f);
-        b.on_targets(&t, &serde_json::to_vec(&t).unwrap()).unwrap();
+        b.on_targets(&t).unwrap();
         f += 1;
         std::thread::sleep(Duration::from_millis(50));
     }
@@ -133,7 +134,7 @@ fn an_emergency_stop_wins_over_queued_commands_and_halts_the_pipette() {
         // Stands still afterwards, and nothing queued runs.
         let tip = || {
             let t = targets(999);
-            b.on_targets(&t, &serde_json::to_vec(&t).unwrap())
+            b.on_targets(&t)
                 .unwrap()
                 .tip
         };
@@ -155,7 +156,7 @@ fn a_stale_scene_stops_the_move_and_refuses_new_ones() {
     let b = Bridge::start(cfg.clone(), "127.0.0.1:0", sim(&cfg)).unwrap();
     let mut c = Client::connect(&b);
     let t = targets(0);
-    b.on_targets(&t, &serde_json::to_vec(&t).unwrap()).unwrap();
+    b.on_targets(&t).unwrap();
     // Slow, so that the scene goes stale on the way.
     c.send(r#"{"cmd":"approach","cell":1,"speed":20}"#);
     c.next(&["plan"]);
@@ -182,7 +183,7 @@ fn workspace_and_speed_limits_hold_in_the_bridge() {
     let b = Bridge::start(cfg.clone(), "127.0.0.1:0", sim(&cfg)).unwrap();
     let mut c = Client::connect(&b);
     let t = targets(0);
-    b.on_targets(&t, &serde_json::to_vec(&t).unwrap()).unwrap();
+    b.on_targets(&t).unwrap();
     c.send(r#"{"cmd":"goto","x":5000,"y":0,"z":-3900}"#);
     let ev = c.next(&["blocked", "plan"]);
     assert!(
@@ -214,7 +215,7 @@ fn without_its_device_the_bridge_still_serves_the_scene() {
     .unwrap();
     let mut c = Client::connect(&b);
     let t = targets(4);
-    let state = b.on_targets(&t, &serde_json::to_vec(&t).unwrap()).unwrap();
+    let state = b.on_targets(&t).unwrap();
     assert_eq!(
         (state.device.as_str(), state.status.as_str()),
         ("none", "error")
@@ -233,7 +234,7 @@ fn without_its_device_the_bridge_still_serves_the_scene() {
     );
     // Still connected and served.
     let t = targets(5);
-    b.on_targets(&t, &serde_json::to_vec(&t).unwrap()).unwrap();
+    b.on_targets(&t).unwrap();
     assert_eq!(c.next(&["scene"])["frame"], 5);
 }
 
@@ -243,7 +244,7 @@ fn a_cell_moving_into_the_path_stops_the_move_and_a_walled_target_ends_blocked()
     let b = Bridge::start(cfg.clone(), "127.0.0.1:0", sim(&cfg)).unwrap();
     let mut c = Client::connect(&b);
     let t = targets(0);
-    b.on_targets(&t, &serde_json::to_vec(&t).unwrap()).unwrap();
+    b.on_targets(&t).unwrap();
     c.send(r#"{"cmd":"approach","cell":1,"speed":30}"#);
     let plan = c.next(&["plan"]);
     assert_eq!(plan["plan"]["target"], 1, "{plan}");
@@ -252,7 +253,7 @@ fn a_cell_moving_into_the_path_stops_the_move_and_a_walled_target_ends_blocked()
     let mut t = targets(1);
     t.cells.push(cell(3, -60.0, 0.0, 12.0, 100.0));
     let before = b
-        .on_targets(&t, &serde_json::to_vec(&t).unwrap())
+        .on_targets(&t)
         .unwrap()
         .tip;
     let ev = c.next(&["blocked", "arrived", "plan"]);
@@ -261,7 +262,7 @@ fn a_cell_moving_into_the_path_stops_the_move_and_a_walled_target_ends_blocked()
     assert!(ev["reason"].as_str().unwrap().contains("walled in"), "{ev}");
     // Stopped where it was (within the braking distance at 30 µm/s).
     let t = targets(2);
-    let after = b.on_targets(&t, &serde_json::to_vec(&t).unwrap()).unwrap();
+    let after = b.on_targets(&t).unwrap();
     assert_eq!(after.status, "blocked");
     assert!(
         manipulator_bridge::geom::dist(before, after.tip) < 5.0,
@@ -275,7 +276,7 @@ fn the_floor_follows_the_substrate_when_the_stage_moves() {
     let cfg = config(5000);
     let b = Bridge::start(cfg.clone(), "127.0.0.1:0", sim(&cfg)).unwrap();
     let mut c = Client::connect(&b);
-    let feed_one = |t: &Targets| b.on_targets(t, &serde_json::to_vec(t).unwrap()).unwrap();
+    let feed_one = |t: &Targets| b.on_targets(t).unwrap();
     feed_one(&targets(0));
     // 10 µm above the substrate, clear of the cells: a place the pipette may go.
     let goto = r#"{"cmd":"goto","x":-200,"y":-200,"z":-3990}"#;

@@ -21,12 +21,10 @@
 pub mod node;
 pub mod paper;
 pub mod quality;
-pub mod refine;
 pub mod sv;
 
 pub use paper::{Directions, PaperMatch, PaperParams, match_paper};
 pub use quality::{QualityParams, QualityWorkspace, match_quality, match_quality_in};
-pub use refine::{DisparityPlane, PeakFit, fit_disparity_plane, refine_peak};
 pub use sv::{SvKernel, Weights};
 
 use schemas::{DisparityRange, Plane};

@@ -31,8 +31,9 @@ pub enum Fill {
     None,
 }
 
-/// Post-processing settings.
+/// Post-processing settings (the `params` of a postprocess node; every key optional).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct PostParams {
     /// Valid regions smaller than this many pixels are removed (0 = keep all).
     pub min_region: usize,
@@ -44,14 +45,29 @@ pub struct PostParams {
     pub fill: Fill,
 }
 
+/// Largest median radius: an 11×11 window (a larger one blurs cells away and its cost
+/// grows with the square of the radius).
+pub const MAX_MEDIAN_RADIUS: usize = 5;
+
+impl PostParams {
+    /// For sub-pixel maps (the quality matcher; the node's default): smaller regions still
+    /// count as one surface.
+    pub const SUBPIXEL: Self = Self {
+        min_region: 100,
+        region_max_diff: 1.0,
+        median_radius: 2,
+        fill: Fill::Background,
+    };
+    /// For whole-pixel maps (the paper matcher).
+    pub const WHOLE_PIXEL: Self = Self {
+        min_region: 50,
+        ..Self::SUBPIXEL
+    };
+}
+
 impl Default for PostParams {
     fn default() -> Self {
-        Self {
-            min_region: 50,
-            region_max_diff: 1.0,
-            median_radius: 1,
-            fill: Fill::Background,
-        }
+        Self::SUBPIXEL
     }
 }
 

@@ -1,32 +1,73 @@
-//! The postprocess node: a checked disparity map in, the post-processed map out.
+//! The postprocess node: checked disparity tiles in, post-processed tiles out (each tile on
+//! its own: a cell's crop is filled and smoothed within itself).
 
 use crate::{PostParams, postprocess};
-use runtime::step::{GraphNode, Msg, Outputs, params_over, send_planes};
-use schemas::MessageKind;
+use runtime::node::{NodeError, Params, Stamp, Task};
+use schemas::{DisparityTile, DisparityTiles, Side};
 
-/// Reads the `params` of a postprocess node (the fields of [`PostParams`]; defaults are
-/// the quality matcher's).
-pub fn params_from_table(t: &toml::Table) -> Result<PostParams, String> {
-    let defaults = PostParams {
-        min_region: 100,
-        region_max_diff: 1.0,
-        median_radius: 2,
-        fill: crate::Fill::Background,
-    };
-    params_over(&defaults, t)
+impl Params for PostParams {
+    fn check(&self) -> Result<(), String> {
+        if self.median_radius > crate::MAX_MEDIAN_RADIUS {
+            return Err(format!(
+                "median_radius {} must be 0..={} (a {}×{} window at most)",
+                self.median_radius,
+                crate::MAX_MEDIAN_RADIUS,
+                2 * crate::MAX_MEDIAN_RADIUS + 1,
+                2 * crate::MAX_MEDIAN_RADIUS + 1
+            ));
+        }
+        if !(self.region_max_diff >= 0.0 && self.region_max_diff.is_finite()) {
+            return Err(format!(
+                "region_max_diff {} must be a number ≥ 0",
+                self.region_max_diff
+            ));
+        }
+        Ok(())
+    }
 }
 
-/// Post-processes each frame's map.
+runtime::ports! {
+    /// What the postprocess node reads and sends.
+    pub struct Tiles {
+        /// Left-based disparity tiles.
+        pub disparity: DisparityTiles,
+    }
+}
+
+/// Post-processes each frame's tiles.
 #[derive(Debug)]
-pub struct PostprocessNode {
+pub struct Postprocess {
     /// Settings.
     pub params: PostParams,
 }
 
-impl GraphNode for PostprocessNode {
-    fn step(&mut self, inputs: &[Msg<'_>], out: &mut dyn Outputs) -> Result<(), String> {
-        let [map] = inputs[0].planes_n::<f32, 1>()?;
-        let post = postprocess(&map, &self.params);
-        send_planes(out, 0, MessageKind::Disparity, inputs[0].stamp(), &[&post])
+impl Task for Postprocess {
+    const KIND: &'static str = "postprocess";
+    type Params = PostParams;
+    type Input = Tiles;
+    type Output = Tiles;
+    type Error = NodeError;
+
+    fn new(params: PostParams) -> Result<Self, NodeError> {
+        Ok(Self { params })
+    }
+
+    fn process(&mut self, _: Stamp, i: Tiles) -> Result<Tiles, NodeError> {
+        let d = &i.disparity;
+        if d.side != Side::Left {
+            return Err(NodeError::Failed(
+                "post-processing takes left-based tiles (validate/left)".into(),
+            ));
+        }
+        Ok(Tiles {
+            disparity: d.map_tiles(Side::Left, |t| DisparityTile {
+                map: if t.map.is_empty() {
+                    t.map.clone()
+                } else {
+                    postprocess(&t.map, &self.params)
+                },
+                ..t.clone()
+            }),
+        })
     }
 }

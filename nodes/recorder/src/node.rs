@@ -2,9 +2,9 @@
 //! source (recorded edges sent again in place of the node that made them).
 
 use crate::file::{EdgeMessage, FrameReader, RecordingError, RecordingWriter};
-use runtime::launch::Graph;
+use runtime::launch::{Graph, NodeSpec};
+use runtime::node::{GraphNode, Outputs};
 use runtime::process::{NodeStats, now_ns};
-use runtime::step::{GraphNode, Outputs, params};
 use schemas::{FrameHeader, MessageKind};
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
@@ -30,6 +30,27 @@ pub struct RecorderParams {
     /// Replace an existing file.
     #[serde(default)]
     pub overwrite: bool,
+    /// The rectified cameras' geometry and image size, recorded as their CameraInfo.
+    #[serde(default)]
+    pub cameras: Option<Cameras>,
+}
+
+/// What the recorder writes as the cameras' CameraInfo.
+#[derive(Clone, Copy, Debug, serde::Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Cameras {
+    /// The rectified geometry.
+    pub calibration: schemas::Calibration,
+    /// Image width.
+    pub width: usize,
+    /// Image height.
+    pub height: usize,
+}
+
+fn read<T: serde::de::DeserializeOwned>(t: &toml::Table) -> Result<T, String> {
+    toml::Value::Table(t.clone())
+        .try_into()
+        .map_err(|e: toml::de::Error| e.message().to_string())
 }
 
 /// A message taken from an edge, on its way to the writer thread.
@@ -44,29 +65,28 @@ struct Taken {
 /// shared memory at once and written by a second thread (CDR, zstd chunks, a flush at least
 /// every second). When the writer falls behind, the recorder waits and its edges' own
 /// queues take the strain: a lossy edge drops (and counts) there, a lossless one holds its
-/// writer back. With a
-/// `calibration` (and its image size), each camera's CameraInfo is recorded first.
+/// writer back. The graph's launch file is stored in the recording, and with `cameras` in
+/// its parameters each camera's CameraInfo is recorded first.
 pub fn run_recorder(
     graph: &Graph,
     instance: &str,
     id: &str,
     frames: Option<u64>,
-    calibration: Option<(schemas::Calibration, (usize, usize))>,
 ) -> Result<NodeStats, String> {
     let spec = graph
         .node(id)
         .ok_or_else(|| format!("no node '{id}' in {}", graph.file.display()))?;
-    let p: RecorderParams = params(&spec.params)?;
+    let p: RecorderParams = read(&spec.params)?;
     let edges = graph.input_edges(id);
     let mut writer = RecordingWriter::create(&p.path, p.overwrite).map_err(|e| e.to_string())?;
-    if let Ok(text) = std::fs::read_to_string(&graph.file) {
+    if !graph.text.is_empty() {
         writer
-            .write_launch(&graph.file, &text)
+            .write_launch(&graph.file, &graph.text)
             .map_err(|e| e.to_string())?;
     }
-    if let Some((c, size)) = &calibration {
+    if let Some(c) = &p.cameras {
         writer
-            .write_calibration(c, *size, now_ns())
+            .write_calibration(&c.calibration, (c.width, c.height), now_ns())
             .map_err(|e| e.to_string())?;
     }
     let (tx, rx) = sync_channel::<Taken>(QUEUE);
@@ -175,6 +195,13 @@ pub struct ReplayNode {
 }
 
 impl ReplayNode {
+    /// The replay source that a graph rewrite put in place of a recorded node.
+    pub fn from_spec(spec: &NodeSpec) -> Result<Self, String> {
+        let p: ReplayParams = read(&spec.params)?;
+        let outputs: Vec<String> = spec.outputs.iter().map(|(p, _)| p.clone()).collect();
+        Self::new(p, &outputs)
+    }
+
     /// A replay of node `params.node`, whose outputs are `outputs` (port names in order).
     pub fn new(params: ReplayParams, outputs: &[String]) -> Result<Self, String> {
         let rate = Rate::parse(&params.rate)?;

@@ -6,10 +6,13 @@
 //! them as images. [`encode`] and [`decode`] are exact inverses: the bytes a node sent come
 //! back bit for bit.
 
-use schemas::wire::{
-    CLOUD_POINT_BYTES, CellLists, ManipulatorState, PathPlan, Targets, cloud_header, json_header,
+use schemas::msg::{Message, cloud_header};
+use schemas::wire::CLOUD_POINT_BYTES;
+use schemas::{
+    BoundingBox, Cell, Cell3, CellLists, DisparityPlane, DisparityRange, DisparityTile,
+    DisparityTiles, FrameHeader, ManipulatorState, MessageKind, PathPlan, PixelFormat, Plane,
+    Side, Targets, ValidationFigures,
 };
-use schemas::{BoundingBox, Cell, Cell3, FrameHeader, MessageKind, PixelFormat};
 use serde::{Deserialize, Serialize};
 use serde_bytes::ByteBuf;
 
@@ -242,7 +245,21 @@ pub const CELL3: MsgType = MsgType {
     definition: cell3_def!(),
 };
 
-/// `microstereo_msgs/msg/Targets`: the 3D cells of one frame, for the manipulator.
+macro_rules! plane_def {
+    () => {
+        concat!(
+            "float64 d0\n",
+            "float64 dx\n",
+            "float64 dy\n",
+            "float64[2] centre\n",
+            "float64 std\n",
+            "uint64 pixels\n"
+        )
+    };
+}
+
+/// `microstereo_msgs/msg/Targets`: the 3D cells of one frame, for the manipulator;
+/// `has_substrate` false leaves `substrate` zero (no plane could be fitted).
 pub const TARGETS: MsgType = MsgType {
     name: "microstereo_msgs/msg/Targets",
     definition: concat!(
@@ -251,10 +268,64 @@ pub const TARGETS: MsgType = MsgType {
         "uint64 capture_ns\n",
         "string unit\n",
         "Cell3[] cells\n",
+        "bool has_substrate\n",
+        "DisparityPlane substrate\n",
         header_defs!(),
         sep!(),
         "MSG: microstereo_msgs/Cell3\n",
-        cell3_def!()
+        cell3_def!(),
+        sep!(),
+        "MSG: microstereo_msgs/DisparityPlane\n",
+        plane_def!()
+    ),
+};
+
+macro_rules! figures_def {
+    () => {
+        concat!(
+            "uint64 matched\n",
+            "float64 consistent_exact\n",
+            "float64 off_by_one\n",
+            "float64 off_by_more\n",
+            "float64 consistent_within_tolerance\n",
+            "uint32 tolerance\n"
+        )
+    };
+}
+
+/// `microstereo_msgs/msg/DisparityTiles`: a frame's disparity maps in tiles (the whole
+/// frame, or one crop per cell pair). Each tile's `data` is its map row by row (+inf
+/// invalid); `left_cell` = `right_cell` = 0 marks a whole-frame tile; `has_figures` false
+/// leaves `figures` zero (not validated yet).
+pub const DISPARITY_TILES: MsgType = MsgType {
+    name: "microstereo_msgs/msg/DisparityTiles",
+    definition: concat!(
+        "std_msgs/Header header\n",
+        "uint32 width\n",
+        "uint32 height\n",
+        "string side\n",
+        "int32 min_disparity\n",
+        "int32 max_disparity\n",
+        "uint8 margin\n",
+        "DisparityTile[] tiles\n",
+        header_defs!(),
+        sep!(),
+        "MSG: microstereo_msgs/DisparityTile\n",
+        "uint32 x\n",
+        "uint32 y\n",
+        "uint32 width\n",
+        "uint32 height\n",
+        "int32 min_disparity\n",
+        "int32 max_disparity\n",
+        "uint32 left_cell\n",
+        "uint32 right_cell\n",
+        "uint64 evaluations\n",
+        "bool has_figures\n",
+        "ValidationFigures figures\n",
+        "float32[] data\n",
+        sep!(),
+        "MSG: microstereo_msgs/ValidationFigures\n",
+        figures_def!()
     ),
 };
 
@@ -479,6 +550,143 @@ struct RosTargets {
     capture_ns: u64,
     unit: String,
     cells: Vec<RosCell3>,
+    has_substrate: bool,
+    substrate: RosPlane,
+}
+
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+struct RosPlane {
+    d0: f64,
+    dx: f64,
+    dy: f64,
+    centre: [f64; 2],
+    std: f64,
+    pixels: u64,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+struct RosTiles {
+    header: Header,
+    width: u32,
+    height: u32,
+    side: String,
+    min_disparity: i32,
+    max_disparity: i32,
+    margin: u8,
+    tiles: Vec<RosTile>,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+struct RosTile {
+    x: u32,
+    y: u32,
+    width: u32,
+    height: u32,
+    min_disparity: i32,
+    max_disparity: i32,
+    left_cell: u32,
+    right_cell: u32,
+    evaluations: u64,
+    has_figures: bool,
+    figures: RosFigures,
+    data: Vec<f32>,
+}
+
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+struct RosFigures {
+    matched: u64,
+    consistent_exact: f64,
+    off_by_one: f64,
+    off_by_more: f64,
+    consistent_within_tolerance: f64,
+    tolerance: u32,
+}
+
+impl RosTiles {
+    fn new(t: &DisparityTiles, header: Header) -> Self {
+        Self {
+            header,
+            width: t.width as u32,
+            height: t.height as u32,
+            side: match t.side {
+                Side::Left => "left".into(),
+                Side::Right => "right".into(),
+            },
+            min_disparity: t.range.min,
+            max_disparity: t.range.max,
+            margin: t.margin,
+            tiles: t
+                .tiles
+                .iter()
+                .map(|k| {
+                    let (l, r) = k.cells.unwrap_or((0, 0));
+                    let f = k.figures.unwrap_or_default();
+                    RosTile {
+                        x: k.x as u32,
+                        y: k.y as u32,
+                        width: k.map.width as u32,
+                        height: k.map.height as u32,
+                        min_disparity: k.range.min,
+                        max_disparity: k.range.max,
+                        left_cell: l,
+                        right_cell: r,
+                        evaluations: k.evaluations,
+                        has_figures: k.figures.is_some(),
+                        figures: RosFigures {
+                            matched: f.matched,
+                            consistent_exact: f.consistent_exact,
+                            off_by_one: f.off_by_one,
+                            off_by_more: f.off_by_more,
+                            consistent_within_tolerance: f.consistent_within_tolerance,
+                            tolerance: f.tolerance,
+                        },
+                        data: k.map.data.clone(),
+                    }
+                })
+                .collect(),
+        }
+    }
+
+    fn into_tiles(self) -> Result<DisparityTiles, String> {
+        let side = match self.side.as_str() {
+            "left" => Side::Left,
+            "right" => Side::Right,
+            s => return Err(format!("tiles based on '{s}', neither left nor right")),
+        };
+        let tiles = self
+            .tiles
+            .into_iter()
+            .map(|k| {
+                let f = k.figures;
+                Ok(DisparityTile {
+                    x: k.x as usize,
+                    y: k.y as usize,
+                    range: DisparityRange::new(k.min_disparity, k.max_disparity),
+                    cells: (k.left_cell != 0 || k.right_cell != 0)
+                        .then_some((k.left_cell, k.right_cell)),
+                    map: Plane::from_vec(k.width as usize, k.height as usize, k.data)
+                        .ok_or("a tile's data does not fit its size")?,
+                    evaluations: k.evaluations,
+                    figures: k.has_figures.then_some(ValidationFigures {
+                        matched: f.matched,
+                        consistent_exact: f.consistent_exact,
+                        off_by_one: f.off_by_one,
+                        off_by_more: f.off_by_more,
+                        consistent_within_tolerance: f.consistent_within_tolerance,
+                        tolerance: f.tolerance,
+                    }),
+                })
+            })
+            .collect::<Result<Vec<_>, String>>()?;
+        Ok(DisparityTiles {
+            width: self.width as usize,
+            height: self.height as usize,
+            side,
+            range: DisparityRange::new(self.min_disparity, self.max_disparity),
+            margin: self.margin,
+            tiles,
+        })
+    }
 }
 
 impl From<&Cell> for RosCell {
@@ -598,6 +806,7 @@ pub fn msg_type(kind: MessageKind) -> MsgType {
         MessageKind::CellList => CELL_ARRAY,
         MessageKind::Targets => TARGETS,
         MessageKind::ManipulatorState => MANIPULATOR_STATE,
+        MessageKind::DisparityTiles => DISPARITY_TILES,
     }
 }
 
@@ -722,9 +931,16 @@ pub fn encode(kind: MessageKind, h: &FrameHeader, payload: &[u8]) -> Result<Vec<
             };
             one(POINT_CLOUD2, to_cdr(&cloud)?)
         }
+        DISPARITY_TILES => {
+            let t = DisparityTiles::decode(h, payload).map_err(|e| e.to_string())?;
+            let side = match t.side {
+                Side::Left => "left",
+                Side::Right => "right",
+            };
+            one(DISPARITY_TILES, to_cdr(&RosTiles::new(&t, header(side)))?)
+        }
         CELL_ARRAY => {
-            let lists: CellLists =
-                serde_json::from_slice(payload).map_err(|e| format!("cell list: {e}"))?;
+            let lists = CellLists::decode(h, payload).map_err(|e| e.to_string())?;
             let msg = RosCellArray {
                 header: header("left"),
                 left: lists.left.iter().map(RosCell::from).collect(),
@@ -733,22 +949,37 @@ pub fn encode(kind: MessageKind, h: &FrameHeader, payload: &[u8]) -> Result<Vec<
             one(CELL_ARRAY, to_cdr(&msg)?)
         }
         MANIPULATOR_STATE => {
-            let m: ManipulatorState =
-                serde_json::from_slice(payload).map_err(|e| format!("manipulator state: {e}"))?;
+            let m = ManipulatorState::decode(h, payload).map_err(|e| e.to_string())?;
             one(
                 MANIPULATOR_STATE,
                 to_cdr(&RosManipulatorState::new(&m, header("world")))?,
             )
         }
         _ => {
-            let t: Targets =
-                serde_json::from_slice(payload).map_err(|e| format!("targets: {e}"))?;
+            let t = Targets::decode(h, payload).map_err(|e| e.to_string())?;
+            let p = t.substrate.unwrap_or(DisparityPlane {
+                d0: 0.0,
+                dx: 0.0,
+                dy: 0.0,
+                centre: [0.0; 2],
+                std: 0.0,
+                pixels: 0,
+            });
             let msg = RosTargets {
                 header: header("world"),
                 frame: t.frame,
                 capture_ns: t.capture_ns,
                 unit: t.unit,
                 cells: t.cells.iter().map(RosCell3::from).collect(),
+                has_substrate: t.substrate.is_some(),
+                substrate: RosPlane {
+                    d0: p.d0,
+                    dx: p.dx,
+                    dy: p.dy,
+                    centre: p.centre,
+                    std: p.std,
+                    pixels: p.pixels,
+                },
             };
             one(TARGETS, to_cdr(&msg)?)
         }
@@ -835,13 +1066,15 @@ pub fn decode(
                 left: cells(m.left)?,
                 right: cells(m.right)?,
             };
-            let json = serde_json::to_vec(&lists).map_err(|e| e.to_string())?;
-            Ok((stamp(json_header(kind)), json))
+            Ok(encoded(&lists, stamp))
         }
         MANIPULATOR_STATE => {
             let m: RosManipulatorState = from_cdr(parts[0], MANIPULATOR_STATE.name)?;
-            let json = serde_json::to_vec(&m.into_state()?).map_err(|e| e.to_string())?;
-            Ok((stamp(json_header(kind)), json))
+            Ok(encoded(&m.into_state()?, stamp))
+        }
+        DISPARITY_TILES => {
+            let m: RosTiles = from_cdr(parts[0], DISPARITY_TILES.name)?;
+            Ok(encoded(&m.into_tiles()?, stamp))
         }
         _ => {
             let m: RosTargets = from_cdr(parts[0], TARGETS.name)?;
@@ -854,16 +1087,30 @@ pub fn decode(
                     .into_iter()
                     .map(RosCell3::into_cell3)
                     .collect::<Result<_, _>>()?,
+                substrate: m.has_substrate.then_some(DisparityPlane {
+                    d0: m.substrate.d0,
+                    dx: m.substrate.dx,
+                    dy: m.substrate.dy,
+                    centre: m.substrate.centre,
+                    std: m.substrate.std,
+                    pixels: m.substrate.pixels,
+                }),
             };
-            let json = serde_json::to_vec(&t).map_err(|e| e.to_string())?;
-            Ok((stamp(json_header(kind)), json))
+            Ok(encoded(&t, stamp))
         }
     }
+}
+
+/// A message's header (stamped) and payload, as a node sends it.
+fn encoded<M: Message>(m: &M, stamp: impl Fn(FrameHeader) -> FrameHeader) -> (FrameHeader, Vec<u8>) {
+    let e = m.encode();
+    (stamp(e.header), e.to_vec())
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use schemas::wire::json_header;
 
     fn stamped(h: FrameHeader) -> FrameHeader {
         FrameHeader {
@@ -944,6 +1191,7 @@ mod tests {
                 contour: vec![[1.0, 2.0, 3.0], [0.1, 0.2, 0.3]],
                 valid_share: 0.97,
             }],
+            substrate: None,
         };
         let h = stamped(json_header(MessageKind::Targets));
         round_trip(
@@ -951,6 +1199,49 @@ mod tests {
             h,
             &serde_json::to_vec(&targets).unwrap(),
         );
+        let with_plane = Targets {
+            substrate: Some(DisparityPlane {
+                d0: 0.015,
+                dx: -1e-5,
+                dy: 2.5e-6,
+                centre: [319.5, 239.5],
+                std: 0.001,
+                pixels: 90000,
+            }),
+            ..targets
+        };
+        round_trip(
+            MessageKind::Targets,
+            h,
+            &serde_json::to_vec(&with_plane).unwrap(),
+        );
+        let mut tiles = DisparityTiles::whole(
+            Side::Left,
+            DisparityRange::new(-4, 12),
+            Plane::from_vec(3, 2, vec![1.5, f32::INFINITY, -0.25, f32::NAN, 3.0, 1e-7]).unwrap(),
+            96,
+        );
+        tiles.tiles[0].figures = Some(ValidationFigures {
+            matched: 5,
+            consistent_exact: 0.2,
+            off_by_one: 0.4,
+            off_by_more: 0.4,
+            consistent_within_tolerance: 0.6,
+            tolerance: 1,
+        });
+        tiles.margin = 8;
+        tiles.tiles.push(DisparityTile {
+            x: 1,
+            y: 0,
+            range: DisparityRange::new(0, 1),
+            cells: Some((2, 3)),
+            map: Plane::filled(0, 0, 0.0),
+            evaluations: 0,
+            figures: None,
+        });
+        let e = tiles.encode();
+        let parts = round_trip(MessageKind::DisparityTiles, stamped(e.header), &e.to_vec());
+        assert_eq!(parts[0].msg, DISPARITY_TILES);
         let mut state = ManipulatorState {
             frame: 9,
             capture_ns: 77,
@@ -1051,6 +1342,6 @@ mod tests {
             b"{",
         )
         .unwrap_err();
-        assert!(e.starts_with("cell list"), "{e}");
+        assert!(e.contains("cell list: EOF"), "{e}");
     }
 }

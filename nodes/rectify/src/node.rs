@@ -2,8 +2,8 @@
 //! calibration is given: the input is already rectified).
 
 use crate::{Rectification, RemapLut, StereoCalibration};
-use runtime::step::{GraphNode, Msg, Outputs, params, send_planes};
-use schemas::MessageKind;
+use runtime::node::{NodeError, Params, Stamp, Task};
+use schemas::StereoFrame;
 use serde::Deserialize;
 
 /// `params` of a rectify node.
@@ -18,16 +18,58 @@ pub struct RectifyParams {
     pub camera_info: Option<[String; 2]>,
 }
 
+impl RectifyParams {
+    /// The rectification these parameters describe (`None`: pass frames through). Reading
+    /// and checking it is cheap; the resampling tables are built only by the node.
+    pub fn rectification(&self) -> Result<Option<Rectification>, String> {
+        let read = |path: &str| {
+            std::fs::read_to_string(path)
+                .map_err(|e| format!("cannot read calibration '{path}': {e}"))
+        };
+        match (&self.calibration, &self.camera_info) {
+            (None, None) => Ok(None),
+            (Some(path), None) => {
+                let cal = StereoCalibration::from_opencv_yaml(&read(path)?)
+                    .map_err(|e| format!("calibration '{path}': {e}"))?;
+                Ok(Some(Rectification::bouguet(&cal)))
+            }
+            (None, Some([l, r])) => {
+                Rectification::from_camera_info(&read(l)?, &read(r)?).map(Some)
+            }
+            (Some(_), Some(_)) => Err("give calibration or camera_info, not both".into()),
+        }
+    }
+}
+
+impl Params for RectifyParams {
+    fn check(&self) -> Result<(), String> {
+        self.rectification().map(|_| ())
+    }
+}
+
+runtime::ports! {
+    /// What the rectify node reads and sends.
+    pub struct Frame {
+        /// The stereo pair.
+        pub frame: StereoFrame,
+    }
+}
+
 /// Rectifies each frame with tables built once.
 #[derive(Debug)]
-pub struct RectifyNode {
+pub struct Rectify {
     luts: Option<(RemapLut, RemapLut, (usize, usize))>,
 }
 
-impl RectifyNode {
-    /// Reads the calibration (if any) and builds both tables.
-    pub fn from_table(t: &toml::Table) -> Result<Self, String> {
-        let luts = rectification(t)?.map(|rect| {
+impl Task for Rectify {
+    const KIND: &'static str = "rectify";
+    type Params = RectifyParams;
+    type Input = Frame;
+    type Output = Frame;
+    type Error = NodeError;
+
+    fn new(p: RectifyParams) -> Result<Self, NodeError> {
+        let luts = p.rectification()?.map(|rect| {
             let (w, h) = rect.size();
             (
                 RemapLut::new(&rect, false, w, h),
@@ -37,43 +79,23 @@ impl RectifyNode {
         });
         Ok(Self { luts })
     }
-}
 
-/// The rectification a rectify node's `params` describe (`None`: pass frames through).
-/// Reading and checking it is cheap; the resampling tables are built only by the node.
-pub fn rectification(t: &toml::Table) -> Result<Option<Rectification>, String> {
-    let p: RectifyParams = params(t)?;
-    let read = |path: &str| {
-        std::fs::read_to_string(path).map_err(|e| format!("cannot read calibration '{path}': {e}"))
-    };
-    match (&p.calibration, &p.camera_info) {
-        (None, None) => Ok(None),
-        (Some(path), None) => {
-            let cal = StereoCalibration::from_opencv_yaml(&read(path)?)
-                .map_err(|e| format!("calibration '{path}': {e}"))?;
-            Ok(Some(Rectification::bouguet(&cal)))
-        }
-        (None, Some([l, r])) => Rectification::from_camera_info(&read(l)?, &read(r)?).map(Some),
-        (Some(_), Some(_)) => Err("give calibration or camera_info, not both".into()),
-    }
-}
-
-impl GraphNode for RectifyNode {
-    fn step(&mut self, inputs: &[Msg<'_>], out: &mut dyn Outputs) -> Result<(), String> {
-        let m = &inputs[0];
+    fn process(&mut self, _: Stamp, i: Frame) -> Result<Frame, NodeError> {
         let Some((ll, rl, size)) = &self.luts else {
-            return out.send(0, m.header, m.payload.len(), &mut |b| {
-                b.copy_from_slice(m.payload)
-            });
+            return Ok(i);
         };
-        let [l, r] = m.planes_n::<u8, 2>()?;
-        if (l.width, l.height) != *size {
-            return Err(format!(
+        let StereoFrame { left, right } = &i.frame;
+        if (left.width, left.height) != *size {
+            return Err(NodeError::Failed(format!(
                 "frames are {}×{} but the calibration is for {}×{}",
-                l.width, l.height, size.0, size.1
-            ));
+                left.width, left.height, size.0, size.1
+            )));
         }
-        let (lo, ro) = (ll.apply(&l), rl.apply(&r));
-        send_planes(out, 0, MessageKind::StereoFrame, m.stamp(), &[&lo, &ro])
+        Ok(Frame {
+            frame: StereoFrame {
+                left: ll.apply(left),
+                right: rl.apply(right),
+            },
+        })
     }
 }

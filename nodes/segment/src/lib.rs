@@ -32,8 +32,9 @@ pub use variance::{VarianceScale, local_variance, normalise};
 use schemas::{BoundingBox, Cell, Mask, Plane};
 use serde::{Deserialize, Serialize};
 
-/// Segmentation settings.
+/// Segmentation settings (the `params` of a segment node; every key optional).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct SegmentParams {
     /// M: the variance window is `(2M+1)²`.
     pub variance_radius: usize,

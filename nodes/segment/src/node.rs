@@ -1,46 +1,78 @@
 //! The segment node: a stereo frame in; both views' label images and cell lists out.
 
 use crate::{SegmentParams, segment};
-use runtime::step::{GraphNode, Msg, Outputs, params_over, send_json, send_planes};
-use schemas::MessageKind;
-use schemas::wire::CellLists;
+use runtime::node::{NodeError, Params, Stamp, Task};
+use schemas::{CellLists, Labels, StereoFrame};
 
-/// Reads and checks the `params` of a `segment` node (the fields of [`SegmentParams`]).
-pub fn params_from_table(t: &toml::Table) -> Result<SegmentParams, String> {
-    let p = params_over(&SegmentParams::default(), t)?;
-    if p.variance_radius == 0 || p.variance_radius > 50 {
-        return Err(format!(
-            "variance_radius {} must be 1..=50",
-            p.variance_radius
-        ));
+impl Params for SegmentParams {
+    fn check(&self) -> Result<(), String> {
+        if self.variance_radius == 0 || self.variance_radius > 50 {
+            return Err(format!(
+                "variance_radius {} must be 1..=50",
+                self.variance_radius
+            ));
+        }
+        if !(self.min_std >= 0.0 && self.min_std.is_finite()) {
+            return Err(format!("min_std {} must be a number ≥ 0", self.min_std));
+        }
+        if self.open_radius > 50 || self.close_radius > 50 {
+            return Err("open_radius and close_radius must be 0..=50".into());
+        }
+        Ok(())
     }
-    Ok(p)
+}
+
+runtime::ports! {
+    /// What the segment node reads.
+    pub struct SegmentIn {
+        /// The rectified pair.
+        pub frame: StereoFrame,
+    }
+}
+
+runtime::ports! {
+    /// What the segment node sends.
+    pub struct SegmentOut {
+        /// Both views' label images.
+        pub labels: Labels,
+        /// Both views' cells.
+        pub cells: CellLists,
+    }
 }
 
 /// Segments both views of each frame.
 #[derive(Debug)]
-pub struct SegmentNode {
+pub struct Segment {
     /// Settings.
     pub params: SegmentParams,
 }
 
-impl GraphNode for SegmentNode {
-    fn step(&mut self, inputs: &[Msg<'_>], out: &mut dyn Outputs) -> Result<(), String> {
-        let [l, r] = inputs[0].planes_n::<u8, 2>()?;
-        let (ls, rs) = rayon::join(|| segment(&l, &self.params), || segment(&r, &self.params));
-        let stamp = inputs[0].stamp();
-        send_planes(
-            out,
-            0,
-            MessageKind::Labels,
-            stamp,
-            &[&ls.labels, &rs.labels],
-        )?;
-        let cells = serde_json::to_vec(&CellLists {
-            left: ls.cells,
-            right: rs.cells,
+impl Task for Segment {
+    const KIND: &'static str = "segment";
+    type Params = SegmentParams;
+    type Input = SegmentIn;
+    type Output = SegmentOut;
+    type Error = NodeError;
+
+    fn new(params: SegmentParams) -> Result<Self, NodeError> {
+        Ok(Self { params })
+    }
+
+    fn process(&mut self, _: Stamp, input: SegmentIn) -> Result<SegmentOut, NodeError> {
+        let StereoFrame { left, right } = &input.frame;
+        let (ls, rs) = rayon::join(
+            || segment(left, &self.params),
+            || segment(right, &self.params),
+        );
+        Ok(SegmentOut {
+            labels: Labels {
+                left: ls.labels,
+                right: rs.labels,
+            },
+            cells: CellLists {
+                left: ls.cells,
+                right: rs.cells,
+            },
         })
-        .map_err(|e| e.to_string())?;
-        send_json(out, 1, MessageKind::CellList, stamp, &cells)
     }
 }

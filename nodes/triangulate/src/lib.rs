@@ -10,6 +10,16 @@
 //! [`schemas::Calibration::from_microscope`]); coordinates come out in the calibration's
 //! unit. Only pixels with a finite disparity and a positive `d'` (in front of the cameras)
 //! become points; each carries the left image's colour.
+//!
+//! The crate also holds what the method measures per cell ([`cells`]: pairing, the
+//! cell-only maps, substrate and tops by photometric fits in [`refine`], heights, volumes,
+//! 3D centroids), the calibration file format ([`calibration`]) and the triangulate node
+//! ([`node`]).
+
+pub mod calibration;
+pub mod cells;
+pub mod node;
+pub mod refine;
 
 use schemas::{Calibration, DisparityMap, Plane, Point3, PointCloud};
 

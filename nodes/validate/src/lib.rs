@@ -374,3 +374,16 @@ mod tests {
         }
     }
 }
+
+/// The paper's score for a disparity range (its Fig. 12): the left pixels the LR check
+/// kept, over the pixels that have a candidate at all in `range` (the right pixel `x − d`
+/// exists for some `d`).
+pub fn consistency_ratio(checked_left: &DisparityMap, range: schemas::DisparityRange) -> f64 {
+    let w = checked_left.width as i64;
+    let cols = (0..w)
+        .filter(|&x| (range.min as i64..=range.max as i64).any(|d| (0..w).contains(&(x - d))))
+        .count();
+    let total = (cols * checked_left.height).max(1);
+    let consistent = checked_left.data.iter().filter(|d| d.is_finite()).count();
+    consistent as f64 / total as f64
+}

@@ -1,8 +1,8 @@
-//! The validate node: left- and right-based maps in; the LR-checked left map and the left
-//! occlusion mask out.
+//! The validate node: the left- and right-based tiles in; both checked against each other
+//! tile by tile (the LR consistency check) out, the left tiles with the paper's figures.
 
-use runtime::step::{GraphNode, Msg, Outputs, params, send_planes};
-use schemas::MessageKind;
+use runtime::node::{NodeError, Params, Stamp, Task};
+use schemas::{DisparityTile, DisparityTiles, Side};
 use serde::Deserialize;
 
 /// `params` of a validate node.
@@ -18,34 +18,111 @@ fn default_tolerance() -> u32 {
     1
 }
 
-impl ValidateParams {
-    /// Reads and checks a `params` table.
-    pub fn from_table(t: &toml::Table) -> Result<Self, String> {
-        let p: Self = params(t)?;
-        if p.tolerance > 4 {
-            return Err(format!("tolerance {} must be 0..=4", p.tolerance));
+impl Default for ValidateParams {
+    fn default() -> Self {
+        Self {
+            tolerance: default_tolerance(),
         }
-        Ok(p)
+    }
+}
+
+impl Params for ValidateParams {
+    fn check(&self) -> Result<(), String> {
+        if self.tolerance > crate::MAX_TOLERANCE {
+            return Err(format!(
+                "tolerance {} must be 0..={}",
+                self.tolerance,
+                crate::MAX_TOLERANCE
+            ));
+        }
+        Ok(())
+    }
+}
+
+runtime::ports! {
+    /// What the validate node reads.
+    pub struct ValidateIn {
+        /// Left-based tiles (left → right matches).
+        pub left: DisparityTiles,
+        /// Right-based tiles of the same layout (right → left matches).
+        pub right: DisparityTiles,
+    }
+}
+
+runtime::ports! {
+    /// What the validate node sends.
+    pub struct ValidateOut {
+        /// The left tiles, inconsistent pixels invalid, each with the paper's figures.
+        pub left: DisparityTiles,
+        /// The right tiles, inconsistent pixels invalid.
+        pub right: DisparityTiles,
     }
 }
 
 /// Checks each frame's pair of maps.
 #[derive(Debug)]
-pub struct ValidateNode {
+pub struct Validate {
     /// Settings.
     pub params: ValidateParams,
 }
 
-impl GraphNode for ValidateNode {
-    fn step(&mut self, inputs: &[Msg<'_>], out: &mut dyn Outputs) -> Result<(), String> {
-        let [l] = inputs[0].planes_n::<f32, 1>()?;
-        let [r] = inputs[1].planes_n::<f32, 1>()?;
-        if (l.width, l.height) != (r.width, r.height) {
-            return Err("left and right maps differ in size".into());
+impl Task for Validate {
+    const KIND: &'static str = "validate";
+    type Params = ValidateParams;
+    type Input = ValidateIn;
+    type Output = ValidateOut;
+    type Error = NodeError;
+
+    fn new(params: ValidateParams) -> Result<Self, NodeError> {
+        Ok(Self { params })
+    }
+
+    fn process(&mut self, _: Stamp, i: ValidateIn) -> Result<ValidateOut, NodeError> {
+        let (l, r) = (&i.left, &i.right);
+        let same = |a: &DisparityTile, b: &DisparityTile| {
+            (a.x, a.y, a.map.width, a.map.height, a.cells)
+                == (b.x, b.y, b.map.width, b.map.height, b.cells)
+        };
+        if l.side != Side::Left || r.side != Side::Right {
+            return Err(NodeError::Failed(format!(
+                "left takes left-based tiles and right right-based ones, not {:?} and {:?}",
+                l.side, r.side
+            )));
         }
-        let c = crate::lr_check(&l, &r, self.params.tolerance);
-        let stamp = inputs[0].stamp();
-        send_planes(out, 0, MessageKind::Disparity, stamp, &[&c.left])?;
-        send_planes(out, 1, MessageKind::Image, stamp, &[&c.occlusion_left])
+        if (l.width, l.height, l.tiles.len()) != (r.width, r.height, r.tiles.len())
+            || !l.tiles.iter().zip(&r.tiles).all(|(a, b)| same(a, b))
+        {
+            return Err(NodeError::Failed(
+                "the left and right tiles differ in layout; both must come from one match".into(),
+            ));
+        }
+        let checked: Vec<Option<crate::Checked>> = l
+            .tiles
+            .iter()
+            .zip(&r.tiles)
+            .map(|(a, b)| {
+                (!a.map.is_empty()).then(|| crate::lr_check(&a.map, &b.map, self.params.tolerance))
+            })
+            .collect();
+        let mut k = 0;
+        let left = l.map_tiles(Side::Left, |t| {
+            let c = &checked[k];
+            k += 1;
+            DisparityTile {
+                map: c.as_ref().map_or_else(|| t.map.clone(), |c| c.left.clone()),
+                figures: c.as_ref().map(|c| c.figures),
+                ..t.clone()
+            }
+        });
+        let mut k = 0;
+        let right = r.map_tiles(Side::Right, |t| {
+            let c = &checked[k];
+            k += 1;
+            DisparityTile {
+                map: c.as_ref().map_or_else(|| t.map.clone(), |c| c.right.clone()),
+                ..t.clone()
+            }
+        });
+        Ok(ValidateOut { left, right })
     }
 }

@@ -1,0 +1,243 @@
+//! The calibration file that `reconstruct --calibration`, the triangulate node and
+//! `calibrate-depth` share: rectified parallel-axis geometry in TOML or JSON.
+//!
+//! ```toml
+//! baseline = 2000.0     # in `unit`
+//! f_eff = 20000.0       # effective focal length ...
+//! pixel_pitch = 5.0     # ... and pixel pitch, same unit (or: focal_px = 4000.0)
+//! cx = 639.5            # optional, default image centre
+//! cy = 511.5
+//! unit = "um"
+//! ```
+
+use schemas::{Calibration, LengthUnit};
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// A calibration as written in a file (or inline in a launch file).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CalibrationFile {
+    /// Distance between the optical centres, in `unit`.
+    pub baseline: f64,
+    /// Focal length in pixels (or `f_eff` with `pixel_pitch`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub focal_px: Option<f64>,
+    /// Effective focal length, in `unit`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub f_eff: Option<f64>,
+    /// Pixel pitch, in `unit`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pixel_pitch: Option<f64>,
+    /// Left principal point column (default: the image centre).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cx: Option<f64>,
+    /// Principal point row (default: the image centre).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cy: Option<f64>,
+    /// Right principal point column (default: `cx`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cx_right: Option<f64>,
+    /// Unit of `baseline` (default mm).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub unit: Option<LengthUnit>,
+}
+
+impl CalibrationFile {
+    /// The geometry for images of `w × h` (`source` names the file in errors).
+    pub fn resolve(&self, w: usize, h: usize, source: &str) -> Result<Calibration, String> {
+        let focal = match (self.focal_px, self.f_eff, self.pixel_pitch) {
+            (Some(fp), None, None) => fp,
+            (None, Some(fe), Some(pp)) if pp > 0.0 => fe / pp,
+            _ => {
+                return Err(format!(
+                    "calibration {source}: give either focal_px, or f_eff with pixel_pitch (> 0)"
+                ));
+            }
+        };
+        let cx = self.cx.unwrap_or((w as f64 - 1.0) / 2.0);
+        let c = Calibration {
+            baseline: self.baseline,
+            focal_px: focal,
+            cx,
+            cy: self.cy.unwrap_or((h as f64 - 1.0) / 2.0),
+            cx_right: self.cx_right.unwrap_or(cx),
+            unit: self.unit.unwrap_or_default(),
+        };
+        check(&c, source)?;
+        Ok(c)
+    }
+
+    /// The file form of a geometry (focal length as f_eff and `pitch`).
+    pub fn from_calibration(c: &Calibration, pitch: f64) -> Self {
+        Self {
+            baseline: c.baseline,
+            focal_px: None,
+            f_eff: Some(c.focal_px * pitch),
+            pixel_pitch: Some(pitch),
+            cx: Some(c.cx),
+            cy: Some(c.cy),
+            cx_right: Some(c.cx_right),
+            unit: Some(c.unit),
+        }
+    }
+}
+
+/// Checks that a geometry can triangulate (`source` names where it came from).
+pub fn check(c: &Calibration, source: &str) -> Result<(), String> {
+    if !(c.baseline > 0.0 && c.baseline.is_finite() && c.focal_px > 0.0 && c.focal_px.is_finite()) {
+        return Err(format!(
+            "calibration from {source}: baseline ({}) and focal length ({} px) must be positive",
+            c.baseline, c.focal_px
+        ));
+    }
+    Ok(())
+}
+
+/// Reads a calibration file (TOML, or JSON by its `.json` extension).
+pub fn read_file(path: &Path) -> Result<CalibrationFile, String> {
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| format!("calibration file '{}' cannot be read: {e}", path.display()))?;
+    let is_json = path.extension().is_some_and(|e| e == "json");
+    if is_json {
+        serde_json::from_str(&text).map_err(|e| e.to_string())
+    } else {
+        toml::from_str(&text).map_err(|e| e.to_string())
+    }
+    .map_err(|e| {
+        format!(
+            "calibration file '{}' is not valid: {e}; expected baseline, focal_px (or f_eff and pixel_pitch), optional cx, cy, cx_right, unit",
+            path.display()
+        )
+    })
+}
+
+/// Reads a calibration file for images of `w × h`.
+pub fn load(path: &Path, w: usize, h: usize) -> Result<Calibration, String> {
+    read_file(path)?.resolve(w, h, &format!("file '{}'", path.display()))
+}
+
+/// Writes `c` as a calibration file (focal length as f_eff and `pitch`).
+pub fn write(path: &Path, c: &Calibration, pitch: f64) -> Result<(), String> {
+    let text = format!(
+        "# Written by microstereo: rectified parallel-axis geometry.\nbaseline = {}\nf_eff = {}\npixel_pitch = {}\ncx = {}\ncy = {}\ncx_right = {}\nunit = \"{}\"\n",
+        c.baseline,
+        c.focal_px * pitch,
+        pitch,
+        c.cx,
+        c.cy,
+        c.cx_right,
+        match c.unit {
+            LengthUnit::Um => "um",
+            LengthUnit::Mm => "mm",
+            LengthUnit::M => "m",
+        }
+    );
+    std::fs::write(path, text).map_err(|e| format!("cannot write '{}': {e}", path.display()))
+}
+
+/// Where a triangulate node's geometry comes from (`calibration` in its params): the
+/// synthetic microscope's optics, a calibration file, or the numbers themselves.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(try_from = "toml::Value", into = "toml::Value")]
+pub enum Geometry {
+    /// `"synthetic"`: the optics of `microstereo synth` and the synthetic capture.
+    Synthetic,
+    /// A calibration file's path.
+    File(String),
+    /// A table with the file's keys.
+    Inline(CalibrationFile),
+}
+
+impl TryFrom<toml::Value> for Geometry {
+    type Error = String;
+    fn try_from(v: toml::Value) -> Result<Self, String> {
+        match v {
+            toml::Value::String(s) if s == "synthetic" => Ok(Geometry::Synthetic),
+            toml::Value::String(s) => Ok(Geometry::File(s)),
+            toml::Value::Table(t) => toml::Value::Table(t)
+                .try_into()
+                .map(Geometry::Inline)
+                .map_err(|e: toml::de::Error| format!("calibration: {}", e.message())),
+            other => Err(format!(
+                "calibration must be \"synthetic\", a file's path or a table, not {}",
+                other.type_str()
+            )),
+        }
+    }
+}
+
+impl From<Geometry> for toml::Value {
+    fn from(g: Geometry) -> Self {
+        match g {
+            Geometry::Synthetic => toml::Value::String("synthetic".into()),
+            Geometry::File(p) => toml::Value::String(p),
+            Geometry::Inline(f) => toml::Value::try_from(f).expect("a calibration serialises"),
+        }
+    }
+}
+
+impl Geometry {
+    /// Checks what can be checked without the image size: the file is readable and valid.
+    pub fn check(&self) -> Result<(), String> {
+        match self {
+            Geometry::Synthetic => Ok(()),
+            Geometry::File(p) => read_file(Path::new(p)).map(|_| ()),
+            Geometry::Inline(f) => f.resolve(2, 2, "in the launch file").map(|_| ()),
+        }
+    }
+
+    /// The geometry for images of `w × h`.
+    pub fn resolve(&self, w: usize, h: usize) -> Result<Calibration, String> {
+        match self {
+            Geometry::Synthetic => Ok(synth::Optics {
+                width: w,
+                height: h,
+                ..synth::Optics::default()
+            }
+            .calibration()),
+            Geometry::File(p) => load(Path::new(p), w, h),
+            Geometry::Inline(f) => f.resolve(w, h, "in the launch file"),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_file_resolves_with_the_image_centre_and_round_trips() {
+        let dir = std::env::temp_dir().join(format!("calib-test-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let p = dir.join("c.toml");
+        std::fs::write(&p, "baseline = 2000.0\nf_eff = 20000.0\npixel_pitch = 5.0\nunit = \"um\"\n").unwrap();
+        let c = load(&p, 640, 480).unwrap();
+        assert_eq!((c.focal_px, c.cx, c.cy, c.cx_right), (4000.0, 319.5, 239.5, 319.5));
+        assert_eq!(c.unit, LengthUnit::Um);
+        write(&p, &c, 5.0).unwrap();
+        assert_eq!(load(&p, 10, 10).unwrap(), c);
+        std::fs::write(&p, "baseline = 2000.0\nfocal_px = 1.0\nf_eff = 3.0\n").unwrap();
+        assert!(load(&p, 4, 4).unwrap_err().contains("give either focal_px"));
+        std::fs::write(&p, "baseline = -1.0\nfocal_px = 1.0\n").unwrap();
+        assert!(load(&p, 4, 4).unwrap_err().contains("must be positive"));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn a_geometry_is_a_name_a_path_or_a_table() {
+        let g = |s: &str| -> Result<Geometry, String> {
+            let t: toml::Table = toml::from_str(s).map_err(|e| e.to_string())?;
+            Geometry::try_from(t["calibration"].clone())
+        };
+        assert_eq!(g("calibration = \"synthetic\"").unwrap(), Geometry::Synthetic);
+        assert_eq!(g("calibration = \"a.toml\"").unwrap(), Geometry::File("a.toml".into()));
+        let inline = g("calibration = { baseline = 1.5, focal_px = 900.0 }").unwrap();
+        let c = inline.resolve(11, 5).unwrap();
+        assert_eq!((c.baseline, c.focal_px, c.cx, c.cy), (1.5, 900.0, 5.0, 2.0));
+        assert!(g("calibration = { baseline = 1.5, focal = 900.0 }").unwrap_err().contains("focal"));
+        assert!(g("calibration = 3").unwrap_err().contains("not integer"));
+        let back = toml::Value::from(inline.clone());
+        assert_eq!(Geometry::try_from(back).unwrap(), inline);
+    }
+}

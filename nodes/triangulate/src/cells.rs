@@ -1,0 +1,498 @@
+//! Cells in 3D, the method's cell-only stereo: pair the cells of both views, cut each
+//! pair's crop, put the crops' maps back where each cell owns the pixels, fit the
+//! substrate and each cell's top, and measure every cell.
+//!
+//! The match node cuts the crops ([`pair_cells`], [`crop_of`]); the triangulate node does
+//! the rest ([`compose`], [`cell_heights`], [`measure`]).
+
+use crate::refine::{DisparityPlane, PeakFit, fit_disparity_plane, refine_peak};
+use schemas::{
+    Calibration, Cell, Cell3, DisparityMap, DisparityRange, DisparityTiles, INVALID_DISPARITY,
+    Mask, Plane,
+};
+
+/// Pixels matched around each cell mask by default: its substrate ring.
+pub const DEFAULT_MARGIN: u8 = 8;
+
+/// Pixels by which a pair's centroid offset may leave the range (segmentation jitter).
+pub const PAIRING_SLACK: f64 = 4.0;
+
+/// Pairs each left cell with a right cell: rows overlap by half the smaller height, areas
+/// within a factor of two, the centroid offset `xl − xr` inside the disparity range (±
+/// `slack` px for segmentation jitter). Best pairs first (smallest size and row mismatch);
+/// each cell is used once. Returns `(left index, right index)` in left order.
+pub fn pair_cells(
+    left: &[Cell],
+    right: &[Cell],
+    range: DisparityRange,
+    slack: f64,
+) -> Vec<(usize, usize)> {
+    let mut cand = Vec::new();
+    for (i, l) in left.iter().enumerate() {
+        for (j, r) in right.iter().enumerate() {
+            let overlap = l.bbox.y1.min(r.bbox.y1) as i64 - l.bbox.y0.max(r.bbox.y0) as i64 + 1;
+            let hmin = (l.bbox.y1 - l.bbox.y0).min(r.bbox.y1 - r.bbox.y0) as i64 + 1;
+            let ratio = l.area as f64 / r.area.max(1) as f64;
+            let dx = l.centroid[0] - r.centroid[0];
+            if 2 * overlap < hmin
+                || !(0.5..=2.0).contains(&ratio)
+                || dx < range.min as f64 - slack
+                || dx > range.max as f64 + slack
+            {
+                continue;
+            }
+            let cost = (l.centroid[1] - r.centroid[1]).abs() + 20.0 * ratio.ln().abs();
+            cand.push((cost, i, j));
+        }
+    }
+    cand.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let (mut used_l, mut used_r) = (vec![false; left.len()], vec![false; right.len()]);
+    let mut pairs = Vec::new();
+    for (_, i, j) in cand {
+        if !used_l[i] && !used_r[j] {
+            used_l[i] = true;
+            used_r[j] = true;
+            pairs.push((i, j));
+        }
+    }
+    pairs.sort();
+    pairs
+}
+
+/// The crop a cell pair is matched in: `[x0, x1) × [y0, y1)` of both views, and the part of
+/// `range` it can hold (`None` when it is too narrow for any).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Crop {
+    /// First column.
+    pub x0: usize,
+    /// First row.
+    pub y0: usize,
+    /// One past the last column.
+    pub x1: usize,
+    /// One past the last row.
+    pub y1: usize,
+    /// Disparities searched in it.
+    pub range: Option<DisparityRange>,
+}
+
+/// The crop of the pair `l`–`r` in a `w × h` frame: both boxes, `margin` around them, and
+/// room for every disparity of `range` on each side.
+pub fn crop_of(
+    l: &Cell,
+    r: &Cell,
+    range: DisparityRange,
+    margin: u8,
+    (w, h): (usize, usize),
+) -> Crop {
+    let (lb, rb) = (l.bbox, r.bbox);
+    let m = margin as i64;
+    let (dmin, dmax) = (range.min as i64, range.max as i64);
+    let y0 = (lb.y0.min(rb.y0) as i64 - m).max(0) as usize;
+    let y1 = ((lb.y1.max(rb.y1) as i64 + m + 1) as usize).min(h);
+    let x0 = (lb.x0 as i64 - m - dmax)
+        .min(rb.x0 as i64 - m + dmin)
+        .max(0) as usize;
+    let x1 = ((lb.x1 as i64 + m - dmin).max(rb.x1 as i64 + m + dmax) + 1).min(w as i64) as usize;
+    // A narrow crop cannot hold the whole range: search what fits.
+    let cw = (x1 - x0) as i32;
+    let r = DisparityRange::new(range.min.max(-(cw - 1)), range.max.min(cw - 1));
+    Crop {
+        x0,
+        y0,
+        x1,
+        y1,
+        range: (r.min < r.max).then_some(r),
+    }
+}
+
+/// The rectangle `[x0, x1) × [y0, y1)` of `p`.
+pub fn crop<T: Copy>(p: &Plane<T>, x0: usize, y0: usize, x1: usize, y1: usize) -> Plane<T> {
+    let data = (y0..y1)
+        .flat_map(|y| p.row(y)[x0..x1].iter().copied())
+        .collect();
+    Plane::from_vec(x1 - x0, y1 - y0, data).expect("size")
+}
+
+/// Cell-only maps in frame coordinates: each pair's tile where its cell owns the pixel.
+#[derive(Clone, Debug)]
+pub struct Composed {
+    /// The final (post-processed) left disparity: valid only in and around the cells.
+    pub disparity: DisparityMap,
+    /// After the LR check, on the same pixels.
+    pub raw: DisparityMap,
+    /// 255 where the LR check failed on those pixels.
+    pub occlusion: Mask,
+    /// `(left index, right index)` of each tile's cell pair, in tile order.
+    pub pairs: Vec<(usize, usize)>,
+}
+
+/// 255 where `labels` holds a cell.
+pub fn mask_of(labels: &Plane<u32>) -> Mask {
+    Plane::from_vec(
+        labels.width,
+        labels.height,
+        labels
+            .data
+            .iter()
+            .map(|&v| if v > 0 { 255 } else { 0 })
+            .collect(),
+    )
+    .expect("size")
+}
+
+/// Pastes each cell pair's tile of the post-processed (`post`) and LR-checked (`checked`)
+/// maps where its left cell owns the pixel: the cell itself, and the background within the
+/// tiles' margin of it (a later pair's ring wins where two overlap). `labels` and `cells`
+/// are the left view's; `right` the right view's cells.
+pub fn compose(
+    labels: &Plane<u32>,
+    (cells, right): (&[Cell], &[Cell]),
+    post: &DisparityTiles,
+    checked: &DisparityTiles,
+) -> Result<Composed, String> {
+    let (w, h) = (labels.width, labels.height);
+    if (post.width, post.height) != (w, h) || (checked.width, checked.height) != (w, h) {
+        return Err(format!(
+            "disparity tiles of {}×{} for labels of {w}×{h}",
+            post.width, post.height
+        ));
+    }
+    if post.tiles.len() != checked.tiles.len() {
+        return Err(format!(
+            "{} final tiles but {} checked ones",
+            post.tiles.len(),
+            checked.tiles.len()
+        ));
+    }
+    let margin = post.margin;
+    let mut disparity = Plane::filled(w, h, INVALID_DISPARITY);
+    let mut raw = Plane::filled(w, h, INVALID_DISPARITY);
+    let mut occlusion = Plane::filled(w, h, 0u8);
+    let support = segment::dilate(&mask_of(labels), margin);
+    let index = |list: &[Cell], id: u32, view: &str| {
+        list.iter()
+            .position(|c| c.id == id)
+            .ok_or_else(|| format!("a tile names {view} cell {id}, which the cell list lacks"))
+    };
+    let mut pairs = Vec::new();
+    for (t, c) in post.tiles.iter().zip(&checked.tiles) {
+        let Some((lid, rid)) = t.cells else {
+            return Err("a whole-frame tile among cell tiles".into());
+        };
+        if (t.x, t.y, t.map.width, t.map.height) != (c.x, c.y, c.map.width, c.map.height) {
+            return Err(format!("the final and checked tiles of cell {lid} differ in place"));
+        }
+        pairs.push((index(cells, lid, "left")?, index(right, rid, "right")?));
+        if t.map.is_empty() {
+            continue;
+        }
+        let (x0, y0, x1, y1) = (t.x, t.y, t.x + t.map.width, t.y + t.map.height);
+        let dist = distance_to_cell(labels, lid, (x0, y0), (x1, y1));
+        for y in y0..y1 {
+            for x in x0..x1 {
+                // Own cell plus the ring around it (other cells get their own crop).
+                let own = *labels.get(x, y) == lid
+                    || (*labels.get(x, y) == 0
+                        && *support.get(x, y) != 0
+                        && dist.get_pixel((x - x0) as u32, (y - y0) as u32).0[0] <= margin);
+                if !own {
+                    continue;
+                }
+                *disparity.get_mut(x, y) = *t.map.get(x - x0, y - y0);
+                let r = *c.map.get(x - x0, y - y0);
+                *raw.get_mut(x, y) = r;
+                *occlusion.get_mut(x, y) = if r.is_finite() { 0 } else { 255 };
+            }
+        }
+    }
+    Ok(Composed {
+        disparity,
+        raw,
+        occlusion,
+        pairs,
+    })
+}
+
+/// The substrate's disparity plane over the background clear of every cell (in both views'
+/// masks), and per pair the substrate's disparity under the left cell (the plane, or the
+/// ring median without one) and its refined top.
+#[allow(clippy::too_many_arguments)]
+pub fn cell_heights(
+    (left, right): (&Plane<u8>, &Plane<u8>),
+    (labels, left_mask, right_mask): (&Plane<u32>, &Mask, &Mask),
+    cells: &[Cell],
+    pairs: &[(usize, usize)],
+    (disparity, disparity_raw): (&DisparityMap, &DisparityMap),
+    range: DisparityRange,
+    margin: u8,
+) -> (
+    Option<DisparityPlane>,
+    Vec<Option<f64>>,
+    Vec<Option<PeakFit>>,
+) {
+    let reach = margin as usize + range.min.unsigned_abs().max(range.max.unsigned_abs()) as usize;
+    let mut both = left_mask.clone();
+    for (c, r) in both.data.iter_mut().zip(&right_mask.data) {
+        *c |= *r;
+    }
+    let usable = clear_of(&both, reach);
+    let substrate = fit_disparity_plane(left, right, &usable, range, SUBSTRATE_MAX_STD);
+    let (mut bases, mut tops) = (Vec::new(), Vec::new());
+    for &(i, _) in pairs {
+        let cell = &cells[i];
+        let base = match &substrate {
+            Some(s) => Some(s.at(cell.centroid[0], cell.centroid[1])),
+            None => ring_disparity(labels, cell, disparity_raw, disparity, margin),
+        };
+        bases.push(base);
+        tops.push(base.and_then(|base| top_of_cell(left, right, labels, cell, disparity, base)));
+    }
+    (substrate, bases, tops)
+}
+
+/// 255 where no non-zero pixel of `mask` lies within the `(2r+1)²` square around.
+fn clear_of(mask: &Mask, r: usize) -> Mask {
+    let (w, h) = (mask.width, mask.height);
+    let sums = segment::BoxSums::new(w, h, |x, y| u64::from(*mask.get(x, y) != 0));
+    let data = (0..h)
+        .flat_map(|y| (0..w).map(move |x| (x, y)))
+        .map(|(x, y)| if sums.around(x, y, r).0 == 0 { 255 } else { 0 })
+        .collect();
+    Plane::from_vec(w, h, data).expect("size")
+}
+
+/// The largest formal error (px) a background plane may have to stand for the substrate.
+const SUBSTRATE_MAX_STD: f64 = 0.05;
+
+/// Refines the top of cell `cell` with the dome model over its upper part: the pixels whose
+/// matched height above `base` (the substrate's disparity) is at least 70 % of the cell's
+/// (its 98th percentile). Lower down, flanks steepen and the matcher's map is least sure.
+fn top_of_cell(
+    left: &Plane<u8>,
+    right: &Plane<u8>,
+    labels: &Plane<u32>,
+    cell: &Cell,
+    disparity: &DisparityMap,
+    base: f64,
+) -> Option<PeakFit> {
+    let b = cell.bbox;
+    let mut inside = Vec::new();
+    for y in b.y0 as usize..=b.y1 as usize {
+        for x in b.x0 as usize..=b.x1 as usize {
+            let d = *disparity.get(x, y);
+            if *labels.get(x, y) == cell.id && d.is_finite() {
+                inside.push(([x, y], d));
+            }
+        }
+    }
+    let top = percentile(inside.iter().map(|p| p.1).collect(), 0.98)?;
+    if top <= base {
+        return None;
+    }
+    let level = (base + 0.7 * (top - base)) as f32;
+    let (pixels, init): (Vec<[usize; 2]>, Vec<f32>) =
+        inside.into_iter().filter(|(_, d)| *d >= level).unzip();
+    refine_peak(left, right, &pixels, &init, Some(base))
+}
+
+/// Chebyshev distance (px, capped at 255) from each pixel of the window `[x0, x1) × [y0, y1)`
+/// to the nearest pixel of cell `id`, which must lie wholly inside the window.
+fn distance_to_cell(
+    labels: &Plane<u32>,
+    id: u32,
+    (x0, y0): (usize, usize),
+    (x1, y1): (usize, usize),
+) -> image::GrayImage {
+    let cell = image::GrayImage::from_fn((x1 - x0) as u32, (y1 - y0) as u32, |x, y| {
+        image::Luma([u8::from(
+            *labels.get(x0 + x as usize, y0 + y as usize) == id,
+        )])
+    });
+    imageproc::distance_transform::distance_transform(
+        &cell,
+        imageproc::distance_transform::Norm::LInf,
+    )
+}
+
+/// Median disparity on the ring of cell `cell` (2 px off its segmented edge, which the
+/// variance window blurs, out to `margin`): after the LR check where that has values,
+/// otherwise after post-processing.
+fn ring_disparity(
+    labels: &Plane<u32>,
+    cell: &Cell,
+    raw: &DisparityMap,
+    filled: &DisparityMap,
+    margin: u8,
+) -> Option<f64> {
+    let (b, m) = (cell.bbox, margin as usize);
+    let (x0, y0) = (
+        (b.x0 as usize).saturating_sub(m),
+        (b.y0 as usize).saturating_sub(m),
+    );
+    let x1 = (b.x1 as usize + m + 1).min(labels.width);
+    let y1 = (b.y1 as usize + m + 1).min(labels.height);
+    let dist = distance_to_cell(labels, cell.id, (x0, y0), (x1, y1));
+    let (mut ring, mut ring_filled) = (Vec::new(), Vec::new());
+    for y in y0..y1 {
+        for x in x0..x1 {
+            let d = *filled.get(x, y);
+            let off = dist.get_pixel((x - x0) as u32, (y - y0) as u32).0[0];
+            if *labels.get(x, y) == 0 && d.is_finite() && off > 2 && off <= margin {
+                let r = *raw.get(x, y);
+                if r.is_finite() {
+                    ring.push(r);
+                }
+                ring_filled.push(d);
+            }
+        }
+    }
+    percentile(ring, 0.5).or_else(|| percentile(ring_filled, 0.5))
+}
+
+fn percentile(mut v: Vec<f32>, q: f64) -> Option<f64> {
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_by(|a, b| a.total_cmp(b));
+    let k = ((v.len() - 1) as f64 * q).round() as usize;
+    Some(v[k] as f64)
+}
+
+/// Per-cell 3D figures from the left labels and cells, the right cells, their pairing, the
+/// final and LR-checked disparity maps and [`cell_heights`]' bases and tops.
+pub fn measure(
+    (labels, left_cells, right_cells): (&Plane<u32>, &[Cell], &[Cell]),
+    pairs: &[(usize, usize)],
+    (disparity, disparity_raw): (&DisparityMap, &DisparityMap),
+    (bases, tops): (&[Option<f64>], &[Option<PeakFit>]),
+    calib: &Calibration,
+) -> Vec<Cell3> {
+    let z_of = |d: f64| calib.baseline * calib.focal_px / (d + calib.cx_right - calib.cx);
+    let mut out = Vec::new();
+    for (k, &(i, j)) in pairs.iter().enumerate() {
+        let cell = &left_cells[i];
+        let b = cell.bbox;
+        let mut inside = Vec::new();
+        let mut valid_raw = 0u64;
+        for y in b.y0 as usize..=b.y1 as usize {
+            for x in b.x0 as usize..=b.x1 as usize {
+                if *labels.get(x, y) == cell.id {
+                    valid_raw += disparity_raw.get(x, y).is_finite() as u64;
+                    let d = *disparity.get(x, y);
+                    if d.is_finite() {
+                        inside.push((x, y, d));
+                    }
+                }
+            }
+        }
+        let Some(d_sub) = bases[k] else { continue };
+        let Some(d_top) = tops[k]
+            .map(|t| t.peak)
+            .or_else(|| percentile(inside.iter().map(|p| p.2).collect(), 0.98))
+        else {
+            continue;
+        };
+        let z_sub = z_of(d_sub);
+        let pixel_area = (z_sub / calib.focal_px).powi(2);
+        let xy = |x: usize, y: usize| {
+            let d = *disparity.get(x, y) as f64;
+            crate::triangulate_pixel(x as f64, y as f64, d, calib).map(|p| [p[0], p[1]])
+        };
+        let (mut vol, mut wx, mut wy, mut wz) = (0.0, 0.0, 0.0, 0.0);
+        for &(x, y, d) in &inside {
+            let z = z_of(d as f64);
+            let hgt = (z_sub - z).max(0.0);
+            // The ground each pixel covers: one camera sees a slope facing it with more
+            // pixels than the slope facing away, so equal weights would pull the centroid
+            // towards that camera (by up to 2 µm on a 100 µm dome).
+            let inner = x + 1 < disparity.width && y + 1 < disparity.height;
+            let next = |dx: usize, dy: usize| if inner { xy(x + dx, y + dy) } else { None };
+            let footprint = match (xy(x, y), next(1, 0), next(0, 1)) {
+                (Some(p), Some(px), Some(py)) => {
+                    let a =
+                        ((px[0] - p[0]) * (py[1] - p[1]) - (py[0] - p[0]) * (px[1] - p[1])).abs();
+                    a.clamp(0.25 * pixel_area, 4.0 * pixel_area)
+                }
+                _ => pixel_area,
+            };
+            let v = hgt * footprint;
+            if let Some([px, py, _]) =
+                crate::triangulate_pixel(x as f64, y as f64, d as f64, calib)
+            {
+                vol += v;
+                wx += v * px;
+                wy += v * py;
+                wz += v * (z_sub - 0.5 * hgt);
+            }
+        }
+        let centroid = if vol > 0.0 {
+            [wx / vol, wy / vol, wz / vol]
+        } else {
+            crate::triangulate_pixel(cell.centroid[0], cell.centroid[1], d_sub, calib)
+                .unwrap_or([f64::NAN; 3])
+        };
+        let contour = cell
+            .contour
+            .iter()
+            .filter_map(|c| crate::triangulate_pixel(c[0] as f64, c[1] as f64, d_sub, calib))
+            .collect();
+        out.push(Cell3 {
+            id: cell.id,
+            right_id: right_cells[j].id,
+            area_px: cell.area,
+            centroid_px: cell.centroid,
+            disparity: d_top,
+            centroid,
+            substrate_z: z_sub,
+            height: z_sub - z_of(d_top),
+            volume: vol,
+            contour,
+            valid_share: valid_raw as f64 / cell.area.max(1) as f64,
+        });
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use schemas::BoundingBox;
+
+    fn cell(id: u32, x0: u32, y0: u32, x1: u32, y1: u32) -> Cell {
+        let area = ((x1 - x0 + 1) * (y1 - y0 + 1)) as u64;
+        Cell {
+            id,
+            area,
+            centroid: [(x0 + x1) as f64 / 2.0, (y0 + y1) as f64 / 2.0],
+            bbox: BoundingBox { x0, y0, x1, y1 },
+            contour: vec![[x0, y0]],
+            perimeter: 0.0,
+        }
+    }
+
+    #[test]
+    fn cells_pair_by_rows_size_and_offset_each_once() {
+        let left = [cell(1, 10, 10, 19, 19), cell(2, 50, 10, 59, 19), cell(3, 10, 60, 12, 62)];
+        // Right: cell 1 shifted by 3, cell 2 by 40 (outside −4..12), a small one.
+        let right = [cell(1, 7, 10, 16, 19), cell(2, 10, 11, 19, 20), cell(3, 10, 60, 29, 79)];
+        let pairs = pair_cells(&left, &right, DisparityRange::new(-4, 12), PAIRING_SLACK);
+        // Left 1 takes right 1 (offset 3, same rows) over right 2 (one row off).
+        assert_eq!(pairs, [(0, 0)]);
+    }
+
+    #[test]
+    fn a_crop_holds_both_boxes_the_margin_and_the_range() {
+        let (l, r) = (cell(1, 40, 20, 49, 29), cell(1, 37, 20, 46, 29));
+        let c = crop_of(&l, &r, DisparityRange::new(-4, 12), 8, (100, 60));
+        // Left: 40 − 8 − 12 = 20; right: 37 − 8 − 4 = 25 → 20. Right end: max(49 + 8 + 4,
+        // 46 + 8 + 12) + 1 = 67.
+        assert_eq!((c.x0, c.y0, c.x1, c.y1), (20, 12, 67, 38));
+        assert_eq!(c.range, Some(DisparityRange::new(-4, 12)));
+        // At the frame's edge the crop is clipped, and a narrow one narrows the range.
+        let c = crop_of(&cell(1, 0, 0, 1, 1), &cell(1, 0, 0, 1, 1), DisparityRange::new(0, 12), 0, (4, 4));
+        assert_eq!((c.x0, c.x1), (0, 4));
+        assert_eq!(c.range, Some(DisparityRange::new(0, 3)));
+        let c = crop_of(&cell(1, 0, 0, 0, 0), &cell(1, 0, 0, 0, 0), DisparityRange::new(2, 12), 0, (1, 1));
+        assert_eq!(c.range, None);
+    }
+}

@@ -1,0 +1,168 @@
+//! The triangulate node: the final disparity tiles in; the point cloud, the frame's cells
+//! in 3D (when given the segmentation) and the final full-frame map out.
+
+use crate::calibration::Geometry;
+use crate::cells::{cell_heights, compose, mask_of, measure};
+use runtime::node::{NodeError, Params, Stamp, Task};
+use schemas::{
+    Calibration, CellLists, Cloud, Disparity, DisparityTiles, Image, Labels, StereoFrame,
+    Targets,
+};
+use serde::Deserialize;
+
+/// `params` of a triangulate node.
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TriangulateParams {
+    /// The geometry: `"synthetic"` (the synthetic capture's optics), a calibration file, or
+    /// its keys inline.
+    #[serde(default = "synthetic")]
+    pub calibration: Geometry,
+}
+
+fn synthetic() -> Geometry {
+    Geometry::Synthetic
+}
+
+impl Params for TriangulateParams {
+    fn check(&self) -> Result<(), String> {
+        self.calibration.check()
+    }
+}
+
+runtime::ports! {
+    /// What the triangulate node reads.
+    pub struct TriangulateIn {
+        /// The rectified pair (the views the cells' tops are fitted in; grey point colours).
+        pub frame: StereoFrame,
+        /// The final (post-processed) left disparity.
+        pub disparity: DisparityTiles,
+        /// After the LR check: with `labels` and `cells`, the cells are measured.
+        pub checked: Option<DisparityTiles>,
+        /// Both views' labels.
+        pub labels: Option<Labels>,
+        /// Both views' cells.
+        pub cells: Option<CellLists>,
+        /// The left view in colour, for the points.
+        pub colour: Option<Image>,
+    }
+}
+
+runtime::ports! {
+    /// What the triangulate node sends.
+    pub struct TriangulateOut {
+        /// Every valid pixel of the final map, in the calibration's unit.
+        pub cloud: Cloud,
+        /// The frame's cells in 3D (none without the segmentation).
+        pub targets: Targets,
+        /// The final left map over the whole frame (cells only: valid in and around them).
+        pub disparity: Disparity,
+    }
+}
+
+/// Triangulates each frame's final map and measures its cells.
+#[derive(Debug)]
+pub struct Triangulate {
+    params: TriangulateParams,
+    calibration: Option<(usize, usize, Calibration)>,
+}
+
+impl Triangulate {
+    /// The calibration for frames of `w × h` (read once; a file's missing principal point
+    /// defaults to the image centre).
+    fn calibration(&mut self, w: usize, h: usize) -> Result<Calibration, String> {
+        if let Some((cw, ch, c)) = self.calibration
+            && (cw, ch) == (w, h)
+        {
+            return Ok(c);
+        }
+        let c = self.params.calibration.resolve(w, h)?;
+        self.calibration = Some((w, h, c));
+        Ok(c)
+    }
+}
+
+impl Task for Triangulate {
+    const KIND: &'static str = "triangulate";
+    type Params = TriangulateParams;
+    type Input = TriangulateIn;
+    type Output = TriangulateOut;
+    type Error = NodeError;
+
+    fn new(params: TriangulateParams) -> Result<Self, NodeError> {
+        Ok(Self {
+            params,
+            calibration: None,
+        })
+    }
+
+    fn check_inputs(_: &TriangulateParams, connected: &[&str]) -> Result<(), String> {
+        let cells = ["checked", "labels", "cells"];
+        let n = cells.iter().filter(|p| connected.contains(p)).count();
+        if n != 0 && n != cells.len() {
+            return Err(
+                "measuring cells takes checked, labels and cells together; connect all three (or none for a plain point cloud)"
+                    .into(),
+            );
+        }
+        Ok(())
+    }
+
+    fn process(&mut self, stamp: Stamp, i: TriangulateIn) -> Result<TriangulateOut, NodeError> {
+        let StereoFrame { left, right } = &i.frame;
+        let (w, h) = (left.width, left.height);
+        if (i.disparity.width, i.disparity.height) != (w, h) {
+            return Err(NodeError::Failed(format!(
+                "disparity tiles of {}×{} for frames of {w}×{h}",
+                i.disparity.width, i.disparity.height
+            )));
+        }
+        let calib = self.calibration(w, h)?;
+        let (map, cells, substrate) = match (&i.labels, &i.cells, &i.checked) {
+            (Some(labels), Some(lists), Some(checked)) => {
+                let c = compose(&labels.left, (&lists.left, &lists.right), &i.disparity, checked)?;
+                let (substrate, bases, tops) = cell_heights(
+                    (left, right),
+                    (&labels.left, &mask_of(&labels.left), &mask_of(&labels.right)),
+                    &lists.left,
+                    &c.pairs,
+                    (&c.disparity, &c.raw),
+                    i.disparity.range,
+                    i.disparity.margin,
+                );
+                let cells = measure(
+                    (&labels.left, &lists.left, &lists.right),
+                    &c.pairs,
+                    (&c.disparity, &c.raw),
+                    (&bases, &tops),
+                    &calib,
+                );
+                (c.disparity, cells, substrate)
+            }
+            _ => (i.disparity.paste(), Vec::new(), None),
+        };
+        let rgb = match &i.colour {
+            Some(c) if c.size() == (w, h) => c.to_rgb(),
+            Some(c) => {
+                return Err(NodeError::Failed(format!(
+                    "the colour image is {}×{} but the frames are {w}×{h}",
+                    c.size().0,
+                    c.size().1
+                )));
+            }
+            None => Image::Grey(left.clone()).to_rgb(),
+        };
+        let cloud = crate::triangulate(&map, &calib, &rgb);
+        Ok(TriangulateOut {
+            cloud: Cloud::from_points(&cloud),
+            targets: Targets {
+                frame: stamp.sequence,
+                capture_ns: stamp.capture_ns,
+                unit: calib.unit.symbol().into(),
+                cells,
+                substrate,
+            },
+            disparity: Disparity { map },
+        })
+    }
+}
