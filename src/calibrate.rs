@@ -6,11 +6,11 @@
 //! pixels). With `W` known the fit is linear least squares in `(B, offset)`; otherwise `W` is
 //! found too, by a golden-section search on the fit's residual (the curvature of `d(z)`).
 
-use crate::cli::CliError;
-use crate::io;
-use crate::pipeline::{self, StereoConfig};
+use crate::error::CliError;
+use crate::presets::{Stereo, ids};
 use clap::Args;
 use matcher::Mode;
+use matcher::node::{MatchParams, Region};
 use schemas::{Calibration, DisparityRange, LengthUnit};
 use std::path::{Path, PathBuf};
 
@@ -163,12 +163,29 @@ fn target_disparity(
     r: &Path,
     range: DisparityRange,
 ) -> Result<(f64, (usize, usize)), CliError> {
-    let left = io::load_image(l, "z-stack left image")?.grey;
-    let right = io::load_image(r, "z-stack right image")?.grey;
-    let out = pipeline::run_stereo(&left, &right, &StereoConfig::new(Mode::Quality, range))?;
-    let (w, h) = (left.width, left.height);
+    let preset = Stereo {
+        left: l.to_path_buf(),
+        right: r.to_path_buf(),
+        frames: 1,
+        matching: MatchParams::new(Mode::Quality, range, Region::Frame),
+        validate: Default::default(),
+        post: None,
+        segment: None,
+        geometry: None,
+    };
+    let (_, mut run) = preset.start(&[
+        ("min_disparity", "--min-disparity"),
+        ("max_disparity", "--max-disparity"),
+    ])?;
+    let f = run
+        .step()?
+        .ok_or_else(|| CliError::Other(format!("'{}' gave no frame", l.display())))?;
+    let checked = f
+        .decode::<schemas::DisparityTiles>(ids::VALIDATE, "left")?
+        .paste();
+    let (w, h) = (checked.width, checked.height);
     let mut v: Vec<f32> = (h / 4..3 * h / 4)
-        .flat_map(|y| out.checked.left.row(y)[w / 4..3 * w / 4].to_vec())
+        .flat_map(|y| checked.row(y)[w / 4..3 * w / 4].to_vec())
         .filter(|d| d.is_finite())
         .collect();
     if v.len() < 100 {
@@ -237,7 +254,7 @@ pub fn calibrate_depth(a: CalibrateArgs) -> Result<(), CliError> {
         .output
         .clone()
         .unwrap_or_else(|| a.dir.join("calibration.toml"));
-    crate::cli::write_calibration(&out, &cal, a.pixel_pitch.unwrap_or(1.0))?;
+    triangulate::calibration::write(&out, &cal, a.pixel_pitch.unwrap_or(1.0))?;
     println!("{:>10} {:>12} {:>12}", "z (µm)", "d (px)", "resid (px)");
     for ((zi, di), ri) in z.iter().zip(&d).zip(&fit.residuals) {
         println!("{zi:>10.2} {di:>12.3} {ri:>12.4}");

@@ -1,28 +1,26 @@
-//! microstereo: a stereo light microscope as a 3D sensor.
+//! microstereo: a stereo light microscope as a 3D sensor — the command line.
 //!
-//! This crate is the command-line front end and the in-process pipeline that ties the node
-//! libraries together:
+//! The binary only wires: it turns flags into graphs of the node crates (presets for the
+//! one-shot commands, launch files for `run`), runs them with the runtime's executor or
+//! supervisor, and writes what they produce.
 //!
-//! - [`pipeline`]: match → LR check → post-process, and range auto-selection, one copy
-//!   used by every command and test;
-//! - [`io`]: images in; PFM, 16-bit PNG, colour PNG, masks and PLY out;
-//! - [`synthetic`]: textured pairs with exact ground truth for tests and benchmarks;
-//! - [`cli`]: the `microstereo` commands (`reconstruct`, `eval`, `bench`, `segment`,
-//!   `synth`, `calibrate-depth`);
-//! - [`cells`]: segmentation outputs and cell-only stereo; [`render`]: overlays and charts;
-//! - [`synthcmd`], [`calibrate`]: the `synth` and `calibrate-depth` commands.
-//!
-//! The algorithms live in the node crates: `matcher`, `validate`, `postprocess`,
-//! `triangulate`; the message types in `schemas`.
+//! - [`cli`]: the commands and their dispatch; [`error`]: the one error type;
+//! - [`registry`]: the built-in node kinds, one list;
+//! - [`presets`]: the stereo graph of `reconstruct`, `bench` and `calibrate-depth`;
+//! - [`reconstruct`], [`bench`], [`segmentcmd`], [`synthcmd`], [`calibrate`]: one-shot
+//!   commands;
+//! - [`run`], [`graphopts`], [`recording`]: the process graph, its taps and replays, and
+//!   recordings (`inspect`, `replay`, `test-node`, `view`).
 
+pub mod bench;
 pub mod calibrate;
-pub mod cells;
 pub mod cli;
-pub mod graph;
-pub mod io;
-pub mod nodes;
-pub mod pipeline;
+pub mod error;
+pub mod graphopts;
+pub mod presets;
+pub mod reconstruct;
 pub mod recording;
-pub mod render;
+pub mod registry;
+pub mod run;
+pub mod segmentcmd;
 pub mod synthcmd;
-pub mod synthetic;

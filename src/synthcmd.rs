@@ -1,7 +1,7 @@
 //! `microstereo synth`: writes synthetic stereo-microscope scenes, sequences and z-stacks.
 
-use crate::cli::CliError;
-use crate::io;
+use crate::error::CliError;
+use formats as io;
 use clap::Args;
 use schemas::Plane;
 use serde::Serialize;
@@ -104,7 +104,7 @@ fn write_scene(dir: &Path, scene: &Scene, prefix: &str) -> Result<synth::Rendere
             .collect(),
     )
     .expect("size");
-    crate::render::write_labels_png(&dir.join(format!("{prefix}mask.png")), &labels)?;
+    io::render::write_labels_png(&dir.join(format!("{prefix}mask.png")), &labels)?;
     let (lo, hi) = r
         .disparity
         .data
@@ -161,7 +161,7 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
         )));
     }
     let texture = match &a.texture {
-        Some(p) => Texture::Image(io::load_image(p, "texture image")?.grey),
+        Some(p) => Texture::Image(capture::image::load(p, "texture image")?.grey),
         None => Texture::Noise,
     };
     let optics = Optics {
@@ -185,7 +185,7 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
         ))
     })?;
     let cal = optics.calibration();
-    crate::cli::write_calibration(&a.output.join("calibration.toml"), &cal, optics.pixel_pitch)?;
+    triangulate::calibration::write(&a.output.join("calibration.toml"), &cal, optics.pixel_pitch)?;
     if let Some(zs) = &a.stage_heights {
         let mut csv = String::from("left,right,z_um\n");
         for (i, &z) in zs.iter().enumerate() {

@@ -380,6 +380,15 @@ impl<T: Task> GraphNode for TaskNode<T> {
     }
 }
 
+/// A task value driven as a [`GraphNode`] whose connected inputs are `connected` (port
+/// names in launch order), for callers that build a node themselves (a test harness).
+pub fn task_node<T: Task>(node: T, connected: &[String]) -> Box<dyn GraphNode> {
+    Box::new(TaskNode {
+        node,
+        inputs: slots(T::Input::PORTS, connected),
+    })
+}
+
 /// A [`Sink`] driven as a [`GraphNode`].
 pub(crate) struct SinkNode<K: Sink> {
     pub(crate) node: K,

@@ -175,7 +175,7 @@ impl Source for Capture {
 }
 
 /// `params` of an image-pair node.
-#[derive(Clone, Debug, Deserialize)]
+#[derive(Clone, Debug, serde::Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ImagePairParams {
     /// The left image (PNG, JPEG or TIFF; colour is converted to grey for matching).

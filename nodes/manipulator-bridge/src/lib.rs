@@ -18,3 +18,4 @@ pub mod node;
 pub mod plan;
 pub mod protocol;
 pub mod scene;
+pub mod testing;

@@ -188,7 +188,7 @@ impl Params for MatchParams {
     fn check(&self) -> Result<(), String> {
         if self.min_disparity >= self.max_disparity {
             return Err(format!(
-                "min_disparity {} must be below max_disparity {}",
+                "disparity range {}..{} is empty: min_disparity must be below max_disparity",
                 self.min_disparity, self.max_disparity
             ));
         }

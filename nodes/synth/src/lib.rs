@@ -17,6 +17,8 @@
 //! Ground truth: the left disparity and depth at every pixel centre, the left cell labels,
 //! and per cell its centroid, area, height, volume and 3D centroid.
 
+pub mod layers;
+
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;

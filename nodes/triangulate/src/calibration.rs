@@ -138,8 +138,7 @@ pub fn write(path: &Path, c: &Calibration, pitch: f64) -> Result<(), String> {
 
 /// Where a triangulate node's geometry comes from (`calibration` in its params): the
 /// synthetic microscope's optics, a calibration file, or the numbers themselves.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(try_from = "toml::Value", into = "toml::Value")]
+#[derive(Clone, Debug, PartialEq)]
 pub enum Geometry {
     /// `"synthetic"`: the optics of `microstereo synth` and the synthetic capture.
     Synthetic,
@@ -149,31 +148,43 @@ pub enum Geometry {
     Inline(CalibrationFile),
 }
 
-impl TryFrom<toml::Value> for Geometry {
-    type Error = String;
-    fn try_from(v: toml::Value) -> Result<Self, String> {
-        match v {
-            toml::Value::String(s) if s == "synthetic" => Ok(Geometry::Synthetic),
-            toml::Value::String(s) => Ok(Geometry::File(s)),
-            toml::Value::Table(t) => toml::Value::Table(t)
-                .try_into()
-                .map(Geometry::Inline)
-                .map_err(|e: toml::de::Error| format!("calibration: {}", e.message())),
-            other => Err(format!(
-                "calibration must be \"synthetic\", a file's path or a table, not {}",
-                other.type_str()
-            )),
+impl<'de> Deserialize<'de> for Geometry {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct V;
+        impl<'de> serde::de::Visitor<'de> for V {
+            type Value = Geometry;
+            fn expecting(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+                f.write_str("\"synthetic\", a calibration file's path or a table of its keys")
+            }
+            fn visit_str<E: serde::de::Error>(self, s: &str) -> Result<Geometry, E> {
+                Ok(if s == "synthetic" {
+                    Geometry::Synthetic
+                } else {
+                    Geometry::File(s.into())
+                })
+            }
+            fn visit_map<A: serde::de::MapAccess<'de>>(self, m: A) -> Result<Geometry, A::Error> {
+                CalibrationFile::deserialize(serde::de::value::MapAccessDeserializer::new(m))
+                    .map(Geometry::Inline)
+            }
+        }
+        d.deserialize_any(V)
+    }
+}
+
+impl Serialize for Geometry {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        match self {
+            Geometry::Synthetic => s.serialize_str("synthetic"),
+            Geometry::File(p) => s.serialize_str(p),
+            Geometry::Inline(f) => f.serialize(s),
         }
     }
 }
 
 impl From<Geometry> for toml::Value {
     fn from(g: Geometry) -> Self {
-        match g {
-            Geometry::Synthetic => toml::Value::String("synthetic".into()),
-            Geometry::File(p) => toml::Value::String(p),
-            Geometry::Inline(f) => toml::Value::try_from(f).expect("a calibration serialises"),
-        }
+        toml::Value::try_from(g).expect("a calibration serialises")
     }
 }
 
@@ -226,9 +237,16 @@ mod tests {
 
     #[test]
     fn a_geometry_is_a_name_a_path_or_a_table() {
+        #[derive(Deserialize)]
+        struct P {
+            calibration: Geometry,
+        }
         let g = |s: &str| -> Result<Geometry, String> {
             let t: toml::Table = toml::from_str(s).map_err(|e| e.to_string())?;
-            Geometry::try_from(t["calibration"].clone())
+            toml::Value::Table(t)
+                .try_into::<P>()
+                .map(|p| p.calibration)
+                .map_err(|e| e.to_string())
         };
         assert_eq!(g("calibration = \"synthetic\"").unwrap(), Geometry::Synthetic);
         assert_eq!(g("calibration = \"a.toml\"").unwrap(), Geometry::File("a.toml".into()));
@@ -236,8 +254,8 @@ mod tests {
         let c = inline.resolve(11, 5).unwrap();
         assert_eq!((c.baseline, c.focal_px, c.cx, c.cy), (1.5, 900.0, 5.0, 2.0));
         assert!(g("calibration = { baseline = 1.5, focal = 900.0 }").unwrap_err().contains("focal"));
-        assert!(g("calibration = 3").unwrap_err().contains("not integer"));
-        let back = toml::Value::from(inline.clone());
-        assert_eq!(Geometry::try_from(back).unwrap(), inline);
+        assert!(g("calibration = 3").unwrap_err().contains("integer"));
+        let back = toml::Table::from_iter([("calibration".to_string(), toml::Value::from(inline.clone()))]);
+        assert_eq!(g(&toml::to_string(&back).unwrap()).unwrap(), inline);
     }
 }

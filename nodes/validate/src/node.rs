@@ -3,10 +3,10 @@
 
 use runtime::node::{NodeError, Params, Stamp, Task};
 use schemas::{DisparityTile, DisparityTiles, Side};
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
 /// `params` of a validate node.
-#[derive(Clone, Copy, Debug, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ValidateParams {
     /// LR tolerance, 0..=4 px.

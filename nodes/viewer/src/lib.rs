@@ -3,7 +3,8 @@
 //! Every edge message becomes Rerun data with its meaning: camera frames as images under
 //! `/left` and `/right`, label images as `SegmentationImage`s and cell contours as
 //! `LineStrips2D` on top of them, disparity maps as colour-mapped `DepthImage`s under
-//! `/disparity`, occlusion masks under `/occlusion`, the point cloud and the targets as
+//! `/disparity` (tiles pasted into their frame), other images under `/images`, the point
+//! cloud and the targets as
 //! `Points3D` under `/world` in metres, and one `TextLog` line per message under `/logs`.
 //! Timelines: `frame` (the frame number) and `capture_time`. The blueprint lays out
 //! left | right | disparity | 3D over the log.
@@ -15,8 +16,10 @@ use rerun::RecordingStream;
 use rerun::blueprint::{
     Blueprint, Horizontal, Spatial2DView, Spatial3DView, TextLogView, Vertical,
 };
-use schemas::wire::{CLOUD_POINT_BYTES, CellLists, ManipulatorState, Targets};
-use schemas::{FrameHeader, MessageKind, PixelFormat};
+use schemas::{
+    CellLists, Cloud, Disparity, DisparityMap, DisparityPair, DisparityTiles, FrameHeader, Image,
+    Labels, ManipulatorState, Message, MessageKind, Side, StereoFrame, Targets,
+};
 use std::collections::HashMap;
 use std::path::PathBuf;
 
@@ -97,7 +100,7 @@ pub struct Sink {
     /// Metres per unit of the calibration, once a targets message has said which.
     metres: Option<f64>,
     /// Clouds waiting for their frame's targets (which carry the unit).
-    clouds: HashMap<u64, (String, FrameHeader, Vec<u8>)>,
+    clouds: HashMap<u64, (String, FrameHeader, Cloud)>,
 }
 
 impl std::fmt::Debug for Sink {
@@ -146,100 +149,63 @@ impl Sink {
         self.rec.set_time_sequence("frame", h.sequence as i64);
         self.rec
             .set_timestamp_nanos_since_epoch("capture_time", h.capture_ns as i64);
-        let (w, ht) = (h.width, h.height);
-        let plane = (h.stride as usize) * (ht as usize);
-        let sides = ["left", "right"];
+        let bad = |e: schemas::wire::WireError| format!("{edge}: {e}");
         let summary = match kind {
-            MessageKind::StereoFrame | MessageKind::Image => {
-                let format = PixelFormat::from_u32(h.format);
-                for (i, data) in payload
-                    .chunks(plane.max(1))
-                    .take(h.images as usize)
-                    .enumerate()
-                {
-                    let path = match kind {
-                        MessageKind::Image => format!("/occlusion/{edge}"),
-                        _ => format!("/{}/{edge}", sides[i.min(1)]),
-                    };
-                    let img = match format {
-                        Some(PixelFormat::Rgb8) => rerun::Image::from_rgb24(data.to_vec(), [w, ht]),
-                        _ => rerun::Image::from_l8(data.to_vec(), [w, ht]),
-                    };
-                    self.rec.log(path, &img).map_err(err)?;
+            MessageKind::StereoFrame => {
+                let f = StereoFrame::decode(h, payload).map_err(bad)?;
+                for (side, p) in [("left", &f.left), ("right", &f.right)] {
+                    self.log_image(&format!("/{side}/{edge}"), &Image::Grey(p.clone()))?;
                 }
-                format!("{w}×{ht}, {} image(s)", h.images)
+                format!("{}×{}, 2 image(s)", f.left.width, f.left.height)
+            }
+            MessageKind::Image => {
+                let img = Image::decode(h, payload).map_err(bad)?;
+                self.log_image(&format!("/images/{edge}"), &img)?;
+                let (w, ht) = img.size();
+                format!("{w}×{ht}, 1 image(s)")
             }
             MessageKind::Labels => {
+                let l = Labels::decode(h, payload).map_err(bad)?;
                 let mut cells = 0;
-                for (i, data) in payload.chunks(plane.max(1)).take(2).enumerate() {
+                for (side, p) in [("left", &l.left), ("right", &l.right)] {
+                    let bytes: Vec<u8> = p.data.iter().flat_map(|v| v.to_le_bytes()).collect();
                     let img = rerun::SegmentationImage::new(
-                        data.to_vec(),
+                        bytes,
                         rerun::datatypes::ImageFormat::segmentation(
-                            [w, ht],
+                            [p.width as u32, p.height as u32],
                             rerun::datatypes::ChannelDatatype::U32,
                         ),
                     )
                     .with_opacity(0.4);
-                    cells = cells.max(
-                        data.chunks_exact(4)
-                            .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-                            .max()
-                            .unwrap_or(0),
-                    );
+                    cells = cells.max(p.data.iter().copied().max().unwrap_or(0));
                     self.rec
-                        .log(format!("/{}/{edge}", sides[i]), &img)
+                        .log(format!("/{side}/{edge}"), &img)
                         .map_err(err)?;
                 }
                 format!("labels up to {cells}")
             }
-            MessageKind::Disparity | MessageKind::DisparityPair => {
-                let mut valid = 0usize;
-                for (i, data) in payload
-                    .chunks(plane.max(1))
-                    .take(h.images as usize)
-                    .enumerate()
-                {
-                    // Rerun reads 0 as "no depth": invalid pixels become 0; the colour range
-                    // is the map's own.
-                    let (mut lo, mut hi) = (f32::MAX, f32::MIN);
-                    let mut bytes = data.to_vec();
-                    for b in bytes.chunks_exact_mut(4) {
-                        let v = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
-                        if v.is_finite() {
-                            (lo, hi) = (lo.min(v), hi.max(v));
-                            valid += 1;
-                        } else {
-                            b.fill(0);
-                        }
-                    }
-                    let mut img = rerun::DepthImage::from_data_type_and_bytes(
-                        bytes,
-                        [w, ht],
-                        rerun::datatypes::ChannelDatatype::F32,
-                    )
-                    .with_meter(1.0)
-                    .with_colormap(rerun::components::Colormap::Turbo);
-                    if lo <= hi {
-                        img = img.with_depth_range(rerun::components::ValueRange::new(
-                            f64::from(lo),
-                            f64::from(hi),
-                        ));
-                    }
-                    let path = if h.images == 2 {
-                        format!("/disparity/{edge}/{}", sides[i])
-                    } else {
-                        format!("/disparity/{edge}")
-                    };
-                    self.rec.log(path, &img).map_err(err)?;
-                }
-                format!(
-                    "{w}×{ht}, {:.1} % valid",
-                    100.0 * valid as f64 / (w as f64 * ht as f64 * f64::from(h.images.max(1)))
-                )
+            MessageKind::Disparity => {
+                let d = Disparity::decode(h, payload).map_err(bad)?;
+                self.log_depth(&format!("/disparity/{edge}"), &d.map)?
+            }
+            MessageKind::DisparityPair => {
+                let d = DisparityPair::decode(h, payload).map_err(bad)?;
+                self.log_depth(&format!("/disparity/{edge}/left"), &d.left)?;
+                self.log_depth(&format!("/disparity/{edge}/right"), &d.right)?
+            }
+            MessageKind::DisparityTiles => {
+                let t = DisparityTiles::decode(h, payload).map_err(bad)?;
+                // Tiles are shown where they lie in the frame; a right-based map under the
+                // right camera's name.
+                let path = match t.side {
+                    Side::Left => format!("/disparity/{edge}"),
+                    Side::Right => format!("/disparity/{edge}/right"),
+                };
+                let shown = self.log_depth(&path, &t.paste())?;
+                format!("{} tile(s), {shown}", t.tiles.len())
             }
             MessageKind::CellList => {
-                let lists: CellLists =
-                    serde_json::from_slice(payload).map_err(|e| format!("{edge}: {e}"))?;
+                let lists = CellLists::decode(h, payload).map_err(bad)?;
                 for (side, cells) in [("left", &lists.left), ("right", &lists.right)] {
                     let strips: Vec<Vec<[f32; 2]>> = cells
                         .iter()
@@ -268,17 +234,18 @@ impl Sink {
                 }
                 format!("{} + {} cells", lists.left.len(), lists.right.len())
             }
-            MessageKind::PointCloud => match self.metres {
-                Some(m) => self.log_cloud(edge, h, payload, m)?,
-                None => {
-                    self.clouds
-                        .insert(h.sequence, (edge.to_string(), *h, payload.to_vec()));
-                    return Ok(());
+            MessageKind::PointCloud => {
+                let cloud = Cloud::decode(h, payload).map_err(bad)?;
+                match self.metres {
+                    Some(m) => self.log_cloud(edge, h, &cloud, m)?,
+                    None => {
+                        self.clouds.insert(h.sequence, (edge.to_string(), *h, cloud));
+                        return Ok(());
+                    }
                 }
-            },
+            }
             MessageKind::ManipulatorState => {
-                let st: ManipulatorState =
-                    serde_json::from_slice(payload).map_err(|e| format!("{edge}: {e}"))?;
+                let st = ManipulatorState::decode(h, payload).map_err(bad)?;
                 // The state's frame is [X, Y, −Z] in µm; the 3D view's is [X, Y, Z] in m.
                 let w = |p: [f64; 3]| {
                     [
@@ -343,8 +310,7 @@ impl Sink {
                 )
             }
             MessageKind::Targets => {
-                let t: Targets =
-                    serde_json::from_slice(payload).map_err(|e| format!("{edge}: {e}"))?;
+                let t = Targets::decode(h, payload).map_err(bad)?;
                 let m = metres_per(&t.unit);
                 self.metres = Some(m);
                 if let Some((e, ch, p)) = self.clouds.remove(&h.sequence) {
@@ -405,27 +371,71 @@ impl Sink {
             .map_err(err)
     }
 
+    fn log_image(&mut self, path: &str, img: &Image) -> Result<(), String> {
+        let r = match img {
+            Image::Grey(p) => rerun::Image::from_l8(p.data.clone(), [p.width as u32, p.height as u32]),
+            Image::Rgb(p) => rerun::Image::from_rgb24(
+                p.data.iter().flatten().copied().collect::<Vec<u8>>(),
+                [p.width as u32, p.height as u32],
+            ),
+        };
+        self.rec.log(path, &r).map_err(err)
+    }
+
+    /// Logs a disparity map as a colour-mapped depth image; returns its summary.
+    fn log_depth(&mut self, path: &str, map: &DisparityMap) -> Result<String, String> {
+        // Rerun reads 0 as "no depth": invalid pixels become 0; the colour range is the
+        // map's own.
+        let (mut lo, mut hi) = (f32::MAX, f32::MIN);
+        let mut valid = 0usize;
+        let mut bytes = Vec::with_capacity(4 * map.len());
+        for &v in &map.data {
+            if v.is_finite() {
+                (lo, hi) = (lo.min(v), hi.max(v));
+                valid += 1;
+                bytes.extend_from_slice(&v.to_le_bytes());
+            } else {
+                bytes.extend_from_slice(&[0; 4]);
+            }
+        }
+        let (w, ht) = (map.width as u32, map.height as u32);
+        let mut img = rerun::DepthImage::from_data_type_and_bytes(
+            bytes,
+            [w, ht],
+            rerun::datatypes::ChannelDatatype::F32,
+        )
+        .with_meter(1.0)
+        .with_colormap(rerun::components::Colormap::Turbo);
+        if lo <= hi {
+            img = img.with_depth_range(rerun::components::ValueRange::new(
+                f64::from(lo),
+                f64::from(hi),
+            ));
+        }
+        self.rec.log(path, &img).map_err(err)?;
+        Ok(format!(
+            "{w}×{ht}, {:.1} % valid",
+            100.0 * valid as f64 / (map.len().max(1) as f64)
+        ))
+    }
+
     fn log_cloud(
         &mut self,
         edge: &str,
         h: &FrameHeader,
-        payload: &[u8],
+        cloud: &Cloud,
         m: f64,
     ) -> Result<String, String> {
         self.rec.set_time_sequence("frame", h.sequence as i64);
         self.rec
             .set_timestamp_nanos_since_epoch("capture_time", h.capture_ns as i64);
-        let f = |b: &[u8]| f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
-        let (pos, col): (Vec<[f32; 3]>, Vec<rerun::Color>) = payload
-            .chunks_exact(CLOUD_POINT_BYTES)
+        let (pos, col): (Vec<[f32; 3]>, Vec<rerun::Color>) = cloud
+            .points
+            .iter()
             .map(|p| {
                 (
-                    [
-                        (f64::from(f(&p[0..4])) * m) as f32,
-                        (f64::from(f(&p[4..8])) * m) as f32,
-                        (f64::from(f(&p[8..12])) * m) as f32,
-                    ],
-                    rerun::Color::from_rgb(p[12], p[13], p[14]),
+                    p.xyz.map(|v| (f64::from(v) * m) as f32),
+                    rerun::Color::from_rgb(p.rgb[0], p.rgb[1], p.rgb[2]),
                 )
             })
             .unzip();

@@ -5,8 +5,7 @@
 //! it is a tap on the running graph's edges. Errors: one line, exit code 2.
 
 use clap::Parser;
-use microstereo::graph::NodeArgs;
-use runtime::process::STATS_PREFIX;
+use runtime::process::{Invocation, NodeArgs};
 use std::path::PathBuf;
 use viewer::{Sink, Target};
 
@@ -22,14 +21,6 @@ struct ViewCli {
     /// Send it to a running viewer (HOST:PORT or rerun+http://HOST:PORT/proxy).
     #[arg(long, conflicts_with = "output")]
     connect: Option<String>,
-}
-
-/// Runs as the graph's viewer tap.
-#[derive(Parser, Debug)]
-#[command(name = "microstereo-viewer")]
-struct NodeCli {
-    #[command(flatten)]
-    node: NodeArgs,
 }
 
 fn view(a: ViewCli) -> Result<(), String> {
@@ -52,12 +43,11 @@ fn view(a: ViewCli) -> Result<(), String> {
     Ok(())
 }
 
-fn tap(a: NodeCli) -> Result<(), String> {
-    let a = a.node;
-    let graph = microstereo::recording::load_with(&a.launch, &a.opts).map_err(|e| e.to_string())?;
+fn tap(a: NodeArgs) -> Result<(), String> {
+    let graph = runtime::process::load_graph(&a.graph)?;
     let spec = graph
         .node(&a.id)
-        .ok_or_else(|| format!("no node '{}' in {}", a.id, a.launch.display()))?;
+        .ok_or_else(|| format!("no node '{}' in {}", a.id, a.graph.display()))?;
     let words: Vec<String> = spec
         .params
         .get("target")
@@ -83,10 +73,7 @@ fn tap(a: NodeCli) -> Result<(), String> {
         sink.log(&edges[i].0, edges[i].1, h, p)
     })?;
     sink.finish()?;
-    println!(
-        "{STATS_PREFIX}{}",
-        serde_json::to_string(&stats).map_err(|e| e.to_string())?
-    );
+    runtime::process::print_stats(&stats);
     Ok(())
 }
 
@@ -94,7 +81,15 @@ fn main() {
     let result = if std::env::args().nth(1).as_deref() == Some("view") {
         view(ViewCli::parse_from(std::env::args().skip(1)))
     } else {
-        tap(NodeCli::parse())
+        runtime::process::set_parent_death_signal();
+        let args: Vec<String> = std::env::args().skip(1).collect();
+        match Invocation::parse(&args) {
+            Ok(Invocation::Run(a)) => tap(a),
+            Ok(Invocation::Describe { .. }) => {
+                Err("the viewer is added by `run --viewer`; it is not a launch-file node".into())
+            }
+            Err(e) => Err(e),
+        }
     };
     if let Err(e) = result {
         eprintln!("error: {e}");

@@ -1,6 +1,6 @@
 //! Pictures for people: segmentation overlays, the variance histogram, label images.
 
-use crate::io::IoError;
+use crate::IoError;
 use image::{ImageBuffer, Luma, Rgb, RgbImage};
 use imageproc::drawing::{draw_filled_rect_mut, draw_line_segment_mut};
 use imageproc::rect::Rect;
@@ -51,7 +51,7 @@ pub fn draw_number(
 /// A distinct colour per cell id.
 pub fn cell_colour(id: u32) -> [u8; 3] {
     let t = (id as f32 * 0.618_034).fract();
-    crate::io::colormap(0.15 + 0.85 * t)
+    crate::colormap(0.15 + 0.85 * t)
 }
 
 /// The image with every cell's contour in its colour and its id next to its centroid.

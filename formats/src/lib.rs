@@ -1,7 +1,11 @@
-//! File formats: images in, PFM / PNG / PLY out. Every error names the file and the fix.
+//! File formats of microstereo's results: PFM and 16-bit PNG disparity maps (in and out),
+//! masks, colour-mapped maps with a legend, binary PLY point clouds ([`render`]: label images,
+//! cell overlays and histograms). Every error names the file and the fix.
+
+pub mod render;
 
 use image::{ImageBuffer, Luma, Rgb, RgbImage};
-use schemas::{DisparityMap, INVALID_DISPARITY, Mask, Plane, PointCloud};
+use schemas::{Cloud, DisparityMap, INVALID_DISPARITY, LengthUnit, Mask, Plane};
 use std::fs::File;
 use std::io::{BufRead, BufReader, BufWriter, Read, Write};
 use std::path::{Path, PathBuf};
@@ -50,37 +54,6 @@ fn write_err(path: &Path, reason: impl ToString) -> IoError {
         path: path.into(),
         reason: reason.to_string(),
     }
-}
-
-/// An input image in both forms the pipeline needs.
-pub struct LoadedImage {
-    /// Luminance, for matching.
-    pub grey: Plane<u8>,
-    /// Colour (grey replicated for grey files), for point colours.
-    pub rgb: Plane<[u8; 3]>,
-}
-
-/// Loads an image file as grey and colour planes.
-pub fn load_image(path: &Path, what: &str) -> Result<LoadedImage, IoError> {
-    if !path.exists() {
-        return Err(IoError::Missing {
-            what: what.into(),
-            path: path.into(),
-        });
-    }
-    let img = image::ImageReader::open(path)
-        .map_err(|e| unreadable(what, path, e))?
-        .with_guessed_format()
-        .map_err(|e| unreadable(what, path, e))?
-        .decode()
-        .map_err(|e| unreadable(what, path, format!("{e} (expected PNG, JPEG or TIFF)")))?;
-    let g = img.to_luma8();
-    let c = img.to_rgb8();
-    let (w, h) = (g.width() as usize, g.height() as usize);
-    Ok(LoadedImage {
-        grey: Plane::from_vec(w, h, g.into_raw()).expect("decoder size"),
-        rgb: Plane::from_vec(w, h, c.pixels().map(|p| p.0).collect()).expect("decoder size"),
-    })
 }
 
 /// Writes a Middlebury PFM (grey, little-endian, bottom row first; invalid = +inf).
@@ -354,21 +327,21 @@ pub fn write_color_png(path: &Path, img: &RgbImage) -> Result<(), IoError> {
 }
 
 /// Writes a binary little-endian PLY point cloud (float x y z, uchar red green blue).
-pub fn write_ply(path: &Path, cloud: &PointCloud) -> Result<(), IoError> {
+pub fn write_ply(path: &Path, cloud: &Cloud, unit: LengthUnit) -> Result<(), IoError> {
     let f = File::create(path).map_err(|e| write_err(path, e))?;
     let mut out = BufWriter::new(f);
     let header = format!(
         "ply\nformat binary_little_endian 1.0\ncomment microstereo point cloud, unit {}\n\
          element vertex {}\nproperty float x\nproperty float y\nproperty float z\n\
          property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n",
-        cloud.unit.symbol(),
+        unit.symbol(),
         cloud.points.len()
     );
     let mut body = Vec::with_capacity(header.len() + cloud.points.len() * 15);
     body.extend_from_slice(header.as_bytes());
     for p in &cloud.points {
-        for v in [p.x, p.y, p.z] {
-            body.extend_from_slice(&(v as f32).to_le_bytes());
+        for v in p.xyz {
+            body.extend_from_slice(&v.to_le_bytes());
         }
         body.extend_from_slice(&p.rgb);
     }

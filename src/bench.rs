@@ -1,0 +1,171 @@
+//! `microstereo bench`: the stereo graph (match → validate → post-process) on cones and a
+//! 1280×1024 pair, both matchers, each node timed by the in-process executor over a stream
+//! of frames (as a live graph keeps its buffers from frame to frame).
+
+use crate::error::CliError;
+use crate::presets::{Stereo, ids};
+use clap::Args;
+use matcher::Mode;
+use matcher::node::{MatchParams, Region};
+use postprocess::PostParams;
+use schemas::{DisparityRange, DisparityTiles};
+use serde::Serialize;
+use std::path::PathBuf;
+
+/// Arguments of `microstereo bench`.
+#[derive(Args, Debug)]
+pub struct BenchArgs {
+    /// Directory with the cones pair (im2.png, im6.png).
+    #[arg(long, default_value = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/cones"))]
+    cones: PathBuf,
+    /// Runs per measurement (the median is reported).
+    #[arg(long, default_value_t = 5)]
+    repeat: usize,
+    /// Write the results as JSON here too.
+    #[arg(long)]
+    json: Option<PathBuf>,
+    /// Also write the 1280×1024 pair as PNGs here (so other tools can time the same images).
+    #[arg(long)]
+    write_pairs: Option<PathBuf>,
+    /// Skip the 1280×1024 pair.
+    #[arg(long)]
+    cones_only: bool,
+    /// SGM paths of quality mode: 4 (the default) or 8.
+    #[arg(long, value_parser = clap::builder::TypedValueParser::map(clap::builder::PossibleValuesParser::new(["4", "8"]), |s: String| s.parse::<u8>().expect("4 or 8")))]
+    paths: Option<u8>,
+}
+
+/// One benchmark line.
+#[derive(Serialize)]
+struct BenchLine {
+    pair: String,
+    mode: Mode,
+    width: usize,
+    height: usize,
+    range: DisparityRange,
+    stages_ms: Vec<(String, f64)>,
+    total_ms: f64,
+    mevals_per_s: f64,
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(|a, b| a.total_cmp(b));
+    v[v.len() / 2]
+}
+
+/// Runs `microstereo bench`.
+pub fn bench(a: BenchArgs) -> Result<(), CliError> {
+    let tmp = std::env::temp_dir().join(format!("microstereo-bench-{}", std::process::id()));
+    let dir = a.write_pairs.clone().unwrap_or_else(|| tmp.clone());
+    let mut pairs = vec![(
+        "cones".to_string(),
+        a.cones.join("im2.png"),
+        a.cones.join("im6.png"),
+    )];
+    if !a.cones_only {
+        let s = synth::layers::standard_scene(1280, 1024, 4, 14, 7);
+        std::fs::create_dir_all(&dir)
+            .map_err(|e| CliError::Other(format!("cannot create '{}': {e}", dir.display())))?;
+        let mut files = Vec::new();
+        for (name, p) in [
+            ("synth1280_left.png", &s.left),
+            ("synth1280_right.png", &s.right),
+        ] {
+            let path = dir.join(name);
+            image::GrayImage::from_raw(p.width as u32, p.height as u32, p.data.clone())
+                .expect("size")
+                .save(&path)
+                .map_err(|e| CliError::Other(format!("cannot write '{}': {e}", path.display())))?;
+            files.push(path);
+        }
+        pairs.push(("synth1280".into(), files[0].clone(), files[1].clone()));
+    }
+    let result = bench_pairs(&a, &pairs);
+    let _ = std::fs::remove_dir_all(&tmp);
+    result
+}
+
+fn bench_pairs(a: &BenchArgs, pairs: &[(String, PathBuf, PathBuf)]) -> Result<(), CliError> {
+    let range = DisparityRange::new(0, 63);
+    let repeat = a.repeat.max(1);
+    println!(
+        "{} threads; median of {repeat} runs; ranges 0..63 (64 disparities, as SGBM numDisparities=64)",
+        rayon::current_num_threads(),
+    );
+    let mut lines = Vec::new();
+    for (name, left, right) in pairs {
+        for mode in [Mode::Paper, Mode::Quality] {
+            let mut matching = MatchParams::new(mode, range, Region::Frame);
+            if let Some(p) = a.paths {
+                matching.paths = p;
+            }
+            let preset = Stereo {
+                left: left.clone(),
+                right: right.clone(),
+                frames: repeat as u64,
+                matching,
+                validate: Default::default(),
+                post: Some(match mode {
+                    Mode::Paper => PostParams::WHOLE_PIXEL,
+                    Mode::Quality => PostParams::SUBPIXEL,
+                }),
+                segment: None,
+                geometry: None,
+            };
+            let (_, mut run) = preset.start(&[])?;
+            let mut runs: Vec<Vec<(String, f64)>> = Vec::new();
+            let (mut evals, mut size) = (0, (0, 0));
+            while let Some(f) = run.step()? {
+                let tiles: DisparityTiles = f.decode(ids::MATCH, "left")?;
+                evals = tiles.evaluations();
+                size = (tiles.width, tiles.height);
+                runs.push(f.ms.into_iter().filter(|(n, _)| n != ids::PAIR).collect());
+            }
+            let stages: Vec<(String, f64)> = runs[0]
+                .iter()
+                .enumerate()
+                .map(|(i, (n, _))| (n.clone(), median(runs.iter().map(|r| r[i].1).collect())))
+                .collect();
+            let total = median(
+                runs.iter()
+                    .map(|r| r.iter().map(|s| s.1).sum())
+                    .collect(),
+            );
+            let match_ms = stages
+                .iter()
+                .find(|(n, _)| n == ids::MATCH)
+                .map_or(total, |s| s.1);
+            let line = BenchLine {
+                pair: name.clone(),
+                mode,
+                width: size.0,
+                height: size.1,
+                range,
+                stages_ms: stages,
+                total_ms: total,
+                mevals_per_s: evals as f64 / (match_ms * 1e3),
+            };
+            let st: Vec<String> = line
+                .stages_ms
+                .iter()
+                .map(|(n, v)| format!("{n} {v:.1}"))
+                .collect();
+            println!(
+                "{:<10} {:<8} {:>4}×{:<4} total {:>7.1} ms  [{}]  {:.0} M disparity evaluations/s",
+                name,
+                format!("{mode:?}").to_lowercase(),
+                line.width,
+                line.height,
+                total,
+                st.join(", "),
+                line.mevals_per_s
+            );
+            lines.push(line);
+        }
+    }
+    if let Some(p) = &a.json {
+        std::fs::write(p, serde_json::to_string_pretty(&lines).expect("serialises"))
+            .map_err(|e| CliError::Other(format!("cannot write '{}': {e}", p.display())))?;
+    }
+    Ok(())
+}

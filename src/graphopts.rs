@@ -1,0 +1,199 @@
+//! How `run` and `replay` change a launch file's graph: a recorder tap (`--record`), a
+//! Rerun viewer tap (`--viewer`), replay sources in place of recorded nodes; and the
+//! checks, before anything starts, that they can work.
+
+use crate::error::CliError;
+use clap::Args;
+use recorder::node::{RECORDER_KIND, REPLAY_KIND};
+use runtime::launch::{Graph, Runner};
+use std::path::{Path, PathBuf};
+
+/// The recorder's node id in a graph run with `--record`.
+pub const RECORDER_ID: &str = "recorder";
+
+/// The Rerun viewer tap's node id in a graph run with `--viewer`.
+pub const VIEWER_ID: &str = "viewer";
+
+/// The viewer binary: next to this program (`cargo build --release -p viewer` builds it;
+/// it alone links rerun).
+pub fn viewer_exe() -> PathBuf {
+    std::env::current_exe()
+        .ok()
+        .and_then(|p| p.parent().map(|d| d.join("microstereo-viewer")))
+        .unwrap_or_else(|| PathBuf::from("microstereo-viewer"))
+}
+
+fn check_viewer_words(w: &[String]) -> Result<(), String> {
+    match w {
+        [m] if m == "spawn" => Ok(()),
+        [m, _] if m == "connect" || m == "save" => Ok(()),
+        _ => Err(format!(
+            "--viewer {}: give spawn, connect HOST:PORT or save FILE.rrd",
+            w.join(" ")
+        )),
+    }
+}
+
+/// Checks, before anything starts, that `--viewer` can work: the viewer binary is built,
+/// a viewer to spawn is installed, a viewer to connect to is listening, a file to save
+/// does not exist yet.
+pub fn check_viewer_target(opts: &OutputOpts) -> Result<(), CliError> {
+    if opts.viewer.is_empty() {
+        return Ok(());
+    }
+    check_viewer_words(&opts.viewer).map_err(CliError::Other)?;
+    let exe = viewer_exe();
+    if !exe.is_file() {
+        return Err(CliError::Other(format!(
+            "--viewer needs {}, which is not built; run `cargo build --release -p viewer` (it holds the rerun dependency)",
+            exe.display()
+        )));
+    }
+    match opts.viewer[0].as_str() {
+        "spawn" => {
+            let found = std::env::var_os("PATH")
+                .is_some_and(|p| std::env::split_paths(&p).any(|d| d.join("rerun").is_file()));
+            if !found {
+                return Err(CliError::Other(
+                    "--viewer spawn starts the `rerun` viewer, which is not on PATH; install it with `pip install rerun-sdk==0.36.*`, or use --viewer save FILE.rrd".into(),
+                ));
+            }
+        }
+        "connect" => {
+            let addr = &opts.viewer[1];
+            let hp = addr
+                .split_once("://")
+                .map_or(addr.as_str(), |(_, r)| r)
+                .split('/')
+                .next()
+                .unwrap_or(addr);
+            let reachable = std::net::ToSocketAddrs::to_socket_addrs(hp)
+                .ok()
+                .and_then(|mut a| a.next())
+                .is_some_and(|a| {
+                    std::net::TcpStream::connect_timeout(&a, std::time::Duration::from_secs(2))
+                        .is_ok()
+                });
+            if !reachable {
+                return Err(CliError::Other(format!(
+                    "--viewer connect {addr}: no Rerun viewer is listening there; start one with `rerun` (it listens on 127.0.0.1:9876) or use --viewer spawn"
+                )));
+            }
+        }
+        _ => {
+            let path = Path::new(&opts.viewer[1]);
+            if path.exists() {
+                return Err(CliError::Other(format!(
+                    "--viewer save {}: the file exists; choose another name",
+                    path.display()
+                )));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Where a run's edges go besides the graph: a recording, a Rerun viewer.
+#[derive(Args, Debug, Clone, Default)]
+pub struct OutputOpts {
+    /// Record the graph's edges into this MCAP file (ros2 profile, CDR messages).
+    #[arg(long)]
+    pub record: Option<PathBuf>,
+    /// Record only the edges that match one of these (NODE/OUTPUT, `*` for any
+    /// characters, e.g. 'rectify/*' '*/disparity').
+    #[arg(long, num_args = 1.., requires = "record")]
+    pub edges: Vec<String>,
+    /// Replace the file given to --record if it exists.
+    #[arg(long, requires = "record")]
+    pub overwrite: bool,
+    /// Show the graph in Rerun: `spawn` a viewer, `connect HOST:PORT` to a running one, or
+    /// `save FILE.rrd` (needs the viewer binary: cargo build --release -p viewer).
+    #[arg(long, num_args = 1..=2, value_names = ["MODE", "WHERE"])]
+    pub viewer: Vec<String>,
+}
+
+impl OutputOpts {
+    /// Adds the recorder and the viewer taps to `graph`.
+    pub fn apply(&self, graph: &mut Graph) -> Result<(), String> {
+        if let Some(path) = &self.record {
+            let path = std::path::absolute(path).unwrap_or(path.clone());
+            let mut params = toml::Table::from_iter([
+                (
+                    "path".to_string(),
+                    toml::Value::String(path.display().to_string()),
+                ),
+                ("overwrite".to_string(), toml::Value::Boolean(self.overwrite)),
+            ]);
+            if let Some(c) = crate::registry::cameras(graph) {
+                params.insert(
+                    "cameras".into(),
+                    toml::Value::try_from(c).map_err(|e| e.to_string())?,
+                );
+            }
+            graph.add_tap(RECORDER_ID, RECORDER_KIND, &self.edges, params)?;
+        }
+        if !self.viewer.is_empty() {
+            check_viewer_words(&self.viewer)?;
+            let words = self
+                .viewer
+                .iter()
+                .cloned()
+                .map(toml::Value::String)
+                .collect();
+            let params =
+                toml::Table::from_iter([("target".to_string(), toml::Value::Array(words))]);
+            graph.add_tap(VIEWER_ID, "viewer", &[], params)?;
+            let n = graph.nodes.last_mut().expect("added");
+            n.runner = Runner::Exec(viewer_exe());
+            n.logs = true;
+        }
+        Ok(())
+    }
+}
+
+/// Turns nodes `replace` of `graph` into sources that send their outputs recorded in
+/// `file` (at `rate`, `looped`).
+pub fn apply_replay(
+    graph: &mut Graph,
+    file: &Path,
+    replace: &[String],
+    rate: &str,
+    looped: bool,
+) -> Result<(), String> {
+    let file = std::path::absolute(file).unwrap_or(file.to_path_buf());
+    let params = toml::Table::from_iter([
+        (
+            "file".to_string(),
+            toml::Value::String(file.display().to_string()),
+        ),
+        ("rate".to_string(), toml::Value::String(rate.to_string())),
+        ("loop".to_string(), toml::Value::Boolean(looped)),
+    ]);
+    graph.replace_with_sources(replace, REPLAY_KIND, &params)
+}
+
+/// Checks, before anything starts, that `--record` can create its file.
+pub fn check_record_target(opts: &OutputOpts) -> Result<(), CliError> {
+    let Some(path) = &opts.record else {
+        return Ok(());
+    };
+    if path.exists() && !opts.overwrite {
+        return Err(CliError::Other(format!(
+            "--record {}: the file exists; choose another name or add --overwrite",
+            path.display()
+        )));
+    }
+    let dir = path
+        .parent()
+        .filter(|d| !d.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    if !dir.is_dir() {
+        return Err(CliError::Other(format!(
+            "--record {}: the folder {} does not exist; create it first",
+            path.display(),
+            dir.display()
+        )));
+    }
+    Ok(())
+}
+

@@ -1,0 +1,648 @@
+//! `microstereo reconstruct`: one stereo pair through the method's graph (whole frame, or
+//! `--cells`: only the cells), its outputs written to a folder.
+
+use crate::error::CliError;
+use crate::presets::{Stereo, ids};
+use crate::segmentcmd::SegmentOpts;
+use clap::{Args, ValueEnum};
+use formats as io;
+use matcher::node::{MatchParams, Region};
+use matcher::{Mode, PaperParams, QualityParams, Weights};
+use postprocess::{Fill, PostParams};
+use runtime::exec::Frame;
+use schemas::{
+    CellLists, Cloud, Disparity, DisparityMap, DisparityRange, DisparityTiles,
+    Labels, LengthUnit, Mask, Plane, Targets,
+};
+use serde::Serialize;
+use std::path::PathBuf;
+use std::time::Instant;
+use triangulate::calibration::{CalibrationFile, Geometry};
+use validate::node::ValidateParams;
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum ModeArg {
+    Quality,
+    Paper,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum WeightsArg {
+    Equal,
+    Decreasing,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum FillArg {
+    Background,
+    Linear,
+    None,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum, PartialEq)]
+enum UnitArg {
+    Um,
+    Mm,
+    M,
+}
+
+/// How the candidate ranges of `--auto-range` are built from the radii.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, ValueEnum)]
+pub enum RangeKind {
+    /// `−r..r`: convergent microscope optics.
+    Symmetric,
+    /// `0..r`: parallel rigs.
+    Positive,
+}
+
+/// The candidate ranges for radii `rs` that fit an image `width` wide.
+pub fn candidate_ranges(kind: RangeKind, rs: &[u32], width: usize) -> Vec<DisparityRange> {
+    rs.iter()
+        .filter(|&&r| r > 0 && (r as usize) < width)
+        .map(|&r| match kind {
+            RangeKind::Symmetric => DisparityRange::new(-(r as i32), r as i32),
+            RangeKind::Positive => DisparityRange::new(0, r as i32),
+        })
+        .collect()
+}
+
+/// One point of the range-selection curve (the paper's Fig. 12).
+#[derive(Clone, Copy, Debug, Serialize, PartialEq)]
+pub struct RangeScore {
+    /// The range tried.
+    pub range: DisparityRange,
+    /// Consistent left pixels (within the LR tolerance) over all pixels with a candidate.
+    pub consistency_ratio: f64,
+}
+
+/// Arguments of `microstereo reconstruct`.
+#[derive(Args, Debug)]
+pub struct ReconstructArgs {
+    /// Rectified left image (PNG, JPEG or TIFF).
+    left: PathBuf,
+    /// Rectified right image.
+    right: PathBuf,
+    /// Output directory (created if missing).
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Matcher: `quality` (semi-global) or `paper` (support value + NCC).
+    #[arg(long, value_enum, default_value = "quality")]
+    mode: ModeArg,
+    /// Smallest disparity searched (may be negative).
+    #[arg(long, allow_hyphen_values = true, requires = "max_disparity")]
+    min_disparity: Option<i32>,
+    /// Largest disparity searched.
+    #[arg(
+        long,
+        allow_hyphen_values = true,
+        requires = "min_disparity",
+        conflicts_with = "auto_range"
+    )]
+    max_disparity: Option<i32>,
+    /// Pick the range with the highest LR consistency among `--range-radii`.
+    #[arg(long)]
+    auto_range: bool,
+    /// Radii tried by `--auto-range`.
+    #[arg(long, value_delimiter = ',', default_value = "4,8,12,16,24,32,48,64")]
+    range_radii: Vec<u32>,
+    /// `symmetric` tries −r..r (convergent microscope), `positive` tries 0..r.
+    #[arg(long, value_enum, default_value = "symmetric")]
+    range_kind: RangeKind,
+    /// Support-value / NCC window side (paper mode; odd, 3..31).
+    #[arg(long, default_value_t = PaperParams::default().window)]
+    window: usize,
+    /// Support-value weights (paper mode).
+    #[arg(long, value_enum, default_value = "equal")]
+    weights: WeightsArg,
+    /// Top-SV candidates passed to the NCC decision (paper mode).
+    #[arg(long, default_value_t = PaperParams::default().candidates)]
+    candidates: usize,
+    /// Enable the uniqueness constraint (paper mode): a pixel claimed by several keeps the best.
+    #[arg(long)]
+    uniqueness: bool,
+    /// Enable the ordering check (paper mode).
+    #[arg(long)]
+    ordering: bool,
+    /// Enable the continuity check (paper mode).
+    #[arg(long)]
+    continuity: bool,
+    /// SGM penalty for 1 px disparity changes (quality mode).
+    #[arg(long, default_value_t = QualityParams::default().p1)]
+    p1: u16,
+    /// SGM penalty for larger jumps, lowered across intensity edges (quality mode).
+    #[arg(long, default_value_t = QualityParams::default().p2)]
+    p2: u16,
+    /// Percent by which the best cost must beat other disparities (quality mode).
+    #[arg(long, default_value_t = QualityParams::default().uniqueness_ratio)]
+    uniqueness_ratio: u16,
+    /// Weight of the gradient term in the cost (quality mode; 0 = census only).
+    #[arg(long, default_value_t = QualityParams::default().gradient_weight)]
+    gradient_weight: u16,
+    /// SGM paths: 4 or 8 (quality mode).
+    #[arg(long, default_value_t = QualityParams::default().paths,
+          value_parser = clap::builder::TypedValueParser::map(clap::builder::PossibleValuesParser::new(["4", "8"]), |s: String| s.parse::<u8>().expect("4 or 8")))]
+    paths: u8,
+    /// LR consistency tolerance in pixels (0..4).
+    #[arg(long, default_value_t = ValidateParams::default().tolerance)]
+    lr_tolerance: u32,
+    /// Valid regions smaller than this are removed (default: 50 paper, 100 quality).
+    #[arg(long)]
+    min_region: Option<usize>,
+    /// Median radius over valid pixels (0 = off, 2 = 5×5).
+    #[arg(long, default_value_t = PostParams::default().median_radius)]
+    median: usize,
+    /// How invalid pixels are filled.
+    #[arg(long, value_enum, default_value = "background")]
+    fill: FillArg,
+    /// Baseline for triangulation (in `--unit`).
+    #[arg(
+        long,
+        requires = "focal",
+        conflicts_with = "calibration",
+        allow_hyphen_values = true
+    )]
+    baseline: Option<f64>,
+    /// Focal length in pixels.
+    #[arg(long, requires = "baseline", allow_hyphen_values = true)]
+    focal: Option<f64>,
+    /// Principal point column (default: image centre).
+    #[arg(long, allow_hyphen_values = true)]
+    cx: Option<f64>,
+    /// Principal point row (default: image centre).
+    #[arg(long, allow_hyphen_values = true)]
+    cy: Option<f64>,
+    /// Right principal point column (default: `--cx`).
+    #[arg(long, allow_hyphen_values = true)]
+    cx_right: Option<f64>,
+    /// Unit of `--baseline` and of the point cloud.
+    #[arg(long, value_enum, default_value = "mm")]
+    unit: UnitArg,
+    /// Calibration file (TOML or JSON): baseline, focal_px or f_eff + pixel_pitch, cx, cy, unit.
+    #[arg(long)]
+    calibration: Option<PathBuf>,
+    /// Segment both views and match only the cells (plus `--cell-margin`); writes cells.json.
+    #[arg(long)]
+    cells: bool,
+    /// Pixels around each cell that are matched too: the substrate ring for its height.
+    #[arg(long, default_value_t = triangulate::cells::DEFAULT_MARGIN)]
+    cell_margin: u8,
+    #[command(flatten)]
+    seg: SegmentOpts,
+}
+
+/// The flags of the parameters they set, for errors.
+const FLAGS: &[(&str, &str)] = &[
+    ("min_disparity", "--min-disparity"),
+    ("max_disparity", "--max-disparity"),
+    ("window", "--window"),
+    ("candidates", "--candidates"),
+    ("paths", "--paths"),
+    ("p1", "--p1"),
+    ("p2", "--p2"),
+    ("uniqueness_ratio", "--uniqueness-ratio"),
+    ("gradient_weight", "--gradient-weight"),
+    ("tolerance", "--lr-tolerance"),
+    ("min_region", "--min-region"),
+    ("median_radius", "--median"),
+    ("margin", "--cell-margin"),
+    ("variance_radius", "--variance-radius"),
+    ("min_std", "--min-std"),
+    ("min_area", "--min-area"),
+    ("open_radius", "--open"),
+    ("close_radius", "--close"),
+];
+
+impl ReconstructArgs {
+    fn mode(&self) -> Mode {
+        match self.mode {
+            ModeArg::Quality => Mode::Quality,
+            ModeArg::Paper => Mode::Paper,
+        }
+    }
+
+    /// The graph its flags describe over `range`.
+    fn preset(&self, range: DisparityRange) -> Result<Stereo, CliError> {
+        let mode = self.mode();
+        let matching = MatchParams {
+            window: self.window,
+            weights: match self.weights {
+                WeightsArg::Equal => Weights::Equal,
+                WeightsArg::Decreasing => Weights::Decreasing,
+            },
+            candidates: self.candidates,
+            uniqueness: self.uniqueness,
+            ordering: self.ordering,
+            continuity: self.continuity,
+            paths: self.paths,
+            p1: self.p1,
+            p2: self.p2,
+            uniqueness_ratio: self.uniqueness_ratio,
+            gradient_weight: self.gradient_weight,
+            margin: self.cell_margin,
+            ..MatchParams::new(mode, range, Region::Frame)
+        };
+        // Whole-pixel maps (the paper's) keep smaller regions.
+        let mut post = match mode {
+            Mode::Paper => PostParams::WHOLE_PIXEL,
+            Mode::Quality => PostParams::SUBPIXEL,
+        };
+        if let Some(m) = self.min_region {
+            post.min_region = m;
+        }
+        post.median_radius = self.median;
+        post.fill = match self.fill {
+            FillArg::Background => Fill::Background,
+            FillArg::Linear => Fill::Linear,
+            FillArg::None => Fill::None,
+        };
+        Ok(Stereo {
+            left: self.left.clone(),
+            right: self.right.clone(),
+            frames: 1,
+            matching,
+            validate: ValidateParams {
+                tolerance: self.lr_tolerance,
+            },
+            post: Some(post),
+            segment: self.cells.then(|| self.seg.params()),
+            geometry: self.geometry(),
+        })
+    }
+
+    fn geometry(&self) -> Option<Geometry> {
+        match (&self.calibration, self.baseline, self.focal) {
+            (Some(p), _, _) => Some(Geometry::File(p.display().to_string())),
+            (None, Some(b), Some(f)) => Some(Geometry::Inline(CalibrationFile {
+                baseline: b,
+                focal_px: Some(f),
+                f_eff: None,
+                pixel_pitch: None,
+                cx: self.cx,
+                cy: self.cy,
+                cx_right: self.cx_right.or(self.cx),
+                unit: Some(match self.unit {
+                    UnitArg::Um => LengthUnit::Um,
+                    UnitArg::Mm => LengthUnit::Mm,
+                    UnitArg::M => LengthUnit::M,
+                }),
+            })),
+            _ => None,
+        }
+    }
+}
+
+/// Runs one frame of `preset`: its messages and node times.
+fn run_once(preset: &Stereo) -> Result<Frame, CliError> {
+    let (_, mut run) = preset.start(FLAGS)?;
+    let f = run
+        .step()
+        .map_err(|e| CliError::Other(crate::presets::in_flag_terms(&e, FLAGS)))?;
+    f.ok_or_else(|| CliError::Other("the image pair sent no frame".into()))
+}
+
+/// The paper's range selection: the range with the highest consistency ratio (ties: the
+/// narrower, listed first), and the whole curve.
+fn auto_range(
+    a: &ReconstructArgs,
+    ranges: &[DisparityRange],
+) -> Result<(DisparityRange, Vec<RangeScore>), CliError> {
+    let mut curve = Vec::new();
+    for &range in ranges {
+        let preset = Stereo {
+            post: None,
+            geometry: None,
+            ..a.preset(range)?
+        };
+        let f = run_once(&preset)?;
+        let checked: DisparityTiles = f.decode(ids::VALIDATE, "left")?;
+        curve.push(RangeScore {
+            range,
+            consistency_ratio: validate::consistency_ratio(&checked.paste(), range),
+        });
+    }
+    let best = curve
+        .iter()
+        .fold(None::<RangeScore>, |b, s| match b {
+            Some(b) if b.consistency_ratio >= s.consistency_ratio => Some(b),
+            _ => Some(*s),
+        })
+        .ok_or_else(|| CliError::Other("no range to try".into()))?;
+    Ok((best.range, curve))
+}
+
+/// The preset's parameters as report.json lists them.
+#[derive(Serialize)]
+struct Config<'a> {
+    #[serde(rename = "match")]
+    matching: &'a MatchParams,
+    validate: &'a ValidateParams,
+    postprocess: &'a Option<PostParams>,
+}
+
+/// What `report.json` holds.
+#[derive(Serialize)]
+struct Report<'a> {
+    mode: Mode,
+    left: String,
+    right: String,
+    width: usize,
+    height: usize,
+    range: DisparityRange,
+    auto_range_curve: Option<Vec<RangeScore>>,
+    config: Config<'a>,
+    validation: schemas::ValidationFigures,
+    density_raw: f64,
+    density: f64,
+    evaluations: u64,
+    points: Option<usize>,
+    unit: Option<&'static str>,
+    times_ms: serde_json::Map<String, serde_json::Value>,
+    total_ms: f64,
+}
+
+fn mkdir(o: &std::path::Path) -> Result<(), CliError> {
+    std::fs::create_dir_all(o).map_err(|e| {
+        CliError::Other(format!(
+            "cannot create output directory '{}': {e}",
+            o.display()
+        ))
+    })
+}
+
+fn occlusion(map: &DisparityMap) -> Mask {
+    Plane::from_vec(
+        map.width,
+        map.height,
+        map.data
+            .iter()
+            .map(|d| if d.is_finite() { 0 } else { 255 })
+            .collect(),
+    )
+    .expect("size")
+}
+
+/// Runs `microstereo reconstruct`.
+pub fn reconstruct(a: ReconstructArgs) -> Result<(), CliError> {
+    let t0 = Instant::now();
+    if a.cells {
+        if a.geometry().is_none() {
+            return Err(CliError::Other(
+                "--cells measures cells in 3D: give --calibration FILE or --baseline and --focal"
+                    .into(),
+            ));
+        }
+        if a.auto_range {
+            return Err(CliError::Other(
+                "--cells takes the range from --min-disparity/--max-disparity (the cells' heights), not --auto-range".into(),
+            ));
+        }
+    }
+    let size = || -> Result<(usize, usize), CliError> {
+        let l = capture::image::load(&a.left, "left image").map_err(CliError::Other)?;
+        Ok((l.grey.width, l.grey.height))
+    };
+    let (range, curve, auto_ms) = match (a.min_disparity, a.max_disparity) {
+        (Some(lo), Some(hi)) => (DisparityRange::new(lo, hi), None, None),
+        _ if a.auto_range => {
+            let (w, _) = size()?;
+            let ranges = candidate_ranges(a.range_kind, &a.range_radii, w);
+            if ranges.is_empty() {
+                return Err(CliError::Other(format!(
+                    "--range-radii {:?} has no radius between 1 and the image width {w}",
+                    a.range_radii
+                )));
+            }
+            let t = Instant::now();
+            // Check the pair and every flag before the (possibly long) range search.
+            a.preset(ranges[0])?.graph(FLAGS)?;
+            let (best, c) = auto_range(&a, &ranges)?;
+            (best, Some(c), Some(t.elapsed().as_secs_f64() * 1e3))
+        }
+        _ => {
+            let (w, _) = size()?;
+            (DisparityRange::new(0, 64.min(w as i32 / 2).max(1)), None, None)
+        }
+    };
+    let preset = a.preset(range)?;
+    let f = run_once(&preset)?;
+    let mut times = serde_json::Map::new();
+    if let Some(ms) = auto_ms {
+        times.insert("auto_range".into(), serde_json::json!(round3(ms)));
+    }
+    for (k, v) in &f.ms {
+        times.insert(k.clone(), serde_json::json!(round3(*v)));
+    }
+    if a.cells {
+        return write_cells(&a, &preset, &f, times, t0);
+    }
+    let checked: DisparityTiles = f.decode(ids::VALIDATE, "left")?;
+    let checked_right: DisparityTiles = f.decode(ids::VALIDATE, "right")?;
+    let post: DisparityTiles = f.decode(ids::POSTPROCESS, "disparity")?;
+    let raw = checked.paste();
+    let disparity = post.paste();
+    let cloud: Option<(Cloud, Targets)> = match preset.geometry {
+        Some(_) => Some((
+            f.decode(ids::TRIANGULATE, "cloud")?,
+            f.decode(ids::TRIANGULATE, "targets")?,
+        )),
+        None => None,
+    };
+    let unit = cloud.as_ref().map(|(_, t)| unit_of(&t.unit));
+    // Everything computed: only now touch the output directory.
+    let o = &a.output;
+    mkdir(o)?;
+    let tw = Instant::now();
+    io::write_pfm(&o.join("disparity.pfm"), &disparity)?;
+    io::write_pfm(&o.join("disparity_raw.pfm"), &raw)?;
+    let lost = io::write_disparity_png(&o.join("disparity.png"), &disparity)?;
+    if lost > 0 {
+        eprintln!(
+            "warning: {lost} pixels have disparities disparity.png cannot hold (below 1/512 px, where 0 already means unknown, or ≥ 256); disparity.pfm has them"
+        );
+    }
+    io::write_color_png(
+        &o.join("disparity_color.png"),
+        &io::disparity_color(&disparity, range.min as f32, range.max as f32),
+    )?;
+    io::write_mask_png(&o.join("occlusion_left.png"), &occlusion(&raw))?;
+    io::write_mask_png(
+        &o.join("occlusion_right.png"),
+        &occlusion(&checked_right.paste()),
+    )?;
+    if let (Some((c, _)), Some(u)) = (&cloud, unit) {
+        io::write_ply(&o.join("points.ply"), c, u)?;
+    }
+    times.insert(
+        "write".into(),
+        serde_json::json!(round3(tw.elapsed().as_secs_f64() * 1e3)),
+    );
+    let figures = checked.tiles[0].figures.unwrap_or_default();
+    let total_ms: f64 = times.values().filter_map(|v| v.as_f64()).sum();
+    let report = Report {
+        mode: a.mode(),
+        left: a.left.display().to_string(),
+        right: a.right.display().to_string(),
+        width: disparity.width,
+        height: disparity.height,
+        range,
+        auto_range_curve: curve,
+        config: Config {
+            matching: &preset.matching,
+            validate: &preset.validate,
+            postprocess: &preset.post,
+        },
+        validation: figures,
+        density_raw: schemas::density(&raw),
+        density: schemas::density(&disparity),
+        evaluations: checked.evaluations(),
+        points: cloud.as_ref().map(|(c, _)| c.points.len()),
+        unit: unit.map(|u| u.symbol()),
+        times_ms: times,
+        total_ms,
+    };
+    write_json(&o.join("report.json"), &report)?;
+    println!(
+        "{:?} mode, range {}..{}: consistent {:.1} %, off by 1 {:.1} %, off by more {:.1} %; density after LR check {:.1} %",
+        a.mode(),
+        range.min,
+        range.max,
+        100.0 * figures.consistent_exact,
+        100.0 * figures.off_by_one,
+        100.0 * figures.off_by_more,
+        100.0 * schemas::density(&raw)
+    );
+    if let (Some((c, _)), Some(u)) = (&cloud, unit) {
+        println!("{} points ({})", c.points.len(), u.symbol());
+    }
+    println!("total {:.1} ms; outputs in {}", total_ms, o.display());
+    Ok(())
+}
+
+fn round3(v: f64) -> f64 {
+    (v * 1000.0).round() / 1000.0
+}
+
+fn unit_of(symbol: &str) -> LengthUnit {
+    match symbol {
+        "µm" => LengthUnit::Um,
+        "m" => LengthUnit::M,
+        _ => LengthUnit::Mm,
+    }
+}
+
+fn write_json<T: Serialize>(path: &std::path::Path, v: &T) -> Result<(), CliError> {
+    let json = serde_json::to_string_pretty(v).expect("serialises");
+    std::fs::write(path, json + "\n")
+        .map_err(|e| CliError::Other(format!("cannot write '{}': {e}", path.display())))
+}
+
+/// What `reconstruct --cells` writes to cells.json.
+#[derive(Serialize)]
+struct CellsReport<'a> {
+    left: String,
+    right: String,
+    width: usize,
+    height: usize,
+    range: DisparityRange,
+    unit: &'a str,
+    segmentation: &'a Option<segment::SegmentParams>,
+    cells_left: usize,
+    cells_right: usize,
+    pairs: usize,
+    /// Pixels handed to the matcher over the image's pixels.
+    matched_share: f64,
+    /// The substrate's disparity plane over the background (absent: each cell's ring
+    /// median stood in).
+    substrate_plane: Option<schemas::DisparityPlane>,
+    times_ms: serde_json::Map<String, serde_json::Value>,
+    cells: &'a [schemas::Cell3],
+}
+
+fn write_cells(
+    a: &ReconstructArgs,
+    preset: &Stereo,
+    f: &Frame,
+    mut times: serde_json::Map<String, serde_json::Value>,
+    t0: Instant,
+) -> Result<(), CliError> {
+    let labels: Labels = f.decode(ids::SEGMENT, "labels")?;
+    let lists: CellLists = f.decode(ids::SEGMENT, "cells")?;
+    let tiles: DisparityTiles = f.decode(ids::VALIDATE, "left")?;
+    let post: DisparityTiles = f.decode(ids::POSTPROCESS, "disparity")?;
+    let targets: Targets = f.decode(ids::TRIANGULATE, "targets")?;
+    let cloud: Cloud = f.decode(ids::TRIANGULATE, "cloud")?;
+    let disparity: Disparity = f.decode(ids::TRIANGULATE, "disparity")?;
+    let composed =
+        triangulate::cells::compose(&labels.left, (&lists.left, &lists.right), &post, &tiles)?;
+    let colour: schemas::Image = f.decode(ids::PAIR, "colour")?;
+    let unit = unit_of(&targets.unit);
+    let o = &a.output;
+    mkdir(o)?;
+    let tw = Instant::now();
+    let d = &disparity.map;
+    io::write_pfm(&o.join("disparity.pfm"), d)?;
+    io::write_pfm(&o.join("disparity_raw.pfm"), &composed.raw)?;
+    io::write_disparity_png(&o.join("disparity.png"), d)?;
+    let range = preset.matching.range();
+    io::write_color_png(
+        &o.join("disparity_color.png"),
+        &io::disparity_color(d, range.min as f32, range.max as f32),
+    )?;
+    io::write_mask_png(&o.join("occlusion_left.png"), &composed.occlusion)?;
+    io::render::write_labels_png(&o.join("labels_left.png"), &labels.left)?;
+    io::render::write_labels_png(&o.join("labels_right.png"), &labels.right)?;
+    let ov = o.join("overlay_left.png");
+    io::render::overlay(&colour.to_rgb(), &lists.left)
+        .save(&ov)
+        .map_err(|e| CliError::Other(format!("cannot write '{}': {e}", ov.display())))?;
+    io::write_ply(&o.join("points.ply"), &cloud, unit)?;
+    times.insert(
+        "write".into(),
+        serde_json::json!(round3(tw.elapsed().as_secs_f64() * 1e3)),
+    );
+    let (w, h) = (d.width, d.height);
+    let report = CellsReport {
+        left: a.left.display().to_string(),
+        right: a.right.display().to_string(),
+        width: w,
+        height: h,
+        range,
+        unit: unit.symbol(),
+        segmentation: &preset.segment,
+        cells_left: lists.left.len(),
+        cells_right: lists.right.len(),
+        pairs: tiles.tiles.len(),
+        matched_share: tiles.matched_pixels() as f64 / (w * h) as f64,
+        substrate_plane: targets.substrate,
+        times_ms: times,
+        cells: &targets.cells,
+    };
+    write_json(&o.join("cells.json"), &report)?;
+    println!(
+        "{} cells left, {} right, {} paired; matched {:.1} % of the image",
+        report.cells_left,
+        report.cells_right,
+        report.pairs,
+        100.0 * report.matched_share
+    );
+    for c in &targets.cells {
+        println!(
+            "cell {:>3}: centroid ({:.1}, {:.1}) px, height {:.2} {u}, volume {:.0} {u}³, 3D centroid ({:.1}, {:.1}, {:.1})",
+            c.id,
+            c.centroid_px[0],
+            c.centroid_px[1],
+            c.height,
+            c.volume,
+            c.centroid[0],
+            c.centroid[1],
+            c.centroid[2],
+            u = unit.symbol()
+        );
+    }
+    println!(
+        "total {:.1} ms; outputs in {}",
+        t0.elapsed().as_secs_f64() * 1e3,
+        o.display()
+    );
+    Ok(())
+}

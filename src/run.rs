@@ -1,0 +1,211 @@
+//! `microstereo run` (the graph as processes), `microstereo node` (one of them) and
+//! `microstereo bench-transport`.
+
+use crate::error::CliError;
+use crate::graphopts::OutputOpts;
+use clap::Args;
+use runtime::launch::{Graph, LaunchFile};
+use std::path::{Path, PathBuf};
+
+/// Reads and validates a launch file against the built-in kinds; every problem becomes one
+/// error.
+pub fn load(path: &Path) -> Result<Graph, CliError> {
+    LaunchFile::read(path)
+        .and_then(|f| f.validate(&crate::registry::builtin()))
+        .map_err(|e| {
+            CliError::Other(format!(
+                "{e}\n({} problem(s) in the launch file)",
+                e.0.len()
+            ))
+        })
+}
+
+/// Arguments of `microstereo node` (as the supervisor starts it).
+#[derive(Args, Debug)]
+pub struct NodeArgs {
+    /// The graph file the supervisor wrote.
+    #[arg(long)]
+    pub graph: PathBuf,
+    /// The node's id in it.
+    #[arg(long)]
+    pub id: String,
+    /// The running graph this node belongs to (names its shared memory).
+    #[arg(long, default_value = "default")]
+    pub instance: String,
+    /// Stop after this many frames.
+    #[arg(long)]
+    pub frames: Option<u64>,
+}
+
+/// Runs one node of a running graph as this process.
+pub fn node_cmd(a: NodeArgs) -> Result<(), CliError> {
+    runtime::process::set_parent_death_signal();
+    let args = runtime::process::NodeArgs {
+        graph: a.graph,
+        id: a.id,
+        instance: a.instance,
+        frames: a.frames,
+    };
+    let stats = runtime::process::run_graph_node(&crate::registry::builtin(), &args)?;
+    runtime::process::print_stats(&stats);
+    Ok(())
+}
+
+/// Arguments of `microstereo run`.
+#[derive(Args, Debug)]
+pub struct RunArgs {
+    /// The launch file.
+    #[arg(default_value = concat!(env!("CARGO_MANIFEST_DIR"), "/launch.toml"))]
+    pub launch: PathBuf,
+    /// Stop after this many frames (run until Ctrl-C without it).
+    #[arg(long)]
+    pub frames: Option<u64>,
+    /// Seconds a node gets to end after SIGTERM before it is killed.
+    #[arg(long, default_value_t = 3.0)]
+    pub grace: f64,
+    /// Names this run's shared memory (default: the supervisor's process id), so that
+    /// graphs running side by side do not share edges; readers outside the graph use it.
+    #[arg(long)]
+    pub instance: Option<String>,
+    /// Recording of edges and the Rerun viewer.
+    #[command(flatten)]
+    pub out: OutputOpts,
+}
+
+/// Runs `graph` as processes and prints the summary.
+pub fn run_graph(
+    graph: &Graph,
+    frames: Option<u64>,
+    grace: f64,
+    instance: Option<String>,
+    out: &OutputOpts,
+) -> Result<(), CliError> {
+    let exe = std::env::current_exe()
+        .map_err(|e| CliError::Other(format!("cannot find this program: {e}")))?;
+    let report = runtime::supervisor::run(
+        graph,
+        &runtime::supervisor::RunOptions {
+            builtin: vec![exe.into_os_string(), "node".into()],
+            frames,
+            grace,
+            instance,
+        },
+    )?;
+    runtime::supervisor::print_summary(graph, &report.stats, report.wall, frames);
+    if let Some(path) = &out.record {
+        let written = report
+            .stats
+            .get(crate::graphopts::RECORDER_ID)
+            .map_or(0, |s| s.frames_out);
+        let size = std::fs::metadata(path).map_or(0, |m| m.len());
+        println!(
+            "recorded {written} message(s) into {} ({:.1} MB); `microstereo inspect {}` lists them",
+            path.display(),
+            size as f64 / 1e6,
+            path.display()
+        );
+    }
+    Ok(())
+}
+
+/// Runs the graph: one process per node, logs prefixed, restarts, clean stop, summary.
+pub fn run_cmd(a: RunArgs) -> Result<(), CliError> {
+    crate::graphopts::check_record_target(&a.out)?;
+    crate::graphopts::check_viewer_target(&a.out)?;
+    let mut graph = load(&a.launch)?;
+    a.out.apply(&mut graph)?;
+    run_graph(&graph, a.frames, a.grace, a.instance, &a.out)
+}
+
+/// Where `bench-transport` runs the two ends of the edge.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BenchPlacement {
+    /// Wherever the scheduler puts them.
+    Free,
+    /// Both pinned to one core.
+    OneCore,
+    /// Writer and reader pinned to two different cores.
+    TwoCores,
+    /// Each of the three, one table each.
+    All,
+}
+
+/// Arguments of `microstereo bench-transport`.
+#[derive(Args, Debug)]
+pub struct BenchTransportArgs {
+    /// Frames per size and transport (latency and throughput each).
+    #[arg(long, default_value_t = 300)]
+    pub frames: usize,
+    /// Where the writer and the reader run.
+    #[arg(long, value_enum, default_value_t = BenchPlacement::All)]
+    pub placement: BenchPlacement,
+}
+
+/// Times one edge over iceoryx2 and over a Unix-domain socket for three frame sizes and
+/// prints them side by side, with the ratios, for each placement of the two ends asked.
+pub fn bench_transport(a: BenchTransportArgs) -> Result<(), CliError> {
+    use runtime::hop::Placement;
+    if a.frames < 2 {
+        return Err(CliError::Other(format!(
+            "--frames {} is too few to time; use at least 2",
+            a.frames
+        )));
+    }
+    let placements = match a.placement {
+        BenchPlacement::Free => vec![Placement::Free],
+        BenchPlacement::OneCore => vec![Placement::OneCore],
+        BenchPlacement::TwoCores => vec![Placement::TwoCores],
+        BenchPlacement::All => vec![Placement::OneCore, Placement::TwoCores, Placement::Free],
+    };
+    for placement in placements {
+        let (wake50, wake99) =
+            runtime::hop::wake_floor(a.frames, placement).map_err(CliError::Other)?;
+        println!(
+            "writer and reader {} (a bare thread wake-up: p50 {wake50:.1} µs, p99 {wake99:.1} µs)",
+            match placement {
+                Placement::OneCore => "on one core",
+                Placement::TwoCores => "on two cores",
+                Placement::Free => "where the scheduler puts them",
+            }
+        );
+        println!(
+            "{:<22} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>8} {:>8}",
+            "frame",
+            "shm p50",
+            "shm p99",
+            "shm fps",
+            "uds p50",
+            "uds p99",
+            "uds fps",
+            "p50 ×",
+            "fps ×"
+        );
+        for (name, w, h) in [
+            ("0.3 MP (640×480)", 640usize, 480usize),
+            ("1.3 MP (1280×1024)", 1280, 1024),
+            ("5 MP (2592×1944)", 2592, 1944),
+        ] {
+            let bytes = w * h;
+            let shm =
+                runtime::hop::iceoryx2(bytes, a.frames, placement).map_err(CliError::Other)?;
+            let uds =
+                runtime::hop::unix_socket(bytes, a.frames, placement).map_err(CliError::Other)?;
+            println!(
+                "{:<22} {:>9.1} {:>9.1} {:>9.0} {:>9.1} {:>9.1} {:>9.0} {:>8.1} {:>8.1}",
+                name,
+                shm.p50_us,
+                shm.p99_us,
+                shm.fps,
+                uds.p50_us,
+                uds.p99_us,
+                uds.fps,
+                uds.p50_us / shm.p50_us,
+                shm.fps / uds.fps
+            );
+        }
+    }
+    println!(
+        "latencies in µs, one frame at a time; fps back to back through a lossless edge of depth 4"
+    );
+    Ok(())
+}

@@ -1,0 +1,245 @@
+//! `microstereo segment`: one image's cells, with its intermediate images and, given a
+//! truth mask, its Dice overlap.
+
+use crate::error::CliError;
+use clap::{Args, ValueEnum};
+use formats::{self as io, IoError};
+use schemas::{Cell, Mask, Plane};
+use segment::{SegmentParams, Segmentation};
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// The flags of the segmentation parameters, for errors.
+pub const FLAGS: &[(&str, &str)] = &[
+    ("variance_radius", "--variance-radius"),
+    ("min_std", "--min-std"),
+    ("min_area", "--min-area"),
+    ("open_radius", "--open"),
+    ("close_radius", "--close"),
+];
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum ScaleArg {
+    StdDev,
+    Variance,
+    LogStdDev,
+}
+
+/// Segmentation settings shared by `segment` and `reconstruct --cells`.
+#[derive(Args, Debug, Clone)]
+pub struct SegmentOpts {
+    /// M: the local variance window is (2M+1)×(2M+1).
+    #[arg(long, default_value_t = SegmentParams::default().variance_radius)]
+    variance_radius: usize,
+    /// Blobs smaller than this many pixels are not cells.
+    #[arg(long, default_value_t = SegmentParams::default().min_area)]
+    min_area: usize,
+    /// Smallest local standard deviation (grey levels) that can be cell.
+    #[arg(long, default_value_t = SegmentParams::default().min_std)]
+    min_std: f32,
+    /// How the variance maps onto 0–255 before Otsu.
+    #[arg(long, value_enum, default_value = "log-std-dev")]
+    variance_scale: ScaleArg,
+    /// Opening radius (px) before hole filling; 0 = off.
+    #[arg(long, default_value_t = SegmentParams::default().open_radius)]
+    open: u8,
+    /// Closing radius (px) before hole filling; 0 = off.
+    #[arg(long, default_value_t = SegmentParams::default().close_radius)]
+    close: u8,
+    /// Keep holes inside cells.
+    #[arg(long)]
+    no_fill_holes: bool,
+    /// Keep the skirt the variance window adds around each cell (up to M+1 px) instead of
+    /// peeling it back where it looks like background (the paper's plain threshold).
+    #[arg(long)]
+    no_peel: bool,
+}
+
+impl SegmentOpts {
+    /// The segment node's parameters these flags give (checked by the node).
+    pub fn params(&self) -> SegmentParams {
+        SegmentParams {
+            variance_radius: self.variance_radius,
+            scale: match self.variance_scale {
+                ScaleArg::StdDev => segment::VarianceScale::StdDev,
+                ScaleArg::Variance => segment::VarianceScale::Variance,
+                ScaleArg::LogStdDev => segment::VarianceScale::LogStdDev,
+            },
+            min_std: self.min_std,
+            min_area: self.min_area,
+            fill_holes: !self.no_fill_holes,
+            open_radius: self.open,
+            close_radius: self.close,
+            peel_edges: !self.no_peel,
+        }
+    }
+}
+#[derive(Args, Debug)]
+pub struct SegmentArgs {
+    /// Microscope image (PNG, JPEG or TIFF; colour is converted to grey).
+    image: PathBuf,
+    /// Output directory (created if missing).
+    #[arg(short, long)]
+    output: PathBuf,
+    #[command(flatten)]
+    opts: SegmentOpts,
+    /// Ground-truth mask (non-zero = cell): prints Dice and the cell-count error.
+    #[arg(long)]
+    truth: Option<PathBuf>,
+    /// The truth mask marks cells with zero (BBBC003's raw TIFF convention).
+    #[arg(long, requires = "truth")]
+    truth_inverted: bool,
+}
+
+/// Runs `microstereo segment`.
+pub fn segment_cmd(a: SegmentArgs) -> Result<(), CliError> {
+    let params = a.opts.params();
+    runtime::node::Params::check(&params).map_err(|e| {
+        CliError::Other(crate::presets::in_flag_terms(&e, FLAGS))
+    })?;
+    let img = capture::image::load(&a.image, "image").map_err(CliError::Other)?;
+    let truth = match &a.truth {
+        Some(p) => {
+            let t = capture::image::load(p, "truth mask")
+                .map_err(CliError::Other)?
+                .grey;
+            if (t.width, t.height) != (img.grey.width, img.grey.height) {
+                return Err(CliError::Other(format!(
+                    "truth mask '{}' is {}×{} but the image is {}×{}; give the mask of this image",
+                    p.display(),
+                    t.width,
+                    t.height,
+                    img.grey.width,
+                    img.grey.height
+                )));
+            }
+            let on = |v: u8| (v != 0) != a.truth_inverted;
+            let data = t
+                .data
+                .iter()
+                .map(|&v| if on(v) { 255 } else { 0 })
+                .collect();
+            Some(schemas::Plane::from_vec(t.width, t.height, data).expect("same size"))
+        }
+        None => None,
+    };
+    let t = Instant::now();
+    let seg = segment::segment(&img.grey, &params);
+    let ms = t.elapsed().as_secs_f64() * 1e3;
+    let score = truth
+        .as_ref()
+        .map(|t| score(&seg.mask, t, seg.cells.len()));
+    write_segmentation(&a.output, &a.image, &img.rgb, &seg, &params, score)?;
+    let max_label = seg.cells.len();
+    if max_label > 65535 {
+        eprintln!(
+            "warning: {max_label} cells; labels.png holds ids up to 65535, cells.json has all"
+        );
+    }
+    match seg.otsu {
+        Some(o) => println!(
+            "Otsu threshold {o} of 255 (applied {}; 255 = local std {:.1} grey levels)",
+            seg.threshold, seg.variance_max
+        ),
+        None => println!("flat image: no threshold, no cells"),
+    }
+    println!("{} cells in {ms:.1} ms", seg.cells.len());
+    if let Some(s) = score {
+        println!(
+            "truth: Dice {:.3}, {} cells found / {} in the truth ({:+.1} %)",
+            s.dice,
+            s.found_cells,
+            s.truth_cells,
+            100.0 * s.count_error
+        );
+    }
+    println!("outputs in {}", a.output.display());
+    Ok(())
+}
+
+/// How a segmentation compares with a ground-truth mask.
+#[derive(Clone, Copy, Debug, Serialize, PartialEq)]
+pub struct TruthScore {
+    /// Foreground Dice overlap.
+    pub dice: f64,
+    /// 8-connected components of the truth mask.
+    pub truth_cells: u32,
+    /// Cells found.
+    pub found_cells: usize,
+    /// `found / truth − 1`.
+    pub count_error: f64,
+}
+
+/// Scores a segmentation mask against a truth mask (non-zero = cell) of the same size.
+pub fn score(mask: &Mask, truth: &Mask, found: usize) -> TruthScore {
+    let (_, n) = segment::label(truth, segment::Connectivity::Eight);
+    TruthScore {
+        dice: segment::dice(mask, truth),
+        truth_cells: n,
+        found_cells: found,
+        count_error: if n == 0 {
+            if found == 0 { 0.0 } else { f64::INFINITY }
+        } else {
+            found as f64 / n as f64 - 1.0
+        },
+    }
+}
+
+/// What `segment` writes to cells.json.
+#[derive(Serialize)]
+struct SegmentReport<'a> {
+    image: String,
+    width: usize,
+    height: usize,
+    params: &'a SegmentParams,
+    /// Largest local standard deviation (or variance), grey levels: 255 on variance.png.
+    variance_max: f32,
+    otsu_threshold: Option<u8>,
+    threshold: u16,
+    histogram: Vec<u64>,
+    truth: Option<TruthScore>,
+    cells: &'a [Cell],
+}
+
+/// Writes labels.png, overlay.png, variance.png, histogram.png and cells.json into `dir`.
+pub fn write_segmentation(
+    dir: &Path,
+    image: &Path,
+    rgb: &Plane<[u8; 3]>,
+    seg: &Segmentation,
+    params: &SegmentParams,
+    truth: Option<TruthScore>,
+) -> Result<(), IoError> {
+    let werr = |p: &Path, e: &dyn std::fmt::Display| IoError::Write {
+        path: p.into(),
+        reason: e.to_string(),
+    };
+    std::fs::create_dir_all(dir).map_err(|e| werr(dir, &e))?;
+    io::render::write_labels_png(&dir.join("labels.png"), &seg.labels)?;
+    let ov = dir.join("overlay.png");
+    io::render::overlay(rgb, &seg.cells)
+        .save(&ov)
+        .map_err(|e| werr(&ov, &e))?;
+    io::write_mask_png(&dir.join("variance.png"), &seg.variance)?;
+    let hp = dir.join("histogram.png");
+    io::render::histogram_chart(&seg.histogram, Some(seg.threshold))
+        .save(&hp)
+        .map_err(|e| werr(&hp, &e))?;
+    let report = SegmentReport {
+        image: image.display().to_string(),
+        width: rgb.width,
+        height: rgb.height,
+        params,
+        variance_max: seg.variance_max,
+        otsu_threshold: seg.otsu,
+        threshold: seg.threshold,
+        histogram: seg.histogram.to_vec(),
+        truth,
+        cells: &seg.cells,
+    };
+    let jp = dir.join("cells.json");
+    let json = serde_json::to_string_pretty(&report).expect("serialises");
+    std::fs::write(&jp, json + "\n").map_err(|e| werr(&jp, &e))
+}
+
