@@ -1,13 +1,13 @@
 //! Times the quality or paper matcher alone on cones, five runs, for profiling with perf.
 //!
 //! `cargo run --release --example profile [quality|quality4|paper]` (quality4: 4 SGM paths)
-use microstereo::io;
+use capture::image as io;
 use schemas::DisparityRange;
 use std::time::Instant;
 fn main() {
     let d = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/cones");
-    let l = io::load_image(&d.join("im2.png"), "l").unwrap().grey;
-    let r = io::load_image(&d.join("im6.png"), "r").unwrap().grey;
+    let l = io::load(&d.join("im2.png"), "l").unwrap().grey;
+    let r = io::load(&d.join("im6.png"), "r").unwrap().grey;
     let mode = std::env::args().nth(1).unwrap_or("quality".into());
     for _ in 0..5 {
         let t = Instant::now();

@@ -292,7 +292,7 @@ impl ReconstructArgs {
 }
 
 /// Runs one frame of `preset`: its messages and node times.
-fn run_once(preset: &Stereo) -> Result<Frame, CliError> {
+pub fn run_once(preset: &Stereo) -> Result<Frame, CliError> {
     let (_, mut run) = preset.start(FLAGS)?;
     let f = run
         .step()
@@ -300,19 +300,23 @@ fn run_once(preset: &Stereo) -> Result<Frame, CliError> {
     f.ok_or_else(|| CliError::Other("the image pair sent no frame".into()))
 }
 
-/// The paper's range selection: the range with the highest consistency ratio (ties: the
-/// narrower, listed first), and the whole curve.
-fn auto_range(
-    a: &ReconstructArgs,
+/// The paper's range selection: `base` (matching and its LR check) over each of `ranges`;
+/// the range with the highest consistency ratio (ties: the narrower, listed first), and the
+/// whole curve.
+pub fn auto_range(
+    base: &Stereo,
     ranges: &[DisparityRange],
 ) -> Result<(DisparityRange, Vec<RangeScore>), CliError> {
     let mut curve = Vec::new();
     for &range in ranges {
-        let preset = Stereo {
+        let mut preset = Stereo {
             post: None,
             geometry: None,
-            ..a.preset(range)?
+            segment: None,
+            ..base.clone()
         };
+        preset.matching.min_disparity = range.min;
+        preset.matching.max_disparity = range.max;
         let f = run_once(&preset)?;
         let checked: DisparityTiles = f.decode(ids::VALIDATE, "left")?;
         curve.push(RangeScore {
@@ -414,8 +418,9 @@ pub fn reconstruct(a: ReconstructArgs) -> Result<(), CliError> {
             }
             let t = Instant::now();
             // Check the pair and every flag before the (possibly long) range search.
-            a.preset(ranges[0])?.graph(FLAGS)?;
-            let (best, c) = auto_range(&a, &ranges)?;
+            let base = a.preset(ranges[0])?;
+            base.graph(FLAGS)?;
+            let (best, c) = auto_range(&base, &ranges)?;
             (best, Some(c), Some(t.elapsed().as_secs_f64() * 1e3))
         }
         _ => {

@@ -1,11 +1,57 @@
 //! Cells on synthetic stereo-microscope scenes with exact truth, and depth calibration.
 
 use matcher::Mode;
-use microstereo::cells::{CellStereoParams, cell_stereo, measure_cells};
-use microstereo::pipeline::StereoConfig;
-use schemas::DisparityRange;
+use matcher::node::{MatchParams, Region};
+use microstereo::presets::{Stereo, ids};
+use microstereo::reconstruct::run_once;
+use postprocess::PostParams;
+use schemas::{Calibration, Cell3, DisparityRange, Labels, Mask, Plane, Targets};
 use segment::SegmentParams;
 use synth::{CellSpec, Look, Optics, Scene};
+use triangulate::calibration::{CalibrationFile, Geometry};
+
+/// The method's cell graph (image pair → segment → match the cells' crops → validate →
+/// post-process → triangulate) on a rendered pair: the cells in 3D and the left mask.
+fn cell_stereo(
+    left: &Plane<u8>,
+    right: &Plane<u8>,
+    calibration: &Calibration,
+    range: DisparityRange,
+) -> (Vec<Cell3>, Mask) {
+    let dir = tempfile::tempdir().unwrap();
+    let save = |name: &str, p: &Plane<u8>| {
+        let path = dir.path().join(name);
+        image::GrayImage::from_raw(p.width as u32, p.height as u32, p.data.clone())
+            .unwrap()
+            .save(&path)
+            .unwrap();
+        path
+    };
+    let c = calibration;
+    let preset = Stereo {
+        left: save("left.png", left),
+        right: save("right.png", right),
+        frames: 1,
+        matching: MatchParams::new(Mode::Quality, range, Region::Cells),
+        validate: Default::default(),
+        post: Some(PostParams::SUBPIXEL),
+        segment: Some(SegmentParams::default()),
+        geometry: Some(Geometry::Inline(CalibrationFile {
+            baseline: c.baseline,
+            focal_px: Some(c.focal_px),
+            f_eff: None,
+            pixel_pitch: None,
+            cx: Some(c.cx),
+            cy: Some(c.cy),
+            cx_right: Some(c.cx_right),
+            unit: Some(c.unit),
+        })),
+    };
+    let f = run_once(&preset).unwrap();
+    let targets: Targets = f.decode(ids::TRIANGULATE, "targets").unwrap();
+    let labels: Labels = f.decode(ids::SEGMENT, "labels").unwrap();
+    (targets.cells, triangulate::cells::mask_of(&labels.left))
+}
 
 struct Errors {
     cells: usize,
@@ -48,11 +94,12 @@ fn evaluate(w: usize, h: usize, seed: u64) -> Errors {
     };
     let scene = Scene::random(optics, Look::default(), &spec, seed);
     let r = scene.render();
-    let cfg = StereoConfig::new(Mode::Quality, DisparityRange::new(-4, 12));
-    let seg = SegmentParams::default();
-    let p = CellStereoParams::default();
-    let cs = cell_stereo(&r.left, &r.right, &cfg, &seg, &p).unwrap();
-    let cells = measure_cells(&cs, &r.calibration);
+    let (cells, mask) = cell_stereo(
+        &r.left,
+        &r.right,
+        &r.calibration,
+        DisparityRange::new(-4, 12),
+    );
     let mut e = Errors {
         cells: r.cells.len(),
         found: 0,
@@ -98,9 +145,7 @@ fn evaluate(w: usize, h: usize, seed: u64) -> Errors {
         )
         .unwrap(),
     );
-    e.stray_px = cs
-        .left_seg
-        .mask
+    e.stray_px = mask
         .data
         .iter()
         .zip(&truth_near.data)
@@ -224,16 +269,12 @@ fn sequence_cells_drift_the_pipette_advances_and_cells_stay_measured() {
     // several times the cells' contrast, would draw Otsu's threshold above the cells on a
     // linear scale (ln(1 + σ), the default, keeps them apart).
     let r = &frames[2];
-    let cfg = StereoConfig::new(Mode::Quality, DisparityRange::new(-4, 16));
-    let cs = cell_stereo(
+    let (cells, _) = cell_stereo(
         &r.left,
         &r.right,
-        &cfg,
-        &SegmentParams::default(),
-        &CellStereoParams::default(),
-    )
-    .unwrap();
-    let cells = measure_cells(&cs, &r.calibration);
+        &r.calibration,
+        DisparityRange::new(-4, 16),
+    );
     for t in &r.cells {
         let m = cells
             .iter()

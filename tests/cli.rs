@@ -333,7 +333,7 @@ fn quality_mode_takes_images_smaller_than_its_census_window() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let d = microstereo::io::read_disparity(&o.join("disparity.pfm"), None, "out").unwrap();
+    let d = formats::read_disparity(&o.join("disparity.pfm"), None, "out").unwrap();
     // Away from the left border (x < 2 has no partner) most pixels find the 2 px shift.
     let inner: Vec<f32> = (0..4)
         .flat_map(|y| (8..32).map(move |x| (x, y)))
@@ -739,13 +739,15 @@ fn inspect_lists_the_bundled_recording() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    assert!(said.contains("32 messages on 17 channels"), "{said}");
+    assert!(said.contains("34 messages on 18 channels"), "{said}");
     assert!(said.contains("frames 0–1"), "{said}");
     for (topic, ty) in [
         ("/rectify/frame/left", "sensor_msgs/msg/Image"),
         ("/triangulate/cloud", "sensor_msgs/msg/PointCloud2"),
         ("/segment/cells", "microstereo_msgs/msg/CellArray"),
         ("/triangulate/targets", "microstereo_msgs/msg/Targets"),
+        ("/match/left", "microstereo_msgs/msg/DisparityTiles"),
+        ("/triangulate/disparity", "sensor_msgs/msg/Image"),
     ] {
         let line = said
             .lines()
@@ -785,27 +787,23 @@ fn bad_recordings_get_one_clear_error_and_exit_2() {
     assert_clean_failure(&out, "truncated");
     assert!(String::from_utf8_lossy(&out.stdout).contains("topic"));
     // Missing channels: the recording has no capture frames to replay.
-    let maps = recording_of(dir.path(), "maps.mcap", &["match-lr/disparity"]);
+    let maps = recording_of(dir.path(), "maps.mcap", &["match/left"]);
     assert_clean_failure(
         &run(&["replay", s(&maps)]),
-        "no channel for edge 'capture/frame'; it holds: match-lr/disparity",
+        "no channel for edge 'capture/frame'; it holds: match/left",
     );
-    // A schema mismatch: replacing the matcher with a recording whose match-lr/disparity
-    // channel is in fact a stereo frame.
+    // A schema mismatch: replacing the matcher with a recording whose match/left and
+    // match/right channels are in fact stereo frames.
     let odd = dir.path().join("odd.mcap");
     let mut w = recorder::RecordingWriter::create(&odd, false).unwrap();
     for m in recorder::EdgeReader::open(&bundled_recording(), Some(vec!["capture/frame".into()]))
         .unwrap()
     {
         let m = m.unwrap();
-        w.write(
-            "match-lr/disparity",
-            m.kind,
-            &m.header,
-            &m.payload,
-            m.log_time,
-        )
-        .unwrap();
+        for edge in ["match/left", "match/right"] {
+            w.write(edge, m.kind, &m.header, &m.payload, m.log_time)
+                .unwrap();
+        }
     }
     w.finish().unwrap();
     let launch = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("recordings/default.toml");
@@ -816,9 +814,9 @@ fn bad_recordings_get_one_clear_error_and_exit_2() {
             "--launch",
             s(&launch),
             "--replace",
-            "match-lr",
+            "match",
         ]),
-        "edge 'match-lr/disparity' carries stereo-frame in the recording (sensor_msgs/msg/Image) but disparity in the launch file",
+        "edge 'match/left' carries stereo-frame in the recording (sensor_msgs/msg/Image) but disparity-tiles in the launch file",
     );
     // No launch file stored and none given.
     assert_clean_failure(

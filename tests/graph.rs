@@ -1,16 +1,28 @@
 //! The process graph: real processes on real shared memory compute exactly what the same
 //! nodes compute in one process.
 
-use microstereo::graph::{build_all, load};
+use microstereo::run::load;
+use runtime::exec::InProcess;
 use runtime::launch::Graph;
-use runtime::step::run_in_process;
 use runtime::transport::Transport;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
 fn bin() -> &'static str {
     env!("CARGO_BIN_EXE_microstereo")
+}
+
+/// The custom node of `examples/invert-node`, built beside `microstereo` by
+/// `cargo test --workspace`.
+fn invert_bin() -> PathBuf {
+    let p = Path::new(bin()).with_file_name("microstereo-invert");
+    assert!(
+        p.is_file(),
+        "{} is missing: run the tests with `cargo test --workspace` (or `cargo build -p invert-node`)",
+        p.display()
+    );
+    p
 }
 
 /// Starts `microstereo ARGS` with its output piped; it dies with this test process, so that
@@ -192,8 +204,10 @@ fn graph_of_processes_equals_the_in_process_pipeline_bit_for_bit() {
     assert!(out.status.success(), "{summary}");
     assert!(summary.contains("4 frame(s) of 4"), "{summary}");
     // The same nodes, in this process.
-    let mut nodes = build_all(&graph).unwrap();
-    let log = run_in_process(&graph, &mut nodes, frames).unwrap();
+    let log = InProcess::new(&graph, &microstereo::registry::builtin())
+        .unwrap()
+        .run(frames)
+        .unwrap();
     for ((n, p), g) in watched.iter().zip(&got) {
         let want = &log[&(n.to_string(), p.to_string())];
         assert_eq!(want.len() as u64, frames);
@@ -224,8 +238,7 @@ fn graph_of_processes_equals_the_in_process_pipeline_bit_for_bit() {
     for id in [
         "capture",
         "segment",
-        "match-lr",
-        "match-rl",
+        "match",
         "validate",
         "postprocess",
     ] {
@@ -244,7 +257,7 @@ fn bad_launch_files_are_refused_with_file_and_line() {
     let f = dir.path().join("bad.toml");
     std::fs::write(
         &f,
-        "[[node]]\nid = \"capture\"\nkind = \"capture\"\nparams = { source = \"camera\" }\n\n[[node]]\nid = \"m\"\nkind = \"match-lr\"\ninputs = { frame = \"capture/frame\" }\nparams = { min_disparity = 5, max_disparity = 1 }\n",
+        "[[node]]\nid = \"capture\"\nkind = \"capture\"\nparams = { source = \"camera\" }\n\n[[node]]\nid = \"m\"\nkind = \"match\"\ninputs = { frame = \"capture/frame\" }\nparams = { min_disparity = 5, max_disparity = 1, region = \"frame\" }\n",
     )
     .unwrap();
     let out = run(&["run", f.to_str().unwrap()]);
@@ -259,13 +272,66 @@ fn bad_launch_files_are_refused_with_file_and_line() {
     );
     assert!(
         err.contains(&format!(
-            "{name}:10: node 'm': bad params: min_disparity 5 must be below max_disparity 1"
+            "{name}:10: node 'm': bad params: disparity range 5..1 is empty"
         )),
         "{err}"
     );
     let out = run(&["run", dir.path().join("missing.toml").to_str().unwrap()]);
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("cannot read the launch file"));
+    // Ports and message kinds are the nodes' own declarations: a port a node does not
+    // have, an edge of the wrong kind, and an exec node's ports written unlike what its
+    // program declares are each refused before anything starts, with their line.
+    std::fs::write(
+        &f,
+        format!(
+            r#"[[node]]
+id = "capture"
+kind = "capture"
+
+[[node]]
+id = "segment"
+kind = "segment"
+inputs = {{ frame = "capture/frame" }}
+
+[[node]]
+id = "match"
+kind = "match"
+inputs = {{ frame = "capture/frame", cels = "segment/cells" }}
+params = {{ min_disparity = 0, max_disparity = 8 }}
+
+[[node]]
+id = "validate"
+kind = "validate"
+inputs = {{ left = "segment/cells", right = "match/right" }}
+
+[[node]]
+id = "invert"
+exec = "{}"
+inputs = {{ frame = "capture/frame" }}
+ports = {{ inputs = {{ frame = "disparity-tiles" }}, outputs = {{ frame = "stereo-frame" }} }}
+"#,
+            invert_bin().display()
+        ),
+    )
+    .unwrap();
+    let out = run(&["run", f.to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    for want in [
+        format!("{name}:14: node 'match': bad params: region = \"cells\" (the default)"),
+        format!("{name}:13: node 'match' has no input 'cels'; its inputs: frame, cells"),
+        format!(
+            "{name}:19: node 'validate' reads 'segment/cells', which carries CellList, but expects DisparityTiles"
+        ),
+        format!(
+            "{name}:25: node 'invert': ports say inputs {{ frame = \"disparity-tiles\" }} but {} declares {{ frame = \"stereo-frame\" }}",
+            invert_bin().display()
+        ),
+    ] {
+        assert!(err.contains(&want), "{want}\nnot in\n{err}");
+    }
+    assert!(!err.contains("panicked"), "{err}");
 }
 
 /// Pids whose parent is `ppid` (from /proc).
@@ -296,12 +362,13 @@ fn one_process_per_node_and_none_left_when_the_supervisor_is_killed() {
         Stdio::null,
     );
     let start = Instant::now();
+    let nodes = load(&file).unwrap().nodes.len();
     let mut kids = Vec::new();
-    while kids.len() < 8 && start.elapsed() < Duration::from_secs(20) {
+    while kids.len() < nodes && start.elapsed() < Duration::from_secs(20) {
         std::thread::sleep(Duration::from_millis(50));
         kids = children_of(sup.id());
     }
-    assert_eq!(kids.len(), 8, "one process per node");
+    assert_eq!(kids.len(), nodes, "one process per node");
     sup.kill().unwrap(); // SIGKILL: no chance to clean up.
     sup.wait().unwrap();
     let gone = |pid: &u32| {
@@ -354,8 +421,8 @@ fn a_node_killed_mid_run_is_restarted_and_the_run_completes_clean() {
     // Paced, so that the kill lands mid-run.
     .replace("drift = 2.0 }", "drift = 2.0, fps = 8.0 }");
     let small = small.replacen(
-        "id = \"match-lr\"\n",
-        "id = \"match-lr\"\nrestart = { policy = \"on-failure\", max = 2, backoff_ms = 50 }\n",
+        "id = \"match\"\n",
+        "id = \"match\"\nrestart = { policy = \"on-failure\", max = 2, backoff_ms = 50 }\n",
         1,
     );
     assert!(small.contains("restart = {"));
@@ -373,10 +440,10 @@ fn a_node_killed_mid_run_is_restarted_and_the_run_completes_clean() {
     let begin = Instant::now();
     let mut victim = None;
     while victim.is_none() && begin.elapsed() < Duration::from_secs(20) {
-        victim = node_pid("match-lr");
+        victim = node_pid("match");
         std::thread::sleep(Duration::from_millis(20));
     }
-    let victim = victim.expect("a match-lr process");
+    let victim = victim.expect("a match process");
     // A few frames in (8 per second), well before the last.
     std::thread::sleep(Duration::from_millis(800));
     // SAFETY: kill(2) on a process this test started (through the supervisor).
@@ -390,26 +457,26 @@ fn a_node_killed_mid_run_is_restarted_and_the_run_completes_clean() {
     );
     assert!(out.status.success(), "{stdout}\n{stderr}");
     assert!(
-        stderr.contains("[match-lr] exited (signal: 9 (SIGKILL)); restart 1 of 2"),
+        stderr.contains("[match] exited (signal: 9 (SIGKILL)); restart 1 of 2"),
         "{stderr}"
     );
     // The run got to its end through the restarted matcher; the frames it missed while down
     // (and the one it was killed on) are the ones the summary counts as never reaching the
     // next node, though no edge dropped them (the graph is lossless).
     let done = frames_done(&stdout, frames);
-    let missed = missing_at(&stdout, "match-lr/disparity → validate.left");
+    let missed = missing_at(&stdout, "match/left → validate.left");
     assert!(done >= frames / 2, "{stdout}");
     // (None at all when the kill lands between frames and the restart beats the next one.)
     assert_eq!(done + missed, frames, "{stdout}");
     assert_eq!(
-        drops_on(&stdout, "match-lr/disparity → validate.left"),
+        drops_on(&stdout, "match/left → validate.left"),
         0,
         "{stdout}"
     );
     assert!(
         stdout
             .lines()
-            .any(|l| l.starts_with("match-lr") && !l.contains("no report")),
+            .any(|l| l.starts_with("match ") && !l.contains("no report")),
         "{stdout}"
     );
     // No process of the run is left, and no shared memory of a dead node of it.
@@ -483,9 +550,9 @@ fn a_failing_node_is_restarted_by_its_policy() {
     std::fs::write(
         &script,
         format!(
-            "#!/bin/sh\nif [ ! -e '{m}' ]; then touch '{m}'; echo 'first start fails' >&2; exit 3; fi\nexec '{b}' \"$@\"\n",
+            "#!/bin/sh\nif [ \"$1\" != --describe ] && [ ! -e '{m}' ]; then touch '{m}'; echo 'first start fails' >&2; exit 3; fi\nexec '{b}' \"$@\"\n",
             m = dir.path().join("started").display(),
-            b = env!("CARGO_BIN_EXE_microstereo-invert")
+            b = invert_bin().display()
         ),
     )
     .unwrap();
@@ -505,7 +572,6 @@ params = {{ width = 160, height = 120, cells = 2, seed = 3 }}
 id = "flaky"
 exec = "{}"
 inputs = {{ frame = "capture/frame" }}
-ports = {{ inputs = {{ frame = "stereo-frame" }}, outputs = {{ frame = "stereo-frame" }} }}
 restart = {{ policy = "on-failure", max = 2, backoff_ms = 50 }}
 "#,
             script.display()
@@ -638,7 +704,7 @@ kind = "segment"
 inputs = {{ frame = {{ from = "invert/frame", depth = 8, overflow = "block" }} }}
 "#,
             dir = dir.path().display(),
-            invert = env!("CARGO_BIN_EXE_microstereo-invert")
+            invert = invert_bin().display()
         ),
     )
     .unwrap();
@@ -727,9 +793,9 @@ fn a_replayed_recording_reproduces_every_downstream_edge_bit_for_bit() {
     assert!(said.contains("4 frame(s) of 4"), "{said}");
     let (first, second) = (recorded(&a), recorded(&b));
     let edges: std::collections::BTreeSet<&str> = first.keys().map(|(e, _)| e.as_str()).collect();
-    // 10 edges and the bridge's state (idle: no wall-clock samples, so replayable too).
-    assert_eq!(edges.len(), 11, "{edges:?}");
-    assert_eq!(first.len(), 44);
+    // 11 edges and the bridge's state (idle: no wall-clock samples, so replayable too).
+    assert_eq!(edges.len(), 12, "{edges:?}");
+    assert_eq!(first.len(), 48);
     assert_eq!(
         first.keys().collect::<Vec<_>>(),
         second.keys().collect::<Vec<_>>()
@@ -847,7 +913,7 @@ fn the_sim_manipulator_approaches_a_cell_and_retracts_in_closed_loop() {
     use manipulator_bridge::geom::dist;
     use manipulator_bridge::node::BridgeParams;
     use manipulator_bridge::scene::Scene;
-    use schemas::wire::{ManipulatorState, Targets};
+    use schemas::{ManipulatorState, Targets};
     use std::io::{BufRead, Write};
     let port = free_port();
     let dir = tempfile::tempdir().unwrap();
@@ -1029,4 +1095,177 @@ fn the_sim_manipulator_approaches_a_cell_and_retracts_in_closed_loop() {
         last[2] > tallest + cfg.clearance,
         "{last:?} below {tallest}"
     );
+}
+
+/// The default launch file with its capture reading the pair `left`/`right` from files, a
+/// lossless entrance (so that every frame is measured) and the bridge on a free port.
+fn default_graph_on(left: &Path, right: &Path) -> String {
+    let text =
+        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("launch.toml"))
+            .unwrap();
+    let capture = "params = { source = \"synthetic\", width = 1280, height = 1024, cells = 10, seed = 1 }";
+    assert!(text.contains(capture), "the default capture changed");
+    text.replace(
+        capture,
+        &format!(
+            "params = {{ source = \"files\", left = \"{}\", right = \"{}\", repeat = true }}",
+            left.display(),
+            right.display()
+        ),
+    )
+    .replace("127.0.0.1:7878", "127.0.0.1:0")
+    .replace(
+        "inputs = { frame = { from = \"capture/frame\", depth = 1 } }",
+        "inputs = { frame = { from = \"capture/frame\", depth = 1, overflow = \"block\" } }",
+    )
+}
+
+#[test]
+fn the_default_graph_measures_the_cells_of_reconstruct_cells_bit_for_bit() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("scene");
+    let out = run(&[
+        "synth",
+        "-o",
+        scene.to_str().unwrap(),
+        "--width",
+        "640",
+        "--height",
+        "480",
+        "--cells",
+        "6",
+        "--seed",
+        "4",
+    ]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let (l, r) = (scene.join("left.png"), scene.join("right.png"));
+    // The graph as processes, its cells and final map recorded.
+    let file = dir.path().join("default-on-files.toml");
+    std::fs::write(&file, default_graph_on(&l, &r)).unwrap();
+    let rec = dir.path().join("run.mcap");
+    let out = run(&[
+        "run",
+        file.to_str().unwrap(),
+        "--frames",
+        "2",
+        "--record",
+        rec.to_str().unwrap(),
+        "--edges",
+        "triangulate/*",
+        "segment/labels",
+        "--instance",
+        &format!("cells{}", std::process::id()),
+    ]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    // The one-shot command on the same pair.
+    let o = dir.path().join("reconstruct");
+    let out = run(&[
+        "reconstruct",
+        l.to_str().unwrap(),
+        r.to_str().unwrap(),
+        "-o",
+        o.to_str().unwrap(),
+        "--cells",
+        "--calibration",
+        scene.join("calibration.toml").to_str().unwrap(),
+        "--min-disparity",
+        "-4",
+        "--max-disparity",
+        "12",
+    ]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(o.join("cells.json")).unwrap()).unwrap();
+    let want = report["cells"].as_array().unwrap();
+    assert!(want.len() >= 5, "{report}");
+    let msgs = recorded(&rec);
+    for frame in 0..2u64 {
+        let (h, p) = &msgs[&("triangulate/targets".to_string(), frame)];
+        let t: schemas::Targets = schemas::Message::decode(h, p).unwrap();
+        let got = serde_json::to_value(&t.cells).unwrap();
+        // Every field of every cell, floats to the bit (JSON keeps f64 exactly).
+        assert_eq!(got.as_array().unwrap(), want, "frame {frame}");
+        assert_eq!(
+            serde_json::to_value(t.substrate).unwrap(),
+            report["substrate_plane"]
+        );
+        // The final map is valid only on the cells and their 8 px rings: nowhere farther
+        // than 8 px (and the matcher's window) from a segmented pixel.
+        let (h, p) = &msgs[&("triangulate/disparity".to_string(), frame)];
+        let d: schemas::Disparity = schemas::Message::decode(h, p).unwrap();
+        let (h, p) = &msgs[&("segment/labels".to_string(), frame)];
+        let labels: schemas::Labels = schemas::Message::decode(h, p).unwrap();
+        let (w, ht) = (d.map.width, d.map.height);
+        let near_cell = |x: usize, y: usize| {
+            (y.saturating_sub(8)..(y + 9).min(ht))
+                .any(|v| (x.saturating_sub(8)..(x + 9).min(w)).any(|u| *labels.left.get(u, v) != 0))
+        };
+        let mut valid = 0;
+        for y in 0..ht {
+            for x in 0..w {
+                if d.map.get(x, y).is_finite() {
+                    valid += 1;
+                    assert!(near_cell(x, y), "frame {frame}: ({x}, {y}) is valid far from any cell");
+                }
+            }
+        }
+        let share = valid as f64 / (w * ht) as f64;
+        assert!(share > 0.02 && share < 0.5, "valid share {share}");
+    }
+    // The one-shot command's map is the same map.
+    let d = formats::read_pfm(&o.join("disparity.pfm"), "map").unwrap();
+    let (h, p) = &msgs[&("triangulate/disparity".to_string(), 0)];
+    let g: schemas::Disparity = schemas::Message::decode(h, p).unwrap();
+    let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    assert!(bits(&d.data) == bits(&g.map.data));
+}
+
+#[test]
+fn a_node_kind_from_outside_the_built_in_crates_runs_in_a_graph() {
+    // One registry line adds the example's kind to the built-in ones; the launch file names
+    // it like any other kind, and the validator checks its ports and params.
+    let kinds = microstereo::registry::builtin().task::<invert_node::Invert>();
+    let text = r#"
+[[node]]
+id = "capture"
+kind = "capture"
+params = { width = 160, height = 120, cells = 2, seed = 3 }
+
+[[node]]
+id = "invert"
+kind = "invert"
+inputs = { frame = "capture/frame" }
+params = { level = 200 }
+
+[[node]]
+id = "segment"
+kind = "segment"
+inputs = { frame = "invert/frame" }
+"#;
+    let graph = runtime::launch::LaunchFile::parse(Path::new("custom.toml"), text)
+        .unwrap()
+        .validate(&kinds)
+        .unwrap();
+    let log = InProcess::new(&graph, &kinds).unwrap().run(2).unwrap();
+    let key = |n: &str, p: &str| (n.to_string(), p.to_string());
+    for (c, i) in log[&key("capture", "frame")]
+        .iter()
+        .zip(&log[&key("invert", "frame")])
+    {
+        let (c, i): (schemas::StereoFrame, schemas::StereoFrame) = (
+            schemas::Message::decode(&c.0, &c.1).unwrap(),
+            schemas::Message::decode(&i.0, &i.1).unwrap(),
+        );
+        assert!(c.left.data.iter().zip(&i.left.data).all(|(a, b)| 200u8.saturating_sub(*a) == *b));
+        assert!(c.right.data.iter().zip(&i.right.data).all(|(a, b)| 200u8.saturating_sub(*a) == *b));
+    }
+    assert_eq!(log[&key("segment", "cells")].len(), 2);
+    // Its params are checked like a built-in node's.
+    let bad = text.replace("level = 200", "level = 0, colour = true");
+    let e = runtime::launch::LaunchFile::parse(Path::new("custom.toml"), &bad)
+        .unwrap()
+        .validate(&kinds)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("custom.toml:11: node 'invert': bad params: unknown field `colour`"), "{e}");
 }

@@ -1,7 +1,8 @@
 //! Every node on the bundled recording: fed its recorded inputs, it must send exactly the
 //! recorded outputs (recordings/default.mcap, made by recordings/make.sh).
 
-use microstereo::recording::{NodeCheck, test_node};
+use microstereo::recording::test_node;
+use runtime::harness::NodeCheck;
 use std::path::{Path, PathBuf};
 
 fn bundled() -> PathBuf {
@@ -45,14 +46,13 @@ fn segment_reproduces_labels_and_cells() {
 }
 
 #[test]
-fn both_matchers_reproduce_their_disparity_maps() {
-    check("match-lr", &["match-lr/disparity"]);
-    check("match-rl", &["match-rl/disparity"]);
+fn the_matcher_reproduces_both_directions_tiles() {
+    check("match", &["match/left", "match/right"]);
 }
 
 #[test]
-fn validate_reproduces_the_checked_map_and_occlusions() {
-    check("validate", &["validate/disparity", "validate/occlusion"]);
+fn validate_reproduces_both_checked_directions() {
+    check("validate", &["validate/left", "validate/right"]);
 }
 
 #[test]
@@ -62,7 +62,10 @@ fn postprocess_reproduces_the_final_map() {
 
 #[test]
 fn triangulate_reproduces_the_cloud_and_the_targets() {
-    check("triangulate", &["triangulate/cloud", "triangulate/targets"]);
+    check(
+        "triangulate",
+        &["triangulate/cloud", "triangulate/targets", "triangulate/disparity"],
+    );
 }
 
 #[test]

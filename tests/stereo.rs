@@ -1,11 +1,14 @@
-//! End-to-end accuracy of both matchers through the shared pipeline.
+//! End-to-end accuracy of both matchers through the graph's own nodes (the image pair →
+//! match → validate → post-process preset, run in-process).
 
 use matcher::Mode;
-use microstereo::io;
-use microstereo::pipeline::{self, RangeKind, StereoConfig};
-use microstereo::synthetic::standard_scene;
-use schemas::{DisparityRange, Plane};
-use std::path::PathBuf;
+use matcher::node::{MatchParams, Region};
+use microstereo::presets::{Stereo, ids};
+use microstereo::reconstruct::{RangeKind, auto_range, candidate_ranges, run_once};
+use postprocess::PostParams;
+use schemas::{DisparityMap, DisparityRange, DisparityTiles, Plane};
+use std::path::{Path, PathBuf};
+use synth::layers::standard_scene;
 
 fn data(name: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
@@ -13,12 +16,42 @@ fn data(name: &str) -> PathBuf {
         .join(name)
 }
 
+fn save(dir: &Path, name: &str, p: &Plane<u8>) -> PathBuf {
+    let path = dir.join(name);
+    image::GrayImage::from_raw(p.width as u32, p.height as u32, p.data.clone())
+        .unwrap()
+        .save(&path)
+        .unwrap();
+    path
+}
+
+/// The stereo graph of a mode over `range` on two image files.
+fn preset(left: PathBuf, right: PathBuf, mode: Mode, range: DisparityRange) -> Stereo {
+    Stereo {
+        left,
+        right,
+        frames: 1,
+        matching: MatchParams::new(mode, range, Region::Frame),
+        validate: Default::default(),
+        post: Some(match mode {
+            Mode::Paper => PostParams::WHOLE_PIXEL,
+            Mode::Quality => PostParams::SUBPIXEL,
+        }),
+        segment: None,
+        geometry: None,
+    }
+}
+
+/// The final map of `p`.
+fn final_map(p: &Stereo) -> DisparityMap {
+    let f = run_once(p).unwrap();
+    f.decode::<DisparityTiles>(ids::POSTPROCESS, "disparity")
+        .unwrap()
+        .paste()
+}
+
 /// Share of non-occluded pixels (per the GT cross-check) whose disparity rounds to the GT.
-fn exact_share(
-    d: &schemas::DisparityMap,
-    gl: &schemas::DisparityMap,
-    gr: &schemas::DisparityMap,
-) -> f64 {
+fn exact_share(d: &DisparityMap, gl: &DisparityMap, gr: &DisparityMap) -> f64 {
     let vis = validate::occlusion_from_gt(gl, gr);
     let (mut n, mut ok) = (0usize, 0usize);
     for i in 0..d.len() {
@@ -32,16 +65,20 @@ fn exact_share(
 
 #[test]
 fn synthetic_pairs_are_exact_in_both_modes_negative_disparities_included() {
+    let dir = tempfile::tempdir().unwrap();
     // Layers at −7, −2, 3, 8 px, and at 2, 10, 18, 26 px.
     for (base, step, range, seed) in [
         (-7, 5, DisparityRange::new(-10, 10), 1),
         (2, 8, DisparityRange::new(0, 32), 2),
     ] {
         let s = standard_scene(640, 480, base, step, seed);
+        let (l, r) = (
+            save(dir.path(), "l.png", &s.left),
+            save(dir.path(), "r.png", &s.right),
+        );
         for mode in [Mode::Paper, Mode::Quality] {
-            let cfg = StereoConfig::new(mode, range);
-            let out = pipeline::run_stereo(&s.left, &s.right, &cfg).unwrap();
-            let share = exact_share(&out.disparity, &s.gt_left, &s.gt_right);
+            let d = final_map(&preset(l.clone(), r.clone(), mode, range));
+            let share = exact_share(&d, &s.gt_left, &s.gt_right);
             assert!(
                 share >= 0.99,
                 "{mode:?} base {base}: only {:.2} % exact",
@@ -52,17 +89,19 @@ fn synthetic_pairs_are_exact_in_both_modes_negative_disparities_included() {
 }
 
 fn cones_bad1(mode: Mode, paths: Option<u8>) -> f64 {
-    let l = io::load_image(&data("cones/im2.png"), "left").unwrap();
-    let r = io::load_image(&data("cones/im6.png"), "right").unwrap();
-    let gl = io::read_disparity(&data("cones/disp2.png"), Some(4.0), "gt").unwrap();
-    let gr = io::read_disparity(&data("cones/disp6.png"), Some(4.0), "gt").unwrap();
-    let mut cfg = StereoConfig::new(mode, DisparityRange::new(0, 63));
-    if let Some(p) = paths {
-        cfg.quality.paths = p;
+    let gl = formats::read_disparity(&data("cones/disp2.png"), Some(4.0), "gt").unwrap();
+    let gr = formats::read_disparity(&data("cones/disp6.png"), Some(4.0), "gt").unwrap();
+    let mut p = preset(
+        data("cones/im2.png"),
+        data("cones/im6.png"),
+        mode,
+        DisparityRange::new(0, 63),
+    );
+    if let Some(n) = paths {
+        p.matching.paths = n;
     }
-    let out = pipeline::run_stereo(&l.grey, &r.grey, &cfg).unwrap();
     let vis = validate::occlusion_from_gt(&gl, &gr);
-    validate::evaluate(&out.disparity, &gl, Some(&vis))
+    validate::evaluate(&final_map(&p), &gl, Some(&vis))
         .nonocc
         .bad_1
 }
@@ -92,10 +131,16 @@ fn cones_quality_mode_beats_sgbm() {
 #[test]
 fn auto_range_picks_the_narrowest_range_that_covers_the_scene() {
     // True disparities −3..9: ±4 and ±8 miss the nearest layer, ±12 covers everything.
+    let dir = tempfile::tempdir().unwrap();
     let s = standard_scene(240, 180, -3, 4, 5);
-    let cfg = StereoConfig::new(Mode::Paper, DisparityRange::new(0, 1));
-    let ranges = pipeline::candidate_ranges(RangeKind::Symmetric, &[4, 8, 12, 24, 48], 240);
-    let (best, curve) = pipeline::auto_range(&s.left, &s.right, &cfg, &ranges).unwrap();
+    let base = preset(
+        save(dir.path(), "l.png", &s.left),
+        save(dir.path(), "r.png", &s.right),
+        Mode::Paper,
+        DisparityRange::new(0, 1),
+    );
+    let ranges = candidate_ranges(RangeKind::Symmetric, &[4, 8, 12, 24, 48], 240);
+    let (best, curve) = auto_range(&base, &ranges).unwrap();
     assert_eq!(curve.len(), 5);
     assert_eq!(best, DisparityRange::new(-12, 12), "curve: {curve:?}");
     // The curve rises to the covering range and falls after it (the paper's Fig. 12).
@@ -109,13 +154,20 @@ fn auto_range_picks_the_narrowest_range_that_covers_the_scene() {
 #[test]
 fn left_and_right_directions_agree_on_a_plain_shift() {
     // A whole image shifted by 5 px: every left pixel with a partner says 5, and so does
-    // every right pixel, in both modes.
+    // every right pixel, in both modes — as the match node sends them.
+    let dir = tempfile::tempdir().unwrap();
     let s = standard_scene(120, 90, 5, 0, 9);
+    let (l, r) = (
+        save(dir.path(), "l.png", &s.left),
+        save(dir.path(), "r.png", &s.right),
+    );
     for mode in [Mode::Paper, Mode::Quality] {
-        let cfg = StereoConfig::new(mode, DisparityRange::new(0, 12));
-        let mut t = runtime::StageTimes::default();
-        let (l, r, _) =
-            pipeline::match_pair(&mut Default::default(), &s.left, &s.right, &cfg, &mut t).unwrap();
+        let f = run_once(&preset(l.clone(), r.clone(), mode, DisparityRange::new(0, 12))).unwrap();
+        let map = |port| {
+            f.decode::<DisparityTiles>(ids::MATCH, port)
+                .unwrap()
+                .paste()
+        };
         let check = |m: &Plane<f32>, skip_left: usize, skip_right: usize| {
             for y in 8..82 {
                 for x in skip_left..120 - skip_right {
@@ -124,7 +176,7 @@ fn left_and_right_directions_agree_on_a_plain_shift() {
                 }
             }
         };
-        check(&l, 17, 8);
-        check(&r, 8, 17);
+        check(&map("left"), 17, 8);
+        check(&map("right"), 8, 17);
     }
 }

@@ -133,6 +133,14 @@ fn wrong_kind(want: MessageKind, h: &FrameHeader) -> Result<(), WireError> {
 }
 
 fn encode_planes<'a, T: WirePixel>(kind: MessageKind, planes: Vec<&'a Plane<T>>) -> Encoded<'a> {
+    // One header describes every image: a pair of two sizes is a bug of its sender.
+    assert!(
+        planes
+            .windows(2)
+            .all(|p| (p[0].width, p[0].height) == (p[1].width, p[1].height)),
+        "the images of a {} message differ in size",
+        kind.name()
+    );
     let (h, len) = planes_header(kind, &planes);
     Encoded::new(h, len, move |out| write_planes(&planes, out))
 }

@@ -228,6 +228,17 @@ impl Source for ImagePair {
     fn new(p: ImagePairParams) -> Result<Self, String> {
         let l = image::load(&p.left, "left image")?;
         let r = image::load(&p.right, "right image")?;
+        if (l.grey.width, l.grey.height) != (r.grey.width, r.grey.height) {
+            return Err(format!(
+                "left image '{}' is {}×{} but right image '{}' is {}×{}; a rectified pair must have the same size",
+                p.left.display(),
+                l.grey.width,
+                l.grey.height,
+                p.right.display(),
+                r.grey.width,
+                r.grey.height
+            ));
+        }
         Ok(Self {
             frame: StereoFrame {
                 left: l.grey,

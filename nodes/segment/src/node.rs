@@ -8,12 +8,12 @@ impl Params for SegmentParams {
     fn check(&self) -> Result<(), String> {
         if self.variance_radius == 0 || self.variance_radius > 50 {
             return Err(format!(
-                "variance_radius {} must be 1..=50",
+                "variance_radius {} is out of range: use 1..=50",
                 self.variance_radius
             ));
         }
         if !(self.min_std >= 0.0 && self.min_std.is_finite()) {
-            return Err(format!("min_std {} must be a number ≥ 0", self.min_std));
+            return Err(format!("min_std {} must be a non-negative number", self.min_std));
         }
         if self.open_radius > 50 || self.close_radius > 50 {
             return Err("open_radius and close_radius must be 0..=50".into());

@@ -87,7 +87,7 @@ impl CalibrationFile {
 pub fn check(c: &Calibration, source: &str) -> Result<(), String> {
     if !(c.baseline > 0.0 && c.baseline.is_finite() && c.focal_px > 0.0 && c.focal_px.is_finite()) {
         return Err(format!(
-            "calibration from {source}: baseline ({}) and focal length ({} px) must be positive",
+            "calibration {source}: baseline ({}) and focal length ({} px) must be positive",
             c.baseline, c.focal_px
         ));
     }
@@ -194,7 +194,7 @@ impl Geometry {
         match self {
             Geometry::Synthetic => Ok(()),
             Geometry::File(p) => read_file(Path::new(p)).map(|_| ()),
-            Geometry::Inline(f) => f.resolve(2, 2, "in the launch file").map(|_| ()),
+            Geometry::Inline(f) => f.resolve(2, 2, "given inline").map(|_| ()),
         }
     }
 
@@ -208,7 +208,7 @@ impl Geometry {
             }
             .calibration()),
             Geometry::File(p) => load(Path::new(p), w, h),
-            Geometry::Inline(f) => f.resolve(w, h, "in the launch file"),
+            Geometry::Inline(f) => f.resolve(w, h, "given inline"),
         }
     }
 }
