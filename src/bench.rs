@@ -126,11 +126,7 @@ fn bench_pairs(a: &BenchArgs, pairs: &[(String, PathBuf, PathBuf)]) -> Result<()
                 .enumerate()
                 .map(|(i, (n, _))| (n.clone(), median(runs.iter().map(|r| r[i].1).collect())))
                 .collect();
-            let total = median(
-                runs.iter()
-                    .map(|r| r.iter().map(|s| s.1).sum())
-                    .collect(),
-            );
+            let total = median(runs.iter().map(|r| r.iter().map(|s| s.1).sum()).collect());
             let match_ms = stages
                 .iter()
                 .find(|(n, _)| n == ids::MATCH)

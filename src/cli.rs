@@ -162,4 +162,3 @@ pub fn eval(a: EvalArgs) -> Result<(), CliError> {
     }
     Ok(())
 }
-

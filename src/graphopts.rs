@@ -122,7 +122,10 @@ impl OutputOpts {
                     "path".to_string(),
                     toml::Value::String(path.display().to_string()),
                 ),
-                ("overwrite".to_string(), toml::Value::Boolean(self.overwrite)),
+                (
+                    "overwrite".to_string(),
+                    toml::Value::Boolean(self.overwrite),
+                ),
             ]);
             if let Some(c) = crate::registry::cameras(graph) {
                 params.insert(
@@ -196,4 +199,3 @@ pub fn check_record_target(opts: &OutputOpts) -> Result<(), CliError> {
     }
     Ok(())
 }
-

@@ -96,7 +96,12 @@ impl Stereo {
         };
         let mut match_in = vec![("frame", "pair/frame")];
         if let Some(s) = &self.segment {
-            nodes.push(node(SEGMENT, "segment", &[("frame", "pair/frame")], table(s)));
+            nodes.push(node(
+                SEGMENT,
+                "segment",
+                &[("frame", "pair/frame")],
+                table(s),
+            ));
             match_in.push(("cells", "segment/cells"));
         }
         nodes.push(node(MATCH, "match", &match_in, table(&matching)));
@@ -126,8 +131,10 @@ impl Stereo {
                         ("cells", "segment/cells"),
                     ]);
                 }
-                let params =
-                    toml::Table::from_iter([("calibration".to_string(), toml::Value::from(g.clone()))]);
+                let params = toml::Table::from_iter([(
+                    "calibration".to_string(),
+                    toml::Value::from(g.clone()),
+                )]);
                 nodes.push(node(TRIANGULATE, "triangulate", &inputs, params));
             }
         }
@@ -151,11 +158,10 @@ impl Stereo {
         LaunchFile::parse(Path::new("preset"), &self.launch_text())
             .and_then(|f| f.validate(&crate::registry::builtin()))
             .map_err(|e| {
-                let lines: Vec<String> = e
-                    .0
-                    .iter()
-                    .map(|e| in_flag_terms(&e.message, flags))
-                    .collect();
+                let lines: Vec<String> =
+                    e.0.iter()
+                        .map(|e| in_flag_terms(&e.message, flags))
+                        .collect();
                 CliError::Other(lines.join("\n"))
             })
     }

@@ -11,8 +11,8 @@ use matcher::{Mode, PaperParams, QualityParams, Weights};
 use postprocess::{Fill, PostParams};
 use runtime::exec::Frame;
 use schemas::{
-    CellLists, Cloud, Disparity, DisparityMap, DisparityRange, DisparityTiles,
-    Labels, LengthUnit, Mask, Plane, Targets,
+    CellLists, Cloud, Disparity, DisparityMap, DisparityRange, DisparityTiles, Labels, LengthUnit,
+    Mask, Plane, Targets,
 };
 use serde::Serialize;
 use std::path::PathBuf;
@@ -425,7 +425,11 @@ pub fn reconstruct(a: ReconstructArgs) -> Result<(), CliError> {
         }
         _ => {
             let (w, _) = size()?;
-            (DisparityRange::new(0, 64.min(w as i32 / 2).max(1)), None, None)
+            (
+                DisparityRange::new(0, 64.min(w as i32 / 2).max(1)),
+                None,
+                None,
+            )
         }
     };
     let preset = a.preset(range)?;

@@ -42,14 +42,12 @@ pub fn view(a: ViewArgs) -> Result<(), CliError> {
     } else if let Some(c) = &a.connect {
         cmd.arg("--connect").arg(c);
     }
-    let status = cmd
-        .status()
-        .map_err(|e| {
-            CliError::Other(format!(
-                "cannot run {}: {e}",
-                crate::graphopts::viewer_exe().display()
-            ))
-        })?;
+    let status = cmd.status().map_err(|e| {
+        CliError::Other(format!(
+            "cannot run {}: {e}",
+            crate::graphopts::viewer_exe().display()
+        ))
+    })?;
     match status.code() {
         Some(0) => Ok(()),
         Some(code) => Err(CliError::Reported(code)),
@@ -172,7 +170,9 @@ fn launch_of(file: &Path, o: &Overview, launch: Option<&Path>) -> Result<Graph, 
             })?;
             LaunchFile::parse(Path::new(from), text)
                 .and_then(|f| f.validate(&crate::registry::builtin()))
-                .map_err(|e| CliError::Other(format!("the launch file stored in {}: {e}", file.display())))
+                .map_err(|e| {
+                    CliError::Other(format!("the launch file stored in {}: {e}", file.display()))
+                })
         }
     }
 }
@@ -300,7 +300,15 @@ pub fn test_node(
         let mut node = crate::registry::builtin()
             .build(spec)
             .map_err(CliError::Other)?;
-        runtime::harness::check_node(id, node.as_mut(), inputs.len(), &names, recorded, tolerance, None)?
+        runtime::harness::check_node(
+            id,
+            node.as_mut(),
+            inputs.len(),
+            &names,
+            recorded,
+            tolerance,
+            None,
+        )?
     };
     check.incomplete = frames.incomplete;
     Ok(check)

@@ -95,9 +95,8 @@ pub struct SegmentArgs {
 /// Runs `microstereo segment`.
 pub fn segment_cmd(a: SegmentArgs) -> Result<(), CliError> {
     let params = a.opts.params();
-    runtime::node::Params::check(&params).map_err(|e| {
-        CliError::Other(crate::presets::in_flag_terms(&e, FLAGS))
-    })?;
+    runtime::node::Params::check(&params)
+        .map_err(|e| CliError::Other(crate::presets::in_flag_terms(&e, FLAGS)))?;
     let img = capture::image::load(&a.image, "image").map_err(CliError::Other)?;
     let truth = match &a.truth {
         Some(p) => {
@@ -127,9 +126,7 @@ pub fn segment_cmd(a: SegmentArgs) -> Result<(), CliError> {
     let t = Instant::now();
     let seg = segment::segment(&img.grey, &params);
     let ms = t.elapsed().as_secs_f64() * 1e3;
-    let score = truth
-        .as_ref()
-        .map(|t| score(&seg.mask, t, seg.cells.len()));
+    let score = truth.as_ref().map(|t| score(&seg.mask, t, seg.cells.len()));
     write_segmentation(&a.output, &a.image, &img.rgb, &seg, &params, score)?;
     let max_label = seg.cells.len();
     if max_label > 65535 {
@@ -242,4 +239,3 @@ pub fn write_segmentation(
     let json = serde_json::to_string_pretty(&report).expect("serialises");
     std::fs::write(&jp, json + "\n").map_err(|e| werr(&jp, &e))
 }
-

@@ -1,8 +1,8 @@
 //! `microstereo synth`: writes synthetic stereo-microscope scenes, sequences and z-stacks.
 
 use crate::error::CliError;
-use formats as io;
 use clap::Args;
+use formats as io;
 use schemas::Plane;
 use serde::Serialize;
 use std::path::{Path, PathBuf};

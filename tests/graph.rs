@@ -235,13 +235,7 @@ fn graph_of_processes_equals_the_in_process_pipeline_bit_for_bit() {
         }
     }
     // Every node ran as its own process and reported.
-    for id in [
-        "capture",
-        "segment",
-        "match",
-        "validate",
-        "postprocess",
-    ] {
+    for id in ["capture", "segment", "match", "validate", "postprocess"] {
         assert!(
             summary
                 .lines()
@@ -1101,9 +1095,9 @@ fn the_sim_manipulator_approaches_a_cell_and_retracts_in_closed_loop() {
 /// lossless entrance (so that every frame is measured) and the bridge on a free port.
 fn default_graph_on(left: &Path, right: &Path) -> String {
     let text =
-        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("launch.toml"))
-            .unwrap();
-    let capture = "params = { source = \"synthetic\", width = 1280, height = 1024, cells = 10, seed = 1 }";
+        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("launch.toml")).unwrap();
+    let capture =
+        "params = { source = \"synthetic\", width = 1280, height = 1024, cells = 10, seed = 1 }";
     assert!(text.contains(capture), "the default capture changed");
     text.replace(
         capture,
@@ -1137,7 +1131,11 @@ fn the_default_graph_measures_the_cells_of_reconstruct_cells_bit_for_bit() {
         "--seed",
         "4",
     ]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let (l, r) = (scene.join("left.png"), scene.join("right.png"));
     // The graph as processes, its cells and final map recorded.
     let file = dir.path().join("default-on-files.toml");
@@ -1156,7 +1154,11 @@ fn the_default_graph_measures_the_cells_of_reconstruct_cells_bit_for_bit() {
         "--instance",
         &format!("cells{}", std::process::id()),
     ]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     // The one-shot command on the same pair.
     let o = dir.path().join("reconstruct");
     let out = run(&[
@@ -1173,7 +1175,11 @@ fn the_default_graph_measures_the_cells_of_reconstruct_cells_bit_for_bit() {
         "--max-disparity",
         "12",
     ]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let report: serde_json::Value =
         serde_json::from_slice(&std::fs::read(o.join("cells.json")).unwrap()).unwrap();
     let want = report["cells"].as_array().unwrap();
@@ -1205,7 +1211,10 @@ fn the_default_graph_measures_the_cells_of_reconstruct_cells_bit_for_bit() {
             for x in 0..w {
                 if d.map.get(x, y).is_finite() {
                     valid += 1;
-                    assert!(near_cell(x, y), "frame {frame}: ({x}, {y}) is valid far from any cell");
+                    assert!(
+                        near_cell(x, y),
+                        "frame {frame}: ({x}, {y}) is valid far from any cell"
+                    );
                 }
             }
         }
@@ -1256,8 +1265,20 @@ inputs = { frame = "invert/frame" }
             schemas::Message::decode(&c.0, &c.1).unwrap(),
             schemas::Message::decode(&i.0, &i.1).unwrap(),
         );
-        assert!(c.left.data.iter().zip(&i.left.data).all(|(a, b)| 200u8.saturating_sub(*a) == *b));
-        assert!(c.right.data.iter().zip(&i.right.data).all(|(a, b)| 200u8.saturating_sub(*a) == *b));
+        assert!(
+            c.left
+                .data
+                .iter()
+                .zip(&i.left.data)
+                .all(|(a, b)| 200u8.saturating_sub(*a) == *b)
+        );
+        assert!(
+            c.right
+                .data
+                .iter()
+                .zip(&i.right.data)
+                .all(|(a, b)| 200u8.saturating_sub(*a) == *b)
+        );
     }
     assert_eq!(log[&key("segment", "cells")].len(), 2);
     // Its params are checked like a built-in node's.
@@ -1267,5 +1288,8 @@ inputs = { frame = "invert/frame" }
         .validate(&kinds)
         .unwrap_err()
         .to_string();
-    assert!(e.contains("custom.toml:11: node 'invert': bad params: unknown field `colour`"), "{e}");
+    assert!(
+        e.contains("custom.toml:11: node 'invert': bad params: unknown field `colour`"),
+        "{e}"
+    );
 }

@@ -64,7 +64,11 @@ fn postprocess_reproduces_the_final_map() {
 fn triangulate_reproduces_the_cloud_and_the_targets() {
     check(
         "triangulate",
-        &["triangulate/cloud", "triangulate/targets", "triangulate/disparity"],
+        &[
+            "triangulate/cloud",
+            "triangulate/targets",
+            "triangulate/disparity",
+        ],
     );
 }
 

@@ -162,7 +162,13 @@ fn left_and_right_directions_agree_on_a_plain_shift() {
         save(dir.path(), "r.png", &s.right),
     );
     for mode in [Mode::Paper, Mode::Quality] {
-        let f = run_once(&preset(l.clone(), r.clone(), mode, DisparityRange::new(0, 12))).unwrap();
+        let f = run_once(&preset(
+            l.clone(),
+            r.clone(),
+            mode,
+            DisparityRange::new(0, 12),
+        ))
+        .unwrap();
         let map = |port| {
             f.decode::<DisparityTiles>(ids::MATCH, port)
                 .unwrap()

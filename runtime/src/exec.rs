@@ -87,7 +87,11 @@ impl InProcess {
         let nodes = graph
             .nodes
             .iter()
-            .map(|n| registry.build(n).map_err(|e| format!("node '{}': {e}", n.id)))
+            .map(|n| {
+                registry
+                    .build(n)
+                    .map_err(|e| format!("node '{}': {e}", n.id))
+            })
             .collect::<Result<Vec<_>, _>>()?;
         Ok(Self::with_nodes(graph, nodes))
     }
@@ -134,9 +138,9 @@ impl InProcess {
                     .iter()
                     .filter(|i| !i.feedback)
                     .map(|i| {
-                        frame
-                            .get(&i.node, &i.output)
-                            .ok_or_else(|| format!("{}: no message on {}/{}", spec.id, i.node, i.output))
+                        frame.get(&i.node, &i.output).ok_or_else(|| {
+                            format!("{}: no message on {}/{}", spec.id, i.node, i.output)
+                        })
                     })
                     .collect::<Result<_, _>>()?;
                 node.step(&msgs, &mut out)

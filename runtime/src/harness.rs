@@ -52,6 +52,9 @@ impl NodeCheck {
     }
 }
 
+/// Edges as `(NODE/OUTPUT, message)`.
+pub type Edges = Vec<(String, MessageKind)>;
+
 /// The edges a test of node `id` reads from a recording: its joined inputs (feedback
 /// carries whatever was newest when the node ran: not replayable) and its outputs but
 /// those `skip` names, each as `(NODE/OUTPUT, message)`.
@@ -59,7 +62,7 @@ pub fn edges_under_test(
     graph: &Graph,
     id: &str,
     skip: &dyn Fn(MessageKind) -> bool,
-) -> (Vec<(String, MessageKind)>, Vec<(String, MessageKind)>) {
+) -> (Edges, Edges) {
     let inputs = graph
         .input_edges(id)
         .into_iter()

@@ -70,8 +70,9 @@ fn allowed_cpus() -> Result<Vec<usize>, String> {
 #[cfg(target_os = "linux")]
 fn pin(cpu: Option<usize>) -> Result<(), String> {
     let Some(cpu) = cpu else { return Ok(()) };
-    // SAFETY: a zeroed cpu_set_t is a valid empty set; CPU_SET stays within it.
+    // SAFETY: a zeroed cpu_set_t is a valid empty set.
     let mut set: libc::cpu_set_t = unsafe { std::mem::zeroed() };
+    // SAFETY: CPU_SET writes bit `cpu` of the live set; a cpu past CPU_SETSIZE is ignored.
     unsafe { libc::CPU_SET(cpu, &mut set) };
     // SAFETY: `set` is a live cpu_set_t; pid 0 is the calling thread.
     if unsafe { libc::sched_setaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &set) } != 0 {

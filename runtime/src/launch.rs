@@ -608,7 +608,11 @@ impl LaunchFile {
                 (Some(k), None) => match catalog.spec(k.get_ref()) {
                     Some(spec) => {
                         if let Err(m) = catalog.check(k.get_ref(), &params, &connected) {
-                            err(&mut errs, params_at, format!("node '{id}': bad params: {m}"));
+                            err(
+                                &mut errs,
+                                params_at,
+                                format!("node '{id}': bad params: {m}"),
+                            );
                         }
                         (Runner::Builtin(k.get_ref().clone()), spec)
                     }
@@ -640,8 +644,10 @@ impl LaunchFile {
                         let of = |v: &[Port]| -> BTreeMap<String, MessageKind> {
                             v.iter().map(|p| (p.name.clone(), p.kind)).collect()
                         };
-                        let inputs: BTreeMap<String, MessageKind> =
-                            of(&spec.inputs).into_iter().chain(of(&spec.feedback)).collect();
+                        let inputs: BTreeMap<String, MessageKind> = of(&spec.inputs)
+                            .into_iter()
+                            .chain(of(&spec.feedback))
+                            .collect();
                         for (what, written, declared) in [
                             ("inputs", &said.inputs, inputs),
                             ("outputs", &said.outputs, of(&spec.outputs)),
@@ -981,7 +987,11 @@ mod tests {
             })
         }
         fn check(&self, k: &str, t: &toml::Table, _: &[&str]) -> Result<(), String> {
-            if k == "source" { seed_param(t) } else { no_params(t) }
+            if k == "source" {
+                seed_param(t)
+            } else {
+                no_params(t)
+            }
         }
         fn exec(&self, p: &Path, _: &toml::Table, _: &[&str]) -> Result<KindSpec, String> {
             if p == Path::new("/opt/my-node") {

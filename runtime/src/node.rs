@@ -366,7 +366,10 @@ pub(crate) struct TaskNode<T: Task> {
     pub(crate) inputs: Vec<Option<usize>>,
 }
 
-fn decode_inputs<P: PortSet>(slots: &[Option<usize>], inputs: &[Msg<'_>]) -> Result<(Stamp, P), String> {
+fn decode_inputs<P: PortSet>(
+    slots: &[Option<usize>],
+    inputs: &[Msg<'_>],
+) -> Result<(Stamp, P), String> {
     let stamp = inputs.first().map(Msg::stamp).unwrap_or_default();
     let msgs: Vec<Option<Msg<'_>>> = slots.iter().map(|s| s.map(|i| inputs[i])).collect();
     Ok((stamp, P::decode(&msgs).map_err(|e| e.to_string())?))

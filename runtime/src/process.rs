@@ -763,7 +763,9 @@ pub fn describe_exec(
     loop {
         match child.try_wait() {
             Ok(Some(_)) => break,
-            Ok(None) if t0.elapsed() < DESCRIBE_LIMIT => std::thread::sleep(Duration::from_millis(5)),
+            Ok(None) if t0.elapsed() < DESCRIBE_LIMIT => {
+                std::thread::sleep(Duration::from_millis(5))
+            }
             _ => {
                 let _ = child.kill();
                 let _ = child.wait();
@@ -780,7 +782,11 @@ pub fn describe_exec(
         let why = String::from_utf8_lossy(&out.stderr);
         let why = why.trim().trim_start_matches("error: ");
         return Err(if why.is_empty() {
-            format!("'{}' refused to describe its ports ({})", program.display(), out.status)
+            format!(
+                "'{}' refused to describe its ports ({})",
+                program.display(),
+                out.status
+            )
         } else {
             format!("bad params: {why}")
         });

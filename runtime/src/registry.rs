@@ -14,8 +14,7 @@
 
 use crate::launch::{Catalog, Graph, KindSpec, NodeSpec, Port};
 use crate::node::{
-    GraphNode, Params, PortDecl, PortSet, Sink, SinkNode, Source, SourceNode, Task, TaskNode,
-    slots,
+    GraphNode, Params, PortDecl, PortSet, Sink, SinkNode, Source, SourceNode, Task, TaskNode, slots,
 };
 use crate::process::NodeStats;
 
@@ -234,7 +233,11 @@ impl Registry {
             _ => Err(format!(
                 "this program holds {} node kinds ({}); an exec node's program holds one",
                 self.kinds.iter().filter(|k| k.launchable).count(),
-                self.kinds.iter().map(|k| k.name.as_str()).collect::<Vec<_>>().join(", ")
+                self.kinds
+                    .iter()
+                    .map(|k| k.name.as_str())
+                    .collect::<Vec<_>>()
+                    .join(", ")
             )),
         }
     }

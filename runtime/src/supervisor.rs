@@ -241,8 +241,8 @@ async fn supervise(
             restarts: 0,
         });
     }
-    let mut sigterm = signal(SignalKind::terminate())
-        .map_err(|e| format!("cannot watch SIGTERM: {e}"))?;
+    let mut sigterm =
+        signal(SignalKind::terminate()).map_err(|e| format!("cannot watch SIGTERM: {e}"))?;
     // A node that others read stays after its last frame (its readers may still be taking
     // them) until it is told to stop.
     let mut failure: Option<String> = None;
@@ -426,4 +426,3 @@ pub fn print_summary(
         sinks.iter().map(|s| s.latency_ms).fold(0.0, f64::max)
     );
 }
-

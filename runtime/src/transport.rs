@@ -12,6 +12,7 @@
 //! in the writer's per-edge count, and the frames they never saw (lost here or upstream)
 //! from gaps in the frame numbers.
 
+pub use crate::edge::{EdgeConfig, Overflow};
 use iceoryx2::node::NodeWaitFailure;
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
@@ -20,7 +21,6 @@ use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use iceoryx2::sample::Sample;
-pub use crate::edge::{EdgeConfig, Overflow};
 use schemas::FrameHeader;
 use std::cell::Cell;
 use std::time::Duration;

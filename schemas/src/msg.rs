@@ -26,6 +26,9 @@ use crate::wire::{
 use crate::{Cell, Cell3, DisparityMap, DisparityRange, Plane, ValidationFigures};
 use serde::{Deserialize, Serialize};
 
+/// Fills a payload in place.
+type Writer<'a> = Box<dyn Fn(&mut [u8]) + 'a>;
+
 /// One message as an edge carries it: its header (the frame stamp is the sender's to set)
 /// and a writer that fills exactly `len` payload bytes.
 pub struct Encoded<'a> {
@@ -33,7 +36,7 @@ pub struct Encoded<'a> {
     pub header: FrameHeader,
     /// Payload bytes.
     pub len: usize,
-    write: Box<dyn Fn(&mut [u8]) + 'a>,
+    write: Writer<'a>,
 }
 
 impl<'a> Encoded<'a> {
@@ -125,9 +128,8 @@ fn wrong_kind(want: MessageKind, h: &FrameHeader) -> Result<(), WireError> {
         kind: Some(want),
         reason: format!(
             "the header says {}",
-            MessageKind::from_u32(h.kind).map_or_else(|| format!("kind {}", h.kind), |k| k
-                .name()
-                .to_string())
+            MessageKind::from_u32(h.kind)
+                .map_or_else(|| format!("kind {}", h.kind), |k| k.name().to_string())
         ),
     })
 }
@@ -441,7 +443,11 @@ impl Message for Cloud {
     fn encode(&self) -> Encoded<'_> {
         let n = self.points.len();
         Encoded::new(cloud_header(n), n * CLOUD_POINT_BYTES, move |b| {
-            for (p, o) in self.points.iter().zip(b.chunks_exact_mut(CLOUD_POINT_BYTES)) {
+            for (p, o) in self
+                .points
+                .iter()
+                .zip(b.chunks_exact_mut(CLOUD_POINT_BYTES))
+            {
                 for (k, v) in p.xyz.iter().enumerate() {
                     o[4 * k..4 * k + 4].copy_from_slice(&v.to_le_bytes());
                 }
@@ -560,7 +566,11 @@ impl DisparityTiles {
 
     /// The same tiles with other maps (`f` maps each tile to its new map), keeping the
     /// layout: what validation and post-processing do tile by tile.
-    pub fn map_tiles(&self, side: Side, mut f: impl FnMut(&DisparityTile) -> DisparityTile) -> Self {
+    pub fn map_tiles(
+        &self,
+        side: Side,
+        mut f: impl FnMut(&DisparityTile) -> DisparityTile,
+    ) -> Self {
         Self {
             width: self.width,
             height: self.height,
@@ -698,7 +708,9 @@ impl Message for DisparityTiles {
             let [exact, one, more, within] = [0; 4].map(|_| f64::from_bits(get_u64(b, &mut at)));
             let tolerance = get_u32(b, &mut at);
             let has_figures = get_u32(b, &mut at) != 0;
-            if x.checked_add(w).is_none_or(|e| e > width) || y.checked_add(th).is_none_or(|e| e > height) {
+            if x.checked_add(w).is_none_or(|e| e > width)
+                || y.checked_add(th).is_none_or(|e| e > height)
+            {
                 return Err(bad(format!(
                     "tile {k} ({w}×{th} at {x}, {y}) reaches outside the {width}×{height} frame"
                 )));
@@ -833,7 +845,12 @@ mod tests {
         let err = Labels::decode(&e.header, &bytes).unwrap_err();
         assert!(err.reason.contains("stereo-frame"), "{err}");
         assert!(StereoFrame::decode(&e.header, &bytes[1..]).is_err());
-        let t = DisparityTiles::whole(Side::Right, DisparityRange::new(0, 3), Plane::filled(2, 2, 1.0), 0);
+        let t = DisparityTiles::whole(
+            Side::Right,
+            DisparityRange::new(0, 3),
+            Plane::filled(2, 2, 1.0),
+            0,
+        );
         let e = t.encode();
         let mut bytes = e.to_vec();
         assert!(DisparityTiles::decode(&e.header, &bytes[..bytes.len() - 4]).is_err());

@@ -152,10 +152,7 @@ mod tests {
             let f = cap.frame(i as u64).unwrap().unwrap();
             assert_eq!((f.left.data[0], f.right.data[0]), (10 * i, 10 * i + 1));
         }
-        assert!(
-            cap.frame(3).unwrap().is_none(),
-            "three pairs, then the end"
-        );
+        assert!(cap.frame(3).unwrap().is_none(), "three pairs, then the end");
         let mut looped = FileCapture::new(p(true)).unwrap();
         let f = looped.frame(4).unwrap().unwrap();
         assert_eq!(f.left.data[0], 10, "frame 4 of a 3-pair loop is pair 1");

@@ -21,7 +21,8 @@ pub fn load(path: &Path, what: &str) -> Result<LoadedImage, String> {
             path.display()
         ));
     }
-    let unreadable = |e: &dyn std::fmt::Display| format!("{what} '{}' cannot be read: {e}", path.display());
+    let unreadable =
+        |e: &dyn std::fmt::Display| format!("{what} '{}' cannot be read: {e}", path.display());
     let img = image::ImageReader::open(path)
         .map_err(|e| unreadable(&e))?
         .with_guessed_format()

@@ -17,7 +17,7 @@ pub mod files;
 pub mod image;
 pub mod synthetic;
 
-use runtime::node::{NodeError, NoPorts, Params, Source};
+use runtime::node::{NoPorts, NodeError, Params, Source};
 use runtime::process::now_ns;
 use schemas::{Image, ManipulatorState, StereoFrame};
 use serde::Deserialize;

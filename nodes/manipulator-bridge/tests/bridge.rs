@@ -134,9 +134,7 @@ fn an_emergency_stop_wins_over_queued_commands_and_halts_the_pipette() {
         // Stands still afterwards, and nothing queued runs.
         let tip = || {
             let t = targets(999);
-            b.on_targets(&t)
-                .unwrap()
-                .tip
+            b.on_targets(&t).unwrap().tip
         };
         std::thread::sleep(Duration::from_millis(100));
         let a = tip();
@@ -252,10 +250,7 @@ fn a_cell_moving_into_the_path_stops_the_move_and_a_walled_target_ends_blocked()
     // A tall cell drifts onto the pipette axis, 60 µm on the pipette's side of the target.
     let mut t = targets(1);
     t.cells.push(cell(3, -60.0, 0.0, 12.0, 100.0));
-    let before = b
-        .on_targets(&t)
-        .unwrap()
-        .tip;
+    let before = b.on_targets(&t).unwrap().tip;
     let ev = c.next(&["blocked", "arrived", "plan"]);
     assert_eq!(ev["event"], "blocked", "{ev}");
     assert_eq!(ev["cells"], serde_json::json!([3]), "{ev}");

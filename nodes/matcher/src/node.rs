@@ -323,7 +323,10 @@ impl Matcher {
         for (i, j) in pair_cells(&cells.left, &cells.right, range, PAIRING_SLACK) {
             let (lc, rc) = (&cells.left[i], &cells.right[j]);
             let c = crop_of(lc, rc, range, margin, (w, h));
-            let (cl, cr) = (crop(left, c.x0, c.y0, c.x1, c.y1), crop(right, c.x0, c.y0, c.x1, c.y1));
+            let (cl, cr) = (
+                crop(left, c.x0, c.y0, c.x1, c.y1),
+                crop(right, c.x0, c.y0, c.x1, c.y1),
+            );
             // A pair whose crop cannot hold a range (or the window) stays paired, unmatched.
             let usable = c
                 .range

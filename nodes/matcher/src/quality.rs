@@ -316,6 +316,9 @@ impl CostRow<'_> {
 
     /// The whole row, eight disparities at a time: the right pixels `x − d` of eight
     /// consecutive disparities are eight consecutive census words read backwards.
+    ///
+    /// # Safety
+    /// The CPU must support AVX-512F, VL, BW and VPOPCNTDQ.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx512vpopcntdq")]
     unsafe fn fill_avx512(&self, row: &mut [u8]) {

@@ -180,6 +180,9 @@ pub(crate) fn has_vpopcnt() -> bool {
 
 /// [`sv_row_equal`] eight pixels at a time with AVX-512 popcounts; returns how many pixels
 /// it did (a multiple of 8), the caller finishes the rest.
+///
+/// # Safety
+/// The CPU must support AVX-512F and AVX-512 VPOPCNTDQ ([`has_vpopcnt`]).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512vpopcntdq")]
 unsafe fn sv_row_equal_vpopcnt<const NW: usize>(

@@ -10,8 +10,8 @@ use schemas::msg::{Message, cloud_header};
 use schemas::wire::CLOUD_POINT_BYTES;
 use schemas::{
     BoundingBox, Cell, Cell3, CellLists, DisparityPlane, DisparityRange, DisparityTile,
-    DisparityTiles, FrameHeader, ManipulatorState, MessageKind, PathPlan, PixelFormat, Plane,
-    Side, Targets, ValidationFigures,
+    DisparityTiles, FrameHeader, ManipulatorState, MessageKind, PathPlan, PixelFormat, Plane, Side,
+    Targets, ValidationFigures,
 };
 use serde::{Deserialize, Serialize};
 use serde_bytes::ByteBuf;
@@ -1102,7 +1102,10 @@ pub fn decode(
 }
 
 /// A message's header (stamped) and payload, as a node sends it.
-fn encoded<M: Message>(m: &M, stamp: impl Fn(FrameHeader) -> FrameHeader) -> (FrameHeader, Vec<u8>) {
+fn encoded<M: Message>(
+    m: &M,
+    stamp: impl Fn(FrameHeader) -> FrameHeader,
+) -> (FrameHeader, Vec<u8>) {
     let e = m.encode();
     (stamp(e.header), e.to_vec())
 }

@@ -33,9 +33,7 @@ impl RectifyParams {
                     .map_err(|e| format!("calibration '{path}': {e}"))?;
                 Ok(Some(Rectification::bouguet(&cal)))
             }
-            (None, Some([l, r])) => {
-                Rectification::from_camera_info(&read(l)?, &read(r)?).map(Some)
-            }
+            (None, Some([l, r])) => Rectification::from_camera_info(&read(l)?, &read(r)?).map(Some),
             (Some(_), Some(_)) => Err("give calibration or camera_info, not both".into()),
         }
     }

@@ -13,7 +13,10 @@ impl Params for SegmentParams {
             ));
         }
         if !(self.min_std >= 0.0 && self.min_std.is_finite()) {
-            return Err(format!("min_std {} must be a non-negative number", self.min_std));
+            return Err(format!(
+                "min_std {} must be a non-negative number",
+                self.min_std
+            ));
         }
         if self.open_radius > 50 || self.close_radius > 50 {
             return Err("open_radius and close_radius must be 0..=50".into());

@@ -222,9 +222,16 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("calib-test-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let p = dir.join("c.toml");
-        std::fs::write(&p, "baseline = 2000.0\nf_eff = 20000.0\npixel_pitch = 5.0\nunit = \"um\"\n").unwrap();
+        std::fs::write(
+            &p,
+            "baseline = 2000.0\nf_eff = 20000.0\npixel_pitch = 5.0\nunit = \"um\"\n",
+        )
+        .unwrap();
         let c = load(&p, 640, 480).unwrap();
-        assert_eq!((c.focal_px, c.cx, c.cy, c.cx_right), (4000.0, 319.5, 239.5, 319.5));
+        assert_eq!(
+            (c.focal_px, c.cx, c.cy, c.cx_right),
+            (4000.0, 319.5, 239.5, 319.5)
+        );
         assert_eq!(c.unit, LengthUnit::Um);
         write(&p, &c, 5.0).unwrap();
         assert_eq!(load(&p, 10, 10).unwrap(), c);
@@ -248,14 +255,27 @@ mod tests {
                 .map(|p| p.calibration)
                 .map_err(|e| e.to_string())
         };
-        assert_eq!(g("calibration = \"synthetic\"").unwrap(), Geometry::Synthetic);
-        assert_eq!(g("calibration = \"a.toml\"").unwrap(), Geometry::File("a.toml".into()));
+        assert_eq!(
+            g("calibration = \"synthetic\"").unwrap(),
+            Geometry::Synthetic
+        );
+        assert_eq!(
+            g("calibration = \"a.toml\"").unwrap(),
+            Geometry::File("a.toml".into())
+        );
         let inline = g("calibration = { baseline = 1.5, focal_px = 900.0 }").unwrap();
         let c = inline.resolve(11, 5).unwrap();
         assert_eq!((c.baseline, c.focal_px, c.cx, c.cy), (1.5, 900.0, 5.0, 2.0));
-        assert!(g("calibration = { baseline = 1.5, focal = 900.0 }").unwrap_err().contains("focal"));
+        assert!(
+            g("calibration = { baseline = 1.5, focal = 900.0 }")
+                .unwrap_err()
+                .contains("focal")
+        );
         assert!(g("calibration = 3").unwrap_err().contains("integer"));
-        let back = toml::Table::from_iter([("calibration".to_string(), toml::Value::from(inline.clone()))]);
+        let back = toml::Table::from_iter([(
+            "calibration".to_string(),
+            toml::Value::from(inline.clone()),
+        )]);
         assert_eq!(g(&toml::to_string(&back).unwrap()).unwrap(), inline);
     }
 }

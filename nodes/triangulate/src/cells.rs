@@ -180,7 +180,9 @@ pub fn compose(
             return Err("a whole-frame tile among cell tiles".into());
         };
         if (t.x, t.y, t.map.width, t.map.height) != (c.x, c.y, c.map.width, c.map.height) {
-            return Err(format!("the final and checked tiles of cell {lid} differ in place"));
+            return Err(format!(
+                "the final and checked tiles of cell {lid} differ in place"
+            ));
         }
         pairs.push((index(cells, lid, "left")?, index(right, rid, "right")?));
         if t.map.is_empty() {
@@ -416,8 +418,7 @@ pub fn measure(
                 _ => pixel_area,
             };
             let v = hgt * footprint;
-            if let Some([px, py, _]) =
-                crate::triangulate_pixel(x as f64, y as f64, d as f64, calib)
+            if let Some([px, py, _]) = crate::triangulate_pixel(x as f64, y as f64, d as f64, calib)
             {
                 vol += v;
                 wx += v * px;
@@ -472,9 +473,17 @@ mod tests {
 
     #[test]
     fn cells_pair_by_rows_size_and_offset_each_once() {
-        let left = [cell(1, 10, 10, 19, 19), cell(2, 50, 10, 59, 19), cell(3, 10, 60, 12, 62)];
+        let left = [
+            cell(1, 10, 10, 19, 19),
+            cell(2, 50, 10, 59, 19),
+            cell(3, 10, 60, 12, 62),
+        ];
         // Right: cell 1 shifted by 3, cell 2 by 40 (outside −4..12), a small one.
-        let right = [cell(1, 7, 10, 16, 19), cell(2, 10, 11, 19, 20), cell(3, 10, 60, 29, 79)];
+        let right = [
+            cell(1, 7, 10, 16, 19),
+            cell(2, 10, 11, 19, 20),
+            cell(3, 10, 60, 29, 79),
+        ];
         let pairs = pair_cells(&left, &right, DisparityRange::new(-4, 12), PAIRING_SLACK);
         // Left 1 takes right 1 (offset 3, same rows) over right 2 (one row off).
         assert_eq!(pairs, [(0, 0)]);
@@ -489,10 +498,22 @@ mod tests {
         assert_eq!((c.x0, c.y0, c.x1, c.y1), (20, 12, 67, 38));
         assert_eq!(c.range, Some(DisparityRange::new(-4, 12)));
         // At the frame's edge the crop is clipped, and a narrow one narrows the range.
-        let c = crop_of(&cell(1, 0, 0, 1, 1), &cell(1, 0, 0, 1, 1), DisparityRange::new(0, 12), 0, (4, 4));
+        let c = crop_of(
+            &cell(1, 0, 0, 1, 1),
+            &cell(1, 0, 0, 1, 1),
+            DisparityRange::new(0, 12),
+            0,
+            (4, 4),
+        );
         assert_eq!((c.x0, c.x1), (0, 4));
         assert_eq!(c.range, Some(DisparityRange::new(0, 3)));
-        let c = crop_of(&cell(1, 0, 0, 0, 0), &cell(1, 0, 0, 0, 0), DisparityRange::new(2, 12), 0, (1, 1));
+        let c = crop_of(
+            &cell(1, 0, 0, 0, 0),
+            &cell(1, 0, 0, 0, 0),
+            DisparityRange::new(2, 12),
+            0,
+            (1, 1),
+        );
         assert_eq!(c.range, None);
     }
 }

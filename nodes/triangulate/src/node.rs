@@ -5,8 +5,7 @@ use crate::calibration::Geometry;
 use crate::cells::{cell_heights, compose, mask_of, measure};
 use runtime::node::{NodeError, Params, Stamp, Task};
 use schemas::{
-    Calibration, CellLists, Cloud, Disparity, DisparityTiles, Image, Labels, StereoFrame,
-    Targets,
+    Calibration, CellLists, Cloud, Disparity, DisparityTiles, Image, Labels, StereoFrame, Targets,
 };
 use serde::Deserialize;
 
@@ -120,10 +119,19 @@ impl Task for Triangulate {
         let calib = self.calibration(w, h)?;
         let (map, cells, substrate) = match (&i.labels, &i.cells, &i.checked) {
             (Some(labels), Some(lists), Some(checked)) => {
-                let c = compose(&labels.left, (&lists.left, &lists.right), &i.disparity, checked)?;
+                let c = compose(
+                    &labels.left,
+                    (&lists.left, &lists.right),
+                    &i.disparity,
+                    checked,
+                )?;
                 let (substrate, bases, tops) = cell_heights(
                     (left, right),
-                    (&labels.left, &mask_of(&labels.left), &mask_of(&labels.right)),
+                    (
+                        &labels.left,
+                        &mask_of(&labels.left),
+                        &mask_of(&labels.right),
+                    ),
                     &lists.left,
                     &c.pairs,
                     (&c.disparity, &c.raw),

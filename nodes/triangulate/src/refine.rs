@@ -14,9 +14,9 @@
 
 use nalgebra::{DMatrix, DVector};
 use rayon::prelude::*;
+pub use schemas::DisparityPlane;
 use schemas::{DisparityRange, Mask, Plane};
 use serde::Serialize;
-pub use schemas::DisparityPlane;
 
 /// Value and x-gradient of a row at fractional `x` (linear interpolation of the samples and
 /// of their central differences); `None` outside `[1, len − 2]`.

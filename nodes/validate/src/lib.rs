@@ -279,6 +279,19 @@ pub fn validation_figures(
         .figures(tolerance)
 }
 
+/// The paper's score for a disparity range (its Fig. 12): the left pixels the LR check
+/// kept, over the pixels that have a candidate at all in `range` (the right pixel `x − d`
+/// exists for some `d`).
+pub fn consistency_ratio(checked_left: &DisparityMap, range: schemas::DisparityRange) -> f64 {
+    let w = checked_left.width as i64;
+    let cols = (0..w)
+        .filter(|&x| (range.min as i64..=range.max as i64).any(|d| (0..w).contains(&(x - d))))
+        .count();
+    let total = (cols * checked_left.height).max(1);
+    let consistent = checked_left.data.iter().filter(|d| d.is_finite()).count();
+    consistent as f64 / total as f64
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -373,17 +386,15 @@ mod tests {
             }
         }
     }
-}
 
-/// The paper's score for a disparity range (its Fig. 12): the left pixels the LR check
-/// kept, over the pixels that have a candidate at all in `range` (the right pixel `x − d`
-/// exists for some `d`).
-pub fn consistency_ratio(checked_left: &DisparityMap, range: schemas::DisparityRange) -> f64 {
-    let w = checked_left.width as i64;
-    let cols = (0..w)
-        .filter(|&x| (range.min as i64..=range.max as i64).any(|d| (0..w).contains(&(x - d))))
-        .count();
-    let total = (cols * checked_left.height).max(1);
-    let consistent = checked_left.data.iter().filter(|d| d.is_finite()).count();
-    consistent as f64 / total as f64
+    #[test]
+    fn the_consistency_ratio_counts_kept_pixels_among_those_with_a_candidate() {
+        // 4 columns, range 2..3: columns 0 and 1 have no partner (x − d < 0).
+        let inf = f32::INFINITY;
+        let m = Plane::from_vec(4, 2, vec![inf, inf, 2.0, inf, inf, inf, 3.0, 2.0]).unwrap();
+        let r = consistency_ratio(&m, schemas::DisparityRange::new(2, 3));
+        assert_eq!(r, 3.0 / 4.0);
+        let r = consistency_ratio(&m, schemas::DisparityRange::new(0, 3));
+        assert_eq!(r, 3.0 / 8.0);
+    }
 }

@@ -119,7 +119,9 @@ impl Task for Validate {
             let c = &checked[k];
             k += 1;
             DisparityTile {
-                map: c.as_ref().map_or_else(|| t.map.clone(), |c| c.right.clone()),
+                map: c
+                    .as_ref()
+                    .map_or_else(|| t.map.clone(), |c| c.right.clone()),
                 ..t.clone()
             }
         });

@@ -178,9 +178,7 @@ impl Sink {
                     )
                     .with_opacity(0.4);
                     cells = cells.max(p.data.iter().copied().max().unwrap_or(0));
-                    self.rec
-                        .log(format!("/{side}/{edge}"), &img)
-                        .map_err(err)?;
+                    self.rec.log(format!("/{side}/{edge}"), &img).map_err(err)?;
                 }
                 format!("labels up to {cells}")
             }
@@ -239,7 +237,8 @@ impl Sink {
                 match self.metres {
                     Some(m) => self.log_cloud(edge, h, &cloud, m)?,
                     None => {
-                        self.clouds.insert(h.sequence, (edge.to_string(), *h, cloud));
+                        self.clouds
+                            .insert(h.sequence, (edge.to_string(), *h, cloud));
                         return Ok(());
                     }
                 }
@@ -373,7 +372,9 @@ impl Sink {
 
     fn log_image(&mut self, path: &str, img: &Image) -> Result<(), String> {
         let r = match img {
-            Image::Grey(p) => rerun::Image::from_l8(p.data.clone(), [p.width as u32, p.height as u32]),
+            Image::Grey(p) => {
+                rerun::Image::from_l8(p.data.clone(), [p.width as u32, p.height as u32])
+            }
             Image::Rgb(p) => rerun::Image::from_rgb24(
                 p.data.iter().flatten().copied().collect::<Vec<u8>>(),
                 [p.width as u32, p.height as u32],

@@ -25,6 +25,10 @@ struct Kernel {
 
 impl Kernel {
     /// Loads the 16 costs of vector `k` as i16 (the last vector from a zero-padded copy).
+    ///
+    /// # Safety
+    /// The CPU must support AVX2, `c` must hold this kernel's `nd` costs and `k` must be
+    /// below `nvec`.
     #[inline(always)]
     unsafe fn cost(&self, c: &[u8], pad: &[u8; 16], k: usize) -> __m256i {
         // SAFETY: full vectors lie inside `c` (nd bytes); the tail comes from `pad`.
@@ -459,6 +463,10 @@ pub fn rows_fit(w: usize, nd: usize, dmin: i32) -> bool {
 /// Transposes the 16×16 block of `src` (rows `x`, stride `sstride`, 16 values each),
 /// plus the same block of `add` when given, into `dst` (row `d` = column `d` of the
 /// block, stride `dstride`).
+///
+/// # Safety
+/// The CPU must support AVX2; `src` (and `add`) must be readable for 16 rows of 16 values
+/// at stride `sstride`, `dst` writable for 16 rows of 16 at stride `dstride`.
 #[inline(always)]
 unsafe fn transpose16(
     src: *const u16,
@@ -526,6 +534,9 @@ unsafe fn transpose16(
 /// costs at disparity index `di` ([`NONE`] where it does not exist). Returns per lane
 /// the best cost, its first index, the best cost more than one index away, and the
 /// costs at index − 1 and + 1 ([`NONE`] where absent).
+///
+/// # Safety
+/// The CPU must support AVX2, and `load` must be sound for every index below `nd`.
 #[inline(always)]
 unsafe fn decide16(nd: usize, load: impl Fn(usize) -> __m256i) -> [[i16; 16]; 5] {
     // SAFETY: AVX2 is enabled for this build; `load` is the caller's promise.
@@ -774,6 +785,7 @@ fn decide_row(t: &Transposed, p: &QualityParams, lrow: &mut [f32], rrow: &mut [f
 unsafe fn decide_row512(t: &Transposed, p: &QualityParams, lrow: &mut [f32], rrow: &mut [f32]) {
     let (w, nd, dmin) = (t.w, t.nd, t.dmin);
     let lanes: [i16; 32] = std::array::from_fn(|i| i as i16);
+    // SAFETY: `lanes` holds the 64 bytes loaded; the caller guarantees AVX-512F.
     let idx = unsafe { _mm512_loadu_si512(lanes.as_ptr() as *const _) };
     let none = _mm512_set1_epi16(NONE);
     let row = |di: usize, col: isize| -> __m512i {
