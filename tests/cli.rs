@@ -885,10 +885,10 @@ fn a_live_run_and_a_recording_turn_into_rerun_files() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    // The viewer took every message of every edge: 11 edges (the bridge's state too), 2
+    // The viewer took every message of every edge: 12 edges (the bridge's state too), 2
     // frames.
     let row = said.lines().find(|l| l.starts_with("viewer ")).unwrap();
-    assert_eq!(row.split_whitespace().nth(1), Some("22"), "{row}");
+    assert_eq!(row.split_whitespace().nth(1), Some("24"), "{row}");
     let out = run(&["view", s(&rec), "-o", s(&viewed)]);
     assert!(
         out.status.success(),

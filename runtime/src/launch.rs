@@ -25,6 +25,7 @@ use schemas::MessageKind;
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
 use toml::Spanned;
 
 /// One problem in a launch file, with where it is.
@@ -192,7 +193,7 @@ pub trait Catalog {
         params: &toml::Table,
         connected: &[&str],
     ) -> Result<KindSpec, String> {
-        crate::process::describe_exec(program, params, connected)
+        describe_exec(program, params, connected)
     }
 }
 
@@ -919,6 +920,72 @@ fn names(ports: &[(String, MessageKind)]) -> String {
             .collect::<Vec<_>>()
             .join(", ")
     }
+}
+
+/// How long an `exec` node's program may take to describe itself.
+const DESCRIBE_LIMIT: Duration = Duration::from_secs(10);
+
+/// Asks an `exec` node's program for its ports, checking `params` with the inputs
+/// `connected` (it runs `PROGRAM --describe --params TOML --connected a,b`).
+pub fn describe_exec(
+    program: &Path,
+    params: &toml::Table,
+    connected: &[&str],
+) -> Result<KindSpec, String> {
+    let mut child = std::process::Command::new(program)
+        .arg("--describe")
+        .arg("--params")
+        .arg(toml::to_string(params).map_err(|e| e.to_string())?)
+        .arg("--connected")
+        .arg(connected.join(","))
+        .stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .map_err(|e| {
+            format!(
+                "cannot start '{}': {e}; build it or give the right path",
+                program.display()
+            )
+        })?;
+    let t0 = Instant::now();
+    loop {
+        match child.try_wait() {
+            Ok(Some(_)) => break,
+            Ok(None) if t0.elapsed() < DESCRIBE_LIMIT => {
+                std::thread::sleep(Duration::from_millis(5))
+            }
+            _ => {
+                let _ = child.kill();
+                let _ = child.wait();
+                return Err(format!(
+                    "'{}' did not describe its ports within {} s (is it a microstereo node program?)",
+                    program.display(),
+                    DESCRIBE_LIMIT.as_secs()
+                ));
+            }
+        }
+    }
+    let out = child.wait_with_output().map_err(|e| e.to_string())?;
+    if !out.status.success() {
+        let why = String::from_utf8_lossy(&out.stderr);
+        let why = why.trim().trim_start_matches("error: ");
+        return Err(if why.is_empty() {
+            format!(
+                "'{}' refused to describe its ports ({})",
+                program.display(),
+                out.status
+            )
+        } else {
+            format!("bad params: {why}")
+        });
+    }
+    serde_json::from_slice(&out.stdout).map_err(|e| {
+        format!(
+            "'{}' --describe did not print its ports ({e}); is it a microstereo node program (runtime::process::exec_main)?",
+            program.display()
+        )
+    })
 }
 
 #[cfg(test)]

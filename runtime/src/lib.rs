@@ -20,6 +20,7 @@ pub mod launch;
 pub mod node;
 pub mod process;
 pub mod registry;
+pub mod stats;
 pub mod supervisor;
 pub mod transport;
 

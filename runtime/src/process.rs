@@ -10,53 +10,18 @@
 //! one [`NodeStats`] line for the supervisor.
 
 pub use crate::edge::now_ns;
-use crate::launch::{Graph, KindSpec};
+use crate::launch::Graph;
 use crate::node::{GraphNode, Msg, Outputs};
 use crate::registry::Registry;
+pub use crate::stats::{InputStats, NodeStats, STATS_PREFIX};
 use crate::transport::{
     EdgePublisher, EdgeSubscriber, Message, Overflow, Transport, Wake, wait_loop,
 };
 use iceoryx2::node::NodeView;
 use iceoryx2::prelude::*;
 use schemas::FrameHeader;
-use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
-
-/// The line prefix of a node's final statistics on its stdout.
-pub const STATS_PREFIX: &str = "MICROSTEREO-STATS ";
-
-/// What one node did, reported when it ends.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-pub struct NodeStats {
-    /// Node id.
-    pub id: String,
-    /// Frames consumed (steps taken; frames produced for a source).
-    pub frames_in: u64,
-    /// Messages published.
-    pub frames_out: u64,
-    /// Mean step time, ms.
-    pub mean_ms: f64,
-    /// 99th-percentile step time, ms.
-    pub p99_ms: f64,
-    /// What each input lost, in the order of the node's inputs.
-    pub inputs: Vec<InputStats>,
-    /// Mean time from capture to the end of this node's step, ms.
-    pub latency_ms: f64,
-    /// The last frame number handled.
-    pub last_frame: Option<u64>,
-}
-
-/// What one input of a node lost.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-pub struct InputStats {
-    /// The input's port.
-    pub port: String,
-    /// Messages lost on its edge.
-    pub dropped: u64,
-    /// Frames of the stream it never delivered, lost anywhere.
-    pub missing: u64,
-}
 
 struct ShmOutputs<'a> {
     pubs: &'a [EdgePublisher],
@@ -731,70 +696,4 @@ pub fn exec_main(registry: Registry) -> i32 {
             2
         }
     }
-}
-
-/// How long an `exec` node's program may take to describe itself.
-const DESCRIBE_LIMIT: Duration = Duration::from_secs(10);
-
-/// Asks an `exec` node's program for its ports, checking `params` with the inputs
-/// `connected` (it runs `PROGRAM --describe --params TOML --connected a,b`).
-pub fn describe_exec(
-    program: &Path,
-    params: &toml::Table,
-    connected: &[&str],
-) -> Result<KindSpec, String> {
-    let mut child = std::process::Command::new(program)
-        .arg("--describe")
-        .arg("--params")
-        .arg(toml::to_string(params).map_err(|e| e.to_string())?)
-        .arg("--connected")
-        .arg(connected.join(","))
-        .stdin(std::process::Stdio::null())
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .map_err(|e| {
-            format!(
-                "cannot start '{}': {e}; build it or give the right path",
-                program.display()
-            )
-        })?;
-    let t0 = Instant::now();
-    loop {
-        match child.try_wait() {
-            Ok(Some(_)) => break,
-            Ok(None) if t0.elapsed() < DESCRIBE_LIMIT => {
-                std::thread::sleep(Duration::from_millis(5))
-            }
-            _ => {
-                let _ = child.kill();
-                let _ = child.wait();
-                return Err(format!(
-                    "'{}' did not describe its ports within {} s (is it a microstereo node program?)",
-                    program.display(),
-                    DESCRIBE_LIMIT.as_secs()
-                ));
-            }
-        }
-    }
-    let out = child.wait_with_output().map_err(|e| e.to_string())?;
-    if !out.status.success() {
-        let why = String::from_utf8_lossy(&out.stderr);
-        let why = why.trim().trim_start_matches("error: ");
-        return Err(if why.is_empty() {
-            format!(
-                "'{}' refused to describe its ports ({})",
-                program.display(),
-                out.status
-            )
-        } else {
-            format!("bad params: {why}")
-        });
-    }
-    serde_json::from_slice(&out.stdout).map_err(|e| {
-        format!(
-            "'{}' --describe did not print its ports ({e}); is it a microstereo node program (runtime::process::exec_main)?",
-            program.display()
-        )
-    })
 }

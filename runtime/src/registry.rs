@@ -16,7 +16,7 @@ use crate::launch::{Catalog, Graph, KindSpec, NodeSpec, Port};
 use crate::node::{
     GraphNode, Params, PortDecl, PortSet, Sink, SinkNode, Source, SourceNode, Task, TaskNode, slots,
 };
-use crate::process::NodeStats;
+use crate::stats::NodeStats;
 
 type Check = Box<dyn Fn(&toml::Table, &[&str]) -> Result<(), String> + Send + Sync>;
 type Build = Box<dyn Fn(&NodeSpec) -> Result<Box<dyn GraphNode>, String> + Send + Sync>;

@@ -7,7 +7,8 @@
 //! program. The file is removed when the run ends.
 
 use crate::launch::{Graph, RestartPolicy, Runner};
-use crate::process::{NodeArgs, NodeStats, STATS_PREFIX};
+use crate::process::NodeArgs;
+use crate::stats::{NodeStats, STATS_PREFIX};
 use std::collections::HashMap;
 use std::ffi::OsString;
 use std::path::PathBuf;

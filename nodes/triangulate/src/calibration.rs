@@ -213,6 +213,76 @@ impl Geometry {
     }
 }
 
+/// Depth calibration from a z-stack: each pair shows a flat textured target at a known
+/// stage height `z` (µm, towards the cameras). Its depth is `Z = W − z` (`W`: the working
+/// distance, depth at `z = 0`), and the measured disparity follows `d = B / Z − offset` with
+/// `B = b·f` (baseline × focal length in pixels). With `W` known the fit is linear least
+/// squares in `(B, offset)`; otherwise `W` is found too, by a golden-section search on the
+/// fit's residual (the curvature of `d(z)`).
+/// The fitted model and its residuals.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DepthFit {
+    /// b·f, µm·px.
+    pub b_f: f64,
+    /// Disparity offset (`cx_right − cx`), px.
+    pub offset: f64,
+    /// Working distance used or found, µm.
+    pub working_distance: f64,
+    /// Measured minus modelled disparity per height, px.
+    pub residuals: Vec<f64>,
+}
+
+fn linear_fit(z: &[f64], d: &[f64], w: f64) -> (f64, f64, f64) {
+    // d = B·x − off with x = 1/(W − z).
+    let n = z.len() as f64;
+    let x: Vec<f64> = z.iter().map(|&z| 1.0 / (w - z)).collect();
+    let (mx, md) = (x.iter().sum::<f64>() / n, d.iter().sum::<f64>() / n);
+    let sxx: f64 = x.iter().map(|v| (v - mx) * (v - mx)).sum();
+    let sxd: f64 = x.iter().zip(d).map(|(v, e)| (v - mx) * (e - md)).sum();
+    let b = sxd / sxx;
+    let off = b * mx - md;
+    let rss = x
+        .iter()
+        .zip(d)
+        .map(|(v, e)| (b * v - off - e).powi(2))
+        .sum();
+    (b, off, rss)
+}
+
+/// Fits `d = B/(W − z) − offset` to measured `(z, d)`; `w` fixed or searched.
+pub fn fit_depth(z: &[f64], d: &[f64], w: Option<f64>) -> DepthFit {
+    let zmax = z.iter().copied().fold(f64::MIN, f64::max);
+    let w = w.unwrap_or_else(|| {
+        // Golden section on log(W − zmax) over 1 µm .. 10 m.
+        let f = |t: f64| linear_fit(z, d, zmax + t.exp()).2;
+        let (mut a, mut b) = (0f64, (1e7f64).ln());
+        let g = 0.5 * (5f64.sqrt() - 1.0);
+        let (mut c, mut e) = (b - g * (b - a), a + g * (b - a));
+        for _ in 0..200 {
+            if f(c) < f(e) {
+                b = e;
+            } else {
+                a = c;
+            }
+            c = b - g * (b - a);
+            e = a + g * (b - a);
+        }
+        zmax + (0.5 * (a + b)).exp()
+    });
+    let (b_f, offset, _) = linear_fit(z, d, w);
+    let residuals = z
+        .iter()
+        .zip(d)
+        .map(|(&z, &d)| d - (b_f / (w - z) - offset))
+        .collect();
+    DepthFit {
+        b_f,
+        offset,
+        working_distance: w,
+        residuals,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -277,5 +347,17 @@ mod tests {
             toml::Value::from(inline.clone()),
         )]);
         assert_eq!(g(&toml::to_string(&back).unwrap()).unwrap(), inline);
+    }
+
+    #[test]
+    fn fit_recovers_an_exact_model_with_and_without_the_working_distance() {
+        let (bf, off, w) = (4.8e6, 1200.0, 4000.0);
+        let z: Vec<f64> = (-4..=4).map(|i| 40.0 * i as f64).collect();
+        let d: Vec<f64> = z.iter().map(|z| bf / (w - z) - off).collect();
+        let f = fit_depth(&z, &d, Some(w));
+        assert!((f.b_f / bf - 1.0).abs() < 1e-9 && (f.offset - off).abs() < 1e-6);
+        let g = fit_depth(&z, &d, None);
+        assert!((g.working_distance / w - 1.0).abs() < 1e-3, "{g:?}");
+        assert!((g.b_f / bf - 1.0).abs() < 2e-3, "{g:?}");
     }
 }

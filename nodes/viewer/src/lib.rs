@@ -551,8 +551,9 @@ mod tests {
         let mut sink = Sink::new(rec);
         let path =
             std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../recordings/default.mcap");
-        // 30 MCAP messages: the stereo frames and label pairs are one edge message each.
-        assert_eq!(log_recording(&mut sink, &path).unwrap(), 24);
+        // 34 MCAP messages: the stereo frames and label pairs are one edge message each, and
+        // the CameraInfo is not an edge: 13 edges, 2 frames.
+        assert_eq!(log_recording(&mut sink, &path).unwrap(), 26);
         // Closing a memory stream moves what it holds to the next sink: take it first.
         sink.stream().flush_blocking().unwrap();
         let msgs = storage.take();
@@ -584,9 +585,11 @@ mod tests {
         has("/left/segment/labels", "SegmentationImage");
         has("/left/segment/cells/contours", "LineStrips2D");
         has("/right/segment/cells/contours", "LineStrips2D");
+        // Tiles pasted into their frames, right-based ones under the right camera's name.
         has("/disparity/postprocess/disparity", "DepthImage");
-        has("/disparity/match-rl/disparity", "DepthImage");
-        has("/occlusion/validate/occlusion", "Image");
+        has("/disparity/match/left", "DepthImage");
+        has("/disparity/match/right/right", "DepthImage");
+        has("/disparity/triangulate/disparity", "DepthImage");
         has("/world/triangulate/cloud", "Points3D");
         has("/world/triangulate/targets", "Points3D");
         has("/world/triangulate/targets/contours", "LineStrips3D");
