@@ -50,6 +50,14 @@ def check(path):
                 for c in ros.cells:
                     if len(c.contour) % 3:
                         problems.append(f"{channel.topic}: cell {c.id} contour not x,y,z")
+            elif schema.name == "microstereo_msgs/msg/DisparityTiles":
+                if ros.side not in ("left", "right") or ros.min_disparity >= ros.max_disparity:
+                    problems.append(f"{channel.topic}: tiles side {ros.side!r}, range {ros.min_disparity}..{ros.max_disparity}")
+                for t in ros.tiles:
+                    if len(t.data) != t.width * t.height or t.x + t.width > ros.width or t.y + t.height > ros.height:
+                        problems.append(f"{channel.topic}: tile {t.width}x{t.height} at {t.x},{t.y} with {len(t.data)} values")
+                    if (t.left_cell == 0) != (t.right_cell == 0):
+                        problems.append(f"{channel.topic}: tile of cells {t.left_cell}, {t.right_cell}")
             elif schema.name == "microstereo_msgs/msg/ManipulatorState":
                 if ros.capture_ns != message.publish_time or len(ros.tip) != 3:
                     problems.append(f"{channel.topic}: capture_ns {ros.capture_ns} or tip {list(ros.tip)}")

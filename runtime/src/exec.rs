@@ -76,8 +76,10 @@ impl Frame {
 pub struct InProcess {
     graph: Graph,
     nodes: Vec<Box<dyn GraphNode>>,
-    /// The newest message of every edge (for feedback inputs).
+    /// The newest message of every edge a feedback input reads.
     newest: HashMap<(String, String), Logged>,
+    /// Those edges.
+    fed_back: std::collections::HashSet<(String, String)>,
     seq: u64,
 }
 
@@ -98,10 +100,18 @@ impl InProcess {
 
     /// Runs `graph` with the given node values (one per node, in the graph's order).
     pub fn with_nodes(graph: &Graph, nodes: Vec<Box<dyn GraphNode>>) -> Self {
+        let fed_back = graph
+            .nodes
+            .iter()
+            .flat_map(|n| &n.inputs)
+            .filter(|i| i.feedback)
+            .map(|i| (i.node.clone(), i.output.clone()))
+            .collect();
         Self {
             graph: graph.clone(),
             nodes,
             newest: HashMap::new(),
+            fed_back,
             seq: 0,
         }
     }
@@ -153,7 +163,9 @@ impl InProcess {
                 let name = spec.outputs[port].0.clone();
                 for m in msgs {
                     let key = (spec.id.clone(), name.clone());
-                    self.newest.insert(key.clone(), m.clone());
+                    if self.fed_back.contains(&key) {
+                        self.newest.insert(key.clone(), m.clone());
+                    }
                     frame.edges.insert(key, m);
                 }
             }

@@ -520,6 +520,22 @@ pub struct DisparityTile {
     pub figures: Option<ValidationFigures>,
 }
 
+impl DisparityTile {
+    /// The same tile (place, range, cells, evaluations, figures) with another map of its
+    /// size.
+    pub fn with_map(&self, map: DisparityMap) -> Self {
+        Self {
+            x: self.x,
+            y: self.y,
+            range: self.range,
+            cells: self.cells,
+            map,
+            evaluations: self.evaluations,
+            figures: self.figures,
+        }
+    }
+}
+
 /// Disparity maps of a frame in tiles: one tile for the whole frame, or one per cell pair
 /// (the cells' crops: the method matches only the cells).
 #[derive(Clone, Debug, PartialEq)]

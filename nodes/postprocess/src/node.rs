@@ -3,7 +3,7 @@
 
 use crate::{PostParams, postprocess};
 use runtime::node::{NodeError, Params, Stamp, Task};
-use schemas::{DisparityTile, DisparityTiles, Side};
+use schemas::{DisparityTiles, Side};
 
 impl Params for PostParams {
     fn check(&self) -> Result<(), String> {
@@ -60,13 +60,12 @@ impl Task for Postprocess {
             ));
         }
         Ok(Tiles {
-            disparity: d.map_tiles(Side::Left, |t| DisparityTile {
-                map: if t.map.is_empty() {
-                    t.map.clone()
+            disparity: d.map_tiles(Side::Left, |t| {
+                if t.map.is_empty() {
+                    t.clone()
                 } else {
-                    postprocess(&t.map, &self.params)
-                },
-                ..t.clone()
+                    t.with_map(postprocess(&t.map, &self.params))
+                }
             }),
         })
     }

@@ -59,6 +59,11 @@ runtime::ports! {
     }
 }
 
+/// Moves a checked map out (no copy).
+fn take(m: &mut schemas::DisparityMap) -> schemas::DisparityMap {
+    std::mem::replace(m, schemas::Plane::filled(0, 0, 0.0))
+}
+
 /// Checks each frame's pair of maps.
 #[derive(Debug)]
 pub struct Validate {
@@ -96,7 +101,7 @@ impl Task for Validate {
                 "the left and right tiles differ in layout; both must come from one match".into(),
             ));
         }
-        let checked: Vec<Option<crate::Checked>> = l
+        let mut checked: Vec<Option<crate::Checked>> = l
             .tiles
             .iter()
             .zip(&r.tiles)
@@ -106,23 +111,23 @@ impl Task for Validate {
             .collect();
         let mut k = 0;
         let left = l.map_tiles(Side::Left, |t| {
-            let c = &checked[k];
+            let c = checked[k].as_mut();
             k += 1;
-            DisparityTile {
-                map: c.as_ref().map_or_else(|| t.map.clone(), |c| c.left.clone()),
-                figures: c.as_ref().map(|c| c.figures),
-                ..t.clone()
+            match c {
+                Some(c) => DisparityTile {
+                    figures: Some(c.figures),
+                    ..t.with_map(take(&mut c.left))
+                },
+                None => t.clone(),
             }
         });
         let mut k = 0;
         let right = r.map_tiles(Side::Right, |t| {
-            let c = &checked[k];
+            let c = checked[k].as_mut();
             k += 1;
-            DisparityTile {
-                map: c
-                    .as_ref()
-                    .map_or_else(|| t.map.clone(), |c| c.right.clone()),
-                ..t.clone()
+            match c {
+                Some(c) => t.with_map(take(&mut c.right)),
+                None => t.clone(),
             }
         });
         Ok(ValidateOut { left, right })
