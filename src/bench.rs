@@ -6,8 +6,6 @@ use crate::error::CliError;
 use crate::presets::{Stereo, ids};
 use clap::Args;
 use matcher::Mode;
-use matcher::node::{MatchParams, Region};
-use postprocess::PostParams;
 use schemas::{DisparityRange, DisparityTiles};
 use serde::Serialize;
 use std::path::PathBuf;
@@ -95,23 +93,13 @@ fn bench_pairs(a: &BenchArgs, pairs: &[(String, PathBuf, PathBuf)]) -> Result<()
     let mut lines = Vec::new();
     for (name, left, right) in pairs {
         for mode in [Mode::Paper, Mode::Quality] {
-            let mut matching = MatchParams::new(mode, range, Region::Frame);
-            if let Some(p) = a.paths {
-                matching.paths = p;
-            }
-            let preset = Stereo {
-                left: left.clone(),
-                right: right.clone(),
+            let mut preset = Stereo {
                 frames: repeat as u64,
-                matching,
-                validate: Default::default(),
-                post: Some(match mode {
-                    Mode::Paper => PostParams::WHOLE_PIXEL,
-                    Mode::Quality => PostParams::SUBPIXEL,
-                }),
-                segment: None,
-                geometry: None,
+                ..Stereo::whole_frame(left.clone(), right.clone(), mode, range)
             };
+            if let Some(p) = a.paths {
+                preset.matching.paths = p;
+            }
             let (_, mut run) = preset.start(&[])?;
             let mut runs: Vec<Vec<(String, f64)>> = Vec::new();
             let (mut evals, mut size) = (0, (0, 0));

@@ -6,7 +6,6 @@ use crate::error::CliError;
 use crate::presets::{Stereo, ids};
 use clap::Args;
 use matcher::Mode;
-use matcher::node::{MatchParams, Region};
 use schemas::{Calibration, DisparityRange, LengthUnit};
 use std::path::{Path, PathBuf};
 
@@ -96,14 +95,8 @@ fn target_disparity(
     range: DisparityRange,
 ) -> Result<(f64, (usize, usize)), CliError> {
     let preset = Stereo {
-        left: l.to_path_buf(),
-        right: r.to_path_buf(),
-        frames: 1,
-        matching: MatchParams::new(Mode::Quality, range, Region::Frame),
-        validate: Default::default(),
         post: None,
-        segment: None,
-        geometry: None,
+        ..Stereo::whole_frame(l.to_path_buf(), r.to_path_buf(), Mode::Quality, range)
     };
     let (_, mut run) = preset.start(&[
         ("min_disparity", "--min-disparity"),

@@ -3,10 +3,12 @@
 //! in-process executor on the same node values as `microstereo run`.
 
 use crate::error::CliError;
+use matcher::Mode;
 use matcher::node::{MatchParams, Region};
 use postprocess::PostParams;
 use runtime::exec::InProcess;
 use runtime::launch::{Graph, LaunchFile};
+use schemas::DisparityRange;
 use segment::SegmentParams;
 use std::path::{Path, PathBuf};
 use triangulate::calibration::Geometry;
@@ -75,6 +77,21 @@ fn node(id: &str, kind: &str, inputs: &[(&str, &str)], params: toml::Table) -> t
 }
 
 impl Stereo {
+    /// Whole-frame matching of `left` and `right` over `range` with every default of
+    /// `mode` (its post-processing included), one frame, no triangulation.
+    pub fn whole_frame(left: PathBuf, right: PathBuf, mode: Mode, range: DisparityRange) -> Self {
+        Self {
+            left,
+            right,
+            frames: 1,
+            matching: MatchParams::new(mode, range, Region::Frame),
+            validate: ValidateParams::default(),
+            post: Some(post_for(mode)),
+            segment: None,
+            geometry: None,
+        }
+    }
+
     /// The graph as launch-file text.
     pub fn launch_text(&self) -> String {
         use ids::*;
@@ -171,6 +188,15 @@ impl Stereo {
         let g = self.graph(flags)?;
         let run = InProcess::new(&g, &crate::registry::builtin()).map_err(CliError::Other)?;
         Ok((g, run))
+    }
+}
+
+/// The post-processing that suits a matcher's maps: whole-pixel maps (the paper's) keep
+/// smaller regions than sub-pixel ones.
+pub fn post_for(mode: Mode) -> PostParams {
+    match mode {
+        Mode::Paper => PostParams::WHOLE_PIXEL,
+        Mode::Quality => PostParams::SUBPIXEL,
     }
 }
 

@@ -241,11 +241,7 @@ impl ReconstructArgs {
             margin: self.cell_margin,
             ..MatchParams::new(mode, range, Region::Frame)
         };
-        // Whole-pixel maps (the paper's) keep smaller regions.
-        let mut post = match mode {
-            Mode::Paper => PostParams::WHOLE_PIXEL,
-            Mode::Quality => PostParams::SUBPIXEL,
-        };
+        let mut post = crate::presets::post_for(mode);
         if let Some(m) = self.min_region {
             post.min_region = m;
         }

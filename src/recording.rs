@@ -284,32 +284,25 @@ pub fn test_node(
         })
         .map_err(|e| e.to_string())
     });
-    let mut check = if bridge {
-        let (mut node, served) =
+    let (mut node, extra) = if bridge {
+        let (node, served) =
             manipulator_bridge::testing::under_test(&spec.params).map_err(CliError::Other)?;
-        runtime::harness::check_node(
-            id,
-            node.as_mut(),
-            inputs.len(),
-            &names,
-            recorded,
-            tolerance,
-            Some(("TCP lines".into(), served)),
-        )?
+        (node, Some(("TCP lines".to_string(), served)))
     } else {
-        let mut node = crate::registry::builtin()
+        let node = crate::registry::builtin()
             .build(spec)
             .map_err(CliError::Other)?;
-        runtime::harness::check_node(
-            id,
-            node.as_mut(),
-            inputs.len(),
-            &names,
-            recorded,
-            tolerance,
-            None,
-        )?
+        (node, None)
     };
+    let mut check = runtime::harness::check_node(
+        id,
+        node.as_mut(),
+        inputs.len(),
+        &names,
+        recorded,
+        tolerance,
+        extra,
+    )?;
     check.incomplete = frames.incomplete;
     Ok(check)
 }

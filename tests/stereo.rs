@@ -2,10 +2,8 @@
 //! match → validate → post-process preset, run in-process).
 
 use matcher::Mode;
-use matcher::node::{MatchParams, Region};
 use microstereo::presets::{Stereo, ids};
 use microstereo::reconstruct::{RangeKind, auto_range, candidate_ranges, run_once};
-use postprocess::PostParams;
 use schemas::{DisparityMap, DisparityRange, DisparityTiles, Plane};
 use std::path::{Path, PathBuf};
 use synth::layers::standard_scene;
@@ -27,19 +25,7 @@ fn save(dir: &Path, name: &str, p: &Plane<u8>) -> PathBuf {
 
 /// The stereo graph of a mode over `range` on two image files.
 fn preset(left: PathBuf, right: PathBuf, mode: Mode, range: DisparityRange) -> Stereo {
-    Stereo {
-        left,
-        right,
-        frames: 1,
-        matching: MatchParams::new(mode, range, Region::Frame),
-        validate: Default::default(),
-        post: Some(match mode {
-            Mode::Paper => PostParams::WHOLE_PIXEL,
-            Mode::Quality => PostParams::SUBPIXEL,
-        }),
-        segment: None,
-        geometry: None,
-    }
+    Stereo::whole_frame(left, right, mode, range)
 }
 
 /// The final map of `p`.

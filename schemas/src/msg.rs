@@ -161,83 +161,65 @@ fn decode_n<T: WirePixel, const N: usize>(
     })
 }
 
-/// A stereo pair: left and right grey images of one size (raw or rectified).
-#[derive(Clone, Debug, PartialEq)]
-pub struct StereoFrame {
-    /// Left view.
-    pub left: Plane<u8>,
-    /// Right view.
-    pub right: Plane<u8>,
+/// A message of planes: its fields in wire order, each a plane of one pixel type.
+macro_rules! planes_message {
+    ($(#[$m:meta])* $name:ident, $kind:expr, $px:ty, { $($(#[$fm:meta])* $field:ident),+ }) => {
+        $(#[$m])*
+        #[derive(Clone, Debug, PartialEq)]
+        pub struct $name {
+            $($(#[$fm])* pub $field: Plane<$px>,)+
+        }
+
+        impl Message for $name {
+            const KIND: MessageKind = $kind;
+            fn encode(&self) -> Encoded<'_> {
+                encode_planes(Self::KIND, vec![$(&self.$field),+])
+            }
+            fn decode(h: &FrameHeader, payload: &[u8]) -> Result<Self, WireError> {
+                let [$($field),+] = decode_n(Self::KIND, h, payload)?;
+                Ok(Self { $($field),+ })
+            }
+        }
+    };
 }
 
-impl Message for StereoFrame {
-    const KIND: MessageKind = MessageKind::StereoFrame;
-    fn encode(&self) -> Encoded<'_> {
-        encode_planes(Self::KIND, vec![&self.left, &self.right])
+planes_message!(
+    /// A stereo pair: left and right grey images of one size (raw or rectified).
+    StereoFrame, MessageKind::StereoFrame, u8, {
+        /// Left view.
+        left,
+        /// Right view.
+        right
     }
-    fn decode(h: &FrameHeader, payload: &[u8]) -> Result<Self, WireError> {
-        let [left, right] = decode_n(Self::KIND, h, payload)?;
-        Ok(Self { left, right })
-    }
-}
+);
 
-/// Both views' label images: 0 background, cell `i` labelled `i`.
-#[derive(Clone, Debug, PartialEq)]
-pub struct Labels {
-    /// Left view.
-    pub left: Plane<u32>,
-    /// Right view.
-    pub right: Plane<u32>,
-}
+planes_message!(
+    /// Both views' label images: 0 background, cell `i` labelled `i`.
+    Labels, MessageKind::Labels, u32, {
+        /// Left view.
+        left,
+        /// Right view.
+        right
+    }
+);
 
-impl Message for Labels {
-    const KIND: MessageKind = MessageKind::Labels;
-    fn encode(&self) -> Encoded<'_> {
-        encode_planes(Self::KIND, vec![&self.left, &self.right])
+planes_message!(
+    /// One full-frame disparity map (left-based; +inf where invalid).
+    Disparity, MessageKind::Disparity, f32, {
+        /// The map.
+        map
     }
-    fn decode(h: &FrameHeader, payload: &[u8]) -> Result<Self, WireError> {
-        let [left, right] = decode_n(Self::KIND, h, payload)?;
-        Ok(Self { left, right })
-    }
-}
+);
 
-/// One full-frame disparity map (left-based; +inf where invalid).
-#[derive(Clone, Debug, PartialEq)]
-pub struct Disparity {
-    /// The map.
-    pub map: DisparityMap,
-}
-
-impl Message for Disparity {
-    const KIND: MessageKind = MessageKind::Disparity;
-    fn encode(&self) -> Encoded<'_> {
-        encode_planes(Self::KIND, vec![&self.map])
+planes_message!(
+    /// Left- and right-based full-frame maps.
+    DisparityPair, MessageKind::DisparityPair, f32, {
+        /// Left-based map.
+        left,
+        /// Right-based map.
+        right
     }
-    fn decode(h: &FrameHeader, payload: &[u8]) -> Result<Self, WireError> {
-        let [map] = decode_n(Self::KIND, h, payload)?;
-        Ok(Self { map })
-    }
-}
-
-/// Left- and right-based full-frame maps.
-#[derive(Clone, Debug, PartialEq)]
-pub struct DisparityPair {
-    /// Left-based map.
-    pub left: DisparityMap,
-    /// Right-based map.
-    pub right: DisparityMap,
-}
-
-impl Message for DisparityPair {
-    const KIND: MessageKind = MessageKind::DisparityPair;
-    fn encode(&self) -> Encoded<'_> {
-        encode_planes(Self::KIND, vec![&self.left, &self.right])
-    }
-    fn decode(h: &FrameHeader, payload: &[u8]) -> Result<Self, WireError> {
-        let [left, right] = decode_n(Self::KIND, h, payload)?;
-        Ok(Self { left, right })
-    }
-}
+);
 
 impl WirePixel for [u8; 3] {
     const FORMAT: PixelFormat = PixelFormat::Rgb8;
