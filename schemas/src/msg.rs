@@ -664,11 +664,13 @@ impl Message for DisparityTiles {
                 put_u32(b, &mut at, f.tolerance);
                 put_u32(b, &mut at, t.figures.is_some() as u32);
             }
+            let mut rest = &mut b[at..];
             for t in &self.tiles {
-                for &v in &t.map.data {
-                    b[at..at + 4].copy_from_slice(&v.to_le_bytes());
-                    at += 4;
+                let (this, next) = rest.split_at_mut(4 * t.map.len());
+                for (o, v) in this.chunks_exact_mut(4).zip(&t.map.data) {
+                    o.copy_from_slice(&v.to_le_bytes());
                 }
+                rest = next;
             }
         })
     }

@@ -301,12 +301,14 @@ pub fn planes_header<T: WirePixel>(
 /// Writes `planes` row by row into `out` (sized by [`planes_header`]).
 pub fn write_planes<T: WirePixel>(planes: &[&crate::Plane<T>], out: &mut [u8]) {
     let bpp = T::FORMAT.bytes_per_pixel();
-    let mut i = 0;
+    let mut rest = out;
     for p in planes {
-        for &v in &p.data {
-            v.put(&mut out[i..i + bpp]);
-            i += bpp;
+        let (this, next) = rest.split_at_mut(p.data.len() * bpp);
+        // Whole chunks, no index arithmetic: the loop compiles to straight copies.
+        for (o, &v) in this.chunks_exact_mut(bpp).zip(&p.data) {
+            v.put(o);
         }
+        rest = next;
     }
 }
 
