@@ -4,7 +4,7 @@
 use crate::error::CliError;
 use clap::{Args, ValueEnum};
 use formats::{self as io, IoError};
-use schemas::{Cell, Mask, Plane};
+use schemas::{Cell, Plane};
 use segment::{SegmentParams, Segmentation};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
@@ -126,7 +126,9 @@ pub fn segment_cmd(a: SegmentArgs) -> Result<(), CliError> {
     let t = Instant::now();
     let seg = segment::segment(&img.grey, &params);
     let ms = t.elapsed().as_secs_f64() * 1e3;
-    let score = truth.as_ref().map(|t| score(&seg.mask, t, seg.cells.len()));
+    let score = truth
+        .as_ref()
+        .map(|t| segment::score(&seg.mask, t, seg.cells.len()));
     write_segmentation(&a.output, &a.image, &img.rgb, &seg, &params, score)?;
     let max_label = seg.cells.len();
     if max_label > 65535 {
@@ -155,34 +157,6 @@ pub fn segment_cmd(a: SegmentArgs) -> Result<(), CliError> {
     Ok(())
 }
 
-/// How a segmentation compares with a ground-truth mask.
-#[derive(Clone, Copy, Debug, Serialize, PartialEq)]
-pub struct TruthScore {
-    /// Foreground Dice overlap.
-    pub dice: f64,
-    /// 8-connected components of the truth mask.
-    pub truth_cells: u32,
-    /// Cells found.
-    pub found_cells: usize,
-    /// `found / truth − 1`.
-    pub count_error: f64,
-}
-
-/// Scores a segmentation mask against a truth mask (non-zero = cell) of the same size.
-pub fn score(mask: &Mask, truth: &Mask, found: usize) -> TruthScore {
-    let (_, n) = segment::label(truth, segment::Connectivity::Eight);
-    TruthScore {
-        dice: segment::dice(mask, truth),
-        truth_cells: n,
-        found_cells: found,
-        count_error: if n == 0 {
-            if found == 0 { 0.0 } else { f64::INFINITY }
-        } else {
-            found as f64 / n as f64 - 1.0
-        },
-    }
-}
-
 /// What `segment` writes to cells.json.
 #[derive(Serialize)]
 struct SegmentReport<'a> {
@@ -195,7 +169,7 @@ struct SegmentReport<'a> {
     otsu_threshold: Option<u8>,
     threshold: u16,
     histogram: Vec<u64>,
-    truth: Option<TruthScore>,
+    truth: Option<segment::TruthScore>,
     cells: &'a [Cell],
 }
 
@@ -206,7 +180,7 @@ pub fn write_segmentation(
     rgb: &Plane<[u8; 3]>,
     seg: &Segmentation,
     params: &SegmentParams,
-    truth: Option<TruthScore>,
+    truth: Option<segment::TruthScore>,
 ) -> Result<(), IoError> {
     let werr = |p: &Path, e: &dyn std::fmt::Display| IoError::Write {
         path: p.into(),

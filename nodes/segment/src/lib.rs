@@ -211,6 +211,34 @@ pub fn dice(a: &Mask, b: &Mask) -> f64 {
     }
 }
 
+/// How a segmentation compares with a ground-truth mask.
+#[derive(Clone, Copy, Debug, Serialize, PartialEq)]
+pub struct TruthScore {
+    /// Foreground Dice overlap.
+    pub dice: f64,
+    /// 8-connected components of the truth mask.
+    pub truth_cells: u32,
+    /// Cells found.
+    pub found_cells: usize,
+    /// `found / truth − 1`.
+    pub count_error: f64,
+}
+
+/// Scores a segmentation mask against a truth mask (non-zero = cell) of the same size.
+pub fn score(mask: &Mask, truth: &Mask, found: usize) -> TruthScore {
+    let (_, n) = label(truth, Connectivity::Eight);
+    TruthScore {
+        dice: dice(mask, truth),
+        truth_cells: n,
+        found_cells: found,
+        count_error: if n == 0 {
+            if found == 0 { 0.0 } else { f64::INFINITY }
+        } else {
+            found as f64 / n as f64 - 1.0
+        },
+    }
+}
+
 /// Test masks drawn as text: `#` on, anything else off.
 #[cfg(test)]
 mod testutil {
