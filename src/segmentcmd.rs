@@ -75,6 +75,7 @@ impl SegmentOpts {
         }
     }
 }
+/// Arguments of `microstereo segment`.
 #[derive(Args, Debug)]
 pub struct SegmentArgs {
     /// Microscope image (PNG, JPEG or TIFF; colour is converted to grey).

@@ -76,8 +76,12 @@ impl Frame {
 pub struct InProcess {
     graph: Graph,
     nodes: Vec<Box<dyn GraphNode>>,
-    /// The newest message of every edge a feedback input reads.
-    newest: HashMap<(String, String), Logged>,
+    /// The newest message of every edge a feedback input reads, with its number.
+    newest: HashMap<(String, String), (u64, Logged)>,
+    /// Per `(node, input index)`, the number of the feedback message it got last.
+    delivered: HashMap<(String, usize), u64>,
+    /// Messages sent on fed-back edges so far (numbers them).
+    sent: u64,
     /// Those edges.
     fed_back: std::collections::HashSet<(String, String)>,
     seq: u64,
@@ -100,6 +104,11 @@ impl InProcess {
 
     /// Runs `graph` with the given node values (one per node, in the graph's order).
     pub fn with_nodes(graph: &Graph, nodes: Vec<Box<dyn GraphNode>>) -> Self {
+        assert_eq!(
+            graph.nodes.len(),
+            nodes.len(),
+            "one node value per node of the graph"
+        );
         let fed_back = graph
             .nodes
             .iter()
@@ -111,6 +120,8 @@ impl InProcess {
             graph: graph.clone(),
             nodes,
             newest: HashMap::new(),
+            delivered: HashMap::new(),
+            sent: 0,
             fed_back,
             seq: 0,
         }
@@ -122,8 +133,14 @@ impl InProcess {
         let mut frame = Frame::default();
         for (spec, node) in self.graph.nodes.iter().zip(self.nodes.iter_mut()) {
             let mut out = Collected::default();
+            // Feedback: the newest message its producer sent so far (this frame's when the
+            // producer came first, else an earlier frame's), once, as a node process gets it.
             for (k, i) in spec.inputs.iter().enumerate().filter(|(_, i)| i.feedback) {
-                if let Some((h, p)) = self.newest.get(&(i.node.clone(), i.output.clone())) {
+                let Some((n, (h, p))) = self.newest.get(&(i.node.clone(), i.output.clone())) else {
+                    continue;
+                };
+                let last = self.delivered.insert((spec.id.clone(), k), *n);
+                if last != Some(*n) {
                     node.feedback(
                         k,
                         Msg {
@@ -164,7 +181,8 @@ impl InProcess {
                 for m in msgs {
                     let key = (spec.id.clone(), name.clone());
                     if self.fed_back.contains(&key) {
-                        self.newest.insert(key.clone(), m.clone());
+                        self.sent += 1;
+                        self.newest.insert(key.clone(), (self.sent, m.clone()));
                     }
                     frame.edges.insert(key, m);
                 }

@@ -769,6 +769,22 @@ impl LaunchFile {
                     .chain(&spec.feedback)
                     .position(|p| p.name == i.port)
             });
+            // A node whose inputs are all optional must still read one of them.
+            if !spec.inputs.is_empty()
+                && spec.inputs.iter().all(|p| p.optional)
+                && n.inputs
+                    .keys()
+                    .all(|k| spec.feedback.iter().any(|f| f.name == *k))
+            {
+                err(
+                    &mut errs,
+                    at,
+                    format!(
+                        "node '{id}' reads nothing; connect at least one of its inputs: {}",
+                        port_names(&spec.inputs.iter().collect::<Vec<_>>())
+                    ),
+                );
+            }
             for p in spec.inputs.iter().filter(|p| !p.optional) {
                 if !n.inputs.contains_key(&p.name) {
                     err(
@@ -1050,6 +1066,14 @@ mod tests {
                     feedback: vec![],
                     outputs: vec![port("disparity", MessageKind::Disparity)],
                 },
+                "overlay" => KindSpec {
+                    inputs: vec![Port {
+                        optional: true,
+                        ..port("mask", MessageKind::Image)
+                    }],
+                    feedback: vec![],
+                    outputs: vec![],
+                },
                 _ => return None,
             })
         }
@@ -1296,6 +1320,22 @@ kind = "sink"
                 "g.toml:22: node 't' reads 'ghost/out' but there is no node 'ghost'",
                 "g.toml:24: node 'u': input 'disparity' is not connected; add inputs = { disparity = \"NODE/OUTPUT\" }",
             ]
+        );
+    }
+
+    #[test]
+    fn optional_inputs_may_stay_open_but_a_task_must_read_something() {
+        // The filter's optional mask is not connected: fine.
+        let g = check(
+            "[[node]]\nid = \"a\"\nkind = \"source\"\n\n[[node]]\nid = \"f\"\nkind = \"filter\"\ninputs = { frame = \"a/frame\" }\n",
+        )
+        .unwrap();
+        assert_eq!(g.node("f").unwrap().inputs.len(), 1);
+        // A node with only optional inputs and none connected reads nothing.
+        let m = messages("[[node]]\nid = \"o\"\nkind = \"overlay\"\n");
+        assert_eq!(
+            m,
+            vec!["g.toml:1: node 'o' reads nothing; connect at least one of its inputs: mask"]
         );
     }
 

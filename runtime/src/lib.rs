@@ -3,6 +3,8 @@
 //! - [`node`]: one small trait per node role ([`node::Source`], [`node::Task`],
 //!   [`node::Sink`]) with typed ports ([`ports!`]) and a params type;
 //! - [`registry`]: the node kinds a binary knows, built from those types;
+//! - [`edge`]: queue settings of an edge and the frame clock; [`stats`]: what a node
+//!   reports when it ends;
 //! - [`launch`]: `launch.toml`, checked against the registry, and the graph rewrites
 //!   (recorder and viewer taps, replay sources);
 //! - [`exec`]: the in-process executor (one pipeline: `reconstruct`, `bench` and the tests

@@ -371,7 +371,18 @@ fn decode_inputs<P: PortSet>(
     inputs: &[Msg<'_>],
 ) -> Result<(Stamp, P), String> {
     let stamp = inputs.first().map(Msg::stamp).unwrap_or_default();
-    let msgs: Vec<Option<Msg<'_>>> = slots.iter().map(|s| s.map(|i| inputs[i])).collect();
+    let msgs: Vec<Option<Msg<'_>>> = slots
+        .iter()
+        .map(|s| match s {
+            Some(i) => inputs.get(*i).copied().map(Some).ok_or_else(|| {
+                format!(
+                    "{} input message(s) where the node has more inputs connected",
+                    inputs.len()
+                )
+            }),
+            None => Ok(None),
+        })
+        .collect::<Result<_, _>>()?;
     Ok((stamp, P::decode(&msgs).map_err(|e| e.to_string())?))
 }
 

@@ -233,9 +233,9 @@ impl Registry {
             _ => Err(format!(
                 "this program holds {} node kinds ({}); an exec node's program holds one",
                 self.kinds.iter().filter(|k| k.launchable).count(),
-                self.kinds
+                self.kinds()
                     .iter()
-                    .map(|k| k.name.as_str())
+                    .map(String::as_str)
                     .collect::<Vec<_>>()
                     .join(", ")
             )),

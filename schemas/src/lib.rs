@@ -1,6 +1,6 @@
 //! Message types of microstereo, defined once.
 //!
-//! Every node, the CLI and (later) the transport and recorder use these types, so a
+//! Every node, the CLI, the transport, the recorder and the viewer use these types, so a
 //! disparity map or a point cloud means the same thing everywhere: a [`Plane`] is a dense
 //! row-major image of any pixel type, a [`DisparityMap`] is a `Plane<f32>` where
 //! [`INVALID_DISPARITY`] (+inf, as in Middlebury PFM files) marks "no value", and

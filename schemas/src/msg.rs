@@ -15,7 +15,7 @@
 //! | `cell-list` | [`CellLists`] | JSON |
 //! | `point-cloud` | [`Cloud`] | 15 bytes a point: x, y, z F32, r, g, b |
 //! | `targets` | [`Targets`] | JSON |
-//! | `disparity-pair` | [`DisparityPair`] | left- then right-based F32 map |
+//! | `disparity-pair` | [`DisparityPair`] | left- then right-based F32 map (no built-in node sends it) |
 //! | `manipulator-state` | [`ManipulatorState`] | JSON |
 //! | `disparity-tiles` | [`DisparityTiles`] | binary tile records, then every tile's F32 map |
 
@@ -496,7 +496,8 @@ pub struct DisparityTile {
     /// The tile's map (`width × height` of the rectangle); 0×0 for a pair too narrow to
     /// match.
     pub map: DisparityMap,
-    /// Pixel × disparity evaluations its matcher made.
+    /// Pixel × disparity evaluations its matcher made (the left and the right tile of a
+    /// pair carry the same count: add one side only).
     pub evaluations: u64,
     /// The LR check's figures, once the tile has been validated.
     pub figures: Option<ValidationFigures>,
@@ -681,6 +682,12 @@ impl Message for DisparityTiles {
             kind: Some(Self::KIND),
             reason,
         };
+        if PixelFormat::from_u32(h.format) != Some(PixelFormat::F32) {
+            return Err(bad(format!(
+                "pixel format {} where F32 was expected",
+                h.format
+            )));
+        }
         let n = h.images as usize;
         let records = n
             .checked_mul(TILE_RECORD)
@@ -715,10 +722,12 @@ impl Message for DisparityTiles {
                     "tile {k} ({w}×{th} at {x}, {y}) reaches outside the {width}×{height} frame"
                 )));
             }
-            let bytes = 4 * w * th;
-            let px = b
-                .get(data..data + bytes)
+            let px = w
+                .checked_mul(th)
+                .and_then(|n| n.checked_mul(4))
+                .and_then(|n| b.get(data..data.checked_add(n)?))
                 .ok_or_else(|| bad(format!("{} bytes end inside tile {k}'s map", b.len())))?;
+            let bytes = px.len();
             data += bytes;
             tiles.push(DisparityTile {
                 x,

@@ -60,13 +60,14 @@ pub enum MessageKind {
     Disparity = 3,
     /// Left and right label images (U32), left first.
     Labels = 4,
-    /// Cells of both views and their pairing (JSON).
+    /// Cells of both views (JSON).
     CellList = 5,
     /// Points `[x, y, z]` as F32 and colours as RGB8 (see [`crate::PointCloud`]).
     PointCloud = 6,
     /// Per-cell 3D targets for the manipulator (JSON).
     Targets = 7,
-    /// Left- and right-based disparity maps after matching (F32), left first.
+    /// Left- and right-based full-frame maps (F32), left first; recordings and custom
+    /// nodes may carry it, the built-in nodes send tiles.
     DisparityPair = 8,
     /// Where the manipulator's pipette is and what it is doing (JSON).
     ManipulatorState = 9,

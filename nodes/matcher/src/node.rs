@@ -260,8 +260,8 @@ runtime::ports! {
     }
 }
 
-/// One frame's matching: the tiles of both directions (a direction not asked for is left
-/// invalid).
+/// One frame's matching: the tiles of both directions (in paper mode a direction not asked
+/// for is left invalid; the quality matcher always computes both).
 #[derive(Debug)]
 pub struct Matcher {
     /// Settings.

@@ -151,17 +151,26 @@ pub fn compose(
     checked: &DisparityTiles,
 ) -> Result<Composed, String> {
     let (w, h) = (labels.width, labels.height);
-    if (post.width, post.height) != (w, h) || (checked.width, checked.height) != (w, h) {
-        return Err(format!(
-            "disparity tiles of {}×{} for labels of {w}×{h}",
-            post.width, post.height
-        ));
+    for (what, t) in [("final", post), ("checked", checked)] {
+        if (t.width, t.height) != (w, h) {
+            return Err(format!(
+                "{what} disparity tiles of {}×{} for labels of {w}×{h}",
+                t.width, t.height
+            ));
+        }
+        if t.side != schemas::Side::Left {
+            return Err(format!(
+                "the {what} tiles are right-based; cells are measured on left-based ones (validate/left)"
+            ));
+        }
     }
-    if post.tiles.len() != checked.tiles.len() {
+    if post.tiles.len() != checked.tiles.len() || post.margin != checked.margin {
         return Err(format!(
-            "{} final tiles but {} checked ones",
+            "{} final tiles (margin {}) but {} checked ones (margin {}); both must come from one match",
             post.tiles.len(),
-            checked.tiles.len()
+            post.margin,
+            checked.tiles.len(),
+            checked.margin
         ));
     }
     let margin = post.margin;
@@ -179,7 +188,9 @@ pub fn compose(
         let Some((lid, rid)) = t.cells else {
             return Err("a whole-frame tile among cell tiles".into());
         };
-        if (t.x, t.y, t.map.width, t.map.height) != (c.x, c.y, c.map.width, c.map.height) {
+        if (t.x, t.y, t.map.width, t.map.height, t.cells)
+            != (c.x, c.y, c.map.width, c.map.height, c.cells)
+        {
             return Err(format!(
                 "the final and checked tiles of cell {lid} differ in place"
             ));

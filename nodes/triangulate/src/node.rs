@@ -110,6 +110,11 @@ impl Task for Triangulate {
     fn process(&mut self, stamp: Stamp, i: TriangulateIn) -> Result<TriangulateOut, NodeError> {
         let StereoFrame { left, right } = &i.frame;
         let (w, h) = (left.width, left.height);
+        if i.disparity.side != schemas::Side::Left {
+            return Err(NodeError::Failed(
+                "triangulation takes left-based tiles (postprocess/disparity)".into(),
+            ));
+        }
         if (i.disparity.width, i.disparity.height) != (w, h) {
             return Err(NodeError::Failed(format!(
                 "disparity tiles of {}×{} for frames of {w}×{h}",

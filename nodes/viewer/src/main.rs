@@ -1,7 +1,7 @@
 //! `microstereo-viewer`: the graph in Rerun.
 //!
 //! `microstereo-viewer view REC.mcap [-o OUT.rrd | --connect ADDR]` shows a recording; run
-//! with a node's arguments (`--launch … --id …`, as `microstereo run --viewer …` starts it)
+//! with a node's arguments (`--graph FILE --id ID --instance NAME`, as `microstereo run --viewer …` starts it)
 //! it is a tap on the running graph's edges. Errors: one line, exit code 2.
 
 use clap::Parser;

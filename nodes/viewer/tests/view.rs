@@ -50,7 +50,17 @@ fn bad_input_is_one_error_and_exit_2() {
         "{err}"
     );
     assert!(!dir.path().join("x.rrd").exists());
-    // As a graph node it needs the node arguments.
-    let o = viewer().arg("--launch").output().unwrap();
+    // As a graph node it needs the node arguments, and a graph file that exists.
+    let o = viewer().arg("--graph").output().unwrap();
     assert_eq!(o.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("--graph needs a value"), "{err}");
+    let missing = dir.path().join("none.json");
+    let o = viewer()
+        .args(["--graph", missing.to_str().unwrap(), "--id", "viewer"])
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("cannot read the graph file"), "{err}");
 }
