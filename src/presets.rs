@@ -155,18 +155,8 @@ impl Stereo {
                 nodes.push(node(TRIANGULATE, "triangulate", &inputs, params));
             }
         }
-        // Each node's tables inline, as people write launch files.
-        let mut text = String::new();
-        for n in nodes {
-            text.push_str("[[node]]\n");
-            if let toml::Value::Table(t) = n {
-                for (k, v) in t {
-                    text.push_str(&format!("{k} = {v}\n"));
-                }
-            }
-            text.push('\n');
-        }
-        text
+        let doc = toml::Table::from_iter([("node".to_string(), toml::Value::Array(nodes))]);
+        toml::to_string(&doc).expect("a launch table serialises")
     }
 
     /// The graph, validated against the built-in kinds (`flags` name the parameters in

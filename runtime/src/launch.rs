@@ -1324,6 +1324,24 @@ kind = "sink"
     }
 
     #[test]
+    fn params_may_be_written_as_tables_of_their_own() {
+        // `[node.params]` and `[node.params.sub]` headers, dotted keys: the same table as
+        // inline `params = { … }` (toml 0.8 refused a sub-table without its parent header).
+        let g = check(
+            "[[node]]\nid = \"a\"\nkind = \"source\"\n\n[node.params]\nseed = 3\n\n[[node]]\nid = \"b\"\nkind = \"filter\"\ninputs = { frame = \"a/frame\" }\n",
+        )
+        .unwrap();
+        assert_eq!(g.node("a").unwrap().params["seed"].as_integer(), Some(3));
+        let f = LaunchFile::parse(
+            Path::new("g.toml"),
+            "[[node]]\nid = \"t\"\nkind = \"filter\"\n\n[node.params.calibration]\nbaseline = 1.5\n",
+        )
+        .unwrap();
+        let p = f.decl.node[0].get_ref().params.as_ref().unwrap().get_ref();
+        assert_eq!(p["calibration"]["baseline"].as_float(), Some(1.5));
+    }
+
+    #[test]
     fn optional_inputs_may_stay_open_but_a_task_must_read_something() {
         // The filter's optional mask is not connected: fine.
         let g = check(
