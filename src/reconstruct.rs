@@ -577,8 +577,12 @@ fn write_cells(
     let targets: Targets = f.decode(ids::TRIANGULATE, "targets")?;
     let cloud: Cloud = f.decode(ids::TRIANGULATE, "cloud")?;
     let disparity: Disparity = f.decode(ids::TRIANGULATE, "disparity")?;
-    let composed =
-        triangulate::cells::compose(&labels.left, (&lists.left, &lists.right), &post, &tiles)?;
+    let composed = triangulate::cells::compose(
+        (&labels.left, &triangulate::cells::mask_of(&labels.left)),
+        (&lists.left, &lists.right),
+        &post,
+        &tiles,
+    )?;
     let colour: schemas::Image = f.decode(ids::PAIR, "colour")?;
     let unit = unit_of(&targets.unit);
     let o = &a.output;

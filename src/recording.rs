@@ -197,12 +197,9 @@ pub struct ReplayArgs {
     /// Stop after this many frames (default: the end of the recording).
     #[arg(long)]
     pub frames: Option<u64>,
-    /// Seconds a node gets to end after SIGTERM before it is killed.
-    #[arg(long, default_value_t = 3.0)]
-    pub grace: f64,
-    /// Names this run's shared memory (default: the supervisor's process id).
-    #[arg(long)]
-    pub instance: Option<String>,
+    /// How the processes are run.
+    #[command(flatten)]
+    pub supervision: crate::run::Supervision,
     /// Recording and viewer of the replayed graph.
     #[command(flatten)]
     pub out: OutputOpts,
@@ -233,7 +230,7 @@ pub fn replay(a: ReplayArgs) -> Result<(), CliError> {
         (None, true) => None,
         (None, false) => o.last_sequence.map(|s| s + 1),
     };
-    crate::run::run_graph(&graph, frames, a.grace, a.instance.clone(), &a.out)
+    crate::run::run_graph(&graph, frames, &a.supervision, &a.out)
 }
 
 /// Feeds node `id` of the recording's graph (or of `launch`) its recorded inputs and

@@ -60,6 +60,17 @@ pub struct RunArgs {
     /// Stop after this many frames (run until Ctrl-C without it).
     #[arg(long)]
     pub frames: Option<u64>,
+    /// How the processes are run.
+    #[command(flatten)]
+    pub supervision: Supervision,
+    /// Recording of edges and the Rerun viewer.
+    #[command(flatten)]
+    pub out: OutputOpts,
+}
+
+/// How `run` and `replay` run a graph's processes.
+#[derive(Args, Debug, Clone)]
+pub struct Supervision {
     /// Seconds a node gets to end after SIGTERM before it is killed.
     #[arg(long, default_value_t = 3.0)]
     pub grace: f64,
@@ -67,17 +78,13 @@ pub struct RunArgs {
     /// graphs running side by side do not share edges; readers outside the graph use it.
     #[arg(long)]
     pub instance: Option<String>,
-    /// Recording of edges and the Rerun viewer.
-    #[command(flatten)]
-    pub out: OutputOpts,
 }
 
 /// Runs `graph` as processes and prints the summary.
 pub fn run_graph(
     graph: &Graph,
     frames: Option<u64>,
-    grace: f64,
-    instance: Option<String>,
+    s: &Supervision,
     out: &OutputOpts,
 ) -> Result<(), CliError> {
     let exe = std::env::current_exe()
@@ -87,8 +94,8 @@ pub fn run_graph(
         &runtime::supervisor::RunOptions {
             builtin: vec![exe.into_os_string(), "node".into()],
             frames,
-            grace,
-            instance,
+            grace: s.grace,
+            instance: s.instance.clone(),
         },
     )?;
     runtime::supervisor::print_summary(graph, &report.stats, report.wall, frames);
@@ -114,7 +121,7 @@ pub fn run_cmd(a: RunArgs) -> Result<(), CliError> {
     crate::graphopts::check_viewer_target(&a.out)?;
     let mut graph = load(&a.launch)?;
     a.out.apply(&mut graph)?;
-    run_graph(&graph, a.frames, a.grace, a.instance, &a.out)
+    run_graph(&graph, a.frames, &a.supervision, &a.out)
 }
 
 /// Where `bench-transport` runs the two ends of the edge.

@@ -206,3 +206,119 @@ impl InProcess {
         Ok(log)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::launch::LaunchFile;
+    use crate::node::{NoParams, NoPorts, NodeError, Sink, Source, Stamp, Task};
+    use schemas::{Disparity, Plane};
+    use std::path::Path;
+    use std::sync::Mutex;
+
+    crate::ports! {
+        /// One map.
+        pub struct Map {
+            /// The map.
+            pub map: Disparity,
+        }
+    }
+
+    /// Frame `n` is a 2×1 map of `n`; three frames.
+    struct Count;
+    impl Source for Count {
+        const KIND: &'static str = "count";
+        type Params = NoParams;
+        type Output = Map;
+        type Feedback = NoPorts;
+        type Error = NodeError;
+        fn new(_: NoParams) -> Result<Self, NodeError> {
+            Ok(Count)
+        }
+        fn produce(&mut self, seq: u64) -> Result<Option<(u64, Map)>, NodeError> {
+            let map = Plane::filled(2, 1, seq as f32);
+            Ok((seq < 3).then_some((
+                1000 + seq,
+                Map {
+                    map: Disparity { map },
+                },
+            )))
+        }
+    }
+
+    struct Double;
+    impl Task for Double {
+        const KIND: &'static str = "double";
+        type Params = NoParams;
+        type Input = Map;
+        type Output = Map;
+        type Error = NodeError;
+        fn new(_: NoParams) -> Result<Self, NodeError> {
+            Ok(Double)
+        }
+        fn process(&mut self, _: Stamp, mut i: Map) -> Result<Map, NodeError> {
+            i.map.map.data.iter_mut().for_each(|v| *v *= 2.0);
+            Ok(i)
+        }
+    }
+
+    static SEEN: Mutex<Vec<(Stamp, f32)>> = Mutex::new(Vec::new());
+
+    struct Keep;
+    impl Sink for Keep {
+        const KIND: &'static str = "keep";
+        type Params = NoParams;
+        type Input = Map;
+        type Error = NodeError;
+        fn new(_: NoParams) -> Result<Self, NodeError> {
+            Ok(Keep)
+        }
+        fn consume(&mut self, stamp: Stamp, i: Map) -> Result<(), NodeError> {
+            SEEN.lock().unwrap().push((stamp, i.map.map.data[0]));
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn a_source_a_task_and_a_sink_run_frame_by_frame_with_their_stamps() {
+        let kinds = Registry::new()
+            .source::<Count>()
+            .task::<Double>()
+            .sink::<Keep>();
+        let text = "[[node]]\nid = \"c\"\nkind = \"count\"\n\n[[node]]\nid = \"d\"\nkind = \"double\"\ninputs = { map = \"c/map\" }\n\n[[node]]\nid = \"k\"\nkind = \"keep\"\ninputs = { map = \"d/map\" }\n";
+        let g = LaunchFile::parse(Path::new("t.toml"), text)
+            .unwrap()
+            .validate(&kinds)
+            .unwrap();
+        let log = InProcess::new(&g, &kinds).unwrap().run(10).unwrap();
+        // Three frames, then the source has no more.
+        assert_eq!(log[&("d".to_string(), "map".to_string())].len(), 3);
+        let seen = SEEN.lock().unwrap().clone();
+        let want: Vec<(Stamp, f32)> = (0..3)
+            .map(|n| {
+                (
+                    Stamp {
+                        sequence: n,
+                        capture_ns: 1000 + n,
+                    },
+                    2.0 * n as f32,
+                )
+            })
+            .collect();
+        assert_eq!(seen, want);
+        // Unknown params are refused by the params type.
+        let bad = text.replace(
+            "kind = \"double\"\n",
+            "kind = \"double\"\nparams = { gain = 2 }\n",
+        );
+        let e = LaunchFile::parse(Path::new("t.toml"), &bad)
+            .unwrap()
+            .validate(&kinds)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("t.toml:8: node 'd': bad params: unknown field `gain`"),
+            "{e}"
+        );
+    }
+}

@@ -187,7 +187,7 @@ fn compare(
     // Pixel maps compare value by value; a tiles message has records before its floats,
     // which must agree exactly.
     let skip = if MessageKind::from_u32(wh.kind) == Some(MessageKind::DisparityTiles) {
-        16 + 88 * wh.images as usize
+        schemas::msg::tile_records_len(wh.images as usize)
     } else {
         0
     };

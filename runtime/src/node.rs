@@ -174,9 +174,6 @@ pub enum NodeError {
         /// What does not fit.
         error: WireError,
     },
-    /// The node's parameters.
-    #[error("bad params: {0}")]
-    Params(String),
     /// The node failed.
     #[error("{0}")]
     Failed(String),

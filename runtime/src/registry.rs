@@ -52,11 +52,16 @@ impl std::fmt::Debug for Registry {
     }
 }
 
+/// Reads a `params` table (or part of one) into a settings type, without checks.
+pub fn from_table<T: serde::de::DeserializeOwned>(t: &toml::Table) -> Result<T, String> {
+    toml::Value::Table(t.clone())
+        .try_into()
+        .map_err(|e: toml::de::Error| e.message().to_string())
+}
+
 /// Reads a node's `params` table into its parameter type and checks it.
 pub fn parse_params<P: Params>(t: &toml::Table) -> Result<P, String> {
-    let p: P = toml::Value::Table(t.clone())
-        .try_into()
-        .map_err(|e: toml::de::Error| e.message().to_string())?;
+    let p: P = from_table(t)?;
     p.check()?;
     Ok(p)
 }
@@ -269,17 +274,6 @@ impl Registry {
             Some(How::Tap(m)) => Some(m),
             _ => None,
         }
-    }
-
-    /// The launchable kinds with their ports, as JSON (what `--describe` prints).
-    pub fn describe(&self) -> String {
-        let v: Vec<(String, &KindSpec)> = self
-            .kinds
-            .iter()
-            .filter(|k| k.launchable)
-            .map(|k| (k.name.clone(), &k.spec))
-            .collect();
-        serde_json::to_string(&v).expect("serialises")
     }
 }
 

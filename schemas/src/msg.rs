@@ -240,16 +240,21 @@ pub enum Image {
     Rgb(Plane<[u8; 3]>),
 }
 
+/// A grey image in colour (grey replicated).
+pub fn grey_to_rgb(p: &Plane<u8>) -> Plane<[u8; 3]> {
+    Plane {
+        width: p.width,
+        height: p.height,
+        data: p.data.iter().map(|&g| [g, g, g]).collect(),
+    }
+}
+
 impl Image {
     /// The image in colour (grey replicated).
     pub fn to_rgb(&self) -> Plane<[u8; 3]> {
         match self {
             Image::Rgb(p) => p.clone(),
-            Image::Grey(p) => Plane {
-                width: p.width,
-                height: p.height,
-                data: p.data.iter().map(|&g| [g, g, g]).collect(),
-            },
+            Image::Grey(p) => grey_to_rgb(p),
         }
     }
 
@@ -542,6 +547,11 @@ const TILES_PREAMBLE: usize = 16;
 /// Bytes of one tile record.
 const TILE_RECORD: usize = 88;
 
+/// Bytes of a tiles message before its maps (the preamble and `tiles` records).
+pub fn tile_records_len(tiles: usize) -> usize {
+    TILES_PREAMBLE + TILE_RECORD * tiles
+}
+
 impl DisparityTiles {
     /// One tile holding the whole frame's `map`.
     pub fn whole(side: Side, range: DisparityRange, map: DisparityMap, evaluations: u64) -> Self {
@@ -634,7 +644,7 @@ impl Message for DisparityTiles {
             images: self.tiles.len() as u32,
             ..FrameHeader::default()
         };
-        let records = TILES_PREAMBLE + TILE_RECORD * self.tiles.len();
+        let records = tile_records_len(self.tiles.len());
         let len = records + 4 * self.matched_pixels() as usize;
         Encoded::new(header, len, move |b| {
             let mut at = 0;

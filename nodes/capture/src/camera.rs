@@ -45,7 +45,7 @@ fn default_skew() -> f64 {
 impl CameraParams {
     /// Reads a `params` table.
     pub fn from_table(t: &toml::Table) -> Result<Self, String> {
-        crate::read_params(t)
+        runtime::registry::from_table(t)
     }
 }
 

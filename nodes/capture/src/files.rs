@@ -25,7 +25,7 @@ pub struct FileParams {
 impl FileParams {
     /// Reads a `params` table.
     pub fn from_table(t: &toml::Table) -> Result<Self, String> {
-        crate::read_params(t)
+        runtime::registry::from_table(t)
     }
 }
 

@@ -23,13 +23,6 @@ use schemas::{Image, ManipulatorState, StereoFrame};
 use serde::Deserialize;
 use std::path::PathBuf;
 
-/// Reads a `params` table into a settings type.
-pub(crate) fn read_params<T: serde::de::DeserializeOwned>(t: &toml::Table) -> Result<T, String> {
-    toml::Value::Table(t.clone())
-        .try_into()
-        .map_err(|e: toml::de::Error| e.message().to_string())
-}
-
 /// `params` of a capture node: those of its `source`.
 #[derive(Clone, Debug)]
 pub enum CaptureParams {

@@ -59,7 +59,7 @@ fn default_drift() -> f64 {
 impl SyntheticParams {
     /// Reads and checks a `params` table.
     pub fn from_table(t: &toml::Table) -> Result<Self, String> {
-        let p: Self = crate::read_params(t)?;
+        let p: Self = runtime::registry::from_table(t)?;
         if !(16..=8192).contains(&p.width) || !(16..=8192).contains(&p.height) {
             return Err(format!(
                 "{}×{} is not a frame size (16..8192)",

@@ -392,61 +392,79 @@ fn cells_of<'a>(
     }
 }
 
-macro_rules! match_kind {
-    ($(#[$m:meta])* $name:ident, $kind:literal, $out:ident, $dirs:expr, |$l:ident, $r:ident| $make:expr) => {
-        $(#[$m])*
-        #[derive(Debug)]
-        pub struct $name(pub Matcher);
-
-        impl Task for $name {
-            const KIND: &'static str = $kind;
-            type Params = MatchParams;
-            type Input = MatchIn;
-            type Output = $out;
-            type Error = NodeError;
-
-            fn new(params: MatchParams) -> Result<Self, NodeError> {
-                Ok(Self(Matcher::new(params)))
-            }
-
-            fn check_inputs(p: &MatchParams, connected: &[&str]) -> Result<(), String> {
-                check_region(p, connected)
-            }
-
-            fn process(&mut self, _: Stamp, i: MatchIn) -> Result<$out, NodeError> {
-                let cells = cells_of(&self.0.params, i.cells.as_ref())?;
-                let ($l, $r) = self
-                    .0
-                    .run(&i.frame, cells, $dirs)
-                    .map_err(|e| NodeError::Failed(e.to_string()))?;
-                let _ = (&$l, &$r);
-                Ok($make)
-            }
-        }
-    };
+/// What a match kind sends: which directions it matches and how its outputs hold them.
+pub trait Directed: runtime::node::PortSet + 'static {
+    /// The kind's name in launch files.
+    const KIND: &'static str;
+    /// The directions it matches.
+    const DIRECTIONS: Directions;
+    /// Its outputs from the left- and right-based tiles.
+    fn from_tiles(left: DisparityTiles, right: DisparityTiles) -> Self;
 }
 
-match_kind!(
-    /// `match`: both directions in one pass.
-    Match,
-    "match",
-    BothOut,
-    Directions::Both,
-    |left, right| BothOut { left, right }
-);
-match_kind!(
-    /// `match-lr`: the left-based direction only.
-    MatchLr,
-    "match-lr",
-    LeftOut,
-    Directions::LeftToRight,
-    |left, right| LeftOut { left }
-);
-match_kind!(
-    /// `match-rl`: the right-based direction only.
-    MatchRl,
-    "match-rl",
-    RightOut,
-    Directions::RightToLeft,
-    |left, right| RightOut { right }
-);
+impl Directed for BothOut {
+    const KIND: &'static str = "match";
+    const DIRECTIONS: Directions = Directions::Both;
+    fn from_tiles(left: DisparityTiles, right: DisparityTiles) -> Self {
+        Self { left, right }
+    }
+}
+
+impl Directed for LeftOut {
+    const KIND: &'static str = "match-lr";
+    const DIRECTIONS: Directions = Directions::LeftToRight;
+    fn from_tiles(left: DisparityTiles, _: DisparityTiles) -> Self {
+        Self { left }
+    }
+}
+
+impl Directed for RightOut {
+    const KIND: &'static str = "match-rl";
+    const DIRECTIONS: Directions = Directions::RightToLeft;
+    fn from_tiles(_: DisparityTiles, right: DisparityTiles) -> Self {
+        Self { right }
+    }
+}
+
+/// A match node sending the directions of `O`.
+#[derive(Debug)]
+pub struct Matching<O> {
+    /// The matcher and its settings.
+    pub matcher: Matcher,
+    out: std::marker::PhantomData<O>,
+}
+
+/// `match`: both directions in one pass.
+pub type Match = Matching<BothOut>;
+/// `match-lr`: the left-based direction only.
+pub type MatchLr = Matching<LeftOut>;
+/// `match-rl`: the right-based direction only.
+pub type MatchRl = Matching<RightOut>;
+
+impl<O: Directed> Task for Matching<O> {
+    const KIND: &'static str = O::KIND;
+    type Params = MatchParams;
+    type Input = MatchIn;
+    type Output = O;
+    type Error = NodeError;
+
+    fn new(params: MatchParams) -> Result<Self, NodeError> {
+        Ok(Self {
+            matcher: Matcher::new(params),
+            out: std::marker::PhantomData,
+        })
+    }
+
+    fn check_inputs(p: &MatchParams, connected: &[&str]) -> Result<(), String> {
+        check_region(p, connected)
+    }
+
+    fn process(&mut self, _: Stamp, i: MatchIn) -> Result<O, NodeError> {
+        let cells = cells_of(&self.matcher.params, i.cells.as_ref())?;
+        let (left, right) = self
+            .matcher
+            .run(&i.frame, cells, O::DIRECTIONS)
+            .map_err(|e| NodeError::Failed(e.to_string()))?;
+        Ok(O::from_tiles(left, right))
+    }
+}

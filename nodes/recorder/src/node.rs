@@ -47,12 +47,6 @@ pub struct Cameras {
     pub height: usize,
 }
 
-fn read<T: serde::de::DeserializeOwned>(t: &toml::Table) -> Result<T, String> {
-    toml::Value::Table(t.clone())
-        .try_into()
-        .map_err(|e: toml::de::Error| e.message().to_string())
-}
-
 /// A message taken from an edge, on its way to the writer thread.
 struct Taken {
     input: usize,
@@ -76,7 +70,7 @@ pub fn run_recorder(
     let spec = graph
         .node(id)
         .ok_or_else(|| format!("no node '{id}' in {}", graph.file.display()))?;
-    let p: RecorderParams = read(&spec.params)?;
+    let p: RecorderParams = runtime::registry::from_table(&spec.params)?;
     let edges = graph.input_edges(id);
     let mut writer = RecordingWriter::create(&p.path, p.overwrite).map_err(|e| e.to_string())?;
     if !graph.text.is_empty() {
@@ -197,7 +191,7 @@ pub struct ReplayNode {
 impl ReplayNode {
     /// The replay source that a graph rewrite put in place of a recorded node.
     pub fn from_spec(spec: &NodeSpec) -> Result<Self, String> {
-        let p: ReplayParams = read(&spec.params)?;
+        let p: ReplayParams = runtime::registry::from_table(&spec.params)?;
         let outputs: Vec<String> = spec.outputs.iter().map(|(p, _)| p.clone()).collect();
         Self::new(p, &outputs)
     }

@@ -142,10 +142,10 @@ pub fn mask_of(labels: &Plane<u32>) -> Mask {
 
 /// Pastes each cell pair's tile of the post-processed (`post`) and LR-checked (`checked`)
 /// maps where its left cell owns the pixel: the cell itself, and the background within the
-/// tiles' margin of it (a later pair's ring wins where two overlap). `labels` and `cells`
-/// are the left view's; `right` the right view's cells.
+/// tiles' margin of it (a later pair's ring wins where two overlap). `labels`, its
+/// [`mask_of`] and `cells` are the left view's; `right` the right view's cells.
 pub fn compose(
-    labels: &Plane<u32>,
+    (labels, mask): (&Plane<u32>, &Mask),
     (cells, right): (&[Cell], &[Cell]),
     post: &DisparityTiles,
     checked: &DisparityTiles,
@@ -177,7 +177,7 @@ pub fn compose(
     let mut disparity = Plane::filled(w, h, INVALID_DISPARITY);
     let mut raw = Plane::filled(w, h, INVALID_DISPARITY);
     let mut occlusion = Plane::filled(w, h, 0u8);
-    let support = segment::dilate(&mask_of(labels), margin);
+    let support = segment::dilate(mask, margin);
     let index = |list: &[Cell], id: u32, view: &str| {
         list.iter()
             .position(|c| c.id == id)

@@ -124,19 +124,16 @@ impl Task for Triangulate {
         let calib = self.calibration(w, h)?;
         let (map, cells, substrate) = match (&i.labels, &i.cells, &i.checked) {
             (Some(labels), Some(lists), Some(checked)) => {
+                let left_mask = mask_of(&labels.left);
                 let c = compose(
-                    &labels.left,
+                    (&labels.left, &left_mask),
                     (&lists.left, &lists.right),
                     &i.disparity,
                     checked,
                 )?;
                 let (substrate, bases, tops) = cell_heights(
                     (left, right),
-                    (
-                        &labels.left,
-                        &mask_of(&labels.left),
-                        &mask_of(&labels.right),
-                    ),
+                    (&labels.left, &left_mask, &mask_of(&labels.right)),
                     &lists.left,
                     &c.pairs,
                     (&c.disparity, &c.raw),
@@ -163,7 +160,7 @@ impl Task for Triangulate {
                     c.size().1
                 )));
             }
-            None => Image::Grey(left.clone()).to_rgb(),
+            None => schemas::msg::grey_to_rgb(left),
         };
         let cloud = crate::triangulate(&map, &calib, &rgb);
         Ok(TriangulateOut {
