@@ -70,6 +70,9 @@ type EdgeData =
 /// The wake-up half of an edge.
 type EdgeEvents = iceoryx2::service::port_factory::event::PortFactory<Service>;
 
+/// How long a named reader waits for its edge's writer before it is created anyway.
+pub const WRITER_WAIT: Duration = Duration::from_secs(30);
+
 /// Largest number of readers of one edge.
 const MAX_READERS: usize = 16;
 
@@ -188,7 +191,12 @@ impl Transport {
     }
 
     /// The reading end of `edge` under `name`, which the writer can see
-    /// ([`EdgePublisher::reader_names`]).
+    /// ([`EdgePublisher::reader_names`]). A named reader is created only once the edge has
+    /// its writer (within [`WRITER_WAIT`]): a subscriber connects to the publishers that
+    /// exist when it is created, before the writer can see it, but to a later publisher
+    /// only when it next receives. A writer that saw the name and sent two frames into a
+    /// depth-1 queue before that lost the second: iceoryx2 drops a sample for a receiver
+    /// that is not connected yet when its queue is full, even on a lossless edge.
     pub fn reader(
         &self,
         edge: &str,
@@ -196,6 +204,26 @@ impl Transport {
         name: Option<&str>,
     ) -> Result<EdgeSubscriber, TransportError> {
         let (pubsub, event) = self.services(edge, cfg)?;
+        if name.is_some() {
+            use iceoryx2::service::port_factory::PortFactory;
+            let t0 = std::time::Instant::now();
+            while pubsub.dynamic_config().number_of_publishers() == 0 {
+                if t0.elapsed() > WRITER_WAIT {
+                    eprintln!(
+                        "warning: edge '{edge}' has no writer after {} s; reading it anyway",
+                        WRITER_WAIT.as_secs()
+                    );
+                    break;
+                }
+                if !self.sleep(Duration::from_millis(1)) {
+                    return Err(TransportError::Iceoryx {
+                        edge: edge.into(),
+                        what: "waiting for the writer",
+                        reason: "the node was asked to stop".into(),
+                    });
+                }
+            }
+        }
         // The listener first: a writer that sees the subscriber may send (and notify) at once.
         let listener = event
             .listener_builder()
