@@ -154,10 +154,10 @@ pub struct ReconstructArgs {
     /// How invalid pixels are filled.
     #[arg(long, value_enum, default_value = "background")]
     fill: FillArg,
-    /// Baseline for triangulation (in `--unit`).
+    /// Baseline for triangulation (in `--unit`, which it requires).
     #[arg(
         long,
-        requires = "focal",
+        requires_all = ["focal", "unit"],
         conflicts_with = "calibration",
         allow_hyphen_values = true
     )]
@@ -174,9 +174,10 @@ pub struct ReconstructArgs {
     /// Right principal point column (default: `--cx`).
     #[arg(long, allow_hyphen_values = true)]
     cx_right: Option<f64>,
-    /// Unit of `--baseline` and of the point cloud.
-    #[arg(long, value_enum, default_value = "mm")]
-    unit: UnitArg,
+    /// Unit of `--baseline`, and so of every length written and printed (µm for a
+    /// microscope: `um`). Required with `--baseline`: no unit is assumed.
+    #[arg(long, value_enum, requires = "baseline")]
+    unit: Option<UnitArg>,
     /// Calibration file (TOML or JSON): baseline, focal_px or f_eff + pixel_pitch, cx, cy, unit.
     #[arg(long)]
     calibration: Option<PathBuf>,
@@ -276,7 +277,7 @@ impl ReconstructArgs {
                 cx: self.cx,
                 cy: self.cy,
                 cx_right: self.cx_right.or(self.cx),
-                unit: Some(match self.unit {
+                unit: self.unit.map(|u| match u {
                     UnitArg::Um => LengthUnit::Um,
                     UnitArg::Mm => LengthUnit::Mm,
                     UnitArg::M => LengthUnit::M,
@@ -635,17 +636,29 @@ fn write_cells(
         100.0 * report.matched_share
     );
     for c in &targets.cells {
+        let u = unit.symbol();
+        let height = match (c.height, c.quality.height_std) {
+            (Some(h), Some(s)) => format!("height {h:.2} ± {s:.2} {u}"),
+            (Some(h), None) => format!("height {h:.2} {u}"),
+            (None, _) => "no height".into(),
+        };
+        let trust = match &c.quality.doubt {
+            None => String::new(),
+            Some(why) => format!(" — NOT TRUSTED: {why}"),
+        };
         println!(
-            "cell {:>3}: centroid ({:.1}, {:.1}) px, height {:.2} {u}, volume {:.0} {u}³, 3D centroid ({:.1}, {:.1}, {:.1})",
+            "cell {:>3}: centroid ({:.1}, {:.1}) px, {height}, volume {:.0} {u}³, 3D centroid ({:.1}, {:.1}, {:.1}) {u}, substrate from {}{trust}",
             c.id,
             c.centroid_px[0],
             c.centroid_px[1],
-            c.height,
             c.volume,
             c.centroid[0],
             c.centroid[1],
             c.centroid[2],
-            u = unit.symbol()
+            serde_json::to_value(c.quality.substrate)
+                .ok()
+                .and_then(|v| v.as_str().map(String::from))
+                .unwrap_or_default(),
         );
     }
     println!(

@@ -54,6 +54,10 @@ pub struct SegmentOpts {
     /// peeling it back where it looks like background (the paper's plain threshold).
     #[arg(long)]
     no_peel: bool,
+    /// Keep thin arcs around a larger object (an embryo's zona pellucida) as objects of
+    /// their own instead of joining them to it.
+    #[arg(long)]
+    no_absorb_rings: bool,
 }
 
 impl SegmentOpts {
@@ -72,6 +76,7 @@ impl SegmentOpts {
             open_radius: self.open,
             close_radius: self.close,
             peel_edges: !self.no_peel,
+            absorb_rings: !self.no_absorb_rings,
         }
     }
 }

@@ -66,6 +66,71 @@ pub struct SynthArgs {
     /// `calibrate-depth`).
     #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
     pub stage_heights: Option<Vec<f64>>,
+    /// Appearance preset: `dic` (textured cells with relief, a faintly textured substrate)
+    /// or `brightfield` (a textureless substrate under a gradient and vignetting, darker
+    /// cells with a dark membrane rim). The flags below change single properties of it.
+    #[arg(long, value_enum, default_value_t = LookPreset::Dic)]
+    pub look: LookPreset,
+    /// The substrate's disparity at the image centre, px (the microscope focused above it:
+    /// positive; default 0, the focal plane on the substrate).
+    #[arg(long, allow_hyphen_values = true)]
+    pub substrate_disparity: Option<f64>,
+    /// Substrate texture: none, faint or strong (default: the look's).
+    #[arg(long, value_enum)]
+    pub substrate_texture: Option<TextureLevel>,
+    /// Substrate tilt about the y and the x axis, degrees (each at most 10).
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
+    pub tilt: Option<Vec<f64>>,
+    /// Lighting gradient across the field of view, grey levels.
+    #[arg(long, allow_hyphen_values = true)]
+    pub gradient: Option<f64>,
+    /// Vignetting: the share of brightness lost at the corners (0..0.9).
+    #[arg(long)]
+    pub vignetting: Option<f64>,
+    /// Darkening of the membrane rim where cells meet the substrate, grey levels (0..170).
+    #[arg(long)]
+    pub rim: Option<f64>,
+    /// Cell height profile: dome (ellipsoid), cap (paraboloid) or spread (flat top).
+    #[arg(long, value_enum, default_value_t = ProfileArg::Dome)]
+    pub profile: ProfileArg,
+    /// Outline irregularity: the largest amplitude of each of the radius's 2nd–4th
+    /// harmonics, as a share of it (0..0.15; 0: ellipses).
+    #[arg(long, default_value_t = 0.0)]
+    pub irregular: f64,
+    /// Scatter this many debris particles on the substrate.
+    #[arg(long, default_value_t = 0)]
+    pub debris: usize,
+}
+
+/// `--look` values.
+#[derive(clap::ValueEnum, Clone, Copy, Debug)]
+pub enum LookPreset {
+    /// Textured cells with relief shading, a faintly textured substrate.
+    Dic,
+    /// A textureless substrate under uneven light, darker cells with a membrane rim.
+    Brightfield,
+}
+
+/// `--substrate-texture` values.
+#[derive(clap::ValueEnum, Clone, Copy, Debug)]
+pub enum TextureLevel {
+    /// No texture: only noise.
+    None,
+    /// The default faint texture.
+    Faint,
+    /// A strongly textured substrate.
+    Strong,
+}
+
+/// `--profile` values.
+#[derive(clap::ValueEnum, Clone, Copy, Debug)]
+pub enum ProfileArg {
+    /// Ellipsoidal dome.
+    Dome,
+    /// Paraboloid cap.
+    Cap,
+    /// Flattened spread cell.
+    Spread,
 }
 
 /// What truth.json holds.
@@ -172,12 +237,64 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
         f_eff: a.f_eff,
         baseline: a.baseline,
     };
-    let look = Look {
-        noise: a.noise.max(0.0),
-        blur: a.blur.max(0.0),
-        texture,
-        ..Look::default()
+    let mut look = match a.look {
+        LookPreset::Dic => Look::default(),
+        LookPreset::Brightfield => Look::brightfield(),
     };
+    look.noise = a.noise.max(0.0);
+    look.blur = a.blur.max(0.0);
+    look.texture = texture;
+    if let Some(t) = a.substrate_texture {
+        look.substrate_texture = match t {
+            TextureLevel::None => 0.0,
+            TextureLevel::Faint => Look::default().substrate_texture,
+            TextureLevel::Strong => 30.0,
+        };
+    }
+    let ranged = [
+        ("--gradient", a.gradient, -170.0, 170.0),
+        ("--vignetting", a.vignetting, 0.0, 0.9),
+        ("--rim", a.rim, 0.0, 170.0),
+        (
+            "--substrate-disparity",
+            a.substrate_disparity,
+            -1000.0,
+            1000.0,
+        ),
+    ];
+    for (n, v, lo, hi) in ranged {
+        if let Some(v) = v {
+            if !(lo..=hi).contains(&v) {
+                return Err(other(format!("{n} {v} is out of range: use {lo}..{hi}")));
+            }
+        }
+    }
+    if !(0.0..=0.15).contains(&a.irregular) {
+        return Err(other(format!(
+            "--irregular {} is out of range: use 0..0.15",
+            a.irregular
+        )));
+    }
+    let tilt = match a.tilt.as_deref() {
+        None => [0.0; 2],
+        Some([x, y]) if x.abs() <= 10.0 && y.abs() <= 10.0 => {
+            [x.to_radians().tan(), y.to_radians().tan()]
+        }
+        Some(t) => {
+            return Err(other(format!(
+                "--tilt {t:?} takes two angles in degrees, about y and about x, each within ±10 (e.g. --tilt 2,-1)"
+            )));
+        }
+    };
+    if let Some(g) = a.gradient {
+        look.gradient = g;
+    }
+    if let Some(v) = a.vignetting {
+        look.vignetting = v;
+    }
+    if let Some(r) = a.rim {
+        look.rim = r;
+    }
     std::fs::create_dir_all(&a.output).map_err(|e| {
         other(format!(
             "cannot create output directory '{}': {e}",
@@ -209,9 +326,22 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
         count: a.cells,
         diameter: [a.diameter[0], a.diameter[1]],
         height: [a.cell_height[0], a.cell_height[1]],
+        profile: match a.profile {
+            ProfileArg::Dome => synth::Profile::Dome,
+            ProfileArg::Cap => synth::Profile::Cap,
+            ProfileArg::Spread => synth::Profile::Spread,
+        },
+        irregular: a.irregular,
         ..CellSpec::default()
     };
     let mut scene = Scene::random(optics, look, &spec, a.seed);
+    scene.tilt = tilt;
+    if let Some(d) = a.substrate_disparity {
+        scene = scene.with_substrate_disparity(d);
+    }
+    if a.debris > 0 {
+        scene = scene.with_debris(a.debris, [1.0, 4.0], a.seed);
+    }
     if let Some(h) = a.pipette {
         let s = optics.um_per_px();
         scene.pipette = Some(Pipette {

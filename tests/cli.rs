@@ -253,6 +253,21 @@ fn bad_input_gives_one_clear_error_and_keeps_existing_outputs() {
             vec!["reconstruct", l, r, "-o", oo, "--lr-tolerance", "7"],
             "--lr-tolerance",
         ),
+        // No unit is assumed for a baseline: µm and mm differ a thousandfold.
+        (
+            vec![
+                "reconstruct",
+                l,
+                r,
+                "-o",
+                oo,
+                "--baseline",
+                "160",
+                "--focal",
+                "935",
+            ],
+            "--unit",
+        ),
         (
             vec![
                 "reconstruct",
@@ -264,6 +279,8 @@ fn bad_input_gives_one_clear_error_and_keeps_existing_outputs() {
                 "-1",
                 "--focal",
                 "100",
+                "--unit",
+                "mm",
             ],
             "must be positive",
         ),
@@ -426,6 +443,46 @@ fn segment_finds_the_embryo_of_bbbc003() {
         c["centroid"][1].as_f64().unwrap(),
     ];
     assert!((x - 240.0).abs() < 40.0 && (y - 300.0).abs() < 60.0, "{c}");
+}
+
+#[test]
+fn an_embryo_and_the_arcs_of_its_zona_are_one_object() {
+    // Debris (450–680 px) stays under --min-area 1000; the zona's arcs (400 and 1600 px)
+    // pass it but join the embryo instead of being cells of their own.
+    let (r, _, _dir) = segment_real(
+        "cells/bbbc003_7_19_M1E18.png",
+        "cells/bbbc003_7_19_M1E18_truth.png",
+        &["--min-area", "400"],
+    );
+    let t = &r["truth"];
+    assert!(t["dice"].as_f64().unwrap() >= 0.85, "{t}");
+    let cells = r["cells"].as_array().unwrap();
+    let big: Vec<_> = cells
+        .iter()
+        .filter(|c| c["area"].as_u64().unwrap() >= 1000)
+        .collect();
+    assert_eq!(big.len(), 1, "{cells:?}");
+    let c = big[0];
+    // The embryo's own boundary is the contour, the arcs widen its box.
+    let (x, y) = (
+        c["centroid"][0].as_f64().unwrap(),
+        c["centroid"][1].as_f64().unwrap(),
+    );
+    assert!((x - 248.0).abs() < 15.0 && (y - 280.0).abs() < 15.0, "{c}");
+    assert!(c["bbox"]["x0"].as_u64().unwrap() <= 140, "{c}");
+    // Without the absorption the arcs are cells.
+    let (r, _, _dir) = segment_real(
+        "cells/bbbc003_7_19_M1E18.png",
+        "cells/bbbc003_7_19_M1E18_truth.png",
+        &["--min-area", "400", "--no-absorb-rings"],
+    );
+    let n = r["cells"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|c| c["area"].as_u64().unwrap() >= 1000)
+        .count();
+    assert_eq!(n, 2);
 }
 
 #[test]
@@ -642,6 +699,8 @@ fn cells_bad_input_and_empty_scenes() {
         "1",
         "--focal",
         "1",
+        "--unit",
+        "um",
     ]);
     assert_eq!(out.status.code(), Some(2));
     assert!(!String::from_utf8_lossy(&out.stderr).contains("panicked"));
@@ -662,6 +721,23 @@ fn cells_bad_input_and_empty_scenes() {
         ]),
         "is not valid",
     );
+    // A calibration file without a unit.
+    let unitless = dir.path().join("unitless.toml");
+    std::fs::write(&unitless, "baseline = 1200.0\nfocal_px = 4000.0\n").unwrap();
+    assert_clean_failure(
+        &run(&[
+            "reconstruct",
+            s(&flat),
+            s(&flat),
+            "-o",
+            s(&o2),
+            "--cells",
+            "--calibration",
+            s(&unitless),
+        ]),
+        "add unit = \"um\"",
+    );
+    assert!(!o2.exists());
     // --cells without geometry.
     assert_clean_failure(
         &run(&["reconstruct", s(&flat), s(&flat), "-o", s(&o2), "--cells"]),

@@ -1002,7 +1002,10 @@ fn the_sim_manipulator_approaches_a_cell_and_retracts_in_closed_loop() {
         let m = m.unwrap();
         if m.edge == "triangulate/targets" {
             let t: Targets = serde_json::from_slice(&m.payload).unwrap();
-            scenes.insert(t.frame, Scene::from_targets(&t).unwrap());
+            scenes.insert(
+                t.frame,
+                Scene::from_targets(&t, manipulator_bridge::scene::UNTRUSTED_HEIGHT).unwrap(),
+            );
         } else {
             let s: ManipulatorState = serde_json::from_slice(&m.payload).unwrap();
             states.push(s);

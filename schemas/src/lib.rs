@@ -288,17 +288,54 @@ pub struct Cell3 {
     pub disparity: f64,
     /// 3D centroid `[X, Y, Z]` of the cell's surface points.
     pub centroid: [f64; 3],
-    /// Depth of the substrate under the cell: the background's disparity plane at the cell
-    /// (the median on a ring around the cell when the background is too smooth to fit).
+    /// Depth of the substrate under the cell (where it came from: `quality.substrate`).
     pub substrate_z: f64,
-    /// Height of the cell's top above the substrate.
-    pub height: f64,
+    /// Height of the cell's top above the substrate; `None` when the top was not found
+    /// above the substrate (never a negative height). Trust it only with `quality.trusted`.
+    pub height: Option<f64>,
     /// Volume between the cell's surface and the substrate.
     pub volume: f64,
     /// The contour lifted onto the substrate plane: `[X, Y, Z]` per contour pixel.
     pub contour: Vec<[f64; 3]>,
     /// Share of the cell's pixels with a valid disparity after the LR check, 0..1.
     pub valid_share: f64,
+    /// How far the height can be trusted, and why not.
+    #[serde(default)]
+    pub quality: CellQuality,
+}
+
+/// Where the substrate under a cell came from.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SubstrateSource {
+    /// The background's disparity plane, fitted over the whole textured background.
+    Plane,
+    /// The cell's own rim: the band just outside its outline.
+    Rim,
+    /// The plane through the other cells' rims.
+    Rims,
+    /// The median matched disparity on a ring around the cell (weakest).
+    Ring,
+    /// Nothing: no height.
+    #[default]
+    None,
+}
+
+/// Per-cell quality of a height.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct CellQuality {
+    /// Where the substrate under the cell came from.
+    pub substrate: SubstrateSource,
+    /// Standard error of the substrate's disparity under the cell, px.
+    pub substrate_std: f64,
+    /// Standard error of the height, in the calibration's unit (`None` without a height).
+    pub height_std: Option<f64>,
+    /// Robust scale of the top fit's intensity residual, grey levels (`None`: no fit).
+    pub residual: Option<f64>,
+    /// Whether the height can be trusted: its sources agree and it is sure to 2.5 %.
+    pub trusted: bool,
+    /// Why not, when it cannot.
+    pub doubt: Option<String>,
 }
 
 /// A disparity plane `d(x, y) = d0 + dx·(x − centre.x) + dy·(y − centre.y)`.

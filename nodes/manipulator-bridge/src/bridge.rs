@@ -52,6 +52,8 @@ pub struct BridgeConfig {
     pub track_radius: f64,
     /// A target whose injection point moved farther than this is replanned, µm.
     pub replan_tolerance: f64,
+    /// Height of a cell whose measured height is not trusted, µm.
+    pub untrusted_height: f64,
 }
 
 /// A line to one controller or to all.
@@ -222,7 +224,7 @@ impl Bridge {
     /// Takes one frame's targets: updates the scene, serves
     /// it to the controllers and returns the manipulator state for this frame.
     pub fn on_targets(&self, t: &Targets) -> Result<ManipulatorState, String> {
-        let mut scene = Scene::from_targets(t)?;
+        let mut scene = Scene::from_targets(t, self.cfg.untrusted_height)?;
         let cfg = &self.cfg.planner;
         let u = cfg.pipette.axis();
         let mut sh = self.shared.lock().expect("shared");

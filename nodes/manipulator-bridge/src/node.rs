@@ -82,6 +82,10 @@ pub struct BridgeParams {
     /// A target whose injection point moved farther than this is replanned, µm.
     #[serde(default = "default_replan")]
     pub replan_tolerance: f64,
+    /// Height of a cell whose measured height is not trusted (an obstacle that tall,
+    /// never of height zero), µm; the tallest plausible cell by default.
+    #[serde(default = "default_untrusted")]
+    pub untrusted_height: f64,
 }
 
 fn default_listen() -> String {
@@ -135,6 +139,9 @@ fn default_self_margin() -> f64 {
 fn default_track() -> f64 {
     15.0
 }
+fn default_untrusted() -> f64 {
+    crate::scene::UNTRUSTED_HEIGHT
+}
 fn default_replan() -> f64 {
     // Measured injection points wander by 2–3 µm from frame to frame.
     5.0
@@ -169,6 +176,7 @@ impl Params for BridgeParams {
             ("self_margin", p.self_margin),
             ("track_radius", p.track_radius),
             ("replan_tolerance", p.replan_tolerance),
+            ("untrusted_height", p.untrusted_height),
         ] {
             if !v.is_finite() || v <= 0.0 {
                 return Err(format!("{name} {v} must be positive"));
@@ -212,6 +220,7 @@ impl BridgeParams {
             self_margin: self.self_margin,
             track_radius: self.track_radius,
             replan_tolerance: self.replan_tolerance,
+            untrusted_height: self.untrusted_height,
         }
     }
 

@@ -382,6 +382,12 @@ pub fn plan_approach(
             vec![],
         ));
     };
+    if let Some(why) = &target.doubt {
+        return Err(no_path(
+            format!("cell {cell} has no trusted height ({why}); the pipette is not sent to it"),
+            vec![cell],
+        ));
+    }
     let u = cfg.pipette.axis();
     let inj = injection_point(target, cfg);
     let pre = axpy(inj, cfg.pre_distance, u);
@@ -631,6 +637,8 @@ mod tests {
             centre: [x, y],
             base: 0.0,
             top: h,
+            trusted: true,
+            doubt: None,
         }
     }
 

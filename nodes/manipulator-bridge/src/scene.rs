@@ -27,7 +27,16 @@ pub struct Obstacle {
     pub base: f64,
     /// Height of its top.
     pub top: f64,
+    /// Whether its measured height is trusted; an untrusted cell stands at the
+    /// conservative height instead.
+    pub trusted: bool,
+    /// Why its height is not trusted.
+    pub doubt: Option<String>,
 }
+
+/// Height given to a cell whose height is not trusted by default, µm: the tallest cell a
+/// stereo microscope dish plausibly holds (a rounded 100 µm cell).
+pub const UNTRUSTED_HEIGHT: f64 = 100.0;
 
 /// The box the tip may move in, µm.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -82,8 +91,9 @@ pub fn um_per_unit(unit: &str) -> Result<f64, String> {
 }
 
 impl Obstacle {
-    /// A cell of the triangulation, in µm (`k` µm per unit).
-    pub fn from_cell(c: &Cell3, k: f64) -> Self {
+    /// A cell of the triangulation, in µm (`k` µm per unit); a cell without a trusted
+    /// height stands `untrusted` µm high, never at its doubtful height.
+    pub fn from_cell(c: &Cell3, k: f64, untrusted: f64) -> Self {
         let base = -c.substrate_z * k;
         let pts: Vec<[f64; 2]> = c.contour.iter().map(|p| [p[0] * k, p[1] * k]).collect();
         let mut poly = convex_hull(&pts);
@@ -97,7 +107,12 @@ impl Obstacle {
         ];
         // The contour lies on a possibly tilted substrate: reach below its lowest point.
         let zlo = c.contour.iter().map(|p| -p[2] * k).fold(base, f64::min) - 1.0;
-        let top = base + c.height.max(0.0) * k;
+        let trusted = c.quality.trusted && c.height.is_some();
+        let top = base
+            + match c.height {
+                Some(h) if trusted => h.max(0.0) * k,
+                _ => untrusted,
+            };
         Self {
             id: c.id,
             prism: Prism {
@@ -108,32 +123,56 @@ impl Obstacle {
             centre,
             base,
             top,
+            trusted,
+            doubt: if trusted {
+                None
+            } else {
+                Some(
+                    c.quality
+                        .doubt
+                        .clone()
+                        .unwrap_or_else(|| "the cell has no height".into()),
+                )
+            },
         }
     }
 }
 
 impl Scene {
-    /// The scene of one frame's targets.
-    pub fn from_targets(t: &Targets) -> Result<Self, String> {
+    /// The scene of one frame's targets; cells without a trusted height stand `untrusted`
+    /// µm high.
+    pub fn from_targets(t: &Targets, untrusted: f64) -> Result<Self, String> {
         let k = um_per_unit(&t.unit)?;
         let cells: Vec<Obstacle> = t
             .cells
             .iter()
-            .filter(|c| c.height.is_finite() && c.substrate_z.is_finite())
-            .map(|c| Obstacle::from_cell(c, k))
+            .filter(|c| c.substrate_z.is_finite())
+            .map(|c| Obstacle::from_cell(c, k, untrusted))
             .collect();
         Ok(Self::new(t.frame, cells))
     }
 
-    /// A scene of these cells, with the substrate fitted to their bases.
-    pub fn new(frame: u64, cells: Vec<Obstacle>) -> Self {
+    /// A scene of these cells, with the substrate fitted to the bases of the trusted ones
+    /// (of all when none is). An untrusted cell's own base may be wrong too: it stands on
+    /// the higher of its base and the fitted substrate.
+    pub fn new(frame: u64, mut cells: Vec<Obstacle>) -> Self {
+        let trusted = cells.iter().any(|c| c.trusted);
         let pts: Vec<P3> = cells
             .iter()
+            .filter(|c| c.trusted || !trusted)
             .map(|c| [c.centre[0], c.centre[1], c.base])
             .collect();
+        let substrate = fit_plane(&pts);
+        if let (true, Some([a, b, c0])) = (trusted, substrate) {
+            for c in cells.iter_mut().filter(|c| !c.trusted) {
+                let lift = (a * c.centre[0] + b * c.centre[1] + c0 - c.base).max(0.0);
+                c.top += lift;
+                c.prism.zhi = c.top;
+            }
+        }
         Self {
             frame,
-            substrate: fit_plane(&pts),
+            substrate,
             cells,
         }
     }
@@ -227,10 +266,14 @@ mod tests {
             disparity: 0.0,
             centroid: [x, y, substrate_z - height / 2.0],
             substrate_z,
-            height,
+            height: Some(height),
             volume: 0.0,
             contour,
             valid_share: 1.0,
+            quality: schemas::CellQuality {
+                trusted: true,
+                ..Default::default()
+            },
         }
     }
 
@@ -247,7 +290,7 @@ mod tests {
             ],
             substrate: None,
         };
-        let s = Scene::from_targets(&t).unwrap();
+        let s = Scene::from_targets(&t, 100.0).unwrap();
         assert_eq!(s.frame, 3);
         let c = s.cell(1).unwrap();
         assert!((c.base + 4000.0).abs() < 1e-9);
@@ -262,10 +305,13 @@ mod tests {
         assert_eq!(s.nearest([95.0, 0.0], 10.0).map(|c| c.id), Some(2));
         assert_eq!(s.nearest([50.0, 50.0], 10.0), None);
         assert!(
-            Scene::from_targets(&Targets {
-                unit: "ft".into(),
-                ..t
-            })
+            Scene::from_targets(
+                &Targets {
+                    unit: "ft".into(),
+                    ..t
+                },
+                100.0
+            )
             .is_err()
         );
     }

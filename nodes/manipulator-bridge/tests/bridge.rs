@@ -22,7 +22,7 @@ fn cell(id: u32, x: f64, y: f64, r: f64, h: f64) -> Cell3 {
         disparity: 0.0,
         centroid: [x, y, 4000.0 - h / 2.0],
         substrate_z: 4000.0,
-        height: h,
+        height: Some(h),
         volume: 0.0,
         contour: (0..24)
             .map(|k| {
@@ -31,6 +31,10 @@ fn cell(id: u32, x: f64, y: f64, r: f64, h: f64) -> Cell3 {
             })
             .collect(),
         valid_share: 1.0,
+        quality: schemas::CellQuality {
+            trusted: true,
+            ..Default::default()
+        },
     }
 }
 

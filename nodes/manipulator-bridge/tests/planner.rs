@@ -31,6 +31,8 @@ fn ellipse(id: u32, c: [f64; 2], axes: [f64; 2], angle: f64, h: f64) -> Obstacle
         centre: c,
         base: 0.0,
         top: h,
+        trusted: true,
+        doubt: None,
     }
 }
 
@@ -213,4 +215,118 @@ proptest! {
         let open = Scene::new(1, cells[..1].to_vec());
         prop_assert!(plan_approach(&open, &cfg, [-500.0, -500.0, 350.0], 1).is_ok());
     }
+}
+
+/// A cell of a frame's targets, in µm with depth down (substrate at depth 4000), circular
+/// of radius `r`; `height: None` or `trusted: false` as the triangulation reports them.
+fn target_cell(id: u32, x: f64, r: f64, height: Option<f64>, trusted: bool) -> schemas::Cell3 {
+    let z0 = 4000.0;
+    schemas::Cell3 {
+        id,
+        right_id: id,
+        area_px: 100,
+        centroid_px: [0.0, 0.0],
+        disparity: 0.0,
+        centroid: [x, 0.0, z0 - height.unwrap_or(0.0) / 2.0],
+        substrate_z: z0,
+        height,
+        volume: 0.0,
+        contour: (0..24)
+            .map(|k| {
+                let a = k as f64 * std::f64::consts::TAU / 24.0;
+                [x + r * a.cos(), r * a.sin(), z0]
+            })
+            .collect(),
+        valid_share: 0.9,
+        quality: schemas::CellQuality {
+            trusted,
+            doubt: (!trusted).then(|| "the background plane and the cell's rim disagree".into()),
+            ..Default::default()
+        },
+    }
+}
+
+#[test]
+fn an_untrusted_neighbour_is_cleared_at_the_conservative_height_and_an_untrusted_target_refused() {
+    // The target (1) between two neighbours whose measured heights are low but not trusted:
+    // 2 with a doubtful 4 µm, 3 with no height at all.
+    let targets = schemas::Targets {
+        frame: 7,
+        capture_ns: 0,
+        unit: "µm".into(),
+        cells: vec![
+            target_cell(1, 0.0, 20.0, Some(12.0), true),
+            target_cell(2, -70.0, 25.0, Some(4.0), false),
+            target_cell(3, 70.0, 25.0, None, false),
+        ],
+        substrate: None,
+    };
+    let conservative = 100.0;
+    let scene = Scene::from_targets(&targets, conservative).unwrap();
+    let base = scene.cell(1).unwrap().base;
+    assert!((scene.cell(1).unwrap().top - base - 12.0).abs() < 1e-9);
+    for id in [2, 3] {
+        let c = scene.cell(id).unwrap();
+        assert!(!c.trusted && c.doubt.is_some());
+        assert!(
+            (c.top - base - conservative).abs() < 1e-9,
+            "cell {id}: top {}",
+            c.top
+        );
+        assert!((c.prism.zhi - c.top).abs() < 1e-9);
+    }
+    // What the path is checked against: the neighbours as trusted cells 100 µm tall.
+    let reference = Scene::from_targets(
+        &schemas::Targets {
+            cells: vec![
+                target_cell(1, 0.0, 20.0, Some(12.0), true),
+                target_cell(2, -70.0, 25.0, Some(conservative), true),
+                target_cell(3, 70.0, 25.0, Some(conservative), true),
+            ],
+            ..targets.clone()
+        },
+        conservative,
+    )
+    .unwrap();
+    let cfg_at = |azimuth: f64| {
+        let mut cfg = config(30.0, azimuth, Entry::Side);
+        cfg.workspace.min[2] = base;
+        cfg.workspace.max[2] = base + 400.0;
+        cfg
+    };
+    // Along x the pipette's axis passes over a neighbour 35–60 µm up: clear of a 4 µm cell,
+    // not of one standing at the conservative height, so the target is walled in.
+    for (azimuth, neighbour) in [(180.0, 2), (0.0, 3)] {
+        let e = plan_approach(&scene, &cfg_at(azimuth), [0.0, 150.0, base + 150.0], 1).unwrap_err();
+        assert!(
+            e.blocking.contains(&neighbour),
+            "{}: {:?}",
+            e.reason,
+            e.blocking
+        );
+    }
+    // Along y the axis is free; starting beyond a neighbour below its conservative top,
+    // every leg keeps the clearance from both as if they were 100 µm tall.
+    let mut planned = 0;
+    for (azimuth, sx) in [(90.0, -160.0), (270.0, 160.0)] {
+        let cfg = cfg_at(azimuth);
+        let start = [sx, 0.0, base + 30.0];
+        assert!(sampled_clearance(&scene, &cfg, start, start, None, 0.5) >= cfg.clearance);
+        let plan = plan_approach(&scene, &cfg, start, 1).unwrap();
+        planned += 1;
+        for w in plan.waypoints.windows(2) {
+            let d = sampled_clearance(&reference, &cfg, w[0], w[1], Some(1), 0.5);
+            assert!(
+                d >= cfg.clearance - 1e-6,
+                "leg {w:?} within {d} µm of a neighbour"
+            );
+        }
+        // An untrusted cell is never a target, whatever the path.
+        for id in [2, 3] {
+            let e = plan_approach(&scene, &cfg, [0.0, 150.0, base + 150.0], id).unwrap_err();
+            assert!(e.reason.contains("no trusted height"), "{}", e.reason);
+            assert_eq!(e.blocking, vec![id]);
+        }
+    }
+    assert_eq!(planned, 2);
 }

@@ -9,9 +9,9 @@
 use schemas::msg::{Message, cloud_header};
 use schemas::wire::CLOUD_POINT_BYTES;
 use schemas::{
-    BoundingBox, Cell, Cell3, CellLists, DisparityPlane, DisparityRange, DisparityTile,
-    DisparityTiles, FrameHeader, ManipulatorState, MessageKind, PathPlan, PixelFormat, Plane, Side,
-    Targets, ValidationFigures,
+    BoundingBox, Cell, Cell3, CellLists, CellQuality, DisparityPlane, DisparityRange,
+    DisparityTile, DisparityTiles, FrameHeader, ManipulatorState, MessageKind, PathPlan,
+    PixelFormat, Plane, Side, Targets, ValidationFigures,
 };
 use serde::{Deserialize, Serialize};
 use serde_bytes::ByteBuf;
@@ -234,12 +234,20 @@ macro_rules! cell3_def {
             "float64 height\n",
             "float64 volume\n",
             "float64[] contour\n",
-            "float64 valid_share\n"
+            "float64 valid_share\n",
+            "string substrate_source\n",
+            "float64 substrate_std\n",
+            "float64 height_std\n",
+            "float64 residual\n",
+            "bool trusted\n",
+            "string doubt\n"
         )
     };
 }
 
-/// `microstereo_msgs/msg/Cell3`: one cell in 3D; `contour` is `x, y, z` interleaved.
+/// `microstereo_msgs/msg/Cell3`: one cell in 3D; `contour` is `x, y, z` interleaved;
+/// `height`, `height_std` and `residual` are NaN when there is none, `doubt` empty when
+/// the height is trusted; `substrate_source` is plane, rim, rims, ring or none.
 pub const CELL3: MsgType = MsgType {
     name: "microstereo_msgs/msg/Cell3",
     definition: cell3_def!(),
@@ -541,6 +549,12 @@ struct RosCell3 {
     volume: f64,
     contour: Vec<f64>,
     valid_share: f64,
+    substrate_source: String,
+    substrate_std: f64,
+    height_std: f64,
+    residual: f64,
+    trusted: bool,
+    doubt: String,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -740,12 +754,26 @@ impl From<&Cell3> for RosCell3 {
             disparity: c.disparity,
             centroid: c.centroid,
             substrate_z: c.substrate_z,
-            height: c.height,
+            height: c.height.unwrap_or(f64::NAN),
             volume: c.volume,
             contour: c.contour.iter().flatten().copied().collect(),
             valid_share: c.valid_share,
+            substrate_source: serde_json::to_value(c.quality.substrate)
+                .ok()
+                .and_then(|v| v.as_str().map(String::from))
+                .unwrap_or_default(),
+            substrate_std: c.quality.substrate_std,
+            height_std: c.quality.height_std.unwrap_or(f64::NAN),
+            residual: c.quality.residual.unwrap_or(f64::NAN),
+            trusted: c.quality.trusted,
+            doubt: c.quality.doubt.clone().unwrap_or_default(),
         }
     }
+}
+
+/// `None` for the NaN that stands for "none" on the wire.
+fn finite(v: f64) -> Option<f64> {
+    (!v.is_nan()).then_some(v)
 }
 
 impl RosCell3 {
@@ -765,7 +793,7 @@ impl RosCell3 {
             disparity: self.disparity,
             centroid: self.centroid,
             substrate_z: self.substrate_z,
-            height: self.height,
+            height: finite(self.height),
             volume: self.volume,
             contour: self
                 .contour
@@ -773,6 +801,22 @@ impl RosCell3 {
                 .map(|p| [p[0], p[1], p[2]])
                 .collect(),
             valid_share: self.valid_share,
+            quality: CellQuality {
+                substrate: serde_json::from_value(serde_json::Value::String(
+                    self.substrate_source.clone(),
+                ))
+                .map_err(|_| {
+                    format!(
+                        "cell {}: unknown substrate source '{}'",
+                        self.id, self.substrate_source
+                    )
+                })?,
+                substrate_std: self.substrate_std,
+                height_std: finite(self.height_std),
+                residual: finite(self.residual),
+                trusted: self.trusted,
+                doubt: (!self.doubt.is_empty()).then_some(self.doubt),
+            },
         })
     }
 }
@@ -1181,19 +1225,50 @@ mod tests {
             frame: 7,
             capture_ns: 12,
             unit: "µm".into(),
-            cells: vec![Cell3 {
-                id: 1,
-                right_id: 2,
-                area_px: 300,
-                centroid_px: [1.0 / 3.0, 2.5],
-                disparity: 4.125,
-                centroid: [1e-7, -3.25, 1234.5678901234],
-                substrate_z: 1000.0,
-                height: 12.3,
-                volume: 4567.0,
-                contour: vec![[1.0, 2.0, 3.0], [0.1, 0.2, 0.3]],
-                valid_share: 0.97,
-            }],
+            cells: vec![
+                Cell3 {
+                    id: 1,
+                    right_id: 2,
+                    area_px: 300,
+                    centroid_px: [1.0 / 3.0, 2.5],
+                    disparity: 4.125,
+                    centroid: [1e-7, -3.25, 1234.5678901234],
+                    substrate_z: 1000.0,
+                    height: Some(12.3),
+                    volume: 4567.0,
+                    contour: vec![[1.0, 2.0, 3.0], [0.1, 0.2, 0.3]],
+                    valid_share: 0.97,
+                    quality: CellQuality {
+                        substrate: schemas::SubstrateSource::Rim,
+                        substrate_std: 0.04,
+                        height_std: Some(0.2),
+                        residual: Some(1.7),
+                        trusted: true,
+                        doubt: None,
+                    },
+                },
+                Cell3 {
+                    id: 3,
+                    right_id: 1,
+                    area_px: 40,
+                    centroid_px: [10.0, 20.0],
+                    disparity: 1.0,
+                    centroid: [0.0, 0.0, 1000.0],
+                    substrate_z: 1000.0,
+                    height: None,
+                    volume: 0.0,
+                    contour: vec![],
+                    valid_share: 0.1,
+                    quality: CellQuality {
+                        substrate: schemas::SubstrateSource::Ring,
+                        substrate_std: 1.0,
+                        height_std: None,
+                        residual: None,
+                        trusted: false,
+                        doubt: Some("the top was not found above the substrate".into()),
+                    },
+                },
+            ],
             substrate: None,
         };
         let h = stamped(json_header(MessageKind::Targets));

@@ -6,7 +6,8 @@
 //!    textureless image yields no cells instead of half its noise);
 //! 3. clean-up: optional [`open`]/[`close`], [`fill_holes`], [`peel_edges`] (the skirt
 //!    the variance window adds around a cell goes back to the background), [`remove_small`];
-//! 4. [`label`]: 8-connected components;
+//! 4. [`label`]: 8-connected components; [`absorb_rings`]: thin arcs around a larger object
+//!    (an embryo's zona pellucida) join it;
 //! 5. [`trace_boundary`]: chain-code boundary following with the paper's search-start rule;
 //! 6. per cell: id, area, centroid, bounding box, contour and perimeter ([`schemas::Cell`]).
 //!
@@ -18,6 +19,7 @@ mod morph;
 pub mod node;
 mod otsu;
 mod peel;
+mod rings;
 mod trace;
 mod variance;
 
@@ -26,6 +28,7 @@ pub use label::{Connectivity, label, label_where};
 pub use morph::{close, dilate, fill_holes, open, remove_small};
 pub use otsu::{histogram, otsu_threshold};
 pub use peel::peel_edges;
+pub use rings::absorb_rings;
 pub use trace::{DIRECTIONS, chain_length, search_start, trace_boundary};
 pub use variance::{VarianceScale, local_variance, normalise};
 
@@ -54,6 +57,9 @@ pub struct SegmentParams {
     /// Peel the outer layers (up to M+1 px deep) that look like the background around them
     /// (within 2.25 robust standard deviations of it, over a `(8M+9)²` window).
     pub peel_edges: bool,
+    /// Join thin arcs (solidity ≤ 0.35) to the object at least twice their size that their
+    /// hull reaches into: an embryo's zona pellucida breaks into arcs around it.
+    pub absorb_rings: bool,
 }
 
 impl Default for SegmentParams {
@@ -67,6 +73,7 @@ impl Default for SegmentParams {
             open_radius: 0,
             close_radius: 0,
             peel_edges: true,
+            absorb_rings: true,
         }
     }
 }
@@ -128,8 +135,13 @@ pub fn segment(img: &Plane<u8>, p: &SegmentParams) -> Segmentation {
         mask = peel_edges(img, &mask, m + 1, 4 * m + 4, 2.25);
     }
     mask = remove_small(&mask, p.min_area.max(1));
-    let (labels, n) = label(&mask, Connectivity::Eight);
-    let cells = describe_cells(&labels, n);
+    let (mut labels, n) = label(&mask, Connectivity::Eight);
+    let cells = if p.absorb_rings {
+        let (n, starts) = absorb_rings(&mut labels, n);
+        describe_cells_from(&labels, n, Some(&starts))
+    } else {
+        describe_cells(&labels, n)
+    };
     Segmentation {
         variance,
         variance_max,
@@ -144,6 +156,13 @@ pub fn segment(img: &Plane<u8>, p: &SegmentParams) -> Segmentation {
 
 /// Per-cell figures of a label image with labels `1..=n`.
 pub fn describe_cells(labels: &Plane<u32>, n: u32) -> Vec<Cell> {
+    describe_cells_from(labels, n, None)
+}
+
+/// [`describe_cells`] with the boundary trace of label `i` starting at `starts[i]` (a
+/// raster-first pixel of the piece whose boundary is the contour) instead of the label's
+/// own raster-first pixel.
+pub fn describe_cells_from(labels: &Plane<u32>, n: u32, starts: Option<&[[u32; 2]]>) -> Vec<Cell> {
     struct Acc {
         area: u64,
         sx: f64,
@@ -182,7 +201,8 @@ pub fn describe_cells(labels: &Plane<u32>, n: u32) -> Vec<Cell> {
         .enumerate()
         .filter_map(|(id, a)| {
             let a = a?;
-            let contour = trace_boundary(labels, id as u32, a.first);
+            let start = starts.and_then(|s| s.get(id).copied()).unwrap_or(a.first);
+            let contour = trace_boundary(labels, id as u32, start);
             Some(Cell {
                 id: id as u32,
                 area: a.area,

@@ -115,6 +115,115 @@ pub struct CellShape {
     pub texture_offset: [f64; 2],
     /// Mean brightness relative to the substrate (grey levels).
     pub brightness: f64,
+    /// The height profile across the footprint.
+    #[serde(default)]
+    pub profile: Profile,
+    /// Outline irregularity: relative amplitudes of the footprint radius' 2nd, 3rd and 4th
+    /// harmonics, then their phases (radians). All zero: an ellipse.
+    #[serde(default)]
+    pub outline: [f64; 6],
+}
+
+/// How a cell's height falls from its top (`h`) to its edge, over the normalised footprint
+/// radius ρ (0 at the centre, 1 on the outline).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Profile {
+    /// An ellipsoidal dome, `h·√(1 − ρ²)`: a rounded cell, its flank vertical at the edge.
+    #[default]
+    Dome,
+    /// A paraboloid cap, `h·(1 − ρ²)`: a cell meeting the substrate at an angle.
+    Cap,
+    /// A flattened spread cell, `h·(1 − ρ⁴)`: a flat top over a thin margin.
+    Spread,
+}
+
+impl Profile {
+    /// Every profile, for test matrices.
+    pub const ALL: [Profile; 3] = [Profile::Dome, Profile::Cap, Profile::Spread];
+
+    /// Height over the top's, at normalised radius `rho` (< 1).
+    fn at(self, rho2: f64) -> f64 {
+        match self {
+            Profile::Dome => (1.0 - rho2).max(0.0).sqrt(),
+            Profile::Cap => (1.0 - rho2).max(0.0),
+            Profile::Spread => (1.0 - rho2 * rho2).max(0.0),
+        }
+    }
+}
+
+impl CellShape {
+    /// The outline's radius over the ellipse's in direction `phi` (cell frame).
+    fn outline_at(&self, phi: f64) -> f64 {
+        let o = &self.outline;
+        1.0 + o[0] * (2.0 * phi + o[3]).cos()
+            + o[1] * (3.0 * phi + o[4]).cos()
+            + o[2] * (4.0 * phi + o[5]).cos()
+    }
+
+    /// Whether the shape is the plain ellipsoid, whose rays meet it in closed form.
+    fn is_ellipsoid(&self) -> bool {
+        self.profile == Profile::Dome && self.outline[..3].iter().all(|a| *a == 0.0)
+    }
+
+    /// Squared normalised radius ρ² of the point `(px, py)` in the cell's frame (µm).
+    fn rho2(&self, px: f64, py: f64) -> f64 {
+        let (u, v) = (px / self.semi_axes[0], py / self.semi_axes[1]);
+        let r2 = u * u + v * v;
+        if self.is_ellipsoid() {
+            return r2;
+        }
+        r2 / self.outline_at(v.atan2(u)).powi(2)
+    }
+
+    /// Height of the surface above the cell's base at `(px, py)` (cell frame), `None`
+    /// outside the footprint.
+    fn surface(&self, px: f64, py: f64) -> Option<f64> {
+        let r2 = self.rho2(px, py);
+        (r2 < 1.0).then(|| self.height * self.profile.at(r2))
+    }
+
+    /// Largest footprint radius, µm.
+    fn reach(&self) -> f64 {
+        let o = &self.outline;
+        self.semi_axes[0].max(self.semi_axes[1]) * (1.0 + o[0].abs() + o[1].abs() + o[2].abs())
+    }
+
+    /// Volume and the height of its centroid above the base, integrated over the footprint.
+    fn volume_and_centroid_height(&self) -> (f64, f64) {
+        if self.is_ellipsoid() {
+            let v = 2.0 / 3.0 * std::f64::consts::PI * self.semi_axes[0] * self.semi_axes[1];
+            return (v * self.height, 3.0 / 8.0 * self.height);
+        }
+        // Polar grid in the ellipse's normalised frame: area element a·b·r dr dφ.
+        let (nr, nphi) = (400, 720);
+        let (mut v, mut m) = (0.0, 0.0);
+        for j in 0..nphi {
+            let phi = (j as f64 + 0.5) / nphi as f64 * std::f64::consts::TAU;
+            let big = self.outline_at(phi);
+            for i in 0..nr {
+                let r = (i as f64 + 0.5) / nr as f64 * big;
+                let z = self.height * self.profile.at((r / big).powi(2));
+                let da = self.semi_axes[0] * self.semi_axes[1] * r * big / nr as f64
+                    * std::f64::consts::TAU
+                    / nphi as f64;
+                v += z * da;
+                m += 0.5 * z * z * da;
+            }
+        }
+        (v, m / v.max(1e-12))
+    }
+}
+
+/// A flat particle lying on the substrate (dirt, a dead cell's fragment): a dark disc.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Debris {
+    /// Centre `[x, y]` on the substrate, µm.
+    pub centre: [f64; 2],
+    /// Radius, µm.
+    pub radius: f64,
+    /// How much darker than the substrate (grey levels).
+    pub darkness: f64,
 }
 
 /// A pipette: a tapered glass tip pointing `+x`, its body rising toward `−x` at
@@ -165,6 +274,34 @@ pub struct Look {
     pub supersample: usize,
     /// Cell texture source.
     pub texture: Texture,
+    /// Vignetting: the share of brightness lost at the image corners (quadratic falloff
+    /// with the distance from the image centre; a property of each camera, not the scene).
+    pub vignetting: f64,
+    /// Darkening of the membrane rim where a cell meets the substrate (grey levels; the
+    /// contact line, on the cell's edge and the substrate just outside).
+    pub rim: f64,
+}
+
+/// Width of the membrane rim's dark line, µm.
+const RIM_WIDTH: f64 = 1.5;
+
+impl Look {
+    /// A brightfield look: a substrate without texture under a lighting gradient and
+    /// vignetting, cells darker than it with faint inner texture, little relief and a dark
+    /// membrane rim.
+    pub fn brightfield() -> Self {
+        Self {
+            substrate: 170.0,
+            gradient: 40.0,
+            substrate_texture: 0.0,
+            cell_texture: 12.0,
+            relief: 6.0,
+            noise: 1.5,
+            vignetting: 0.25,
+            rim: 45.0,
+            ..Self::default()
+        }
+    }
 }
 
 impl Default for Look {
@@ -179,6 +316,8 @@ impl Default for Look {
             blur: 0.0,
             supersample: 2,
             texture: Texture::Noise,
+            vignetting: 0.0,
+            rim: 0.0,
         }
     }
 }
@@ -198,6 +337,10 @@ pub struct Scene {
     pub stage: f64,
     /// Texture the whole substrate like a calibration target (for depth calibration).
     pub target: bool,
+    /// Substrate tilt: its height's slope along x and along y (rise over run; 2° is 0.035).
+    pub tilt: [f64; 2],
+    /// Particles lying on the substrate.
+    pub debris: Vec<Debris>,
     /// Seed of textures and noise.
     pub seed: u64,
 }
@@ -213,6 +356,12 @@ pub struct CellSpec {
     pub height: [f64; 2],
     /// Smallest gap between footprints, µm.
     pub gap: f64,
+    /// The cells' height profile.
+    #[serde(default)]
+    pub profile: Profile,
+    /// Largest outline irregularity (amplitude of each harmonic of the radius; 0: ellipses).
+    #[serde(default)]
+    pub irregular: f64,
 }
 
 impl Default for CellSpec {
@@ -222,6 +371,8 @@ impl Default for CellSpec {
             diameter: [20.0, 100.0],
             height: [8.0, 25.0],
             gap: 12.0,
+            profile: Profile::Dome,
+            irregular: 0.0,
         }
     }
 }
@@ -248,7 +399,7 @@ impl Scene {
             let h = rng
                 .random_range(spec.height[0]..=spec.height[1])
                 .min(0.8 * d);
-            let r = a + margin;
+            let r = a * (1.0 + 3.0 * spec.irregular) + margin;
             if 2.0 * r >= 2.0 * hw.min(hh) {
                 continue;
             }
@@ -256,20 +407,31 @@ impl Scene {
                 rng.random_range(-hw + r..hw - r),
                 rng.random_range(-hh + r..hh - r),
             ];
+            let grown = 1.0 + 3.0 * spec.irregular;
             let clear = cells.iter().all(|o| {
-                (o.centre[0] - c[0]).hypot(o.centre[1] - c[1]) > a + o.semi_axes[0] + spec.gap
+                (o.centre[0] - c[0]).hypot(o.centre[1] - c[1]) > a * grown + o.reach() + spec.gap
             });
             if !clear {
                 continue;
             }
-            cells.push(CellShape {
+            let mut cell = CellShape {
                 centre: c,
                 semi_axes: [a, b],
                 angle: rng.random_range(0.0..std::f64::consts::PI),
                 height: h,
                 texture_offset: [rng.random_range(0.0..1e4), rng.random_range(0.0..1e4)],
                 brightness: rng.random_range(-15.0..15.0),
-            });
+                profile: spec.profile,
+                outline: [0.0; 6],
+            };
+            // Drawn after the rest, so that regular scenes stay what they were.
+            if spec.irregular > 0.0 {
+                for k in 0..3 {
+                    cell.outline[k] = rng.random_range(0.0..=spec.irregular);
+                    cell.outline[k + 3] = rng.random_range(0.0..std::f64::consts::TAU);
+                }
+            }
+            cells.push(cell);
         }
         Self {
             optics,
@@ -278,6 +440,8 @@ impl Scene {
             pipette: None,
             stage: 0.0,
             target: false,
+            tilt: [0.0; 2],
+            debris: Vec::new(),
             seed,
         }
     }
@@ -291,8 +455,54 @@ impl Scene {
             pipette: None,
             stage,
             target: true,
+            tilt: [0.0; 2],
+            debris: Vec::new(),
             seed,
         }
+    }
+
+    /// The same scene with its substrate at disparity `d` px at the image centre (the
+    /// microscope focused above or below it): the stage raised or lowered to match.
+    pub fn with_substrate_disparity(mut self, d: f64) -> Self {
+        let o = &self.optics;
+        let c = o.calibration();
+        self.stage = o.working_distance() - o.baseline * c.focal_px / (d + c.cx_right - c.cx);
+        self
+    }
+
+    /// The same scene with `count` flat particles of radius `radius` µm (`[min, max]`)
+    /// scattered on the substrate clear of the cells, seeded by `seed`.
+    pub fn with_debris(mut self, count: usize, radius: [f64; 2], seed: u64) -> Self {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0xdeb7_15);
+        let s = self.optics.um_per_px();
+        let (hw, hh) = (
+            0.5 * self.optics.width as f64 * s - 4.0 * s,
+            0.5 * self.optics.height as f64 * s - 4.0 * s,
+        );
+        for _ in 0..count * 50 {
+            if self.debris.len() == count {
+                break;
+            }
+            let r = rng.random_range(radius[0]..=radius[1]);
+            let c = [rng.random_range(-hw..hw), rng.random_range(-hh..hh)];
+            let clear = self
+                .cells
+                .iter()
+                .all(|o| (o.centre[0] - c[0]).hypot(o.centre[1] - c[1]) > o.reach() + r + 6.0);
+            if clear {
+                self.debris.push(Debris {
+                    centre: c,
+                    radius: r,
+                    darkness: rng.random_range(40.0..90.0),
+                });
+            }
+        }
+        self
+    }
+
+    /// Height of the substrate above its level at the origin, at `(x, y)` µm.
+    fn substrate_at(&self, x: f64, y: f64) -> f64 {
+        self.tilt[0] * x + self.tilt[1] * y
     }
 
     /// The scene `frame` steps later: cells drift by their own velocity (µm per frame,
@@ -364,7 +574,8 @@ pub const PIPETTE: u32 = u32::MAX;
 /// What a ray hits first.
 #[derive(Clone, Copy, Debug)]
 enum Hit {
-    Substrate,
+    /// The substrate, at this height above its level at the origin.
+    Substrate(f64),
     Cell(usize, [f64; 3]),
     Pipette,
 }
@@ -426,8 +637,9 @@ impl Scene {
             .filter(|&k| {
                 let c = &self.cells[k];
                 // 1 µm beyond the footprint, against rounding.
-                let reach = c.semi_axes[0].max(c.semi_axes[1]) + 1.0;
-                let (y0, y1) = (sy * z0, sy * (z0 - c.height));
+                let reach = c.reach() + 1.0;
+                let zk = z0 - self.substrate_at(c.centre[0], c.centre[1]);
+                let (y0, y1) = (sy * zk, sy * (zk - c.height));
                 y0.max(y1) >= c.centre[1] - reach && y0.min(y1) <= c.centre[1] + reach
             })
             .collect()
@@ -452,26 +664,40 @@ impl Scene {
         let (sx, sy) = ((u - cx) / f, (v - cal.cy) / f);
         let z0 = self.z0();
         // The ray at height s above the substrate: x = ox + sx·(z0 − s), y = sy·(z0 − s).
-        let mut best = (Hit::Substrate, 0.0f64);
+        // Where the ray meets the (tilted) substrate plane: s = tx·x(s) + ty·y(s).
+        let [tx, ty] = self.tilt;
+        let s_sub = (tx * (ox + sx * z0) + ty * sy * z0) / (1.0 + tx * sx + ty * sy);
+        let mut best = (Hit::Substrate(s_sub), s_sub);
         for &k in candidates {
             let c = &self.cells[k];
+            // The cell stands on the substrate's level under its centre.
+            let base = self.substrate_at(c.centre[0], c.centre[1]);
+            let zk = z0 - base;
             let (co, si) = (c.angle.cos(), c.angle.sin());
-            let (dx, dy) = (ox + sx * z0 - c.centre[0], sy * z0 - c.centre[1]);
+            let (dx, dy) = (ox + sx * zk - c.centre[0], sy * zk - c.centre[1]);
             let (px, py) = (co * dx + si * dy, -si * dx + co * dy);
             let (qx, qy) = (co * sx + si * sy, -si * sx + co * sy);
-            let (a2, b2, h) = (c.semi_axes[0].powi(2), c.semi_axes[1].powi(2), c.height);
-            // |P − Q s|² over the axes + (s/h)² = 1.
-            let qa = qx * qx / a2 + qy * qy / b2 + 1.0 / (h * h);
-            let qb = -2.0 * (px * qx / a2 + py * qy / b2);
-            let qc = px * px / a2 + py * py / b2 - 1.0;
-            let disc = qb * qb - 4.0 * qa * qc;
-            if disc < 0.0 {
-                continue;
-            }
-            let s = (-qb + disc.sqrt()) / (2.0 * qa);
+            let local = if c.is_ellipsoid() {
+                let (a2, b2, h) = (c.semi_axes[0].powi(2), c.semi_axes[1].powi(2), c.height);
+                // |P − Q s|² over the axes + (s/h)² = 1.
+                let qa = qx * qx / a2 + qy * qy / b2 + 1.0 / (h * h);
+                let qb = -2.0 * (px * qx / a2 + py * qy / b2);
+                let qc = px * px / a2 + py * py / b2 - 1.0;
+                let disc = qb * qb - 4.0 * qa * qc;
+                if disc < 0.0 {
+                    continue;
+                }
+                (-qb + disc.sqrt()) / (2.0 * qa)
+            } else {
+                match march(c, [px, py], [qx, qy]) {
+                    Some(s) => s,
+                    None => continue,
+                }
+            };
+            let s = local + base;
             if s > best.1 {
-                let (lx, ly) = (px - qx * s, py - qy * s);
-                best = (Hit::Cell(k, [lx, ly, s]), s);
+                let (lx, ly) = (px - qx * local, py - qy * local);
+                best = (Hit::Cell(k, [lx, ly, local]), s);
             }
         }
         if let Some(p) = &self.pipette {
@@ -522,8 +748,41 @@ impl Scene {
         (best.0, z0 - best.1)
     }
 
-    /// Brightness of what a ray hit (before blur and noise).
+    /// Brightness of what a ray hit (before blur and noise), dimmed by vignetting.
     fn shade(&self, hit: Hit, u: f64, v: f64, right: bool, cal: &Calibration) -> f64 {
+        let lit = self.lit(hit, u, v, right, cal);
+        if self.look.vignetting == 0.0 {
+            return lit;
+        }
+        let (cu, cv) = (
+            0.5 * (self.optics.width as f64 - 1.0),
+            0.5 * (self.optics.height as f64 - 1.0),
+        );
+        let r2 = ((u - cu).powi(2) + (v - cv).powi(2)) / (cu * cu + cv * cv);
+        lit * (1.0 - self.look.vignetting * r2)
+    }
+
+    /// Darkening of the membrane rim at a substrate point `(x, y)` µm just outside a cell.
+    fn rim_outside(&self, x: f64, y: f64) -> f64 {
+        let mut dark: f64 = 0.0;
+        for c in &self.cells {
+            let (dx, dy) = (x - c.centre[0], y - c.centre[1]);
+            if dx.abs().max(dy.abs()) > c.reach() + 4.0 * RIM_WIDTH {
+                continue;
+            }
+            let (co, si) = (c.angle.cos(), c.angle.sin());
+            let (px, py) = (co * dx + si * dy, -si * dx + co * dy);
+            let rho = c.rho2(px, py).sqrt();
+            if rho >= 1.0 {
+                let off = (rho - 1.0) * px.hypot(py) / rho;
+                dark = dark.max((-(off / RIM_WIDTH).powi(2)).exp());
+            }
+        }
+        self.look.rim * dark
+    }
+
+    /// Brightness of what a ray hit, before vignetting, blur and noise.
+    fn lit(&self, hit: Hit, u: f64, v: f64, right: bool, cal: &Calibration) -> f64 {
         let look = &self.look;
         let f = cal.focal_px;
         let z0 = self.z0();
@@ -537,7 +796,13 @@ impl Scene {
         let half_w = 0.5 * self.optics.width as f64 * self.optics.um_per_px();
         let base = look.substrate + look.gradient * 0.5 * (x / half_w + 0.3 * y / half_w);
         match hit {
-            Hit::Substrate => {
+            Hit::Substrate(s) => {
+                // The point hit on a tilted substrate (s = 0 when flat).
+                let (x, y) = if s == 0.0 {
+                    (x, y)
+                } else {
+                    (ox + (u - cx) / f * (z0 - s), (v - cal.cy) / f * (z0 - s))
+                };
                 let amp = if self.target {
                     40.0
                 } else {
@@ -545,10 +810,22 @@ impl Scene {
                 };
                 let t = if self.target {
                     cell_texture(&Texture::Noise, x, y, self.seed)
+                } else if amp == 0.0 {
+                    0.0
                 } else {
                     value_noise(x / 3.0, y / 3.0, self.seed ^ 0xbac)
                 };
-                base + amp * t
+                let mut dirt: f64 = 0.0;
+                for d in &self.debris {
+                    let r = (x - d.centre[0]).hypot(y - d.centre[1]);
+                    dirt = dirt.max(d.darkness * (d.radius + 0.5 - r).clamp(0.0, 1.0));
+                }
+                let rim = if look.rim > 0.0 {
+                    self.rim_outside(x, y)
+                } else {
+                    0.0
+                };
+                base + amp * t - dirt - rim
             }
             Hit::Cell(k, [lx, ly, s]) => {
                 let c = &self.cells[k];
@@ -559,13 +836,29 @@ impl Scene {
                     ly + c.texture_offset[1],
                     self.seed ^ ((k as u64 + 1) * 0x51),
                 );
-                // Slope of the dome along the DIC shear (45°): relief shading.
-                let zn = (s / h).max(0.05);
-                let (gx, gy) = (-lx / (a * a) * h / zn, -ly / (b * b) * h / zn);
+                // Slope of the surface along the DIC shear (45°): relief shading.
+                let (gx, gy) = if c.is_ellipsoid() {
+                    let zn = (s / h).max(0.05);
+                    (-lx / (a * a) * h / zn, -ly / (b * b) * h / zn)
+                } else {
+                    let e = 0.05;
+                    let z = |x: f64, y: f64| c.surface(x, y).unwrap_or(0.0);
+                    (
+                        ((z(lx + e, ly) - z(lx - e, ly)) / (2.0 * e)).clamp(-20.0, 20.0),
+                        ((z(lx, ly + e) - z(lx, ly - e)) / (2.0 * e)).clamp(-20.0, 20.0),
+                    )
+                };
                 let (co, si) = (c.angle.cos(), c.angle.sin());
                 let (wx, wy) = (co * gx - si * gy, si * gx + co * gy);
                 let slope = (wx + wy) * std::f64::consts::FRAC_1_SQRT_2;
-                base + c.brightness + look.cell_texture * t + look.relief * slope.tanh()
+                let rim = if look.rim > 0.0 {
+                    let rho = c.rho2(lx, ly).sqrt().min(1.0);
+                    let off = (1.0 - rho) * lx.hypot(ly) / rho.max(1e-6);
+                    look.rim * (-(off / RIM_WIDTH).powi(2)).exp()
+                } else {
+                    0.0
+                };
+                base + c.brightness + look.cell_texture * t + look.relief * slope.tanh() - rim
             }
             Hit::Pipette => base - 70.0,
         }
@@ -635,7 +928,7 @@ impl Scene {
                 *depth.get_mut(u, v) = z as f32;
                 *disparity.get_mut(u, v) = (self.optics.baseline * cal.focal_px / z - off) as f32;
                 *labels.get_mut(u, v) = match hit {
-                    Hit::Substrate => 0,
+                    Hit::Substrate(_) => 0,
                     Hit::Cell(k, _) => k as u32 + 1,
                     Hit::Pipette => PIPETTE,
                 };
@@ -660,25 +953,23 @@ impl Scene {
                 let id = k as u32 + 1;
                 let (n, sx, sy) = sums[id as usize];
                 let f = cal.focal_px;
+                let zb = z0 - self.substrate_at(c.centre[0], c.centre[1]);
+                let (volume, zc) = c.volume_and_centroid_height();
                 CellTruth {
                     id,
                     shape: *c,
                     area_px: n,
                     centroid_px: [sx / n.max(1) as f64, sy / n.max(1) as f64],
                     footprint_centre_px: [
-                        cal.cx + (c.centre[0] + 0.5 * self.optics.baseline) * f / z0,
-                        cal.cy + c.centre[1] * f / z0,
+                        cal.cx + (c.centre[0] + 0.5 * self.optics.baseline) * f / zb,
+                        cal.cy + c.centre[1] * f / zb,
                     ],
                     height: c.height,
-                    volume: 2.0 / 3.0
-                        * std::f64::consts::PI
-                        * c.semi_axes[0]
-                        * c.semi_axes[1]
-                        * c.height,
-                    centroid: [c.centre[0], c.centre[1], z0 - 3.0 / 8.0 * c.height],
+                    volume,
+                    centroid: [c.centre[0], c.centre[1], zb - zc],
                     disparity_base_top: [
-                        self.optics.baseline * f / z0 - off,
-                        self.optics.baseline * f / (z0 - c.height) - off,
+                        self.optics.baseline * f / zb - off,
+                        self.optics.baseline * f / (zb - c.height) - off,
                     ],
                 }
             })
@@ -693,6 +984,46 @@ impl Scene {
             calibration: cal,
         }
     }
+}
+
+/// The local height `s` (above the cell's base) where the ray `P − Q·s` (cell frame) first
+/// meets the surface of a cell of any shape, marching down from its top: `None` if it
+/// misses. Steps of 1/96 of the height cannot pass through a surface whose slope the
+/// ray's own (≤ 1:4) exceeds for less than a step; bisection then finds the crossing.
+fn march(c: &CellShape, p: [f64; 2], q: [f64; 2]) -> Option<f64> {
+    let h = c.height;
+    // Closest horizontal approach over 0 ≤ s ≤ h: too far means no hit.
+    let qq = q[0] * q[0] + q[1] * q[1];
+    let s_near = if qq > 0.0 {
+        ((p[0] * q[0] + p[1] * q[1]) / qq).clamp(0.0, h)
+    } else {
+        0.0
+    };
+    if (p[0] - q[0] * s_near).hypot(p[1] - q[1] * s_near) > c.reach() {
+        return None;
+    }
+    let above = |s: f64| {
+        c.surface(p[0] - q[0] * s, p[1] - q[1] * s)
+            .is_some_and(|z| z >= s)
+    };
+    let n = 96;
+    let step = h / n as f64;
+    for i in 1..=n {
+        let s = h - i as f64 * step;
+        if above(s) {
+            let (mut lo, mut hi) = (s, s + step);
+            for _ in 0..40 {
+                let mid = 0.5 * (lo + hi);
+                if above(mid) {
+                    lo = mid;
+                } else {
+                    hi = mid;
+                }
+            }
+            return Some(lo);
+        }
+    }
+    None
 }
 
 /// A standard normal sample (Box–Muller).
@@ -791,6 +1122,7 @@ mod tests {
             diameter: [40.0, 60.0],
             height: [10.0, 20.0],
             gap: 10.0,
+            ..CellSpec::default()
         };
         let s = Scene::random(o, look, &spec, 9);
         assert_eq!(s.cells.len(), 2);

@@ -38,7 +38,8 @@ pub struct CalibrationFile {
     /// Right principal point column (default: `cx`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cx_right: Option<f64>,
-    /// Unit of `baseline` (default mm).
+    /// Unit of `baseline` and so of every length triangulated from it (required: a
+    /// microscope's µm and a bench rig's mm differ a thousandfold).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub unit: Option<LengthUnit>,
 }
@@ -55,6 +56,12 @@ impl CalibrationFile {
                 ));
             }
         };
+        let Some(unit) = self.unit else {
+            return Err(format!(
+                "calibration {source}: no unit for baseline {}: add unit = \"um\" (a microscope), \"mm\" or \"m\"",
+                self.baseline
+            ));
+        };
         let cx = self.cx.unwrap_or((w as f64 - 1.0) / 2.0);
         let c = Calibration {
             baseline: self.baseline,
@@ -62,7 +69,7 @@ impl CalibrationFile {
             cx,
             cy: self.cy.unwrap_or((h as f64 - 1.0) / 2.0),
             cx_right: self.cx_right.unwrap_or(cx),
-            unit: self.unit.unwrap_or_default(),
+            unit,
         };
         check(&c, source)?;
         Ok(c)
@@ -307,8 +314,11 @@ mod tests {
         assert_eq!(load(&p, 10, 10).unwrap(), c);
         std::fs::write(&p, "baseline = 2000.0\nfocal_px = 1.0\nf_eff = 3.0\n").unwrap();
         assert!(load(&p, 4, 4).unwrap_err().contains("give either focal_px"));
-        std::fs::write(&p, "baseline = -1.0\nfocal_px = 1.0\n").unwrap();
+        std::fs::write(&p, "baseline = -1.0\nfocal_px = 1.0\nunit = \"mm\"\n").unwrap();
         assert!(load(&p, 4, 4).unwrap_err().contains("must be positive"));
+        // No unit is assumed: µm and mm differ a thousandfold.
+        std::fs::write(&p, "baseline = 2000.0\nfocal_px = 1.0\n").unwrap();
+        assert!(load(&p, 4, 4).unwrap_err().contains("add unit = \"um\""));
         std::fs::remove_dir_all(&dir).unwrap();
     }
 
@@ -333,9 +343,10 @@ mod tests {
             g("calibration = \"a.toml\"").unwrap(),
             Geometry::File("a.toml".into())
         );
-        let inline = g("calibration = { baseline = 1.5, focal_px = 900.0 }").unwrap();
+        let inline = g("calibration = { baseline = 1.5, focal_px = 900.0, unit = \"m\" }").unwrap();
         let c = inline.resolve(11, 5).unwrap();
         assert_eq!((c.baseline, c.focal_px, c.cx, c.cy), (1.5, 900.0, 5.0, 2.0));
+        assert_eq!(c.unit, LengthUnit::M);
         assert!(
             g("calibration = { baseline = 1.5, focal = 900.0 }")
                 .unwrap_err()

@@ -6,9 +6,10 @@
 //! the rest ([`compose`], [`cell_heights`], [`measure`]).
 
 use crate::refine::{DisparityPlane, PeakFit, fit_disparity_plane, refine_peak};
+use crate::substrate::{self, Base, RimFit};
 use schemas::{
-    Calibration, Cell, Cell3, DisparityMap, DisparityRange, DisparityTiles, INVALID_DISPARITY,
-    Mask, Plane,
+    Calibration, Cell, Cell3, CellQuality, DisparityMap, DisparityRange, DisparityTiles,
+    INVALID_DISPARITY, Mask, Plane, SubstrateSource,
 };
 
 /// Pixels matched around each cell mask by default: its substrate ring.
@@ -227,8 +228,9 @@ pub fn compose(
 }
 
 /// The substrate's disparity plane over the background clear of every cell (in both views'
-/// masks), and per pair the substrate's disparity under the left cell (the plane, or the
-/// ring median without one) and its refined top.
+/// masks) when the background has the texture to fix one, and per pair the substrate under
+/// the left cell ([`substrate::bases`]: the plane or the rims, cross-checked; the ring
+/// median, doubted, without either) and its refined top.
 #[allow(clippy::too_many_arguments)]
 pub fn cell_heights(
     (left, right): (&Plane<u8>, &Plane<u8>),
@@ -240,7 +242,7 @@ pub fn cell_heights(
     margin: u8,
 ) -> (
     Option<DisparityPlane>,
-    Vec<Option<f64>>,
+    Vec<Option<Base>>,
     Vec<Option<PeakFit>>,
 ) {
     let reach = margin as usize + range.min.unsigned_abs().max(range.max.unsigned_abs()) as usize;
@@ -249,18 +251,36 @@ pub fn cell_heights(
         *c |= *r;
     }
     let usable = clear_of(&both, reach);
-    let substrate = fit_disparity_plane(left, right, &usable, range, SUBSTRATE_MAX_STD);
-    let (mut bases, mut tops) = (Vec::new(), Vec::new());
-    for &(i, _) in pairs {
-        let cell = &cells[i];
-        let base = match &substrate {
-            Some(s) => Some(s.at(cell.centroid[0], cell.centroid[1])),
-            None => ring_disparity(labels, cell, disparity_raw, disparity, margin),
-        };
-        bases.push(base);
-        tops.push(base.and_then(|base| top_of_cell(left, right, labels, cell, disparity, base)));
+    let plane = fit_disparity_plane(left, right, &usable, range, SUBSTRATE_MAX_STD);
+    let paired: Vec<&Cell> = pairs.iter().map(|&(i, _)| &cells[i]).collect();
+    let rims: Vec<Option<RimFit>> = paired
+        .iter()
+        .map(|c| substrate::rim_disparity(left, right, labels, c, range))
+        .collect();
+    let mut bases = substrate::bases(&paired, plane.as_ref(), &rims);
+    for (base, cell) in bases.iter_mut().zip(&paired) {
+        if base.is_none() {
+            *base = ring_disparity(labels, cell, disparity_raw, disparity, margin).map(|d| Base {
+                d,
+                // Not a formal error: the ring's median carries the cell's own flanks.
+                std: RING_STD,
+                source: SubstrateSource::Ring,
+                doubt: Some(
+                    "neither the background nor the cell's rim has the texture to fix the substrate; it is the median matched disparity around the cell"
+                        .into(),
+                ),
+            });
+        }
     }
-    (substrate, bases, tops)
+    let tops = bases
+        .iter()
+        .zip(&paired)
+        .map(|(base, cell)| {
+            base.as_ref()
+                .and_then(|b| top_of_cell(left, right, labels, cell, disparity, b.d))
+        })
+        .collect();
+    (plane, bases, tops)
 }
 
 /// 255 where no non-zero pixel of `mask` lies within the `(2r+1)²` square around.
@@ -273,6 +293,31 @@ fn clear_of(mask: &Mask, r: usize) -> Mask {
         .collect();
     Plane::from_vec(w, h, data).expect("size")
 }
+
+/// Fewest pixels in a cell's upper 30 % for its top to be fitted there alone.
+const SMALL_TOP_PIXELS: usize = 300;
+
+/// Fewest pixels a cell top's fit may use for its height to be trusted: below it (cells
+/// under about 25 px across) the fit's formal error understates the real one, which
+/// reached 10–18 % on textureless synthetic cells.
+const MIN_TOP_PIXELS: usize = 400;
+
+/// Uncertainty (px) put on a ring-median substrate, which no fit stands behind.
+const RING_STD: f64 = 1.0;
+
+/// Standard error (px) credited to a cell top's dome fit.
+const TOP_STD: f64 = 0.05;
+
+/// Largest disagreement (px) between a cell top's fit and its matched map's 98th
+/// percentile (windowed matching lowers a small dome's top by 0.3–0.5 px; a wrong fit
+/// overshoots by a pixel).
+const TOP_AGREE_PX: f64 = 0.6;
+
+/// Least share of a cell's pixels with an LR-checked disparity for its height to count.
+const MIN_VALID_SHARE: f64 = 0.2;
+
+/// Largest standard error of a trusted height, relative to the height (2σ = 5 %).
+const HEIGHT_MAX_REL_STD: f64 = 0.025;
 
 /// The largest formal error (px) a background plane may have to stand for the substrate.
 const SUBSTRATE_MAX_STD: f64 = 0.05;
@@ -302,15 +347,30 @@ fn top_of_cell(
     if top <= base {
         return None;
     }
-    let level = (base + 0.7 * (top - base)) as f32;
-    let (pixels, init): (Vec<[usize; 2]>, Vec<f32>) =
-        inside.into_iter().filter(|(_, d)| *d >= level).unzip();
-    refine_peak(left, right, &pixels, &init, Some(base))
+    // A small cell's upper 30 % holds too few pixels to fix a dome: take more of it.
+    let share = |f: f64| {
+        let level = (base + f * (top - base)) as f32;
+        inside.iter().filter(|(_, d)| *d >= level).count()
+    };
+    let fit = |f: f64| {
+        let level = (base + f * (top - base)) as f32;
+        let (pixels, init): (Vec<[usize; 2]>, Vec<f32>) =
+            inside.iter().filter(|(_, d)| *d >= level).copied().unzip();
+        refine_peak(left, right, &pixels, &init, Some(base))
+    };
+    if share(0.7) >= SMALL_TOP_PIXELS {
+        return fit(0.7);
+    }
+    // Either may be the better one: the surer fit wins.
+    match (fit(0.7), fit(0.4)) {
+        (Some(a), Some(b)) => Some(if b.std < a.std { b } else { a }),
+        (a, b) => a.or(b),
+    }
 }
 
 /// Chebyshev distance (px, capped at 255) from each pixel of the window `[x0, x1) × [y0, y1)`
 /// to the nearest pixel of cell `id`, which must lie wholly inside the window.
-fn distance_to_cell(
+pub(crate) fn distance_to_cell(
     labels: &Plane<u32>,
     id: u32,
     (x0, y0): (usize, usize),
@@ -377,7 +437,7 @@ pub fn measure(
     (labels, left_cells, right_cells): (&Plane<u32>, &[Cell], &[Cell]),
     pairs: &[(usize, usize)],
     (disparity, disparity_raw): (&DisparityMap, &DisparityMap),
-    (bases, tops): (&[Option<f64>], &[Option<PeakFit>]),
+    (bases, tops): (&[Option<Base>], &[Option<PeakFit>]),
     calib: &Calibration,
 ) -> Vec<Cell3> {
     let z_of = |d: f64| calib.baseline * calib.focal_px / (d + calib.cx_right - calib.cx);
@@ -398,7 +458,8 @@ pub fn measure(
                 }
             }
         }
-        let Some(d_sub) = bases[k] else { continue };
+        let Some(base) = &bases[k] else { continue };
+        let d_sub = base.d;
         let Some(d_top) = tops[k]
             .map(|t| t.peak)
             .or_else(|| percentile(inside.iter().map(|p| p.2).collect(), 0.98))
@@ -448,6 +509,53 @@ pub fn measure(
             .iter()
             .filter_map(|c| crate::triangulate_pixel(c[0] as f64, c[1] as f64, d_sub, calib))
             .collect();
+        let valid_share = valid_raw as f64 / cell.area.max(1) as f64;
+        let height = (d_top > d_sub).then(|| z_sub - z_of(d_top));
+        // dZ/dd' = −Z²/(b·f): the substrate's error, and the top's (its fit's, at least
+        // 0.05 px, what the dome fit reaches on synthetic truth).
+        let dz = |z: f64| z * z / (calib.baseline * calib.focal_px);
+        let top_std = tops[k].map_or(TOP_STD, |t| t.std.max(TOP_STD));
+        let height_std = height.map(|_| (dz(z_sub) * base.std).hypot(dz(z_of(d_top)) * top_std));
+        let doubt = base
+            .doubt
+            .clone()
+            .or_else(|| height.is_none().then(|| "the top was not found above the substrate".into()))
+            .or_else(|| {
+                (valid_share < MIN_VALID_SHARE).then(|| {
+                    format!(
+                        "only {:.0} % of the cell's pixels passed the LR check",
+                        100.0 * valid_share
+                    )
+                })
+            })
+            .or_else(|| {
+                match tops[k] {
+                    None => Some("the top could not be fitted: it is the matched map's".into()),
+                    Some(t) if t.pixels < MIN_TOP_PIXELS => Some(format!(
+                        "the cell is too small for a sure top ({} pixels fitted)",
+                        t.pixels
+                    )),
+                    Some(_) => None,
+                }
+            })
+            .or_else(|| {
+                // The fit and the matcher's map disagree on the top: the fit found a wrong
+                // minimum (seen on small cells with little texture) or the map is wrong.
+                let matched = percentile(inside.iter().map(|p| p.2).collect(), 0.98)?;
+                let diff = d_top - matched;
+                (tops[k].is_some() && diff.abs() > TOP_AGREE_PX).then(|| {
+                    format!(
+                        "the top's fit ({d_top:.2} px) and the matched map ({matched:.2} px) disagree by {diff:+.2} px"
+                    )
+                })
+            })
+            .or_else(|| match (height, height_std) {
+                (Some(h), Some(s)) if !(s <= HEIGHT_MAX_REL_STD * h) => Some(format!(
+                    "the height is uncertain by {:.1} % (σ)",
+                    100.0 * s / h
+                )),
+                _ => None,
+            });
         out.push(Cell3 {
             id: cell.id,
             right_id: right_cells[j].id,
@@ -456,10 +564,18 @@ pub fn measure(
             disparity: d_top,
             centroid,
             substrate_z: z_sub,
-            height: z_sub - z_of(d_top),
+            height,
             volume: vol,
             contour,
-            valid_share: valid_raw as f64 / cell.area.max(1) as f64,
+            valid_share,
+            quality: CellQuality {
+                substrate: base.source,
+                substrate_std: base.std,
+                height_std,
+                residual: tops[k].map(|t| t.residual),
+                trusted: doubt.is_none(),
+                doubt,
+            },
         });
     }
     out

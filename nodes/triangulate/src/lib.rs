@@ -20,6 +20,7 @@ pub mod calibration;
 pub mod cells;
 pub mod node;
 pub mod refine;
+pub mod substrate;
 
 use schemas::{Calibration, DisparityMap, Plane, Point3, PointCloud};
 

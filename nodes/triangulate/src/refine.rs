@@ -20,7 +20,7 @@ use serde::Serialize;
 
 /// Value and x-gradient of a row at fractional `x` (linear interpolation of the samples and
 /// of their central differences); `None` outside `[1, len − 2]`.
-fn sample(row: &[f32], x: f64) -> Option<(f64, f64)> {
+pub(crate) fn sample(row: &[f32], x: f64) -> Option<(f64, f64)> {
     if !(x >= 1.0 && x <= (row.len() - 2) as f64) {
         return None;
     }
@@ -77,7 +77,7 @@ fn band_pass(img: &Plane<u8>, r: usize) -> Plane<f32> {
 }
 
 /// Huber weight of a residual for scale `k`.
-fn huber(e: f64, k: f64) -> f64 {
+pub(crate) fn huber(e: f64, k: f64) -> f64 {
     if e.abs() <= k { 1.0 } else { k / e.abs() }
 }
 
@@ -95,7 +95,7 @@ fn tukey(e: f64, c: f64) -> f64 {
 const TUKEY_C: f64 = 4.685;
 
 /// Median absolute value, scaled to a Gaussian standard deviation.
-fn robust_scale(mut res: Vec<f64>) -> f64 {
+pub(crate) fn robust_scale(mut res: Vec<f64>) -> f64 {
     if res.is_empty() {
         return 0.0;
     }
@@ -109,8 +109,15 @@ const PLANE_MIN_PIXELS: u64 = 2000;
 /// Most pixels a plane is fitted on (an even sample of the usable ones).
 const PLANE_MAX_PIXELS: usize = 300_000;
 
+/// Least relative dip of the background's matching cost at the plane's disparity below the
+/// cost's median over the range. Textured substrates dip 10–30 %; on a textureless one the
+/// views differ by noise alone and the cost is flat to 1–2 % (noise, vignetting and the
+/// illumination gradient differ per view), where any "best" disparity is a guess.
+pub const PLANE_MIN_DIP: f64 = 0.05;
+
 /// The whole disparity in `range` with the smallest mean truncated squared difference of
-/// the band-passed views over `sample`. Truncated, because a few hundred pixels of a strong
+/// the band-passed views over `sample`, and how far (relatively) that cost dips below the
+/// median over the range. Truncated, because a few hundred pixels of a strong
 /// object off the plane (a pipette's image too small to segment) would otherwise outweigh a
 /// whole frame of faint substrate texture; the cap is three times the spread of the
 /// difference of two unrelated pixels, so the substrate's own differences pass whole.
@@ -119,7 +126,7 @@ fn integer_start(
     hr: &Plane<f32>,
     sample: &[[usize; 2]],
     range: DisparityRange,
-) -> Option<i32> {
+) -> Option<(i32, f64)> {
     let w = hl.width;
     let cap = {
         let c = 3.0
@@ -127,30 +134,89 @@ fn integer_start(
             * robust_scale(sample.iter().map(|&[x, y]| *hl.get(x, y) as f64).collect());
         c * c
     };
-    Some(
-        (range.min..=range.max)
-            .map(|d| {
-                let (s, n) = ordered_sum(
-                    sample,
-                    || (0.0f64, 0u64),
-                    |a, &[x, y]| {
-                        let xr = x as i64 - d as i64;
-                        if xr >= 0 && xr < w as i64 {
-                            let e = (hl.get(x, y) - hr.get(xr as usize, y)) as f64;
-                            a.0 += (e * e).min(cap);
-                            a.1 += 1;
-                        }
-                    },
-                    |a, b| {
-                        a.0 += b.0;
-                        a.1 += b.1;
-                    },
-                );
-                (if n > 0 { s / n as f64 } else { f64::INFINITY }, d)
-            })
-            .min_by(|a, b| a.0.total_cmp(&b.0))?
-            .1,
-    )
+    let costs: Vec<(f64, i32)> = (range.min..=range.max)
+        .map(|d| {
+            let (s, n) = ordered_sum(
+                sample,
+                || (0.0f64, 0u64),
+                |a, &[x, y]| {
+                    let xr = x as i64 - d as i64;
+                    if xr >= 0 && xr < w as i64 {
+                        let e = (hl.get(x, y) - hr.get(xr as usize, y)) as f64;
+                        a.0 += (e * e).min(cap);
+                        a.1 += 1;
+                    }
+                },
+                |a, b| {
+                    a.0 += b.0;
+                    a.1 += b.1;
+                },
+            );
+            (if n > 0 { s / n as f64 } else { f64::INFINITY }, d)
+        })
+        .collect();
+    let best = *costs.iter().min_by(|a, b| a.0.total_cmp(&b.0))?;
+    let mut sorted: Vec<f64> = costs.iter().map(|c| c.0).collect();
+    sorted.sort_by(f64::total_cmp);
+    let median = sorted[sorted.len() / 2];
+    let dip = if median.is_finite() && median > 0.0 {
+        (median - best.0) / median
+    } else {
+        0.0
+    };
+    Some((best.1, dip))
+}
+
+/// The plane `d = a + b·x + c·y` through the integer starts of the tiles of a 3×3 grid over
+/// the image whose costs dip clearly, fitted by least squares after dropping tiles more
+/// than 1.5 px off a first fit; `None` unless at least 4 tiles, not all in a line, agree.
+fn tiled_start(
+    hl: &Plane<f32>,
+    hr: &Plane<f32>,
+    sample: &[[usize; 2]],
+    range: DisparityRange,
+    (w, h): (usize, usize),
+) -> Option<[f64; 3]> {
+    let mut tiles: Vec<Vec<[usize; 2]>> = vec![Vec::new(); 9];
+    for &p in sample {
+        tiles[(3 * p[1] / h).min(2) * 3 + (3 * p[0] / w).min(2)].push(p);
+    }
+    let starts: Vec<[f64; 3]> = tiles
+        .iter()
+        .filter(|t| t.len() >= 500)
+        .filter_map(|t| {
+            let (d, dip) = integer_start(hl, hr, t, range)?;
+            let n = t.len() as f64;
+            let c = t.iter().fold([0.0, 0.0], |a, p| {
+                [a[0] + p[0] as f64 / n, a[1] + p[1] as f64 / n]
+            });
+            (dip >= 2.0 * PLANE_MIN_DIP).then_some([c[0], c[1], d as f64])
+        })
+        .collect();
+    let fit = |pts: &[[f64; 3]]| -> Option<[f64; 3]> {
+        if pts.len() < 4 {
+            return None;
+        }
+        let (mut a, mut b) = (nalgebra::Matrix3::zeros(), nalgebra::Vector3::zeros());
+        for p in pts {
+            let j = nalgebra::Vector3::new(1.0, p[0], p[1]);
+            a += j * j.transpose();
+            b += j * p[2];
+        }
+        let eig = a.symmetric_eigen().eigenvalues;
+        if eig.min() <= 1e-9 * eig.max() {
+            return None;
+        }
+        let c = a.lu().solve(&b)?;
+        Some([c[0], c[1], c[2]])
+    };
+    let first = fit(&starts)?;
+    let kept: Vec<[f64; 3]> = starts
+        .iter()
+        .copied()
+        .filter(|p| (p[2] - (first[0] + first[1] * p[0] + first[2] * p[1])).abs() <= 1.5)
+        .collect();
+    fit(&kept)
 }
 
 /// Fits one disparity plane to the pixels where `usable` is non-zero (the background, well
@@ -188,13 +254,23 @@ pub fn fit_disparity_plane(
     // A sparse sample is plenty for one integer.
     let sparse = pixels.len().div_ceil(PLANE_MAX_PIXELS / 8);
     let sample: Vec<[usize; 2]> = pixels.iter().step_by(sparse).copied().collect();
-    let d_start = integer_start(&hl, &hr, &sample, range)?;
+    let (d_start, dip) = integer_start(&hl, &hr, &sample, range)?;
+    // Too little texture for the cost to single out a disparity: no plane, whatever its
+    // formal error (gradients of pure noise look like information to Gauss–Newton).
+    if range.max > range.min && dip < PLANE_MIN_DIP {
+        return None;
+    }
     let n = pixels.len() as f64;
     let centre = pixels.iter().fold([0.0, 0.0], |a, p| {
         [a[0] + p[0] as f64 / n, a[1] + p[1] as f64 / n]
     });
     let s = 0.5 * w.max(h) as f64;
-    let mut p = [d_start as f64, 0.0, 0.0];
+    // A tilted substrate spreads its disparity over several pixels across the frame, more
+    // than Gauss–Newton's reach from one integer: start from the plane through the integer
+    // starts of a 3×3 grid of tiles when they fix one.
+    let mut p = tiled_start(&hl, &hr, &sample, range, (w, h))
+        .map(|[d0, dx, dy]| [d0 + dx * centre[0] + dy * centre[1], dx * s, dy * s])
+        .unwrap_or([d_start as f64, 0.0, 0.0]);
     // Residual after linearising at the rounded shift, r = e + g·(d − k), is linear in p
     // with Jacobian g·[1, u, v].
     let term = |p: &[f64; 3], x: usize, y: usize| -> Option<(f64, [f64; 3])> {
@@ -366,6 +442,10 @@ pub struct PeakFit {
     pub residual: f64,
     /// Pixels used.
     pub pixels: usize,
+    /// Formal standard error of `peak` from the fit's covariance (px; infinite when the fit
+    /// is singular). On synthetic truth the real error of a well-fitted top is about half
+    /// of it, and a wrong fit shows it several times larger.
+    pub std: f64,
 }
 
 /// Fewest pixels a quadratic top is fitted on.
@@ -481,6 +561,7 @@ pub fn refine_peak(
     let mut lambda = 1e-3;
     let mut terms = terms_at(&p);
     let mut scale = 0.0;
+    let mut done = false;
     for _ in 0..50 {
         if terms.len() < PEAK_MIN_PIXELS {
             return None;
@@ -510,18 +591,35 @@ pub fn refine_peak(
                 terms = t;
                 lambda = (lambda * 0.3).max(1e-7);
                 accepted = true;
-                if small {
-                    return Some(peak_of(&p, pixels, &basis, centre, radius, scale, &surface));
-                }
+                done = small;
                 break;
             }
             lambda *= 10.0;
         }
-        if !accepted {
+        if !accepted || terms.is_empty() {
+            break;
+        }
+        if done {
             break;
         }
     }
-    Some(peak_of(&p, pixels, &basis, centre, radius, scale, &surface))
+    let (jtj, _) = normal_equations(&terms, 1.5 * scale);
+    let cov = jtj.try_inverse();
+    let mut fit = peak_of(&p, pixels, &basis, centre, radius, scale, &surface);
+    let (u, v) = (
+        (fit.at[0] - centre[0]) / radius,
+        (fit.at[1] - centre[1]) / radius,
+    );
+    let f = [1.0, u, v, u * u, u * v, v * v];
+    let q: f64 = (0..6).map(|i| p[i] * f[i]).sum();
+    fit.std = cov.map_or(f64::INFINITY, |c| {
+        let var: f64 = (0..6)
+            .flat_map(|i| (0..6).map(move |j| (i, j)))
+            .map(|(i, j)| f[i] * c[(i, j)] * f[j])
+            .sum();
+        scale * surface(q).1 * var.max(0.0).sqrt()
+    });
+    Some(fit)
 }
 
 /// The maximum of the fitted quadratic: its stationary point when that is a maximum inside
@@ -562,6 +660,7 @@ fn peak_of(
         at: [centre[0] + u * radius, centre[1] + v * radius],
         residual,
         pixels: pixels.len(),
+        std: f64::INFINITY,
     }
 }
 
@@ -707,9 +806,32 @@ mod tests {
             .flat_map(|y| (1..479).map(move |x| [x, y]))
             .step_by(4)
             .collect();
+        let (d, dip) = integer_start(&hl, &hr, &sample, DisparityRange::new(-4, 12)).unwrap();
+        assert_eq!(d, 0);
+        assert!(dip > PLANE_MIN_DIP, "{dip}");
+    }
+
+    #[test]
+    fn a_background_of_noise_alone_has_no_plane() {
+        // Two views of a textureless substrate under a lighting gradient: they differ by
+        // sensor noise only. Gauss–Newton on noise "converges" with a formal error of
+        // thousandths of a pixel; the cost over the range is flat, so there is no plane.
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let mut view = || {
+            let data = (0..320 * 240)
+                .map(|i| {
+                    let x = (i % 320) as f64;
+                    let v = 120.0 + 0.1 * x + 1.5 * (rng.random::<f64>() - 0.5) * 3.4;
+                    v.round() as u8
+                })
+                .collect();
+            Plane::from_vec(320, 240, data).unwrap()
+        };
+        let (l, r) = (view(), view());
+        let all = Plane::filled(320, 240, 255u8);
         assert_eq!(
-            integer_start(&hl, &hr, &sample, DisparityRange::new(-4, 12)),
-            Some(0)
+            fit_disparity_plane(&l, &r, &all, DisparityRange::new(0, 24), 0.05),
+            None
         );
     }
 

@@ -323,14 +323,20 @@ impl Sink {
                         [
                             (c.centroid[0] * m) as f32,
                             (c.centroid[1] * m) as f32,
-                            ((c.substrate_z - c.height) * m) as f32,
+                            ((c.substrate_z - c.height.unwrap_or(0.0)) * m) as f32,
                         ]
                     })
                     .collect();
                 let labels: Vec<String> = t
                     .cells
                     .iter()
-                    .map(|c| format!("cell {}: {:.1} {} high", c.id, c.height, t.unit))
+                    .map(|c| match (c.height, &c.quality.doubt) {
+                        (Some(h), None) => format!("cell {}: {h:.1} {} high", c.id, t.unit),
+                        (Some(h), Some(_)) => {
+                            format!("cell {}: {h:.1} {} high? (not trusted)", c.id, t.unit)
+                        }
+                        (None, _) => format!("cell {}: no height", c.id),
+                    })
                     .collect();
                 self.rec
                     .log(

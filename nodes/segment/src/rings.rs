@@ -1,0 +1,214 @@
+//! Thin arcs around a larger object belong to it: an embryo's zona pellucida, a ring of
+//! texture around a textureless perivitelline space, breaks into arcs under the variance
+//! threshold, and each arc would otherwise be a cell of its own.
+
+use imageproc::point::Point;
+use schemas::Plane;
+
+/// Largest solidity (area over convex-hull area) of a component that counts as an arc.
+const ARC_SOLIDITY: f64 = 0.35;
+
+/// Least ratio of the enclosed object's area to the arc's.
+const ARC_AREA_RATIO: u64 = 2;
+
+struct Component {
+    area: u64,
+    /// Raster-first pixel: where its boundary trace starts.
+    first: [u32; 2],
+    hull: Vec<[f64; 2]>,
+    hull_area: f64,
+}
+
+/// Relabels, in place, every thin arc of `labels` (`1..=n`) whose convex hull reaches into a
+/// component at least twice its size with that component's id, and renumbers the labels
+/// `1..=m` in their old order. Returns `m` and, per new id, where its boundary trace starts
+/// (the raster-first pixel of its largest piece, so that an absorbed arc does not become
+/// the contour).
+pub fn absorb_rings(labels: &mut Plane<u32>, n: u32) -> (u32, Vec<[u32; 2]>) {
+    let mut pts: Vec<Vec<Point<i64>>> = vec![Vec::new(); n as usize + 1];
+    for y in 0..labels.height {
+        for (x, &l) in labels.row(y).iter().enumerate() {
+            if l != 0 {
+                pts[l as usize].push(Point::new(x as i64, y as i64));
+            }
+        }
+    }
+    let comps: Vec<Option<Component>> = pts
+        .iter()
+        .map(|p| {
+            let first = p.first()?;
+            let hull: Vec<[f64; 2]> = imageproc::geometry::convex_hull(p.clone())
+                .iter()
+                .map(|q| [q.x as f64, q.y as f64])
+                .collect();
+            let hull_area = polygon_area(&hull);
+            Some(Component {
+                area: p.len() as u64,
+                first: [first.x as u32, first.y as u32],
+                hull,
+                hull_area,
+            })
+        })
+        .collect();
+    // Each arc joins the largest qualifying object its hull reaches into.
+    let mut into: Vec<u32> = (0..=n).collect();
+    for (a, ca) in comps.iter().enumerate() {
+        let Some(ca) = ca else { continue };
+        // The hull of pixel centres misses half a pixel all round.
+        let solidity = ca.area as f64 / (ca.hull_area + 0.5 * perimeter(&ca.hull) + 1.0);
+        if solidity > ARC_SOLIDITY || ca.hull.len() < 3 {
+            continue;
+        }
+        let host = comps
+            .iter()
+            .enumerate()
+            .filter(|(b, cb)| {
+                *b != a
+                    && cb
+                        .as_ref()
+                        .is_some_and(|cb| cb.area >= ARC_AREA_RATIO * ca.area)
+            })
+            .filter(|(b, _)| {
+                pts[*b]
+                    .iter()
+                    .any(|p| inside(&ca.hull, [p.x as f64, p.y as f64]))
+            })
+            .max_by_key(|(_, cb)| cb.as_ref().map_or(0, |c| c.area))
+            .map(|(b, _)| b as u32);
+        if let Some(h) = host {
+            into[a] = h;
+        }
+    }
+    // Renumber the survivors in order.
+    let mut new_id = vec![0u32; n as usize + 1];
+    let mut starts = vec![[0, 0]];
+    for l in 1..=n as usize {
+        if into[l] == l as u32 && comps[l].is_some() {
+            new_id[l] = starts.len() as u32;
+            starts.push(comps[l].as_ref().map_or([0, 0], |c| c.first));
+        }
+    }
+    for l in 1..=n as usize {
+        if into[l] != l as u32 {
+            new_id[l] = new_id[into[l] as usize];
+        }
+    }
+    for v in labels.data.iter_mut() {
+        *v = new_id[*v as usize];
+    }
+    (starts.len() as u32 - 1, starts)
+}
+
+/// Area of a simple polygon (shoelace).
+fn polygon_area(p: &[[f64; 2]]) -> f64 {
+    let n = p.len();
+    (0..n)
+        .map(|i| {
+            let (a, b) = (p[i], p[(i + 1) % n]);
+            a[0] * b[1] - b[0] * a[1]
+        })
+        .sum::<f64>()
+        .abs()
+        / 2.0
+}
+
+fn perimeter(p: &[[f64; 2]]) -> f64 {
+    let n = p.len();
+    (0..n)
+        .map(|i| {
+            let (a, b) = (p[i], p[(i + 1) % n]);
+            (a[0] - b[0]).hypot(a[1] - b[1])
+        })
+        .sum()
+}
+
+/// Whether `q` lies strictly inside the convex polygon `hull` (either orientation).
+fn inside(hull: &[[f64; 2]], q: [f64; 2]) -> bool {
+    let n = hull.len();
+    let mut sign = 0.0f64;
+    for i in 0..n {
+        let (a, b) = (hull[i], hull[(i + 1) % n]);
+        let c = (b[0] - a[0]) * (q[1] - a[1]) - (b[1] - a[1]) * (q[0] - a[0]);
+        if c == 0.0 {
+            return false;
+        }
+        if sign == 0.0 {
+            sign = c.signum();
+        } else if c.signum() != sign {
+            return false;
+        }
+    }
+    true
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A disc of radius `r` at `c` with label `l`, and an arc of the ring `r0..r1` between
+    /// angles `a0..a1` (radians) with label `m`.
+    fn scene(c: [f64; 2], r: f64, ring: (f64, f64), arcs: &[(f64, f64)]) -> Plane<u32> {
+        let mut p = Plane::filled(120, 120, 0u32);
+        for y in 0..120 {
+            for x in 0..120 {
+                let (dx, dy) = (x as f64 - c[0], y as f64 - c[1]);
+                let d = dx.hypot(dy);
+                let a = dy.atan2(dx);
+                if d <= r {
+                    *p.get_mut(x, y) = 1;
+                } else if d >= ring.0 && d <= ring.1 {
+                    if let Some(k) = arcs.iter().position(|&(a0, a1)| a >= a0 && a <= a1) {
+                        *p.get_mut(x, y) = 2 + k as u32;
+                    }
+                }
+            }
+        }
+        p
+    }
+
+    #[test]
+    fn arcs_around_a_body_join_it_and_the_trace_starts_on_the_body() {
+        let mut p = scene(
+            [60.0, 60.0],
+            30.0,
+            (38.0, 41.0),
+            &[(-3.0, -1.2), (0.2, 2.0)],
+        );
+        let (n, starts) = absorb_rings(&mut p, 3);
+        assert_eq!(n, 1);
+        assert!(p.data.iter().all(|&l| l <= 1));
+        // The body's first raster pixel, not the upper arc's.
+        assert_eq!(starts[1], [60, 30]);
+        assert_eq!(p.data.iter().filter(|&&l| l == 1).count(), {
+            let q = scene(
+                [60.0, 60.0],
+                30.0,
+                (38.0, 41.0),
+                &[(-3.0, -1.2), (0.2, 2.0)],
+            );
+            q.data.iter().filter(|&&l| l != 0).count()
+        });
+    }
+
+    #[test]
+    fn two_compact_cells_and_a_far_arc_stay_apart() {
+        // Two discs side by side keep their ids; an arc whose hull reaches no object stays.
+        let mut p = Plane::filled(120, 120, 0u32);
+        for y in 0..120usize {
+            for x in 0..120usize {
+                let d = |cx: f64, cy: f64| (x as f64 - cx).hypot(y as f64 - cy);
+                if d(30.0, 30.0) <= 15.0 {
+                    *p.get_mut(x, y) = 1;
+                } else if d(80.0, 30.0) <= 15.0 {
+                    *p.get_mut(x, y) = 2;
+                } else if (d(60.0, 200.0) - 110.0).abs() <= 1.5 && y > 95 {
+                    *p.get_mut(x, y) = 3;
+                }
+            }
+        }
+        let before = p.clone();
+        let (n, _) = absorb_rings(&mut p, 3);
+        assert_eq!(n, 3);
+        assert_eq!(p, before);
+    }
+}
