@@ -263,10 +263,10 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
         ),
     ];
     for (n, v, lo, hi) in ranged {
-        if let Some(v) = v {
-            if !(lo..=hi).contains(&v) {
-                return Err(other(format!("{n} {v} is out of range: use {lo}..{hi}")));
-            }
+        if let Some(v) = v
+            && !(lo..=hi).contains(&v)
+        {
+            return Err(other(format!("{n} {v} is out of range: use {lo}..{hi}")));
         }
     }
     if !(0.0..=0.15).contains(&a.irregular) {

@@ -156,10 +156,11 @@ mod tests {
                 let a = dy.atan2(dx);
                 if d <= r {
                     *p.get_mut(x, y) = 1;
-                } else if d >= ring.0 && d <= ring.1 {
-                    if let Some(k) = arcs.iter().position(|&(a0, a1)| a >= a0 && a <= a1) {
-                        *p.get_mut(x, y) = 2 + k as u32;
-                    }
+                } else if d >= ring.0
+                    && d <= ring.1
+                    && let Some(k) = arcs.iter().position(|&(a0, a1)| a >= a0 && a <= a1)
+                {
+                    *p.get_mut(x, y) = 2 + k as u32;
                 }
             }
         }

@@ -473,7 +473,7 @@ impl Scene {
     /// The same scene with `count` flat particles of radius `radius` µm (`[min, max]`)
     /// scattered on the substrate clear of the cells, seeded by `seed`.
     pub fn with_debris(mut self, count: usize, radius: [f64; 2], seed: u64) -> Self {
-        let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0xdeb7_15);
+        let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x00de_b715);
         let s = self.optics.um_per_px();
         let (hw, hh) = (
             0.5 * self.optics.width as f64 * s - 4.0 * s,

@@ -550,7 +550,7 @@ pub fn measure(
                 })
             })
             .or_else(|| match (height, height_std) {
-                (Some(h), Some(s)) if !(s <= HEIGHT_MAX_REL_STD * h) => Some(format!(
+                (Some(h), Some(s)) if s.is_nan() || s > HEIGHT_MAX_REL_STD * h => Some(format!(
                     "the height is uncertain by {:.1} % (σ)",
                     100.0 * s / h
                 )),
