@@ -705,38 +705,31 @@ fn cells_bad_input_and_empty_scenes() {
     assert_eq!(out.status.code(), Some(2));
     assert!(!String::from_utf8_lossy(&out.stderr).contains("panicked"));
     assert!(!o2.exists());
-    // Unreadable calibration file.
-    let bad = dir.path().join("bad.toml");
-    std::fs::write(&bad, "baseline = \"wide\"\n").unwrap();
-    assert_clean_failure(
-        &run(&[
-            "reconstruct",
-            s(&flat),
-            s(&flat),
-            "-o",
-            s(&o2),
-            "--cells",
-            "--calibration",
-            s(&bad),
-        ]),
-        "is not valid",
-    );
-    // A calibration file without a unit.
-    let unitless = dir.path().join("unitless.toml");
-    std::fs::write(&unitless, "baseline = 1200.0\nfocal_px = 4000.0\n").unwrap();
-    assert_clean_failure(
-        &run(&[
-            "reconstruct",
-            s(&flat),
-            s(&flat),
-            "-o",
-            s(&o2),
-            "--cells",
-            "--calibration",
-            s(&unitless),
-        ]),
-        "add unit = \"um\"",
-    );
+    // An unreadable calibration file, and one without a unit.
+    for (name, text, needle) in [
+        ("bad.toml", "baseline = \"wide\"\n", "is not valid"),
+        (
+            "unitless.toml",
+            "baseline = 1200.0\nfocal_px = 4000.0\n",
+            "add unit = \"um\"",
+        ),
+    ] {
+        let file = dir.path().join(name);
+        std::fs::write(&file, text).unwrap();
+        assert_clean_failure(
+            &run(&[
+                "reconstruct",
+                s(&flat),
+                s(&flat),
+                "-o",
+                s(&o2),
+                "--cells",
+                "--calibration",
+                s(&file),
+            ]),
+            needle,
+        );
+    }
     assert!(!o2.exists());
     // --cells without geometry.
     assert_clean_failure(

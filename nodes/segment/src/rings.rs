@@ -37,7 +37,12 @@ pub fn absorb_rings(labels: &mut Plane<u32>, n: u32) -> (u32, Vec<[u32; 2]>) {
         .iter()
         .map(|p| {
             let first = p.first()?;
-            let hull: Vec<[f64; 2]> = imageproc::geometry::convex_hull(p.clone())
+            // Pixels come row by row: a row's first and last span the hull as all would.
+            let ends: Vec<Point<i64>> = p
+                .chunk_by(|a, b| a.y == b.y)
+                .flat_map(|row| [row[0], row[row.len() - 1]])
+                .collect();
+            let hull: Vec<[f64; 2]> = imageproc::geometry::convex_hull(ends)
                 .iter()
                 .map(|q| [q.x as f64, q.y as f64])
                 .collect();

@@ -460,10 +460,8 @@ pub fn measure(
         }
         let Some(base) = &bases[k] else { continue };
         let d_sub = base.d;
-        let Some(d_top) = tops[k]
-            .map(|t| t.peak)
-            .or_else(|| percentile(inside.iter().map(|p| p.2).collect(), 0.98))
-        else {
+        let matched = percentile(inside.iter().map(|p| p.2).collect(), 0.98);
+        let Some(d_top) = tops[k].map(|t| t.peak).or(matched) else {
             continue;
         };
         let z_sub = z_of(d_sub);
@@ -541,7 +539,7 @@ pub fn measure(
             .or_else(|| {
                 // The fit and the matcher's map disagree on the top: the fit found a wrong
                 // minimum (seen on small cells with little texture) or the map is wrong.
-                let matched = percentile(inside.iter().map(|p| p.2).collect(), 0.98)?;
+                let matched = matched?;
                 let diff = d_top - matched;
                 (tops[k].is_some() && diff.abs() > TOP_AGREE_PX).then(|| {
                     format!(

@@ -197,18 +197,7 @@ fn tiled_start(
         if pts.len() < 4 {
             return None;
         }
-        let (mut a, mut b) = (nalgebra::Matrix3::zeros(), nalgebra::Vector3::zeros());
-        for p in pts {
-            let j = nalgebra::Vector3::new(1.0, p[0], p[1]);
-            a += j * j.transpose();
-            b += j * p[2];
-        }
-        let eig = a.symmetric_eigen().eigenvalues;
-        if eig.min() <= 1e-9 * eig.max() {
-            return None;
-        }
-        let c = a.lu().solve(&b)?;
-        Some([c[0], c[1], c[2]])
+        weighted_plane(pts.iter().map(|&p| (p, 1.0)))
     };
     let first = fit(&starts)?;
     let kept: Vec<[f64; 3]> = starts
@@ -217,6 +206,23 @@ fn tiled_start(
         .filter(|p| (p[2] - (first[0] + first[1] * p[0] + first[2] * p[1])).abs() <= 1.5)
         .collect();
     fit(&kept)
+}
+
+/// The plane `d = a + b·x + c·y` through `points` (`([x, y, d], weight)`) by weighted least
+/// squares; `None` when they are collinear (the tilt across them is then free).
+pub(crate) fn weighted_plane(points: impl Iterator<Item = ([f64; 3], f64)>) -> Option<[f64; 3]> {
+    let (mut a, mut b) = (nalgebra::Matrix3::zeros(), nalgebra::Vector3::zeros());
+    for (p, wt) in points {
+        let j = nalgebra::Vector3::new(1.0, p[0], p[1]);
+        a += wt * j * j.transpose();
+        b += wt * j * p[2];
+    }
+    let eig = a.symmetric_eigen().eigenvalues;
+    if eig.min() <= 1e-9 * eig.max() {
+        return None;
+    }
+    let c = a.lu().solve(&b)?;
+    Some([c[0], c[1], c[2]])
 }
 
 /// Fits one disparity plane to the pixels where `usable` is non-zero (the background, well
@@ -596,10 +602,7 @@ pub fn refine_peak(
             }
             lambda *= 10.0;
         }
-        if !accepted || terms.is_empty() {
-            break;
-        }
-        if done {
+        if !accepted || done {
             break;
         }
     }

@@ -13,7 +13,7 @@
 //! the plane of the others. A cell whose sources disagree, or whose substrate rests on one
 //! unchecked source, is flagged: its height is not to be trusted.
 
-use crate::refine::{huber, robust_scale, sample};
+use crate::refine::{huber, robust_scale, sample, weighted_plane};
 use schemas::{Cell, DisparityPlane, DisparityRange, Plane, SubstrateSource};
 
 /// The substrate's disparity at a cell's rim, fitted photometrically.
@@ -225,27 +225,15 @@ fn plane_through(points: &[[f64; 4]]) -> Option<([f64; 3], f64)> {
         if pts.len() < 3 {
             return None;
         }
-        let (mut a, mut b) = (nalgebra::Matrix3::zeros(), nalgebra::Vector3::zeros());
-        for p in pts {
-            let wt = 1.0 / p[3].max(0.02).powi(2);
-            let j = nalgebra::Vector3::new(1.0, p[0], p[1]);
-            a += wt * j * j.transpose();
-            b += wt * j * p[2];
-        }
-        // Collinear centroids leave the plane's tilt across them free.
-        let eig = a.symmetric_eigen().eigenvalues;
-        let (lo, hi) = eig
-            .iter()
-            .fold((f64::MAX, 0.0f64), |(l, h), &e| (l.min(e), h.max(e)));
-        if lo <= hi * 1e-9 {
-            return None;
-        }
-        let c = a.lu().solve(&b)?;
+        let c = weighted_plane(
+            pts.iter()
+                .map(|p| ([p[0], p[1], p[2]], 1.0 / p[3].max(0.02).powi(2))),
+        )?;
         let res: Vec<f64> = pts
             .iter()
             .map(|p| p[2] - (c[0] + c[1] * p[0] + c[2] * p[1]))
             .collect();
-        Some(([c[0], c[1], c[2]], robust_scale(res)))
+        Some((c, robust_scale(res)))
     };
     let (c, _) = fit(points)?;
     let kept: Vec<[f64; 4]> = points
