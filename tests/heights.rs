@@ -112,6 +112,23 @@ fn evaluate(c: &Condition, seed: u64) -> Outcome {
         o.worst_centroid_px = o.worst_centroid_px.max(near(&m));
         o.heights
             .push((m.height.map(|h| h / t.height - 1.0), !m.quality.trusted));
+        if std::env::var_os("HEIGHTS_DETAIL").is_some() {
+            let cal = &r.calibration;
+            let base = cal.baseline * cal.focal_px / m.substrate_z - (cal.cx_right - cal.cx);
+            let [tb, tt] = t.disparity_base_top;
+            eprintln!(
+                "      seed {seed} cell {} {:?} area {} true base {tb:.2} top {tt:.2} | base {:+.3} top {:+.3} | err {:?} % {:?} {:?}",
+                t.id,
+                t.shape.profile,
+                t.area_px,
+                base - tb,
+                m.disparity - tt,
+                m.height
+                    .map(|h| (1000.0 * (h / t.height - 1.0)).round() / 10.0),
+                m.quality.substrate,
+                m.quality.doubt
+            );
+        }
     }
     o.negative = targets
         .cells
@@ -251,7 +268,11 @@ fn run_matrix() -> Figures {
     let mut table = String::from(
         "| condition | scenes | cells | found | worst centroid px | median abs height err % | worst % | <= 5 % | flagged | unflagged > 5 % |\n|---|---|---|---|---|---|---|---|---|---|\n",
     );
+    let only = std::env::var("HEIGHTS_ONLY").ok();
     for (c, seeds) in matrix() {
+        if only.as_ref().is_some_and(|o| !c.name.contains(o.as_str())) {
+            continue;
+        }
         let (mut n, mut cells, mut found, mut worst_c) = (0, 0, 0, 0.0f64);
         let mut hs: Vec<(Option<f64>, bool)> = Vec::new();
         for seed in seeds {
@@ -322,7 +343,7 @@ fn share_within(all: &[(Option<f64>, bool)], bound: f64) -> f64 {
 
 /// What holds today on every condition, and must keep holding: no negative height, every
 /// large error flagged (the bound is 8 %, not yet the 5 %), nearly every cell found
-/// and most heights within 5 % (86.7 % when this was written).
+/// and most heights within 5 % (92.3 % when this was written).
 #[test]
 fn heights_are_never_negative_and_large_errors_are_flagged() {
     let f = run_matrix();
@@ -352,7 +373,7 @@ fn heights_are_never_negative_and_large_errors_are_flagged() {
         "heights off by more than 8 % (or missing) without a flag: {unflagged:?}"
     );
     assert!(
-        share >= 0.85,
+        share >= 0.90,
         "{:.1} % of heights within 5 %",
         100.0 * share
     );

@@ -5,7 +5,7 @@
 //! The match node cuts the crops ([`pair_cells`], [`crop_of`]); the triangulate node does
 //! the rest ([`compose`], [`cell_heights`], [`measure`]).
 
-use crate::refine::{DisparityPlane, PeakFit, fit_disparity_plane, refine_peak};
+use crate::refine::{DisparityPlane, PeakFit, TopModel, fit_disparity_plane, refine_top};
 use crate::substrate::{self, Base, RimFit};
 use schemas::{
     Calibration, Cell, Cell3, CellQuality, DisparityMap, DisparityRange, DisparityTiles,
@@ -245,12 +245,7 @@ pub fn cell_heights(
     Vec<Option<Base>>,
     Vec<Option<PeakFit>>,
 ) {
-    let reach = margin as usize + range.min.unsigned_abs().max(range.max.unsigned_abs()) as usize;
-    let mut both = left_mask.clone();
-    for (c, r) in both.data.iter_mut().zip(&right_mask.data) {
-        *c |= *r;
-    }
-    let usable = clear_of(&both, reach);
+    let usable = clear_background(left_mask, right_mask, range, margin as usize);
     let plane = fit_disparity_plane(left, right, &usable, range, SUBSTRATE_MAX_STD);
     let paired: Vec<&Cell> = pairs.iter().map(|&(i, _)| &cells[i]).collect();
     let rims: Vec<Option<RimFit>> = paired
@@ -283,18 +278,35 @@ pub fn cell_heights(
     (plane, bases, tops)
 }
 
-/// 255 where no non-zero pixel of `mask` lies within the `(2r+1)²` square around.
-fn clear_of(mask: &Mask, r: usize) -> Mask {
-    let (w, h) = (mask.width, mask.height);
-    let sums = segment::BoxSums::new(w, h, |x, y| u64::from(*mask.get(x, y) != 0));
+/// 255 at the left pixels whose `margin` square is clear of the left cells and whose every
+/// possible match — the right pixels `x − d` for `d` in `range`, with the same margin — is
+/// clear of the right cells. Only along the rows does the range widen the clearance: a
+/// square as wide as the range took most of the background of a crowded frame (3,000 of
+/// 300,000 pixels with 60 cells), where the plane then locked onto a wrong disparity.
+fn clear_background(left: &Mask, right: &Mask, range: DisparityRange, margin: usize) -> Mask {
+    let (w, h) = (left.width, left.height);
+    let sl = segment::BoxSums::new(w, h, |x, y| u64::from(*left.get(x, y) != 0));
+    let sr = segment::BoxSums::new(w, h, |x, y| u64::from(*right.get(x, y) != 0));
+    let clip = |v: i64, hi: usize| v.clamp(0, hi as i64) as usize;
+    let m = margin as i64;
     let data = (0..h)
         .flat_map(|y| (0..w).map(move |x| (x, y)))
-        .map(|(x, y)| if sums.around(x, y, r).0 == 0 { 255 } else { 0 })
+        .map(|(x, y)| {
+            let (xi, yi) = (x as i64, y as i64);
+            let (y0, y1) = (clip(yi - m, h), clip(yi + m + 1, h));
+            let own = sl.rect(clip(xi - m, w), y0, clip(xi + m + 1, w), y1);
+            let (r0, r1) = (
+                clip(xi - range.max as i64 - m, w),
+                clip(xi - range.min as i64 + m + 1, w),
+            );
+            let other = if r0 < r1 { sr.rect(r0, y0, r1, y1) } else { 0 };
+            if own == 0 && other == 0 { 255 } else { 0 }
+        })
         .collect();
     Plane::from_vec(w, h, data).expect("size")
 }
 
-/// Fewest pixels in a cell's upper 30 % for its top to be fitted there alone.
+/// Fewest pixels in a cell's upper 30 % for its top to be fitted with the quartic model.
 const SMALL_TOP_PIXELS: usize = 300;
 
 /// Fewest pixels a cell top's fit may use for its height to be trusted: below it (cells
@@ -322,9 +334,14 @@ const HEIGHT_MAX_REL_STD: f64 = 0.025;
 /// The largest formal error (px) a background plane may have to stand for the substrate.
 const SUBSTRATE_MAX_STD: f64 = 0.05;
 
-/// Refines the top of cell `cell` with the dome model over its upper part: the pixels whose
-/// matched height above `base` (the substrate's disparity) is at least 70 % of the cell's
-/// (its 98th percentile). Lower down, flanks steepen and the matcher's map is least sure.
+/// Refines the top of cell `cell` photometrically over its upper part, the pixels whose
+/// matched height above `base` (the substrate's disparity) is at least half the cell's (its
+/// 98th percentile): where the top lies from the dome model (`d = base + √Q`, `Q`
+/// quadratic), how high it is from the quartic one (`Q` to fourth order), which is exact for
+/// ellipsoidal and paraboloid cells and close for flattened ones. The quartic's own maximum
+/// would pick its noise's highest bump (0.1–0.2 px up on a flat top). A small cell, whose
+/// upper part is too few pixels for fifteen terms, gets the dome model over its upper 30 % or
+/// 60 %, whichever is surer.
 fn top_of_cell(
     left: &Plane<u8>,
     right: &Plane<u8>,
@@ -347,22 +364,48 @@ fn top_of_cell(
     if top <= base {
         return None;
     }
-    // A small cell's upper 30 % holds too few pixels to fix a dome: take more of it.
-    let share = |f: f64| {
+    let above = |f: f64| -> (Vec<[usize; 2]>, Vec<f32>) {
         let level = (base + f * (top - base)) as f32;
-        inside.iter().filter(|(_, d)| *d >= level).count()
+        inside.iter().filter(|(_, d)| *d >= level).copied().unzip()
     };
-    let fit = |f: f64| {
-        let level = (base + f * (top - base)) as f32;
-        let (pixels, init): (Vec<[usize; 2]>, Vec<f32>) =
-            inside.iter().filter(|(_, d)| *d >= level).copied().unzip();
-        refine_peak(left, right, &pixels, &init, Some(base))
+    let dome = |f: f64| {
+        let (pixels, init) = above(f);
+        refine_top(
+            left,
+            right,
+            &pixels,
+            &init,
+            Some(base),
+            TopModel::Quadratic,
+            None,
+        )
     };
-    if share(0.7) >= SMALL_TOP_PIXELS {
-        return fit(0.7);
+    if above(0.7).0.len() >= SMALL_TOP_PIXELS {
+        let (pixels, init) = above(0.5);
+        let apex = refine_top(
+            left,
+            right,
+            &pixels,
+            &init,
+            Some(base),
+            TopModel::Quadratic,
+            None,
+        );
+        let quartic = apex.and_then(|a| {
+            refine_top(
+                left,
+                right,
+                &pixels,
+                &init,
+                Some(base),
+                TopModel::Quartic,
+                Some(a.at),
+            )
+        });
+        return quartic.or(apex).or_else(|| dome(0.7));
     }
     // Either may be the better one: the surer fit wins.
-    match (fit(0.7), fit(0.4)) {
+    match (dome(0.7), dome(0.4)) {
         (Some(a), Some(b)) => Some(if b.std < a.std { b } else { a }),
         (a, b) => a.or(b),
     }
@@ -612,6 +655,35 @@ mod tests {
         let pairs = pair_cells(&left, &right, DisparityRange::new(-4, 12), PAIRING_SLACK);
         // Left 1 takes right 1 (offset 3, same rows) over right 2 (one row off).
         assert_eq!(pairs, [(0, 0)]);
+    }
+
+    #[test]
+    fn background_clearance_widens_along_rows_only() {
+        let (w, h) = (40, 20);
+        let mut left = Plane::from_vec(w, h, vec![0u8; w * h]).unwrap();
+        let right = left.clone();
+        *left.get_mut(20, 10) = 255;
+        let mut r = right.clone();
+        *r.get_mut(10, 10) = 255;
+        // Left cell at x = 20 with margin 2: its 5×5 square is not background.
+        let u = clear_background(&left, &right, DisparityRange::new(0, 8), 2);
+        assert_eq!(*u.get(18, 8), 0);
+        assert_eq!(*u.get(17, 10), 255);
+        assert_eq!(*u.get(20, 13), 255);
+        // Right cell at x = 10, range 0..8: left pixels 8..=20 may match it (±2 margin), and
+        // only on rows 8..=12.
+        let u = clear_background(
+            &Plane::from_vec(w, h, vec![0u8; w * h]).unwrap(),
+            &r,
+            DisparityRange::new(0, 8),
+            2,
+        );
+        let row: Vec<u8> = (0..w).map(|x| *u.get(x, 10)).collect();
+        for (x, v) in row.iter().enumerate() {
+            assert_eq!(*v == 0, (8..=20).contains(&x), "x = {x}");
+        }
+        assert_eq!(*u.get(14, 12), 0);
+        assert_eq!(*u.get(14, 13), 255);
     }
 
     #[test]

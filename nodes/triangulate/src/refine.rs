@@ -9,8 +9,8 @@
 //!
 //! - [`fit_disparity_plane`]: one plane `d = a + b·u + c·v` over every usable background
 //!   pixel of the frame (high-passed, so illumination gradients and view gains cancel);
-//! - [`refine_peak`]: a quadratic `d(u, v)` with a view gain and offset over the top of one
-//!   cell, and the quadratic's maximum.
+//! - [`refine_peak`] / [`refine_top`]: a quadratic (or quartic) `d(u, v)` with a view gain
+//!   and offset over the top of one cell, and the surface's maximum.
 
 use nalgebra::{DMatrix, DVector};
 use rayon::prelude::*;
@@ -457,6 +457,51 @@ pub struct PeakFit {
 /// Fewest pixels a quadratic top is fitted on.
 const PEAK_MIN_PIXELS: usize = 24;
 
+/// The polynomial under a cell top's surface ([`refine_peak`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TopModel {
+    /// Six terms, to second order: with a base, exact for an ellipsoidal cap.
+    Quadratic,
+    /// Fifteen terms, to fourth order: with a base, exact for an ellipsoidal cap and for a
+    /// paraboloid (`h² = (1 − ρ²)²`), close for a flattened, spread cell (`1 − ρ⁴`).
+    Quartic,
+}
+
+impl TopModel {
+    /// Shape terms of the polynomial.
+    fn terms(self) -> usize {
+        match self {
+            TopModel::Quadratic => 6,
+            TopModel::Quartic => 15,
+        }
+    }
+}
+
+/// Monomials of `(u, v)` up to fourth order, in the order the coefficients are kept; unused
+/// slots are zero.
+fn monomials<const N: usize>(u: f64, v: f64, terms: usize) -> [f64; N] {
+    let all = [
+        1.0,
+        u,
+        v,
+        u * u,
+        u * v,
+        v * v,
+        u * u * u,
+        u * u * v,
+        u * v * v,
+        v * v * v,
+        u * u * u * u,
+        u * u * u * v,
+        u * u * v * v,
+        u * v * v * v,
+        v * v * v * v,
+    ];
+    let mut f = [0.0; N];
+    f[..terms].copy_from_slice(&all[..terms]);
+    f
+}
+
 /// Fits a quadratic `Q = c0 + c1·u + c2·v + c3·u² + c4·u·v + c5·v²` (u, v about the
 /// patch's mean pixel) together with a gain and offset between the views to the patch
 /// `pixels`, starting from their disparities `init` (any matcher's output; NaN = unknown),
@@ -472,7 +517,39 @@ pub fn refine_peak(
     init: &[f32],
     base: Option<f64>,
 ) -> Option<PeakFit> {
-    if pixels.len() < PEAK_MIN_PIXELS || pixels.len() != init.len() {
+    refine_top(left, right, pixels, init, base, TopModel::Quadratic, None)
+}
+
+/// [`refine_peak`] with the polynomial `model` in place of the quadratic; with `at` (image
+/// coordinates inside the patch) the surface's value there instead of its maximum.
+pub fn refine_top(
+    left: &Plane<u8>,
+    right: &Plane<u8>,
+    pixels: &[[usize; 2]],
+    init: &[f32],
+    base: Option<f64>,
+    model: TopModel,
+    at: Option<[f64; 2]>,
+) -> Option<PeakFit> {
+    match model {
+        TopModel::Quadratic => fit_top::<8>(left, right, pixels, init, base, model, at),
+        TopModel::Quartic => fit_top::<17>(left, right, pixels, init, base, model, at),
+    }
+}
+
+/// [`refine_top`] with `N` parameters: the model's shape terms, then a gain and an offset
+/// between the views.
+fn fit_top<const N: usize>(
+    left: &Plane<u8>,
+    right: &Plane<u8>,
+    pixels: &[[usize; 2]],
+    init: &[f32],
+    base: Option<f64>,
+    model: TopModel,
+    at: Option<[f64; 2]>,
+) -> Option<PeakFit> {
+    let k = model.terms();
+    if pixels.len() < PEAK_MIN_PIXELS.max(3 * N) || pixels.len() != init.len() {
         return None;
     }
     let n = pixels.len() as f64;
@@ -483,14 +560,17 @@ pub fn refine_peak(
         .iter()
         .map(|p| (p[0] as f64 - centre[0]).hypot(p[1] as f64 - centre[1]))
         .fold(1.0, f64::max);
-    let basis = |p: &[usize; 2]| {
-        let (u, v) = (
+    let uv = |p: &[usize; 2]| {
+        (
             (p[0] as f64 - centre[0]) / radius,
             (p[1] as f64 - centre[1]) / radius,
-        );
-        [1.0, u, v, u * u, u * v, v * v]
+        )
     };
-    // d and ∂d/∂Q of a quadratic's value.
+    let basis = |p: &[usize; 2]| {
+        let (u, v) = uv(p);
+        monomials::<N>(u, v, k)
+    };
+    // d and ∂d/∂Q of a polynomial's value.
     let surface = |q: f64| match base {
         None => (q, 1.0),
         Some(b) => {
@@ -498,8 +578,9 @@ pub fn refine_peak(
             (b + r, 0.5 / r)
         }
     };
+    let value = |p: &[f64; N], f: &[f64; N]| -> f64 { (0..k).map(|i| p[i] * f[i]).sum() };
     // Start: least squares on the matcher's disparities.
-    let known: Vec<(f64, [f64; 6])> = pixels
+    let known: Vec<(f64, [f64; N])> = pixels
         .iter()
         .zip(init)
         .filter(|(_, d)| d.is_finite())
@@ -508,11 +589,11 @@ pub fn refine_peak(
             Some(b) => (d as f64 > b).then(|| (-(d as f64 - b).powi(2), basis(p))),
         })
         .collect();
-    if known.len() < PEAK_MIN_PIXELS {
+    if known.len() < PEAK_MIN_PIXELS.max(3 * N) {
         return None;
     }
     let (a, b) = normal_equations(&known, f64::INFINITY);
-    let c0 = a.lu().solve(&(-b))?;
+    let c0 = a.view((0, 0), (k, k)).lu().solve(&(-b.rows(0, k)))?;
     let rows: Vec<Vec<f32>> = {
         let conv = |img: &Plane<u8>, y: usize| img.row(y).iter().map(|&v| v as f32).collect();
         let mut ys: Vec<usize> = pixels.iter().map(|p| p[1]).collect();
@@ -524,41 +605,37 @@ pub fn refine_peak(
         }
         rows
     };
-    // Parameters: c0..c5, gain, offset.
-    let mut p = [c0[0], c0[1], c0[2], c0[3], c0[4], c0[5], 1.0, 0.0];
-    let terms_at = |p: &[f64; 8]| -> Vec<(f64, [f64; 8])> {
+    // Parameters: the shape terms, gain, offset.
+    let mut p = [0.0; N];
+    p[..k].copy_from_slice(c0.as_slice());
+    p[k] = 1.0;
+    let terms_at = |p: &[f64; N]| -> Vec<(f64, [f64; N])> {
         pixels
             .iter()
             .filter_map(|q| {
                 let f = basis(q);
-                let (d, dq) = surface((0..6).map(|i| p[i] * f[i]).sum());
+                let (d, dq) = surface(value(p, &f));
                 let (rv, rg) = sample(&rows[q[1]], q[0] as f64 - d)?;
-                let e = *left.get(q[0], q[1]) as f64 - (p[6] * rv + p[7]);
-                let g = p[6] * rg * dq;
-                Some((
-                    e,
-                    [
-                        g * f[0],
-                        g * f[1],
-                        g * f[2],
-                        g * f[3],
-                        g * f[4],
-                        g * f[5],
-                        -rv,
-                        -1.0,
-                    ],
-                ))
+                let e = *left.get(q[0], q[1]) as f64 - (p[k] * rv + p[k + 1]);
+                let g = p[k] * rg * dq;
+                let mut j = [0.0; N];
+                for i in 0..k {
+                    j[i] = g * f[i];
+                }
+                j[k] = -rv;
+                j[k + 1] = -1.0;
+                Some((e, j))
             })
             .collect()
     };
-    let cost = |t: &[(f64, [f64; 8])], k: f64| -> f64 {
+    let cost = |t: &[(f64, [f64; N])], h: f64| -> f64 {
         t.iter()
             .map(|(e, _)| {
                 let a = e.abs();
-                if a <= k {
+                if a <= h {
                     0.5 * a * a
                 } else {
-                    k * (a - 0.5 * k)
+                    h * (a - 0.5 * h)
                 }
             })
             .sum::<f64>()
@@ -573,13 +650,13 @@ pub fn refine_peak(
             return None;
         }
         scale = robust_scale(terms.iter().map(|t| t.0).collect()).max(0.5);
-        let k = 1.5 * scale;
-        let c_now = cost(&terms, k);
-        let (jtj, jte) = normal_equations(&terms, k);
+        let h = 1.5 * scale;
+        let c_now = cost(&terms, h);
+        let (jtj, jte) = normal_equations(&terms, h);
         let mut accepted = false;
         for _ in 0..8 {
             let mut damped = jtj.clone();
-            for i in 0..8 {
+            for i in 0..N {
                 damped[(i, i)] *= 1.0 + lambda;
             }
             let Some(step) = damped.lu().solve(&(-&jte)) else {
@@ -587,12 +664,12 @@ pub fn refine_peak(
                 continue;
             };
             let mut q = p;
-            for i in 0..8 {
+            for i in 0..N {
                 q[i] += step[i];
             }
             let t = terms_at(&q);
-            if t.len() >= PEAK_MIN_PIXELS && cost(&t, k) <= c_now {
-                let small = step.iter().take(6).all(|s| s.abs() < 1e-4);
+            if t.len() >= PEAK_MIN_PIXELS && cost(&t, h) <= c_now {
+                let small = step.iter().take(k).all(|s| s.abs() < 1e-4);
                 p = q;
                 terms = t;
                 lambda = (lambda * 0.3).max(1e-7);
@@ -608,63 +685,68 @@ pub fn refine_peak(
     }
     let (jtj, _) = normal_equations(&terms, 1.5 * scale);
     let cov = jtj.try_inverse();
-    let mut fit = peak_of(&p, pixels, &basis, centre, radius, scale, &surface);
-    let (u, v) = (
-        (fit.at[0] - centre[0]) / radius,
-        (fit.at[1] - centre[1]) / radius,
-    );
-    let f = [1.0, u, v, u * u, u * v, v * v];
-    let q: f64 = (0..6).map(|i| p[i] * f[i]).sum();
-    fit.std = cov.map_or(f64::INFINITY, |c| {
-        let var: f64 = (0..6)
-            .flat_map(|i| (0..6).map(move |j| (i, j)))
+    let poly = |u: f64, v: f64| value(&p, &monomials::<N>(u, v, k));
+    let (u, v) = match at {
+        Some([x, y]) if (x - centre[0]).hypot(y - centre[1]) <= radius => {
+            ((x - centre[0]) / radius, (y - centre[1]) / radius)
+        }
+        _ => peak_of(&poly, pixels.iter().map(uv)),
+    };
+    let f = monomials::<N>(u, v, k);
+    let q = value(&p, &f);
+    let std = cov.map_or(f64::INFINITY, |c| {
+        let var: f64 = (0..k)
+            .flat_map(|i| (0..k).map(move |j| (i, j)))
             .map(|(i, j)| f[i] * c[(i, j)] * f[j])
             .sum();
         scale * surface(q).1 * var.max(0.0).sqrt()
     });
-    Some(fit)
+    Some(PeakFit {
+        peak: surface(q).0,
+        at: [centre[0] + u * radius, centre[1] + v * radius],
+        residual: scale,
+        pixels: pixels.len(),
+        std,
+    })
 }
 
-/// The maximum of the fitted quadratic: its stationary point when that is a maximum inside
-/// the patch, otherwise the best patch pixel.
-fn peak_of(
-    p: &[f64; 8],
-    pixels: &[[usize; 2]],
-    basis: &dyn Fn(&[usize; 2]) -> [f64; 6],
-    centre: [f64; 2],
-    radius: f64,
-    residual: f64,
-    surface: &dyn Fn(f64) -> (f64, f64),
-) -> PeakFit {
-    let eval =
-        |u: f64, v: f64| p[0] + p[1] * u + p[2] * v + p[3] * u * u + p[4] * u * v + p[5] * v * v;
-    let (a, b, c) = (2.0 * p[3], p[4], 2.0 * p[5]);
-    let det = a * c - b * b;
-    let mut best = None;
-    if a < 0.0 && det > 0.0 {
-        let u = (-p[1] * c + p[2] * b) / det;
-        let v = (-p[2] * a + p[1] * b) / det;
-        if u.hypot(v) <= 1.0 {
-            best = Some((eval(u, v), u, v));
+/// Where the polynomial `poly` is largest over the patch (coordinates `uv`, the patch's
+/// radius 1): from its best pixel, Newton steps on the polynomial's own derivatives while
+/// they climb and stay inside the patch's disc.
+fn peak_of(poly: &dyn Fn(f64, f64) -> f64, uv: impl Iterator<Item = (f64, f64)>) -> (f64, f64) {
+    let (mut u, mut v) = uv
+        .map(|(u, v)| (poly(u, v), u, v))
+        .max_by(|x, y| x.0.total_cmp(&y.0))
+        .map(|(_, u, v)| (u, v))
+        .expect("non-empty patch");
+    // Central differences are exact to rounding for a polynomial of degree ≤ 4 at this step.
+    let h = 1e-3;
+    for _ in 0..20 {
+        let f0 = poly(u, v);
+        let gu = (poly(u + h, v) - poly(u - h, v)) / (2.0 * h);
+        let gv = (poly(u, v + h) - poly(u, v - h)) / (2.0 * h);
+        let huu = (poly(u + h, v) - 2.0 * f0 + poly(u - h, v)) / (h * h);
+        let hvv = (poly(u, v + h) - 2.0 * f0 + poly(u, v - h)) / (h * h);
+        let huv = (poly(u + h, v + h) - poly(u + h, v - h) - poly(u - h, v + h)
+            + poly(u - h, v - h))
+            / (4.0 * h * h);
+        let det = huu * hvv - huv * huv;
+        // Only a concave neighbourhood has a maximum to step to.
+        if !(huu < 0.0 && det > 0.0) {
+            break;
+        }
+        let du = -(hvv * gu - huv * gv) / det;
+        let dv = -(huu * gv - huv * gu) / det;
+        let (nu, nv) = (u + du, v + dv);
+        if nu.hypot(nv) > 1.0 || poly(nu, nv) < f0 {
+            break;
+        }
+        (u, v) = (nu, nv);
+        if du.hypot(dv) < 1e-9 {
+            break;
         }
     }
-    let (peak, u, v) = best.unwrap_or_else(|| {
-        pixels
-            .iter()
-            .map(|q| {
-                let f = basis(q);
-                (eval(f[1], f[2]), f[1], f[2])
-            })
-            .max_by(|x, y| x.0.total_cmp(&y.0))
-            .expect("non-empty patch")
-    });
-    PeakFit {
-        peak: surface(peak).0,
-        at: [centre[0] + u * radius, centre[1] + v * radius],
-        residual,
-        pixels: pixels.len(),
-        std: f64::INFINITY,
-    }
+    (u, v)
 }
 
 #[cfg(test)]
@@ -885,5 +967,61 @@ mod tests {
             refine_peak(&l, &r, &pixels[..10], &init[..10], Some(base)),
             None
         );
+    }
+
+    #[test]
+    fn quartic_top_of_capped_and_flattened_cells() {
+        let (cx, cy, a, b, top, base) = (60.0, 50.0, 24.0, 18.0, 4.5, 0.6);
+        let rho2 = move |x: f64, y: f64| ((x - cx) / a).powi(2) + ((y - cy) / b).powi(2);
+        let t = texture(11, 30.0);
+        // The quartic is exact for the paraboloid (h² is quartic) and not for the flattened
+        // cell (h² is of eighth order): 2 % of its height there.
+        let profiles: [(&str, fn(f64) -> f64, f64); 2] = [
+            ("paraboloid", |r2| (1.0 - r2).max(0.0), 0.05),
+            ("flattened", |r2| (1.0 - r2 * r2).max(0.0), 0.1),
+        ];
+        for (name, shape, tolerance) in profiles {
+            let d = move |x: f64, y: f64| base + top * shape(rho2(x, y));
+            let (l, r) = pair(120, 100, &t, &d, 1.5, 3);
+            let (pixels, init): (Vec<[usize; 2]>, Vec<f32>) = (0..100)
+                .flat_map(|y| (0..120).map(move |x| [x, y]))
+                .filter(|p| shape(rho2(p[0] as f64, p[1] as f64)) >= 0.5)
+                .map(|p| (p, (d(p[0] as f64, p[1] as f64) - 0.3) as f32))
+                .unzip();
+            let dome = refine_top(
+                &l,
+                &r,
+                &pixels,
+                &init,
+                Some(base),
+                TopModel::Quadratic,
+                None,
+            )
+            .expect("a dome fit");
+            let quartic = refine_top(
+                &l,
+                &r,
+                &pixels,
+                &init,
+                Some(base),
+                TopModel::Quartic,
+                Some(dome.at),
+            )
+            .expect("a quartic fit");
+            let truth = base + top;
+            assert!(
+                (quartic.peak - truth).abs() < tolerance,
+                "{name}: quartic {} vs {truth}",
+                quartic.peak
+            );
+            // The dome model alone misses these shapes by several times more.
+            assert!(
+                (dome.peak - truth).abs() > 3.0 * (quartic.peak - truth).abs(),
+                "{name}: dome {} quartic {}",
+                dome.peak,
+                quartic.peak
+            );
+            assert!((dome.at[0] - cx).abs() < 1.0 && (dome.at[1] - cy).abs() < 1.0);
+        }
     }
 }

@@ -10,7 +10,9 @@
 //!
 //! With a background plane, each cell's rim checks it; without one, the rims of all cells
 //! fit a plane of their own (the substrate may be tilted) and each rim is checked against
-//! the plane of the others. A cell whose sources disagree, or whose substrate rests on one
+//! the plane of the others. When most rims lie on one plane and most of them off the
+//! background's, the rims outvote the background plane and it is set aside. A cell whose
+//! sources disagree, or whose substrate rests on one
 //! unchecked source, is flagged: its height is not to be trusted.
 
 use crate::refine::{huber, robust_scale, sample, weighted_plane};
@@ -247,6 +249,49 @@ fn plane_through(points: &[[f64; 4]]) -> Option<([f64; 3], f64)> {
     fit(&kept).or(Some((c, f64::INFINITY)))
 }
 
+/// Formal error (px) below which a background plane stands on a richly textured
+/// substrate (0.001–0.002 px there) and no vote of the rims sets it aside: on texture the
+/// rims share a bias of their own (0.3–0.45 px up, the cell's edge in the band).
+const SURE_PLANE_STD: f64 = 0.01;
+
+/// Largest spread (px) of the rims about their own plane for them to outvote the background
+/// plane: on a textureless substrate they agree to 0.02–0.05 px.
+const RIMS_TIGHT_PX: f64 = 0.1;
+
+/// Whether the cells' rims outvote the background `plane`: a plane on little texture, at
+/// least three rims, most of them tightly on one plane of their own and most of them off
+/// the background plane. A wrong background plane (seen on a textureless background crowded
+/// with cells: 0.5–1.5 px off, its formal error 0.044 px) is then set aside and the
+/// substrate comes from the rims, each checked against the others.
+fn outvoted(cells: &[&Cell], plane: &DisparityPlane, rims: &[Option<RimFit>]) -> bool {
+    if plane.std < SURE_PLANE_STD {
+        return false;
+    }
+    let points: Vec<[f64; 4]> = cells
+        .iter()
+        .zip(rims)
+        .filter_map(|(c, r)| r.map(|r| [c.centroid[0], c.centroid[1], r.d, r.std]))
+        .collect();
+    if points.len() < 3 {
+        return false;
+    }
+    let Some((own, spread)) = plane_through(&points) else {
+        return false;
+    };
+    if !(spread <= RIMS_TIGHT_PX) {
+        return false;
+    }
+    let p_std = plane.std.max(PLANE_FLOOR_STD);
+    let (mut on_own, mut on_background) = (0, 0);
+    for p in &points {
+        let d_own = own[0] + own[1] * p[0] + own[2] * p[1];
+        on_own += usize::from(agree((p[2], p[3]), (d_own, 0.0)).0);
+        on_background += usize::from(agree((p[2], p[3]), (plane.at(p[0], p[1]), p_std)).0);
+    }
+    let n = points.len();
+    2 * on_own > n && 2 * on_background < n && on_own >= 2 * on_background.max(1)
+}
+
 /// The substrate under each of `cells` (by their centroids) from the background `plane` (if
 /// the background had the texture to fix one) and each cell's `rims`, cross-checked as the
 /// module says.
@@ -256,7 +301,7 @@ pub fn bases(
     rims: &[Option<RimFit>],
 ) -> Vec<Option<Base>> {
     let at = |c: &Cell| (c.centroid[0], c.centroid[1]);
-    if let Some(pl) = plane {
+    if let Some(pl) = plane.filter(|pl| !outvoted(cells, pl, rims)) {
         let p_std = pl.std.max(PLANE_FLOOR_STD);
         return cells
             .iter()
@@ -352,4 +397,76 @@ pub fn bases(
             }
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use schemas::BoundingBox;
+
+    fn cell_at(id: u32, x: f64, y: f64) -> Cell {
+        Cell {
+            id,
+            area: 400,
+            centroid: [x, y],
+            bbox: BoundingBox {
+                x0: x as u32 - 10,
+                y0: y as u32 - 10,
+                x1: x as u32 + 10,
+                y1: y as u32 + 10,
+            },
+            contour: Vec::new(),
+            perimeter: 0.0,
+        }
+    }
+
+    fn rim(d: f64) -> Option<RimFit> {
+        Some(RimFit {
+            d,
+            std: 0.02,
+            ncc: 0.9,
+            pixels: 200,
+        })
+    }
+
+    #[test]
+    fn tight_rims_outvote_a_weak_wrong_plane_but_not_a_sure_one() {
+        let cells: Vec<Cell> = [(100.0, 80.0), (400.0, 90.0), (250.0, 300.0), (520.0, 400.0)]
+            .iter()
+            .enumerate()
+            .map(|(i, &(x, y))| cell_at(i as u32 + 1, x, y))
+            .collect();
+        let refs: Vec<&Cell> = cells.iter().collect();
+        let rims: Vec<Option<RimFit>> = [8.01, 7.99, 8.02, 8.0].map(rim).to_vec();
+        let plane = |std: f64| DisparityPlane {
+            d0: 7.0,
+            dx: 0.001,
+            dy: -0.001,
+            centre: [320.0, 240.0],
+            std,
+            pixels: 5000,
+        };
+        // Formal error 0.044 px (a crowded textureless frame): the rims win, and agree.
+        let weak = bases(&refs, Some(&plane(0.044)), &rims);
+        for (b, r) in weak.iter().zip(&rims) {
+            let b = b.as_ref().unwrap();
+            assert_eq!(b.source, SubstrateSource::Rim);
+            assert_eq!(b.d, r.unwrap().d);
+            assert_eq!(b.doubt, None);
+        }
+        // A plane on rich texture stays; every cell is flagged for the disagreement.
+        let sure = bases(&refs, Some(&plane(0.002)), &rims);
+        for b in &sure {
+            let b = b.as_ref().unwrap();
+            assert_eq!(b.source, SubstrateSource::Plane);
+            assert!(b.doubt.as_ref().unwrap().contains("disagree"), "{b:?}");
+        }
+        // Rims that scatter do not outvote even a weak plane.
+        let loose: Vec<Option<RimFit>> = [8.0, 8.6, 7.5, 8.3].map(rim).to_vec();
+        let kept = bases(&refs, Some(&plane(0.044)), &loose);
+        assert!(
+            kept.iter()
+                .all(|b| b.as_ref().unwrap().source == SubstrateSource::Plane)
+        );
+    }
 }
