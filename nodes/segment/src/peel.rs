@@ -92,6 +92,23 @@ pub fn peel_edges(img: &Plane<u8>, mask: &Mask, layers: usize, bg_radius: usize,
         e / c <= quiet_tol * quiet_tol
     };
     let alone = |x: usize, y: usize| r(x, y).is_some_and(|v| v.abs() <= tol);
+    // The variance window lifts at most `layers` px of skirt (Chebyshev distance) around a
+    // cell: nothing deeper in the mask is peeled. Without the cap a strongly textured
+    // background (its spread wide, so the tests loose) ate 3–5 px into the dim side of a
+    // cell and moved its centroid by up to 3 px.
+    let depth = {
+        let bg = image::GrayImage::from_fn(w as u32, h as u32, |x, y| {
+            image::Luma([u8::from(is_bg(x as usize, y as usize))])
+        });
+        imageproc::distance_transform::distance_transform(
+            &bg,
+            imageproc::distance_transform::Norm::LInf,
+        )
+    };
+    let shallow =
+        |x: usize, y: usize| (depth.get_pixel(x as u32, y as u32).0[0] as usize) <= layers;
+    let quiet = |x: usize, y: usize| shallow(x, y) && quiet(x, y);
+    let alone = |x: usize, y: usize| shallow(x, y) && alone(x, y);
     let mut boundary: Vec<(usize, usize)> = (0..h)
         .flat_map(|y| (0..w).map(move |x| (x, y)))
         .filter(|&(x, y)| *mask.get(x, y) != 0 && neighbours4(x, y, w, h).any(|(u, v)| is_bg(u, v)))
@@ -119,7 +136,10 @@ pub fn peel_edges(img: &Plane<u8>, mask: &Mask, layers: usize, bg_radius: usize,
                 .flat_map(|v| (x.saturating_sub(1)..(x + 2).min(w)).map(move |u| (u, v)))
                 .filter(|&(u, v)| (u, v) != (x, y) && *out.get(u, v) != 0)
                 .count();
-            n4 <= 1 || n8 <= 3 || (n8 <= 4 && r(x, y).is_some_and(|v| v.abs() <= 1.5 * tol))
+            shallow(x, y)
+                && (n4 <= 1
+                    || n8 <= 3
+                    || (n8 <= 4 && r(x, y).is_some_and(|v| v.abs() <= 1.5 * tol)))
         });
         if !peel_boundary(&mut out, &mut boundary, gone, kept, &mut listed) {
             break;
