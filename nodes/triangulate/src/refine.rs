@@ -976,7 +976,8 @@ mod tests {
         let t = texture(11, 30.0);
         // The quartic is exact for the paraboloid (h² is quartic) and not for the flattened
         // cell (h² is of eighth order): 2 % of its height there.
-        let profiles: [(&str, fn(f64) -> f64, f64); 2] = [
+        type Profile = (&'static str, fn(f64) -> f64, f64);
+        let profiles: [Profile; 2] = [
             ("paraboloid", |r2| (1.0 - r2).max(0.0), 0.05),
             ("flattened", |r2| (1.0 - r2 * r2).max(0.0), 0.1),
         ];

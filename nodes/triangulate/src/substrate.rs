@@ -278,7 +278,8 @@ fn outvoted(cells: &[&Cell], plane: &DisparityPlane, rims: &[Option<RimFit>]) ->
     let Some((own, spread)) = plane_through(&points) else {
         return false;
     };
-    if !(spread <= RIMS_TIGHT_PX) {
+    // Infinite when too few rims were left after the outliers; not tight then either.
+    if spread.is_nan() || spread > RIMS_TIGHT_PX {
         return false;
     }
     let p_std = plane.std.max(PLANE_FLOOR_STD);
