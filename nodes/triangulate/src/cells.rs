@@ -364,44 +364,22 @@ fn top_of_cell(
     if top <= base {
         return None;
     }
+    let level = |f: f64| (base + f * (top - base)) as f32;
     let above = |f: f64| -> (Vec<[usize; 2]>, Vec<f32>) {
-        let level = (base + f * (top - base)) as f32;
-        inside.iter().filter(|(_, d)| *d >= level).copied().unzip()
+        inside
+            .iter()
+            .filter(|(_, d)| *d >= level(f))
+            .copied()
+            .unzip()
     };
-    let dome = |f: f64| {
-        let (pixels, init) = above(f);
-        refine_top(
-            left,
-            right,
-            &pixels,
-            &init,
-            Some(base),
-            TopModel::Quadratic,
-            None,
-        )
+    let fit = |(pixels, init): &(Vec<[usize; 2]>, Vec<f32>), model, at| {
+        refine_top(left, right, pixels, init, Some(base), model, at)
     };
-    if above(0.7).0.len() >= SMALL_TOP_PIXELS {
-        let (pixels, init) = above(0.5);
-        let apex = refine_top(
-            left,
-            right,
-            &pixels,
-            &init,
-            Some(base),
-            TopModel::Quadratic,
-            None,
-        );
-        let quartic = apex.and_then(|a| {
-            refine_top(
-                left,
-                right,
-                &pixels,
-                &init,
-                Some(base),
-                TopModel::Quartic,
-                Some(a.at),
-            )
-        });
+    let dome = |f: f64| fit(&above(f), TopModel::Quadratic, None);
+    if inside.iter().filter(|(_, d)| *d >= level(0.7)).count() >= SMALL_TOP_PIXELS {
+        let upper = above(0.5);
+        let apex = fit(&upper, TopModel::Quadratic, None);
+        let quartic = apex.and_then(|a| fit(&upper, TopModel::Quartic, Some(a.at)));
         return quartic.or(apex).or_else(|| dome(0.7));
     }
     // Either may be the better one: the surer fit wins.

@@ -9,7 +9,7 @@
 //!
 //! - [`fit_disparity_plane`]: one plane `d = a + b·u + c·v` over every usable background
 //!   pixel of the frame (high-passed, so illumination gradients and view gains cancel);
-//! - [`refine_peak`] / [`refine_top`]: a quadratic (or quartic) `d(u, v)` with a view gain
+//! - [`refine_top`]: a quadratic (or quartic) `d(u, v)` with a view gain
 //!   and offset over the top of one cell, and the surface's maximum.
 
 use nalgebra::{DMatrix, DVector};
@@ -437,7 +437,7 @@ fn normal_equations<const N: usize>(
     (m, DVector::from_column_slice(&b))
 }
 
-/// The top of a surface found by [`refine_peak`].
+/// The top of a surface found by [`refine_top`].
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
 pub struct PeakFit {
     /// Largest disparity of the fitted quadratic inside the patch, px.
@@ -457,7 +457,7 @@ pub struct PeakFit {
 /// Fewest pixels a quadratic top is fitted on.
 const PEAK_MIN_PIXELS: usize = 24;
 
-/// The polynomial under a cell top's surface ([`refine_peak`]).
+/// The polynomial under a cell top's surface ([`refine_top`]).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum TopModel {
     /// Six terms, to second order: with a base, exact for an ellipsoidal cap.
@@ -465,16 +465,6 @@ pub enum TopModel {
     /// Fifteen terms, to fourth order: with a base, exact for an ellipsoidal cap and for a
     /// paraboloid (`h² = (1 − ρ²)²`), close for a flattened, spread cell (`1 − ρ⁴`).
     Quartic,
-}
-
-impl TopModel {
-    /// Shape terms of the polynomial.
-    fn terms(self) -> usize {
-        match self {
-            TopModel::Quadratic => 6,
-            TopModel::Quartic => 15,
-        }
-    }
 }
 
 /// Monomials of `(u, v)` up to fourth order, in the order the coefficients are kept; unused
@@ -502,26 +492,15 @@ fn monomials<const N: usize>(u: f64, v: f64, terms: usize) -> [f64; N] {
     f
 }
 
-/// Fits a quadratic `Q = c0 + c1·u + c2·v + c3·u² + c4·u·v + c5·v²` (u, v about the
-/// patch's mean pixel) together with a gain and offset between the views to the patch
-/// `pixels`, starting from their disparities `init` (any matcher's output; NaN = unknown),
-/// and returns the surface's maximum over the patch. Without a `base` the surface is
-/// `d = Q`; with the base's disparity it is the dome `d = base + √Q` — the height squared is
-/// quadratic, exact for an ellipsoidal cap standing on its equator and close for any
-/// rounded cell, so the whole upper part of a cell can be used, not only the tip. `None`
-/// when the patch is too small or the fit does not converge.
-pub fn refine_peak(
-    left: &Plane<u8>,
-    right: &Plane<u8>,
-    pixels: &[[usize; 2]],
-    init: &[f32],
-    base: Option<f64>,
-) -> Option<PeakFit> {
-    refine_top(left, right, pixels, init, base, TopModel::Quadratic, None)
-}
-
-/// [`refine_peak`] with the polynomial `model` in place of the quadratic; with `at` (image
-/// coordinates inside the patch) the surface's value there instead of its maximum.
+/// Fits a polynomial `Q` of (u, v) about the patch's mean pixel — the quadratic `c0 + c1·u +
+/// c2·v + c3·u² + c4·u·v + c5·v²` or the quartic (`model`) — together with a gain and offset
+/// between the views to the patch `pixels`, starting from their disparities `init` (any
+/// matcher's output; NaN = unknown), and returns the surface's maximum over the patch, or
+/// with `at` (image coordinates inside the patch) its value there. Without a `base` the
+/// surface is `d = Q`; with the base's disparity it is the dome `d = base + √Q` — the height
+/// squared is quadratic, exact for an ellipsoidal cap standing on its equator and close for
+/// any rounded cell, so the whole upper part of a cell can be used, not only the tip.
+/// `None` when the patch is too small or the fit does not converge.
 pub fn refine_top(
     left: &Plane<u8>,
     right: &Plane<u8>,
@@ -532,23 +511,22 @@ pub fn refine_top(
     at: Option<[f64; 2]>,
 ) -> Option<PeakFit> {
     match model {
-        TopModel::Quadratic => fit_top::<8>(left, right, pixels, init, base, model, at),
-        TopModel::Quartic => fit_top::<17>(left, right, pixels, init, base, model, at),
+        TopModel::Quadratic => fit_top::<8>(left, right, pixels, init, base, at),
+        TopModel::Quartic => fit_top::<17>(left, right, pixels, init, base, at),
     }
 }
 
-/// [`refine_top`] with `N` parameters: the model's shape terms, then a gain and an offset
-/// between the views.
+/// [`refine_top`] with `N` parameters: the polynomial's `N − 2` terms, then a gain and an
+/// offset between the views.
 fn fit_top<const N: usize>(
     left: &Plane<u8>,
     right: &Plane<u8>,
     pixels: &[[usize; 2]],
     init: &[f32],
     base: Option<f64>,
-    model: TopModel,
     at: Option<[f64; 2]>,
 ) -> Option<PeakFit> {
-    let k = model.terms();
+    let k = N - 2;
     if pixels.len() < PEAK_MIN_PIXELS.max(3 * N) || pixels.len() != init.len() {
         return None;
     }
@@ -952,7 +930,16 @@ mod tests {
             .filter(|p| q(p[0] as f64, p[1] as f64) >= 0.49)
             .map(|p| (p, (d(p[0] as f64, p[1] as f64) - 0.4) as f32))
             .unzip();
-        let fit = refine_peak(&l, &r, &pixels, &init, Some(base)).expect("a fit");
+        let fit = refine_top(
+            &l,
+            &r,
+            &pixels,
+            &init,
+            Some(base),
+            TopModel::Quadratic,
+            None,
+        )
+        .expect("a fit");
         assert!((fit.peak - (base + top)).abs() < 0.05, "{}", fit.peak);
         assert!(
             (fit.at[0] - cx).abs() < 1.0 && (fit.at[1] - cy).abs() < 1.0,
@@ -960,11 +947,20 @@ mod tests {
             fit.at
         );
         // Without a base the surface is a plain quadratic: close, not exact, on a cap.
-        let quad = refine_peak(&l, &r, &pixels, &init, None).expect("a fit");
+        let quad =
+            refine_top(&l, &r, &pixels, &init, None, TopModel::Quadratic, None).expect("a fit");
         assert!((quad.peak - (base + top)).abs() < 0.15, "{}", quad.peak);
         // Too few pixels: no answer.
         assert_eq!(
-            refine_peak(&l, &r, &pixels[..10], &init[..10], Some(base)),
+            refine_top(
+                &l,
+                &r,
+                &pixels[..10],
+                &init[..10],
+                Some(base),
+                TopModel::Quadratic,
+                None
+            ),
             None
         );
     }
