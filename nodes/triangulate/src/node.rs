@@ -139,6 +139,7 @@ impl Task for Triangulate {
                     (&c.disparity, &c.raw),
                     i.disparity.range,
                     i.disparity.margin,
+                    &calib,
                 );
                 let cells = measure(
                     (&labels.left, &lists.left, &lists.right),

@@ -15,7 +15,7 @@
 use nalgebra::{DMatrix, DVector};
 use rayon::prelude::*;
 pub use schemas::DisparityPlane;
-use schemas::{DisparityRange, Mask, Plane};
+use schemas::{Calibration, DisparityRange, Mask, Plane};
 use serde::Serialize;
 
 /// Value and x-gradient of a row at fractional `x` (linear interpolation of the samples and
@@ -492,29 +492,128 @@ fn monomials<const N: usize>(u: f64, v: f64, terms: usize) -> [f64; N] {
     f
 }
 
+/// The derivatives along `u` and along `v` of [`monomials`].
+fn monomial_gradients<const N: usize>(u: f64, v: f64, terms: usize) -> ([f64; N], [f64; N]) {
+    let (u2, v2, uv) = (u * u, v * v, u * v);
+    let du = [
+        0.0,
+        1.0,
+        0.0,
+        2.0 * u,
+        v,
+        0.0,
+        3.0 * u2,
+        2.0 * uv,
+        v2,
+        0.0,
+        4.0 * u2 * u,
+        3.0 * u2 * v,
+        2.0 * u * v2,
+        v2 * v,
+        0.0,
+    ];
+    let dv = [
+        0.0,
+        0.0,
+        1.0,
+        0.0,
+        u,
+        2.0 * v,
+        0.0,
+        u2,
+        2.0 * uv,
+        3.0 * v2,
+        0.0,
+        u2 * u,
+        2.0 * u2 * v,
+        3.0 * u * v2,
+        4.0 * v2 * v,
+    ];
+    let (mut fu, mut fv) = ([0.0; N], [0.0; N]);
+    fu[..terms].copy_from_slice(&du[..terms]);
+    fv[..terms].copy_from_slice(&dv[..terms]);
+    (fu, fv)
+}
+
+/// How the left view sees a point rise from the substrate: rectified pinhole geometry puts
+/// a point of total disparity `D` at `x = cx + f·(X + b/2)/Z`-like positions, so a point at a
+/// fixed place on the ground moves away from the left principal point as it rises, by
+/// `(x − cx, y − cy)·t/(D + t)` for `t` px of disparity above a substrate of total disparity
+/// `D`. On a microscope (`D` ≈ 1,200 px, the principal point 600 px off the image's centre)
+/// a cell's top stands half its height, in pixels, beside its foot: a dome is sheared in the
+/// left image, and a model symmetric in image coordinates misses its top by up to 15 %.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Parallax {
+    /// The left view's principal point `[cx, cy]`, px.
+    pub centre: [f64; 2],
+    /// What turns a matched disparity into the total one (`cx_right − cx`), px.
+    pub offset: f64,
+}
+
+impl Parallax {
+    /// The parallax of a rectified pair's calibration.
+    pub fn of(c: &Calibration) -> Self {
+        Self {
+            centre: [c.cx, c.cy],
+            offset: c.cx_right - c.cx,
+        }
+    }
+}
+
+/// The substrate a cell top stands on, for [`refine_top`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Ground {
+    /// The substrate's disparity under the cell (as matched), px.
+    pub d: f64,
+    /// The views' geometry; `None` treats the cell as seen straight from above.
+    pub parallax: Option<Parallax>,
+}
+
 /// Fits a polynomial `Q` of (u, v) about the patch's mean pixel — the quadratic `c0 + c1·u +
 /// c2·v + c3·u² + c4·u·v + c5·v²` or the quartic (`model`) — together with a gain and offset
 /// between the views to the patch `pixels`, starting from their disparities `init` (any
-/// matcher's output; NaN = unknown), and returns the surface's maximum over the patch, or
-/// with `at` (image coordinates inside the patch) its value there. Without a `base` the
-/// surface is `d = Q`; with the base's disparity it is the dome `d = base + √Q` — the height
-/// squared is quadratic, exact for an ellipsoidal cap standing on its equator and close for
-/// any rounded cell, so the whole upper part of a cell can be used, not only the tip.
-/// `None` when the patch is too small or the fit does not converge.
+/// matcher's output; NaN = unknown), and returns the surface's top: the quadratic's maximum
+/// over the patch, the quartic's value there. Without a `base` the surface is `d = Q` in
+/// image coordinates; on a [`Ground`] it is the dome `d = base + √Q` — the height squared is
+/// quadratic, exact for an ellipsoidal cap standing on its equator and close for any rounded
+/// cell, so the whole upper part of a cell can be used, not only the tip. With the ground's
+/// [`Parallax`], `Q` is a function of the place on the ground under each surface point, each
+/// pixel's ray is followed to where it meets the surface, and the result's `at` is the
+/// ground place under the top (in the left image at the substrate's depth). `None` when the
+/// patch is too small or the fit does not converge.
 pub fn refine_top(
     left: &Plane<u8>,
     right: &Plane<u8>,
     pixels: &[[usize; 2]],
     init: &[f32],
-    base: Option<f64>,
+    base: Option<Ground>,
     model: TopModel,
-    at: Option<[f64; 2]>,
 ) -> Option<PeakFit> {
+    let (dome, p) = fit_top::<8>(left, right, pixels, init, base, None)?;
     match model {
-        TopModel::Quadratic => fit_top::<8>(left, right, pixels, init, base, at),
-        TopModel::Quartic => fit_top::<17>(left, right, pixels, init, base, at),
+        TopModel::Quadratic => Some(dome),
+        // The quartic starts from the quadratic (a good fit it only refines: from the
+        // matcher's map, clipped at the range's end on tall cells, it found a wrong
+        // minimum 2 px low) and is read at the quadratic's apex: its own maximum rides its
+        // noise's highest bump, 0.1–0.2 px up on a flat top.
+        TopModel::Quartic => fit_top::<17>(
+            left,
+            right,
+            pixels,
+            init,
+            base,
+            Some((&p[..6], [p[6], p[7]], dome.at)),
+        )
+        .map(|q| q.0),
     }
 }
+
+/// A fit to start from: its polynomial's terms, its gain and offset, and where to read
+/// the result.
+type Start<'a> = (&'a [f64], [f64; 2], [f64; 2]);
+
+/// Smallest height (px) a pixel's ray may meet a dome at: outside its foot `Q` is negative.
+const DOME_FLOOR: f64 = 1e-3;
 
 /// [`refine_top`] with `N` parameters: the polynomial's `N − 2` terms, then a gain and an
 /// offset between the views.
@@ -523,9 +622,9 @@ fn fit_top<const N: usize>(
     right: &Plane<u8>,
     pixels: &[[usize; 2]],
     init: &[f32],
-    base: Option<f64>,
-    at: Option<[f64; 2]>,
-) -> Option<PeakFit> {
+    base: Option<Ground>,
+    start: Option<Start>,
+) -> Option<(PeakFit, [f64; N])> {
     let k = N - 2;
     if pixels.len() < PEAK_MIN_PIXELS.max(3 * N) || pixels.len() != init.len() {
         return None;
@@ -538,40 +637,98 @@ fn fit_top<const N: usize>(
         .iter()
         .map(|p| (p[0] as f64 - centre[0]).hypot(p[1] as f64 - centre[1]))
         .fold(1.0, f64::max);
-    let uv = |p: &[usize; 2]| {
-        (
-            (p[0] as f64 - centre[0]) / radius,
-            (p[1] as f64 - centre[1]) / radius,
-        )
-    };
-    let basis = |p: &[usize; 2]| {
-        let (u, v) = uv(p);
+    let uv = |x: f64, y: f64| ((x - centre[0]) / radius, (y - centre[1]) / radius);
+    let basis = |x: f64, y: f64| {
+        let (u, v) = uv(x, y);
         monomials::<N>(u, v, k)
     };
-    // d and ∂d/∂Q of a polynomial's value.
-    let surface = |q: f64| match base {
-        None => (q, 1.0),
-        Some(b) => {
-            let r = q.max(1e-6).sqrt();
-            (b + r, 0.5 / r)
+    let value = |p: &[f64; N], f: &[f64; N]| -> f64 { (0..k).map(|i| p[i] * f[i]).sum() };
+    // Where pixel `q`'s ray stands on the ground at height `t` (px of disparity above the
+    // base), and how fast that place moves with `t`.
+    let foot = |q: &[usize; 2], t: f64| -> ([f64; 2], [f64; 2]) {
+        let (x, y) = (q[0] as f64, q[1] as f64);
+        match base.and_then(|g| g.parallax.map(|p| (g.d + p.offset, p.centre))) {
+            Some((total, [cx, cy])) if total > 0.0 => {
+                let s = t / (total + t);
+                let ds = total / (total + t).powi(2);
+                (
+                    [x - (x - cx) * s, y - (y - cy) * s],
+                    [-(x - cx) * ds, -(y - cy) * ds],
+                )
+            }
+            _ => ([x, y], [0.0, 0.0]),
         }
     };
-    let value = |p: &[f64; N], f: &[f64; N]| -> f64 { (0..k).map(|i| p[i] * f[i]).sum() };
-    // Start: least squares on the matcher's disparities.
-    let known: Vec<(f64, [f64; N])> = pixels
-        .iter()
-        .zip(init)
-        .filter(|(_, d)| d.is_finite())
-        .filter_map(|(p, &d)| match base {
-            None => Some((-(d as f64), basis(p))),
-            Some(b) => (d as f64 > b).then(|| (-(d as f64 - b).powi(2), basis(p))),
-        })
-        .collect();
-    if known.len() < PEAK_MIN_PIXELS.max(3 * N) {
-        return None;
+    // Pixel `q`'s disparity on the surface `p`, the basis where it meets it and ∂d/∂Q there.
+    let hit = |q: &[usize; 2], p: &[f64; N]| -> ([f64; N], f64, f64) {
+        let Some(g) = base else {
+            let f = basis(q[0] as f64, q[1] as f64);
+            return (f, value(p, &f), 1.0);
+        };
+        let ([x, y], _) = foot(q, 0.0);
+        let mut t = value(p, &basis(x, y)).max(DOME_FLOOR * DOME_FLOOR).sqrt();
+        // Newton on t² − Q(foot(t)) = 0 from the height straight above (the ray's last
+        // meeting with the dome from above is the surface the camera sees).
+        let mut slope = 2.0 * t;
+        let mut f = basis(x, y);
+        for _ in 0..8 {
+            let ([x, y], [dx, dy]) = foot(q, t);
+            let (u, v) = uv(x, y);
+            f = monomials::<N>(u, v, k);
+            let (fu, fv) = monomial_gradients::<N>(u, v, k);
+            let along = (value(p, &fu) * dx + value(p, &fv) * dy) / radius;
+            slope = 2.0 * t - along;
+            let residual = t * t - value(p, &f);
+            if slope <= 2.0 * DOME_FLOOR {
+                break;
+            }
+            let next = (t - residual / slope).max(DOME_FLOOR);
+            let done = (next - t).abs() < 1e-7;
+            t = next;
+            if done {
+                break;
+            }
+        }
+        // Where the ray passes outside the dome (Q < 0) it meets the substrate, which the
+        // terms do not move: a derivative there (1/slope, huge) would swamp the normal
+        // equations with pixels the shape cannot explain.
+        let dq = if value(p, &f) <= DOME_FLOOR * DOME_FLOOR {
+            0.0
+        } else {
+            1.0 / slope.max(2.0 * DOME_FLOOR)
+        };
+        (f, g.d + t, dq)
+    };
+    // Parameters: the shape terms, gain, offset; from the start fit or from least squares on
+    // the matcher's disparities.
+    let mut p = [0.0; N];
+    p[k] = 1.0;
+    if let Some((terms, [gain, offset], _)) = start {
+        p[..terms.len()].copy_from_slice(terms);
+        (p[k], p[k + 1]) = (gain, offset);
+    } else {
+        let known: Vec<(f64, [f64; N])> = pixels
+            .iter()
+            .zip(init)
+            .filter(|(_, d)| d.is_finite())
+            .filter_map(|(p, &d)| match base {
+                None => Some((-(d as f64), basis(p[0] as f64, p[1] as f64))),
+                Some(g) => {
+                    let t = d as f64 - g.d;
+                    (t > 0.0).then(|| {
+                        let ([x, y], _) = foot(p, t);
+                        (-t * t, basis(x, y))
+                    })
+                }
+            })
+            .collect();
+        if known.len() < PEAK_MIN_PIXELS.max(3 * N) {
+            return None;
+        }
+        let (a, b) = normal_equations(&known, f64::INFINITY);
+        let c0 = a.view((0, 0), (k, k)).lu().solve(&(-b.rows(0, k)))?;
+        p[..k].copy_from_slice(c0.as_slice());
     }
-    let (a, b) = normal_equations(&known, f64::INFINITY);
-    let c0 = a.view((0, 0), (k, k)).lu().solve(&(-b.rows(0, k)))?;
     let rows: Vec<Vec<f32>> = {
         let conv = |img: &Plane<u8>, y: usize| img.row(y).iter().map(|&v| v as f32).collect();
         let mut ys: Vec<usize> = pixels.iter().map(|p| p[1]).collect();
@@ -583,16 +740,11 @@ fn fit_top<const N: usize>(
         }
         rows
     };
-    // Parameters: the shape terms, gain, offset.
-    let mut p = [0.0; N];
-    p[..k].copy_from_slice(c0.as_slice());
-    p[k] = 1.0;
     let terms_at = |p: &[f64; N]| -> Vec<(f64, [f64; N])> {
         pixels
             .iter()
             .filter_map(|q| {
-                let f = basis(q);
-                let (d, dq) = surface(value(p, &f));
+                let (f, d, dq) = hit(q, p);
                 let (rv, rg) = sample(&rows[q[1]], q[0] as f64 - d)?;
                 let e = *left.get(q[0], q[1]) as f64 - (p[k] * rv + p[k + 1]);
                 let g = p[k] * rg * dq;
@@ -664,28 +816,35 @@ fn fit_top<const N: usize>(
     let (jtj, _) = normal_equations(&terms, 1.5 * scale);
     let cov = jtj.try_inverse();
     let poly = |u: f64, v: f64| value(&p, &monomials::<N>(u, v, k));
-    let (u, v) = match at {
-        Some([x, y]) if (x - centre[0]).hypot(y - centre[1]) <= radius => {
-            ((x - centre[0]) / radius, (y - centre[1]) / radius)
-        }
-        _ => peak_of(&poly, pixels.iter().map(uv)),
+    let (u, v) = match start.map(|s| s.2) {
+        Some([x, y]) if (x - centre[0]).hypot(y - centre[1]) <= radius => uv(x, y),
+        _ => peak_of(&poly, pixels.iter().map(|q| uv(q[0] as f64, q[1] as f64))),
     };
     let f = monomials::<N>(u, v, k);
     let q = value(&p, &f);
+    // d and ∂d/∂Q at the top, where the surface is level (its ray meets it once).
+    let (d, dq) = match base {
+        None => (q, 1.0),
+        Some(g) => {
+            let r = q.max(DOME_FLOOR * DOME_FLOOR).sqrt();
+            (g.d + r, 0.5 / r)
+        }
+    };
     let std = cov.map_or(f64::INFINITY, |c| {
         let var: f64 = (0..k)
             .flat_map(|i| (0..k).map(move |j| (i, j)))
             .map(|(i, j)| f[i] * c[(i, j)] * f[j])
             .sum();
-        scale * surface(q).1 * var.max(0.0).sqrt()
+        scale * dq * var.max(0.0).sqrt()
     });
-    Some(PeakFit {
-        peak: surface(q).0,
+    let fit = PeakFit {
+        peak: d,
         at: [centre[0] + u * radius, centre[1] + v * radius],
         residual: scale,
         pixels: pixels.len(),
         std,
-    })
+    };
+    Some((fit, p))
 }
 
 /// Where the polynomial `poly` is largest over the patch (coordinates `uv`, the patch's
@@ -935,9 +1094,11 @@ mod tests {
             &r,
             &pixels,
             &init,
-            Some(base),
+            Some(Ground {
+                d: base,
+                parallax: None,
+            }),
             TopModel::Quadratic,
-            None,
         )
         .expect("a fit");
         assert!((fit.peak - (base + top)).abs() < 0.05, "{}", fit.peak);
@@ -947,8 +1108,7 @@ mod tests {
             fit.at
         );
         // Without a base the surface is a plain quadratic: close, not exact, on a cap.
-        let quad =
-            refine_top(&l, &r, &pixels, &init, None, TopModel::Quadratic, None).expect("a fit");
+        let quad = refine_top(&l, &r, &pixels, &init, None, TopModel::Quadratic).expect("a fit");
         assert!((quad.peak - (base + top)).abs() < 0.15, "{}", quad.peak);
         // Too few pixels: no answer.
         assert_eq!(
@@ -957,11 +1117,78 @@ mod tests {
                 &r,
                 &pixels[..10],
                 &init[..10],
-                Some(base),
+                Some(Ground {
+                    d: base,
+                    parallax: None
+                }),
                 TopModel::Quadratic,
-                None
             ),
             None
+        );
+    }
+
+    #[test]
+    fn a_dome_seen_with_parallax_is_fitted_where_it_stands() {
+        // An ellipsoidal cap standing at (60, 50) on a substrate at 0.6 px, seen by a left
+        // camera whose principal point lies 600 px to the left (a microscope's): its top
+        // shows about 2.5 px right of its foot and its flanks are sheared.
+        let (cx, cy, a, b, top, base) = (60.0, 50.0, 12.0, 10.0, 6.0, 0.6);
+        let parallax = Parallax {
+            centre: [-540.0, 40.0],
+            offset: 1199.4,
+        };
+        let total = base + parallax.offset;
+        let q = move |x: f64, y: f64| 1.0 - ((x - cx) / a).powi(2) - ((y - cy) / b).powi(2);
+        // The height where pixel (x, y)'s ray meets the dome: the highest t with t² ≤ top²·q
+        // at the ray's foot, by scanning down and bisecting.
+        let height = move |x: f64, y: f64| -> f64 {
+            let f = |t: f64| {
+                let s = t / (total + t);
+                let (gx, gy) = (
+                    x - (x - parallax.centre[0]) * s,
+                    y - (y - parallax.centre[1]) * s,
+                );
+                top * top * q(gx, gy) - t * t
+            };
+            let Some(k) = (0..=500).rev().find(|&k| f(k as f64 * top / 500.0) >= 0.0) else {
+                return 0.0;
+            };
+            let (mut lo, mut hi) = (k as f64 * top / 500.0, (k + 1) as f64 * top / 500.0);
+            for _ in 0..40 {
+                let m = 0.5 * (lo + hi);
+                if f(m) >= 0.0 { lo = m } else { hi = m }
+            }
+            lo
+        };
+        let d = move |x: f64, y: f64| base + height(x, y);
+        let t = texture(5, 30.0);
+        let (l, r) = pair(120, 100, &t, &d, 1.0, 9);
+        // The upper 60 %, where the flanks' shear matters.
+        let (pixels, init): (Vec<[usize; 2]>, Vec<f32>) = (0..100)
+            .flat_map(|y| (0..120).map(move |x| [x, y]))
+            .filter(|p| height(p[0] as f64, p[1] as f64) >= 0.4 * top)
+            .map(|p| (p, (d(p[0] as f64, p[1] as f64) - 0.3) as f32))
+            .unzip();
+        let fit = |parallax| {
+            let g = Ground { d: base, parallax };
+            refine_top(&l, &r, &pixels, &init, Some(g), TopModel::Quadratic).expect("a fit")
+        };
+        let seen = fit(Some(parallax));
+        let straight = fit(None);
+        let truth = base + top;
+        assert!((seen.peak - truth).abs() < 0.05, "{} vs {truth}", seen.peak);
+        // Its foot, not where the top shows in the image.
+        assert!(
+            (seen.at[0] - cx).abs() < 0.5 && (seen.at[1] - cy).abs() < 0.5,
+            "{:?}",
+            seen.at
+        );
+        // Seen straight from above, the same dome's top comes out several times further off.
+        assert!(
+            (straight.peak - truth).abs() > 4.0 * (seen.peak - truth).abs(),
+            "straight {} seen {} truth {truth}",
+            straight.peak,
+            seen.peak
         );
     }
 
@@ -990,9 +1217,11 @@ mod tests {
                 &r,
                 &pixels,
                 &init,
-                Some(base),
+                Some(Ground {
+                    d: base,
+                    parallax: None,
+                }),
                 TopModel::Quadratic,
-                None,
             )
             .expect("a dome fit");
             let quartic = refine_top(
@@ -1000,9 +1229,11 @@ mod tests {
                 &r,
                 &pixels,
                 &init,
-                Some(base),
+                Some(Ground {
+                    d: base,
+                    parallax: None,
+                }),
                 TopModel::Quartic,
-                Some(dome.at),
             )
             .expect("a quartic fit");
             let truth = base + top;
