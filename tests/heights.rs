@@ -345,7 +345,7 @@ fn share_within(all: &[(Option<f64>, bool)], bound: f64) -> f64 {
 
 /// What holds today on every condition, and must keep holding: no negative height, every
 /// large error flagged (the bound is 8 %, not yet the 5 %), nearly every cell found
-/// and most heights within 5 % (92.3 % when this was written).
+/// and most heights within 5 % (93.7 % when this was written).
 #[test]
 fn heights_are_never_negative_and_large_errors_are_flagged() {
     let f = run_matrix();
@@ -375,7 +375,7 @@ fn heights_are_never_negative_and_large_errors_are_flagged() {
         "heights off by more than 8 % (or missing) without a flag: {unflagged:?}"
     );
     assert!(
-        share >= 0.90,
+        share >= 0.92,
         "{:.1} % of heights within 5 %",
         100.0 * share
     );
