@@ -403,10 +403,10 @@ fn top_of_cell(
     // Fifteen terms on a few hundred pixels ride the noise: the dome fits' mean halves it
     // (cells with 300–800 pixels in their upper 30 %: 88 → 93 % and 96 → 98 % within 5 %;
     // above, the quartic alone is better).
-    if n7 < STEADY_TOP_PIXELS {
-        if let (Some(q), Some(d)) = (quartic, domes()) {
-            return Some(mean_top(q, d));
-        }
+    if n7 < STEADY_TOP_PIXELS
+        && let (Some(q), Some(d)) = (quartic, domes())
+    {
+        return Some(mean_top(q, d));
     }
     quartic.or_else(|| dome(0.7))
 }
