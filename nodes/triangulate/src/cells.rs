@@ -398,8 +398,7 @@ fn top_of_cell(
     if n7 < SMALL_TOP_PIXELS {
         return domes();
     }
-    let upper = above(0.5);
-    let quartic = fit(&upper, TopModel::Quartic).or_else(|| fit(&upper, TopModel::Quadratic));
+    let quartic = fit(&above(0.5), TopModel::Quartic);
     // Fifteen terms on a few hundred pixels ride the noise: the dome fits' mean halves it
     // (cells with 300–800 pixels in their upper 30 %: 88 → 93 % and 96 → 98 % within 5 %;
     // above, the quartic alone is better).
@@ -411,8 +410,8 @@ fn top_of_cell(
     quartic.or_else(|| dome(0.7))
 }
 
-/// The mean of two fits of one top; they share pixels, so its error is no smaller than
-/// their errors' mean.
+/// The mean of two fits of one top, its error their errors' mean (they share pixels: the
+/// mean is no surer than they are).
 fn mean_top(a: PeakFit, b: PeakFit) -> PeakFit {
     PeakFit {
         peak: 0.5 * (a.peak + b.peak),

@@ -440,9 +440,9 @@ fn normal_equations<const N: usize>(
 /// The top of a surface found by [`refine_top`].
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
 pub struct PeakFit {
-    /// Largest disparity of the fitted quadratic inside the patch, px.
+    /// Disparity of the fitted surface's top inside the patch, px.
     pub peak: f64,
-    /// Where it lies `[x, y]`.
+    /// Where the top lies `[x, y]`: with a [`Parallax`], the ground place under it.
     pub at: [f64; 2],
     /// Robust scale of the intensity residual (grey levels).
     pub residual: f64,
@@ -536,8 +536,9 @@ fn monomial_gradients<const N: usize>(u: f64, v: f64, terms: usize) -> ([f64; N]
 }
 
 /// How the left view sees a point rise from the substrate: rectified pinhole geometry puts
-/// a point of total disparity `D` at `x = cx + f·(X + b/2)/Z`-like positions, so a point at a
-/// fixed place on the ground moves away from the left principal point as it rises, by
+/// a point at `x − cx = f·X′/Z` (`X′` its offset from the left camera's axis) and its total
+/// disparity at `D = b·f/Z`, so a point at a fixed place on the ground moves away from the
+/// left principal point as it rises, by
 /// `(x − cx, y − cy)·t/(D + t)` for `t` px of disparity above a substrate of total disparity
 /// `D`. On a microscope (`D` ≈ 1,200 px, the principal point 600 px off the image's centre)
 /// a cell's top stands half its height, in pixels, beside its foot: a dome is sheared in the
@@ -573,7 +574,8 @@ pub struct Ground {
 /// c2·v + c3·u² + c4·u·v + c5·v²` or the quartic (`model`) — together with a gain and offset
 /// between the views to the patch `pixels`, starting from their disparities `init` (any
 /// matcher's output; NaN = unknown), and returns the surface's top: the quadratic's maximum
-/// over the patch, the quartic's value there. Without a `base` the surface is `d = Q` in
+/// over the patch, the quartic's value there (the quadratic's own where the quartic does not
+/// converge). Without a `base` the surface is `d = Q` in
 /// image coordinates; on a [`Ground`] it is the dome `d = base + √Q` — the height squared is
 /// quadratic, exact for an ellipsoidal cap standing on its equator and close for any rounded
 /// cell, so the whole upper part of a cell can be used, not only the tip. With the ground's
@@ -595,16 +597,19 @@ pub fn refine_top(
         // The quartic starts from the quadratic (a good fit it only refines: from the
         // matcher's map, clipped at the range's end on tall cells, it found a wrong
         // minimum 2 px low) and is read at the quadratic's apex: its own maximum rides its
-        // noise's highest bump, 0.1–0.2 px up on a flat top.
-        TopModel::Quartic => fit_top::<17>(
-            left,
-            right,
-            pixels,
-            init,
-            base,
-            Some((&p[..6], [p[6], p[7]], dome.at)),
-        )
-        .map(|q| q.0),
+        // noise's highest bump, 0.1–0.2 px up on a flat top. Where it does not converge,
+        // the quadratic stands.
+        TopModel::Quartic => Some(
+            fit_top::<17>(
+                left,
+                right,
+                pixels,
+                init,
+                base,
+                Some((&p[..6], [p[6], p[7]], dome.at)),
+            )
+            .map_or(dome, |q| q.0),
+        ),
     }
 }
 
@@ -665,12 +670,11 @@ fn fit_top<const N: usize>(
             let f = basis(q[0] as f64, q[1] as f64);
             return (f, value(p, &f), 1.0);
         };
-        let ([x, y], _) = foot(q, 0.0);
-        let mut t = value(p, &basis(x, y)).max(DOME_FLOOR * DOME_FLOOR).sqrt();
+        let mut f = basis(q[0] as f64, q[1] as f64);
+        let mut t = value(p, &f).max(DOME_FLOOR * DOME_FLOOR).sqrt();
         // Newton on t² − Q(foot(t)) = 0 from the height straight above (the ray's last
         // meeting with the dome from above is the surface the camera sees).
         let mut slope = 2.0 * t;
-        let mut f = basis(x, y);
         for _ in 0..8 {
             let ([x, y], [dx, dy]) = foot(q, t);
             let (u, v) = uv(x, y);
@@ -1075,6 +1079,24 @@ mod tests {
         assert!((p.d0 - 2.0).abs() < 0.01, "{}", p.d0);
     }
 
+    /// The pixels of a 120 × 100 frame that `keep` holds, each with `start` as the
+    /// matcher's disparity there.
+    fn patch(
+        keep: impl Fn(f64, f64) -> bool,
+        start: impl Fn(f64, f64) -> f64,
+    ) -> (Vec<[usize; 2]>, Vec<f32>) {
+        (0..100)
+            .flat_map(|y| (0..120).map(move |x| [x, y]))
+            .filter(|p| keep(p[0] as f64, p[1] as f64))
+            .map(|p| (p, start(p[0] as f64, p[1] as f64) as f32))
+            .unzip()
+    }
+
+    /// A substrate at disparity `d`, the cell seen straight from above.
+    fn flat(d: f64) -> Option<Ground> {
+        Some(Ground { d, parallax: None })
+    }
+
     #[test]
     fn dome_top_without_window_bias() {
         // An ellipsoidal cap: 4.2 px of disparity above a substrate at 0.6 px.
@@ -1084,23 +1106,9 @@ mod tests {
         let t = texture(7, 30.0);
         let (l, r) = pair(120, 100, &t, &d, 1.5, 8);
         // The upper part, as the cells step picks it, with a biased start (the peak 0.4 low).
-        let (pixels, init): (Vec<[usize; 2]>, Vec<f32>) = (0..100)
-            .flat_map(|y| (0..120).map(move |x| [x, y]))
-            .filter(|p| q(p[0] as f64, p[1] as f64) >= 0.49)
-            .map(|p| (p, (d(p[0] as f64, p[1] as f64) - 0.4) as f32))
-            .unzip();
-        let fit = refine_top(
-            &l,
-            &r,
-            &pixels,
-            &init,
-            Some(Ground {
-                d: base,
-                parallax: None,
-            }),
-            TopModel::Quadratic,
-        )
-        .expect("a fit");
+        let (pixels, init) = patch(|x, y| q(x, y) >= 0.49, |x, y| d(x, y) - 0.4);
+        let fit =
+            refine_top(&l, &r, &pixels, &init, flat(base), TopModel::Quadratic).expect("a fit");
         assert!((fit.peak - (base + top)).abs() < 0.05, "{}", fit.peak);
         assert!(
             (fit.at[0] - cx).abs() < 1.0 && (fit.at[1] - cy).abs() < 1.0,
@@ -1117,10 +1125,7 @@ mod tests {
                 &r,
                 &pixels[..10],
                 &init[..10],
-                Some(Ground {
-                    d: base,
-                    parallax: None
-                }),
+                flat(base),
                 TopModel::Quadratic,
             ),
             None
@@ -1164,11 +1169,7 @@ mod tests {
         let t = texture(5, 30.0);
         let (l, r) = pair(120, 100, &t, &d, 1.0, 9);
         // The upper 60 %, where the flanks' shear matters.
-        let (pixels, init): (Vec<[usize; 2]>, Vec<f32>) = (0..100)
-            .flat_map(|y| (0..120).map(move |x| [x, y]))
-            .filter(|p| height(p[0] as f64, p[1] as f64) >= 0.4 * top)
-            .map(|p| (p, (d(p[0] as f64, p[1] as f64) - 0.3) as f32))
-            .unzip();
+        let (pixels, init) = patch(|x, y| height(x, y) >= 0.4 * top, |x, y| d(x, y) - 0.3);
         let fit = |parallax| {
             let g = Ground { d: base, parallax };
             refine_top(&l, &r, &pixels, &init, Some(g), TopModel::Quadratic).expect("a fit")
@@ -1207,35 +1208,11 @@ mod tests {
         for (name, shape, tolerance) in profiles {
             let d = move |x: f64, y: f64| base + top * shape(rho2(x, y));
             let (l, r) = pair(120, 100, &t, &d, 1.5, 3);
-            let (pixels, init): (Vec<[usize; 2]>, Vec<f32>) = (0..100)
-                .flat_map(|y| (0..120).map(move |x| [x, y]))
-                .filter(|p| shape(rho2(p[0] as f64, p[1] as f64)) >= 0.5)
-                .map(|p| (p, (d(p[0] as f64, p[1] as f64) - 0.3) as f32))
-                .unzip();
-            let dome = refine_top(
-                &l,
-                &r,
-                &pixels,
-                &init,
-                Some(Ground {
-                    d: base,
-                    parallax: None,
-                }),
-                TopModel::Quadratic,
-            )
-            .expect("a dome fit");
-            let quartic = refine_top(
-                &l,
-                &r,
-                &pixels,
-                &init,
-                Some(Ground {
-                    d: base,
-                    parallax: None,
-                }),
-                TopModel::Quartic,
-            )
-            .expect("a quartic fit");
+            let (pixels, init) = patch(|x, y| shape(rho2(x, y)) >= 0.5, |x, y| d(x, y) - 0.3);
+            let dome = refine_top(&l, &r, &pixels, &init, flat(base), TopModel::Quadratic)
+                .expect("a dome fit");
+            let quartic = refine_top(&l, &r, &pixels, &init, flat(base), TopModel::Quartic)
+                .expect("a quartic fit");
             let truth = base + top;
             assert!(
                 (quartic.peak - truth).abs() < tolerance,
