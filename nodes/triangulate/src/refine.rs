@@ -667,7 +667,7 @@ fn fit_top<const N: usize>(
     // Pixel `q`'s disparity on the surface `p`, the basis where it meets it and ∂d/∂Q there.
     // Each pixel's height on the surface at the last evaluation: the fit's steps are small,
     // so Newton started there converges in one or two steps instead of four to eight (the
-    // ray solve was two thirds of the triangulate node's time).
+    // top fits, mostly this solve, were about two thirds of the triangulate node's time).
     let warm: Vec<std::cell::Cell<f64>> = vec![std::cell::Cell::new(f64::NAN); pixels.len()];
     let hit = |i: usize, q: &[usize; 2], p: &[f64; N]| -> ([f64; N], f64, f64) {
         let Some(g) = base else {
@@ -675,8 +675,9 @@ fn fit_top<const N: usize>(
             return (f, value(p, &f), 1.0);
         };
         let mut f = basis(q[0] as f64, q[1] as f64);
-        // Newton on t² − Q(foot(t)) = 0, first from the height straight above (the ray's
-        // last meeting with the dome from above is the surface the camera sees).
+        // Newton on t² − Q(foot(t)) = 0 from the last height, at first from the height
+        // straight above (the ray's last meeting with the dome from above is the surface the
+        // camera sees; a warm start near a grazing flank may settle on the other meeting).
         let mut t = match warm[i].get() {
             w if w.is_finite() => w,
             _ => value(p, &f).max(DOME_FLOOR * DOME_FLOOR).sqrt(),
