@@ -892,14 +892,23 @@ impl Scene {
         Plane::from_vec(w, h, rows.concat()).expect("size")
     }
 
+    /// Both views before sensor noise and rounding: the means the pixel values scatter
+    /// around, with noise of standard deviation `look.noise` (for bounds on what any
+    /// estimator can reach from the views).
+    pub fn render_means(&self) -> (Plane<f64>, Plane<f64>) {
+        let cal = self.optics.calibration();
+        (
+            gaussian_blur(&self.view(false, &cal), self.look.blur),
+            gaussian_blur(&self.view(true, &cal), self.look.blur),
+        )
+    }
+
     /// Renders both views, without the ground truth (what a camera would give).
     pub fn render_views(&self) -> (Plane<u8>, Plane<u8>) {
-        let cal = self.optics.calibration();
         let (w, h) = (self.optics.width, self.optics.height);
         let mut rng_l = ChaCha8Rng::seed_from_u64(self.seed ^ 0x1ef7);
         let mut rng_r = ChaCha8Rng::seed_from_u64(self.seed ^ 0x7197);
         let finish = |img: Plane<f64>, rng: &mut ChaCha8Rng| -> Plane<u8> {
-            let img = gaussian_blur(&img, self.look.blur);
             let data = img
                 .data
                 .iter()
@@ -907,8 +916,9 @@ impl Scene {
                 .collect();
             Plane::from_vec(w, h, data).expect("size")
         };
-        let left = finish(self.view(false, &cal), &mut rng_l);
-        let right = finish(self.view(true, &cal), &mut rng_r);
+        let (left, right) = self.render_means();
+        let left = finish(left, &mut rng_l);
+        let right = finish(right, &mut rng_r);
         (left, right)
     }
 
