@@ -19,12 +19,12 @@ use crate::plan::{
     Goal, NoPath, Plan, PlannerConfig, check_rest, injection_point, plan_approach, plan_goto,
     plan_retract,
 };
-use crate::protocol::{Command, parse_command};
+use crate::protocol::{Command, Line, MAX_LINE, parse_command, read_line, shorten};
 use crate::scene::Scene;
 use schemas::{ManipulatorState, PathPlan, Targets};
 use serde_json::{Value, json};
 use std::collections::VecDeque;
-use std::io::{BufRead, BufReader, Write};
+use std::io::{BufReader, Write};
 use std::net::{SocketAddr, TcpListener, TcpStream};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender, channel};
@@ -83,6 +83,16 @@ impl Clients {
     fn send(&mut self, id: u64, line: &str) {
         self.list
             .retain_mut(|(i, s)| *i != id || s.write_all(line.as_bytes()).is_ok());
+    }
+
+    /// Ends what goes out to one controller (after what was sent) and forgets it.
+    fn close(&mut self, id: u64) {
+        self.list.retain(|(i, s)| {
+            if *i == id {
+                let _ = s.shutdown(std::net::Shutdown::Write);
+            }
+            *i != id
+        });
     }
 }
 
@@ -291,8 +301,46 @@ fn accept(
         };
         let (clients, tx, estop) = (clients.clone(), tx.clone(), estop.clone());
         std::thread::spawn(move || {
-            for line in BufReader::new(reader).lines() {
-                let Ok(line) = line else { break };
+            let mut reader = BufReader::new(reader);
+            loop {
+                let line = match read_line(&mut reader, MAX_LINE) {
+                    Ok(Line::Text(l)) => l,
+                    Ok(Line::NotUtf8) => {
+                        clients.lock().expect("clients").send(
+                            id,
+                            &event(
+                                "error",
+                                json!({ "message": "the line is not UTF-8 text; send one JSON command per line" }),
+                            ),
+                        );
+                        continue;
+                    }
+                    Ok(Line::TooLong) => {
+                        let mut c = clients.lock().expect("clients");
+                        c.send(
+                            id,
+                            &event(
+                                "error",
+                                json!({ "message": format!("a line longer than {MAX_LINE} bytes; closing this connection") }),
+                            ),
+                        );
+                        c.close(id);
+                        drop(c);
+                        // Read what is still coming and throw it away, for a while: closing
+                        // with unread input would reset the connection and could lose the
+                        // error line on its way out.
+                        let mut s = reader.into_inner();
+                        let _ = s.set_read_timeout(Some(Duration::from_millis(200)));
+                        let t0 = Instant::now();
+                        let mut sink = [0u8; 8192];
+                        while t0.elapsed() < Duration::from_secs(2)
+                            && matches!(std::io::Read::read(&mut s, &mut sink), Ok(n) if n > 0)
+                        {
+                        }
+                        break;
+                    }
+                    Ok(Line::End) | Err(_) => break,
+                };
                 if line.trim().is_empty() {
                     continue;
                 }
@@ -309,7 +357,10 @@ fn accept(
                     }
                     Err(m) => clients.lock().expect("clients").send(
                         id,
-                        &event("error", json!({ "message": m, "command": line })),
+                        &event(
+                            "error",
+                            json!({ "message": m, "command": shorten(&line, 200) }),
+                        ),
                     ),
                 }
             }

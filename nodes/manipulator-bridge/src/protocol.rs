@@ -14,9 +14,72 @@
 //! the bridge's `max_speed`). The bridge sends every controller, one JSON object per line:
 //! each frame's scene (the triangulate node's targets, with `"event": "scene"`), and the
 //! events `plan`, `progress`, `arrived`, `blocked`, `stopped` and `error`. A malformed or
-//! unknown command gets an `error` event on its own connection, which stays open.
+//! unknown command gets an `error` event on its own connection, which stays open; so does
+//! a line that is not UTF-8. A line longer than [`MAX_LINE`] bytes gets an `error` event and
+//! its connection is closed (a controller that sends no newline cannot make the bridge
+//! buffer without end).
 
 use serde::{Deserialize, Serialize};
+use std::io::BufRead;
+
+/// Longest command line the bridge reads, bytes (the newline not counted).
+pub const MAX_LINE: usize = 64 * 1024;
+
+/// One line from a controller, as [`read_line`] found it.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Line {
+    /// A line of text, without its newline (and a `\r` before it).
+    Text(String),
+    /// A line that is not UTF-8 (skipped whole).
+    NotUtf8,
+    /// A line longer than the limit: nothing more of the connection should be read.
+    TooLong,
+    /// The connection ended.
+    End,
+}
+
+/// Reads one `\n`-terminated line of at most `max` bytes from `r`, never holding more than
+/// `max` bytes of it. A last line without a newline counts as a line.
+pub fn read_line(r: &mut impl BufRead, max: usize) -> std::io::Result<Line> {
+    let mut buf = Vec::new();
+    loop {
+        let avail = match r.fill_buf() {
+            Ok(a) => a,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+            Err(e) => return Err(e),
+        };
+        if avail.is_empty() {
+            if buf.is_empty() {
+                return Ok(Line::End);
+            }
+            break;
+        }
+        let (take, done) = match avail.iter().position(|&b| b == b'\n') {
+            Some(i) => (i, true),
+            None => (avail.len(), false),
+        };
+        if buf.len() + take > max {
+            return Ok(Line::TooLong);
+        }
+        buf.extend_from_slice(&avail[..take]);
+        r.consume(take + usize::from(done));
+        if done {
+            break;
+        }
+    }
+    if buf.last() == Some(&b'\r') {
+        buf.pop();
+    }
+    Ok(String::from_utf8(buf).map_or(Line::NotUtf8, Line::Text))
+}
+
+/// `line` cut to its first `max` characters (with `…` where cut), for echoing it back.
+pub fn shorten(line: &str, max: usize) -> String {
+    match line.char_indices().nth(max) {
+        Some((i, _)) => format!("{}…", &line[..i]),
+        None => line.to_owned(),
+    }
+}
 
 /// A command from a controller.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -97,6 +160,40 @@ pub fn parse_command(line: &str) -> Result<Command, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn lines_are_read_within_the_limit_and_bad_bytes_cost_one_line() {
+        // A BufReader of capacity 4 makes every line span several buffer fills.
+        let data: &[u8] = b"ab\r\n\xff\xfe\n{\"cmd\":\"stop\"}\n123456789\nx\ntail";
+        let mut r = std::io::BufReader::with_capacity(4, data);
+        let got: Vec<Line> = (0..3).map(|_| read_line(&mut r, 8).unwrap()).collect();
+        assert_eq!(
+            got,
+            vec![Line::Text("ab".into()), Line::NotUtf8, Line::TooLong]
+        );
+        // Within the limit every line comes whole, the last one without its newline too.
+        let mut r = std::io::BufReader::with_capacity(4, data);
+        let mut out = Vec::new();
+        loop {
+            match read_line(&mut r, 16).unwrap() {
+                Line::End => break,
+                l => out.push(l),
+            }
+        }
+        assert_eq!(
+            out,
+            vec![
+                Line::Text("ab".into()),
+                Line::NotUtf8,
+                Line::Text("{\"cmd\":\"stop\"}".into()),
+                Line::Text("123456789".into()),
+                Line::Text("x".into()),
+                Line::Text("tail".into()),
+            ]
+        );
+        assert_eq!(shorten("αβγδ", 2), "αβ…");
+        assert_eq!(shorten("ab", 2), "ab");
+    }
 
     #[test]
     fn commands_parse_and_bad_ones_say_why() {

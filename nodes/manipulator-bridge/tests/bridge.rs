@@ -152,6 +152,82 @@ fn an_emergency_stop_wins_over_queued_commands_and_halts_the_pipette() {
     });
 }
 
+/// Waits until the bridge serves `n` controllers.
+fn wait_controllers(b: &Bridge, n: usize) {
+    let t0 = Instant::now();
+    while b.controllers() < n {
+        assert!(
+            t0.elapsed() < Duration::from_secs(5),
+            "{} controllers",
+            b.controllers()
+        );
+        std::thread::sleep(Duration::from_millis(1));
+    }
+}
+
+#[test]
+fn malformed_input_costs_its_connection_an_error_at_most_and_any_stop_stops() {
+    let cfg = config(2000);
+    let b = Bridge::start(cfg.clone(), "127.0.0.1:0", sim(&cfg)).unwrap();
+    let stop = std::sync::atomic::AtomicBool::new(false);
+    std::thread::scope(|s| {
+        s.spawn(|| feed(&b, &stop));
+        let mut a = Client::connect(&b);
+        let bad = TcpStream::connect(b.addr).unwrap();
+        bad.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+        wait_controllers(&b, 2);
+        a.next(&["scene"]);
+        // Invalid UTF-8, then a stop on the same connection: an error, then the stop.
+        a.send(r#"{"cmd":"approach","cell":1,"speed":20}"#);
+        a.next(&["plan"]);
+        a.w.write_all(b"\xff\xfe\n").unwrap();
+        let ev = a.next(&["error", "stopped"]);
+        assert!(ev["message"].as_str().unwrap().contains("UTF-8"), "{ev}");
+        a.send(r#"{"cmd":"stop"}"#);
+        assert_eq!(a.next(&["stopped", "error"])["event"], "stopped");
+        // A 1 MB line without a newline on another connection: an error and that
+        // connection closed; the first still works and its stop still stops.
+        a.send(r#"{"cmd":"approach","cell":1,"speed":20}"#);
+        a.next(&["plan"]);
+        let mut w = bad.try_clone().unwrap();
+        let writer = std::thread::spawn(move || {
+            let chunk = vec![b'x'; 1 << 16];
+            for _ in 0..16 {
+                if w.write_all(&chunk).is_err() {
+                    break;
+                }
+            }
+        });
+        let mut got = String::new();
+        let mut r = BufReader::new(bad);
+        let mut error = None;
+        loop {
+            got.clear();
+            match r.read_line(&mut got) {
+                Ok(0) | Err(_) => break,
+                Ok(_) => {
+                    let v: Value = serde_json::from_str(&got).unwrap();
+                    if v["event"] == "error" {
+                        error = Some((v, got.len()));
+                    }
+                }
+            }
+        }
+        let (error, len) = error.expect("an error event before the connection closed");
+        assert!(
+            error["message"].as_str().unwrap().contains("longer than"),
+            "{error}"
+        );
+        assert!(len < 4096, "an error line of {len} bytes");
+        writer.join().unwrap();
+        wait_controllers(&b, 1);
+        assert_eq!(b.controllers(), 1);
+        a.send(r#"{"cmd":"stop"}"#);
+        assert_eq!(a.next(&["stopped", "error"])["event"], "stopped");
+        stop.store(true, std::sync::atomic::Ordering::SeqCst);
+    });
+}
+
 #[test]
 fn a_stale_scene_stops_the_move_and_refuses_new_ones() {
     let cfg = config(300);
