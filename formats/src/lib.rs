@@ -72,23 +72,42 @@ pub fn write_pfm(path: &Path, map: &DisparityMap) -> Result<(), IoError> {
         .map_err(|e| write_err(path, e))
 }
 
-/// Reads a grey PFM; non-finite values stay non-finite (unknown).
+/// Largest PFM side read, px: far past any camera, and small enough that the pixel count
+/// cannot overflow.
+const PFM_MAX_SIDE: usize = 1 << 16;
+
+/// Reads a grey PFM; non-finite values stay non-finite (unknown). The header is checked
+/// against the file before anything is allocated: a size past [`PFM_MAX_SIDE`] or one that
+/// the file's length does not hold is refused.
 pub fn read_pfm(path: &Path, what: &str) -> Result<DisparityMap, IoError> {
     let f = File::open(path).map_err(|_| IoError::Missing {
         what: what.into(),
         path: path.into(),
     })?;
+    let file_len = f.metadata().map_err(|e| unreadable(what, path, e))?.len();
     let mut r = BufReader::new(f);
     let mut tokens = Vec::new();
     let mut line = String::new();
+    let mut header_len = 0u64;
     while tokens.len() < 4 {
         line.clear();
-        let n = r
+        // A header line is a few characters: a binary file without newlines is not read
+        // whole to find one.
+        let n = (&mut r)
+            .take(256)
             .read_line(&mut line)
             .map_err(|e| unreadable(what, path, e))?;
         if n == 0 {
             return Err(unreadable(what, path, "truncated PFM header"));
         }
+        if !line.ends_with('\n') && n == 256 {
+            return Err(unreadable(
+                what,
+                path,
+                "not a PFM (no header line within 256 bytes)",
+            ));
+        }
+        header_len += n as u64;
         tokens.extend(line.split_whitespace().map(String::from));
     }
     if tokens[0] != "Pf" {
@@ -100,12 +119,40 @@ pub fn read_pfm(path: &Path, what: &str) -> Result<DisparityMap, IoError> {
     }
     let parse = |s: &str| {
         s.parse::<usize>()
-            .map_err(|_| unreadable(what, path, "bad PFM size"))
+            .ok()
+            .filter(|v| (1..=PFM_MAX_SIDE).contains(v))
+            .ok_or_else(|| {
+                unreadable(
+                    what,
+                    path,
+                    format!("bad PFM size '{s}' (a whole number of pixels, 1 to {PFM_MAX_SIDE})"),
+                )
+            })
     };
     let (w, h) = (parse(&tokens[1])?, parse(&tokens[2])?);
     let scale: f32 = tokens[3]
         .parse()
-        .map_err(|_| unreadable(what, path, "bad PFM scale"))?;
+        .ok()
+        .filter(|s: &f32| s.is_finite() && *s != 0.0)
+        .ok_or_else(|| {
+            unreadable(
+                what,
+                path,
+                format!("bad PFM scale '{}' (a non-zero number)", tokens[3]),
+            )
+        })?;
+    // At most 2¹⁶ × 2¹⁶ × 4 bytes: no overflow.
+    let need = (w * h * 4) as u64;
+    if file_len.saturating_sub(header_len) < need {
+        return Err(unreadable(
+            what,
+            path,
+            format!(
+                "truncated PFM data (the header says {w}×{h} floats, {need} bytes; the file holds {})",
+                file_len.saturating_sub(header_len)
+            ),
+        ));
+    }
     let mut raw = vec![0u8; w * h * 4];
     r.read_exact(&mut raw).map_err(|_| {
         unreadable(
@@ -386,5 +433,28 @@ mod tests {
         std::fs::write(&p, b"Pf\n4 4\n-1.0\n\0\0\0\0").unwrap();
         let e = read_pfm(&p, "disparity").unwrap_err().to_string();
         assert!(e.contains("truncated PFM data"), "{e}");
+    }
+
+    #[test]
+    fn a_pfm_header_is_checked_before_anything_is_allocated() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("h.pfm");
+        let cases: [(&[u8], &str); 7] = [
+            (
+                b"Pf\n100000 100000\n-1.0\n\0\0\0\0",
+                "bad PFM size '100000'",
+            ),
+            (b"Pf\n4294967296 4294967296\n-1.0\n", "bad PFM size"),
+            (b"Pf\n60000 60000\n-1.0\n\0\0\0\0", "truncated PFM data"),
+            (b"Pf\n0 4\n-1.0\n", "bad PFM size '0'"),
+            (b"Pf\n-3 4\n-1.0\n", "bad PFM size '-3'"),
+            (b"Pf\n1 1\nNaN\n\0\0\0\0", "bad PFM scale 'NaN'"),
+            (&[b'P'; 4096], "no header line"),
+        ];
+        for (bytes, want) in cases {
+            std::fs::write(&p, bytes).unwrap();
+            let e = read_pfm(&p, "disparity").unwrap_err().to_string();
+            assert!(e.contains(want), "{e} (wanted {want})");
+        }
     }
 }
