@@ -47,6 +47,16 @@ enum Command {
 /// Runs the CLI and returns the process exit code.
 pub fn main() -> i32 {
     let cli = Cli::parse();
+    if !matches!(
+        cli.command,
+        Command::Run(_)
+            | Command::Node(_)
+            | Command::Replay(_)
+            | Command::TestNode(_)
+            | Command::BenchTransport(_)
+    ) {
+        die_quietly_on_closed_stdout();
+    }
     let result = match cli.command {
         Command::Reconstruct(a) => crate::reconstruct::reconstruct(*a),
         Command::Eval(a) => eval(a),
@@ -73,6 +83,18 @@ pub fn main() -> i32 {
             eprintln!("error: {e}");
             2
         }
+    }
+}
+
+/// A one-shot command whose reader went away (`… | head -1`) ends as Unix tools do, by
+/// SIGPIPE, instead of panicking in `println!`. Not for the commands that supervise
+/// processes or serve sockets: there a closed peer must stay an error to handle.
+fn die_quietly_on_closed_stdout() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: restores the default action of one signal; no handler runs Rust code, and it
+    // is set before this process starts any thread of its own.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
 }
 

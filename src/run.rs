@@ -72,7 +72,7 @@ pub struct RunArgs {
 #[derive(Args, Debug, Clone)]
 pub struct Supervision {
     /// Seconds a node gets to end after SIGTERM before it is killed.
-    #[arg(long, default_value_t = 3.0)]
+    #[arg(long, default_value_t = 3.0, allow_hyphen_values = true)]
     pub grace: f64,
     /// Names this run's shared memory (default: the supervisor's process id), so that
     /// graphs running side by side do not share edges; readers outside the graph use it.
@@ -87,6 +87,18 @@ pub fn run_graph(
     s: &Supervision,
     out: &OutputOpts,
 ) -> Result<(), CliError> {
+    if !(0.0..=600.0).contains(&s.grace) {
+        return Err(CliError::Other(format!(
+            "--grace {} is out of range: use 0..600 seconds",
+            s.grace
+        )));
+    }
+    if frames == Some(0) {
+        return Err(CliError::Other(
+            "--frames 0 would never end: give at least 1, or leave it out to run until Ctrl-C"
+                .into(),
+        ));
+    }
     let exe = std::env::current_exe()
         .map_err(|e| CliError::Other(format!("cannot find this program: {e}")))?;
     let report = runtime::supervisor::run(

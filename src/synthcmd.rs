@@ -215,6 +215,34 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
                 .into(),
         ));
     }
+    // Every number in a checked range, NaN and infinities included (a NaN passes no
+    // comparison, so each test is written as "inside").
+    let mut checked: Vec<(&str, f64, f64, f64)> = vec![
+        ("--diameter", a.diameter[0], 0.5, 2000.0),
+        ("--diameter", a.diameter[1], 0.5, 2000.0),
+        ("--cell-height", a.cell_height[0], 0.1, 1000.0),
+        ("--cell-height", a.cell_height[1], 0.1, 1000.0),
+        ("--noise", a.noise, 0.0, 100.0),
+        ("--blur", a.blur, 0.0, 50.0),
+        ("--drift", a.drift, 0.0, 100.0),
+        ("--cells", a.cells as f64, 0.0, 10_000.0),
+        ("--debris", a.debris as f64, 0.0, 100_000.0),
+    ];
+    if let Some(p) = a.pipette {
+        checked.push(("--pipette", p, 0.0, 10_000.0));
+    }
+    if let Some(n) = a.frames {
+        checked.push(("--frames", n as f64, 1.0, 100_000.0));
+    }
+    for &z in a.stage_heights.iter().flatten() {
+        checked.push(("--stage-heights", z, -10_000.0, 10_000.0));
+    }
+    if let Some((n, v, lo, hi)) = checked
+        .iter()
+        .find(|(_, v, lo, hi)| !(lo..=hi).contains(&v))
+    {
+        return Err(other(format!("{n} {v} is out of range: use {lo}..{hi}")));
+    }
     if a.diameter[0] <= 0.0
         || a.diameter[0] > a.diameter[1]
         || a.cell_height[0] <= 0.0

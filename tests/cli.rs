@@ -1010,3 +1010,66 @@ fn a_viewer_that_cannot_work_is_refused_before_the_graph_starts() {
         "not an MCAP file",
     );
 }
+
+/// Numbers no command can use (NaN, infinities, huge, zero where it never ends) are one
+/// clear error with exit code 2 before anything is written or started (issue 19 #10, #11,
+/// #12).
+#[test]
+fn bad_numbers_are_one_clear_error_before_anything_starts() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = dir.path().join("out");
+    let (l, r) = (data("cones/im2.png"), data("cones/im6.png"));
+    let small = data("graph/small.toml");
+    let geo = |extra: &[&'static str]| {
+        let mut v = vec!["reconstruct", s(&l), s(&r), "-o", s(&o), "--unit", "um"];
+        if !extra.contains(&"--baseline") {
+            v.extend_from_slice(&["--baseline", "1000", "--focal", "2000"]);
+        }
+        v.extend_from_slice(extra);
+        v
+    };
+    let cases: Vec<(Vec<&str>, &str)> = vec![
+        (
+            vec!["synth", "-o", s(&o), "--diameter", "NaN,NaN"],
+            "--diameter NaN",
+        ),
+        (vec!["synth", "-o", s(&o), "--drift", "NaN"], "--drift NaN"),
+        (
+            vec!["synth", "-o", s(&o), "--blur", "1e9"],
+            "--blur 1000000000",
+        ),
+        (
+            vec!["synth", "-o", s(&o), "--cell-height", "1,inf"],
+            "--cell-height inf",
+        ),
+        (vec!["synth", "-o", s(&o), "--frames", "0"], "--frames 0"),
+        (
+            vec!["run", s(&small), "--grace", "NaN", "--frames", "2"],
+            "--grace NaN",
+        ),
+        (
+            vec!["run", s(&small), "--grace", "1e9", "--frames", "2"],
+            "--grace 1000000000",
+        ),
+        (
+            vec!["run", s(&small), "--grace", "-1", "--frames", "2"],
+            "--grace -1",
+        ),
+        (
+            vec!["run", s(&small), "--frames", "0"],
+            "--frames 0 would never end",
+        ),
+        (geo(&["--cx", "NaN"]), "cx (NaN)"),
+        (geo(&["--cx", "-inf"]), "cx (-inf)"),
+        (
+            geo(&["--baseline", "1e300", "--focal", "1e300"]),
+            "at most 1e9",
+        ),
+        (geo(&["--median", "1000000000"]), "--median 1000000000"),
+    ];
+    for (args, needle) in cases {
+        let out = run(&args);
+        assert_clean_failure(&out, needle);
+        assert!(!o.exists(), "{args:?} wrote its output before failing");
+    }
+}

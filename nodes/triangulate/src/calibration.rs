@@ -98,6 +98,20 @@ pub fn check(c: &Calibration, source: &str) -> Result<(), String> {
             c.baseline, c.focal_px
         ));
     }
+    // Past these, b·f/d and the coordinates overflow or lose every digit: no optics has them.
+    if c.baseline > 1e9 || c.focal_px > 1e9 {
+        return Err(format!(
+            "calibration {source}: baseline ({}) and focal length ({} px) must be at most 1e9 each",
+            c.baseline, c.focal_px
+        ));
+    }
+    for (name, v) in [("cx", c.cx), ("cy", c.cy), ("cx_right", c.cx_right)] {
+        if !(v.is_finite() && v.abs() <= 1e6) {
+            return Err(format!(
+                "calibration {source}: {name} ({v}) must be a finite pixel column or row (within ±1e6)"
+            ));
+        }
+    }
     Ok(())
 }
 
