@@ -30,9 +30,52 @@ pub struct CalibrateArgs {
     /// Largest disparity searched.
     #[arg(long, default_value_t = 64, allow_hyphen_values = true)]
     pub max_disparity: i32,
-    /// Calibration file to write (default DIR/calibration.toml).
+    /// Calibration file to write (default DIR/calibration-fitted.toml; never one of the
+    /// stack's own files).
     #[arg(short, long)]
     pub output: Option<PathBuf>,
+    /// Replace the output file if it exists.
+    #[arg(long)]
+    pub overwrite: bool,
+}
+
+/// Refuses an output that is one of the stack's inputs (its images, its `heights.csv`, or
+/// the scene's own `calibration.toml`), or that exists without `overwrite`; before any work.
+fn check_output(
+    out: &Path,
+    dir: &Path,
+    stack: &[(PathBuf, PathBuf, f64)],
+    overwrite: bool,
+) -> Result<(), CliError> {
+    let same = |p: &Path| match (std::fs::canonicalize(p), std::fs::canonicalize(out)) {
+        (Ok(a), Ok(b)) => a == b,
+        _ => false,
+    };
+    let inputs = stack
+        .iter()
+        .flat_map(|(l, r, _)| [l.clone(), r.clone()])
+        .chain([dir.join("heights.csv"), dir.join("calibration.toml")]);
+    for p in inputs {
+        if same(&p) {
+            return Err(CliError::Other(format!(
+                "output '{}' is an input of the stack (or its true calibration): give -o another file",
+                out.display()
+            )));
+        }
+    }
+    if out.is_dir() {
+        return Err(CliError::Other(format!(
+            "output '{}' is a directory: give -o a file name",
+            out.display()
+        )));
+    }
+    if out.exists() && !overwrite {
+        return Err(CliError::Other(format!(
+            "output '{}' exists: give --overwrite to replace it, or -o another file",
+            out.display()
+        )));
+    }
+    Ok(())
 }
 
 /// The stack's pairs `(left, right, z)`.
@@ -135,6 +178,11 @@ pub fn calibrate_depth(a: CalibrateArgs) -> Result<(), CliError> {
         )));
     }
     let stack = read_stack(&a.dir)?;
+    let out = a
+        .output
+        .clone()
+        .unwrap_or_else(|| a.dir.join("calibration-fitted.toml"));
+    check_output(&out, &a.dir, &stack, a.overwrite)?;
     let mut zs: Vec<f64> = stack.iter().map(|s| s.2).collect();
     zs.sort_by(|a, b| a.total_cmp(b));
     zs.dedup();
@@ -175,10 +223,6 @@ pub fn calibrate_depth(a: CalibrateArgs) -> Result<(), CliError> {
         cx_right: cx + fit.offset,
         unit: LengthUnit::Um,
     };
-    let out = a
-        .output
-        .clone()
-        .unwrap_or_else(|| a.dir.join("calibration.toml"));
     triangulate::calibration::write(&out, &cal, a.pixel_pitch.unwrap_or(1.0))?;
     println!("{:>10} {:>12} {:>12}", "z (µm)", "d (px)", "resid (px)");
     for ((zi, di), ri) in z.iter().zip(&d).zip(&fit.residuals) {

@@ -288,6 +288,43 @@ impl ReconstructArgs {
     }
 }
 
+/// Every file `reconstruct` may write into its output directory.
+const OUTPUT_NAMES: &[&str] = &[
+    "disparity.pfm",
+    "disparity_raw.pfm",
+    "disparity.png",
+    "disparity_color.png",
+    "occlusion_left.png",
+    "occlusion_right.png",
+    "labels_left.png",
+    "labels_right.png",
+    "overlay_left.png",
+    "points.ply",
+    "report.json",
+    "cells.json",
+];
+
+/// An input under one of the output names in the output directory (a scene's true
+/// `disparity.pfm`, say) would be destroyed: refused before any work.
+fn refuse_inputs_as_outputs(a: &ReconstructArgs) -> Result<(), CliError> {
+    let inputs = [Some(&a.left), Some(&a.right), a.calibration.as_ref()];
+    for input in inputs.into_iter().flatten() {
+        let Ok(i) = std::fs::canonicalize(input) else {
+            continue;
+        };
+        for name in OUTPUT_NAMES {
+            if std::fs::canonicalize(a.output.join(name)).is_ok_and(|o| o == i) {
+                return Err(CliError::Other(format!(
+                    "input '{}' would be overwritten by the output {name} in '{}': give -o another directory",
+                    input.display(),
+                    a.output.display()
+                )));
+            }
+        }
+    }
+    Ok(())
+}
+
 /// Runs one frame of `preset`: its messages and node times.
 pub fn run_once(preset: &Stereo) -> Result<Frame, CliError> {
     let (_, mut run) = preset.start(FLAGS)?;
@@ -385,6 +422,7 @@ fn occlusion(map: &DisparityMap) -> Mask {
 /// Runs `microstereo reconstruct`.
 pub fn reconstruct(a: ReconstructArgs) -> Result<(), CliError> {
     let t0 = Instant::now();
+    refuse_inputs_as_outputs(&a)?;
     if a.cells {
         if a.geometry().is_none() {
             return Err(CliError::Other(

@@ -627,7 +627,8 @@ fn calibrate_depth_recovers_f_eff_from_a_synthetic_stack() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let text = std::fs::read_to_string(st.join("calibration.toml")).unwrap();
+    let truth = std::fs::read_to_string(st.join("calibration.toml")).unwrap();
+    let text = std::fs::read_to_string(st.join("calibration-fitted.toml")).unwrap();
     let f_eff: f64 = text
         .lines()
         .find_map(|l| l.strip_prefix("f_eff = "))
@@ -635,6 +636,22 @@ fn calibrate_depth_recovers_f_eff_from_a_synthetic_stack() {
         .parse()
         .unwrap();
     assert!((f_eff / 18000.0 - 1.0).abs() < 0.01, "f_eff {f_eff}");
+    // Nothing lost: the scene's true calibration is left as it was, a second run does not
+    // replace the fit without --overwrite, and the true calibration is never an output.
+    assert_eq!(
+        std::fs::read_to_string(st.join("calibration.toml")).unwrap(),
+        truth
+    );
+    let again = ["calibrate-depth", s(&st), "--baseline", "1200"];
+    assert_clean_failure(&run(&again), "exists: give --overwrite");
+    let mut with = again.to_vec();
+    with.push("--overwrite");
+    assert!(run(&with).status.success());
+    let onto_truth = st.join("calibration.toml");
+    let mut bad = again.to_vec();
+    bad.extend(["-o", s(&onto_truth), "--overwrite"]);
+    assert_clean_failure(&run(&bad), "is an input of the stack");
+    assert_eq!(std::fs::read_to_string(&onto_truth).unwrap(), truth);
     // Too few heights.
     let two = dir.path().join("two");
     std::fs::create_dir_all(&two).unwrap();
@@ -1072,4 +1089,24 @@ fn bad_numbers_are_one_clear_error_before_anything_starts() {
         assert_clean_failure(&out, needle);
         assert!(!o.exists(), "{args:?} wrote its output before failing");
     }
+}
+
+/// An input named like one of the outputs, in the output directory, is never overwritten
+/// (issue 19 #9).
+#[test]
+fn reconstruct_never_writes_over_its_input() {
+    let dir = tempfile::tempdir().unwrap();
+    let left = dir.path().join("disparity.png");
+    std::fs::copy(data("cones/im2.png"), &left).unwrap();
+    let before = std::fs::read(&left).unwrap();
+    let out = run(&[
+        "reconstruct",
+        s(&left),
+        s(&data("cones/im6.png")),
+        "-o",
+        s(dir.path()),
+    ]);
+    assert_clean_failure(&out, "would be overwritten by the output disparity.png");
+    assert_eq!(std::fs::read(&left).unwrap(), before);
+    assert!(!dir.path().join("disparity.pfm").exists());
 }
