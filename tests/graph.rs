@@ -363,6 +363,18 @@ fn one_process_per_node_and_none_left_when_the_supervisor_is_killed() {
         kids = children_of(sup.id());
     }
     assert_eq!(kids.len(), nodes, "one process per node");
+    // A second run under the same instance would share its edges: refused, clearly.
+    let twin = run(&[
+        "run",
+        file.to_str().unwrap(),
+        "--frames",
+        "2",
+        "--instance",
+        &instance,
+    ]);
+    let err = String::from_utf8_lossy(&twin.stderr);
+    assert_eq!(twin.status.code(), Some(2), "{err}");
+    assert!(err.contains("is in use by another run"), "{err}");
     sup.kill().unwrap(); // SIGKILL: no chance to clean up.
     sup.wait().unwrap();
     let gone = |pid: &u32| {
@@ -383,7 +395,15 @@ fn one_process_per_node_and_none_left_when_the_supervisor_is_killed() {
     // enough.
     std::thread::sleep(runtime::process::UNSIZED_AGE + Duration::from_millis(500));
     let dead_before = runtime::process::dead_nodes(&instance);
-    let out = run(&["run", file.to_str().unwrap(), "--frames", "2"]);
+    // The same instance again: the killed supervisor's hold on it went with it.
+    let out = run(&[
+        "run",
+        file.to_str().unwrap(),
+        "--frames",
+        "2",
+        "--instance",
+        &instance,
+    ]);
     assert!(
         out.status.success(),
         "{}",

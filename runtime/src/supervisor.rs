@@ -47,6 +47,41 @@ impl Drop for GraphFile {
     }
 }
 
+/// One run per instance name on this machine: two runs sharing one would read and write each
+/// other's edges and wait on each other for ever. An exclusive `flock` on a file named after
+/// the instance, held for the run; the kernel lets go of it however the supervisor ends,
+/// SIGKILL included, so nothing stale is left to clean.
+struct InstanceLock(#[allow(dead_code)] std::fs::File);
+
+impl InstanceLock {
+    fn take(instance: &str) -> Result<Self, String> {
+        use std::io::{Read, Seek, Write};
+        use std::os::fd::AsRawFd;
+        let path = std::env::temp_dir().join(format!("microstereo-{instance}.lock"));
+        let mut f = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(&path)
+            .map_err(|e| format!("cannot open the instance lock '{}': {e}", path.display()))?;
+        // SAFETY: flock on a descriptor this function owns; no memory is involved.
+        let rc = unsafe { libc::flock(f.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) };
+        if rc != 0 {
+            let mut holder = String::new();
+            let _ = f.read_to_string(&mut holder);
+            return Err(format!(
+                "instance '{instance}' is in use by another run (supervisor process {}): give this run another --instance, or stop that one",
+                holder.trim()
+            ));
+        }
+        let _ = f.set_len(0);
+        let _ = f.rewind();
+        let _ = write!(f, "{}", std::process::id());
+        Ok(Self(f))
+    }
+}
+
 /// Runs `graph` as processes until its frames are done, Ctrl-C or SIGTERM; a node that
 /// fails beyond its restart policy stops the graph and is the error.
 pub fn run(graph: &Graph, o: &RunOptions) -> Result<RunReport, String> {
@@ -69,6 +104,18 @@ pub fn run(graph: &Graph, o: &RunOptions) -> Result<RunReport, String> {
         .instance
         .clone()
         .unwrap_or_else(|| format!("run{}", std::process::id()));
+    if instance.is_empty()
+        || instance.len() > 64
+        || !instance
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
+    {
+        return Err(format!(
+            "--instance '{}' is not a usable name: use 1 to 64 letters, digits, '-', '_' or '.'",
+            instance.chars().take(80).collect::<String>()
+        ));
+    }
+    let _lock = InstanceLock::take(&instance)?;
     let file = GraphFile(std::env::temp_dir().join(format!(
         "microstereo-{}-{}.graph.json",
         instance.replace(['/', '\\'], "_"),
