@@ -111,6 +111,9 @@ pub fn run_graph(
         },
     )?;
     runtime::supervisor::print_summary(graph, &report.stats, report.wall, frames);
+    if let Some(f) = report.failure {
+        return Err(CliError::Other(format!("the run stopped early: {f}")));
+    }
     if let Some(path) = &out.record {
         let written = report
             .stats

@@ -1316,3 +1316,46 @@ inputs = { frame = "invert/frame" }
         "{e}"
     );
 }
+
+/// A node stopped from outside with SIGTERM (it ends cleanly, or fails on its way out) ends
+/// a run without a restart policy with the summary and the reason; it used to leave the
+/// graph waiting for that node's frames for ever (issue 19 #2).
+#[test]
+fn a_node_stopped_from_outside_ends_the_run_with_the_summary_and_the_reason() {
+    let file = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/graph/small.toml");
+    let instance = format!("sigterm{}", std::process::id());
+    // Enough frames that the run cannot end by itself before the signal lands.
+    let sup = start_run(&file, 100_000, &instance);
+    let start = Instant::now();
+    let segment = loop {
+        let found = children_of(sup.id()).into_iter().find(|pid| {
+            std::fs::read(format!("/proc/{pid}/cmdline"))
+                .is_ok_and(|c| String::from_utf8_lossy(&c).contains("\0segment\0"))
+        });
+        if let Some(pid) = found {
+            break pid;
+        }
+        assert!(start.elapsed() < Duration::from_secs(30), "no segment node");
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    // Let it take some frames first.
+    std::thread::sleep(Duration::from_millis(1500));
+    // SAFETY: kill(2) on a pid of this test's own run.
+    unsafe {
+        libc::kill(segment as i32, libc::SIGTERM);
+    }
+    let out = finish(sup, Duration::from_secs(60));
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr),
+    );
+    assert_eq!(out.status.code(), Some(2), "{stdout}\n{stderr}");
+    assert!(
+        stderr.contains("the run stopped early: node 'segment' failed"),
+        "{stderr}"
+    );
+    assert!(
+        stdout.contains(" frame(s) of 100000"),
+        "no summary: {stdout}"
+    );
+}

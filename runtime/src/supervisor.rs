@@ -36,6 +36,9 @@ pub struct RunReport {
     pub stats: HashMap<String, NodeStats>,
     /// Wall-clock time of the whole run.
     pub wall: Duration,
+    /// Why the run ended early: a node failed beyond its restart policy (the stats still
+    /// hold what was done until then).
+    pub failure: Option<String>,
 }
 
 /// The graph file of a run, removed when the run ends.
@@ -127,8 +130,12 @@ pub fn run(graph: &Graph, o: &RunOptions) -> Result<RunReport, String> {
         .enable_all()
         .build()
         .map_err(|e| format!("cannot start the supervisor: {e}"))?;
-    let (stats, wall) = rt.block_on(supervise(graph, o, &file.0, &instance))?;
-    Ok(RunReport { stats, wall })
+    let (stats, wall, failure) = rt.block_on(supervise(graph, o, &file.0, &instance))?;
+    Ok(RunReport {
+        stats,
+        wall,
+        failure,
+    })
 }
 
 struct Child {
@@ -270,7 +277,7 @@ async fn supervise(
     a: &RunOptions,
     file: &std::path::Path,
     instance: &str,
-) -> Result<(HashMap<String, NodeStats>, Duration), String> {
+) -> Result<(HashMap<String, NodeStats>, Duration, Option<String>), String> {
     use tokio::signal::unix::{SignalKind, signal};
     let stats: StatsSink = Default::default();
     let start = Instant::now();
@@ -332,7 +339,16 @@ async fn supervise(
         let status = status.map_err(|e| format!("waiting for a node: {e}"))?;
         let c = children.remove(i);
         let spec = graph.node(&c.id).expect("validated");
-        let failed = !status.success();
+        // A node others read never ends on its own before the graph stops: one that did
+        // was stopped from outside (a SIGTERM it obeyed), and its readers would wait for
+        // its frames for ever. It counts as failed.
+        let ended_early = !stopping && status.success() && graph.is_read(&c.id);
+        let failed = !status.success() || ended_early;
+        let why = if ended_early {
+            format!("ended before the graph was done ({status}; stopped from outside?)")
+        } else {
+            format!("{status}")
+        };
         let restart = !stopping
             && match spec.restart.policy {
                 RestartPolicy::Never => false,
@@ -343,7 +359,7 @@ async fn supervise(
         if restart {
             let wait = Duration::from_millis(spec.restart.backoff_ms << c.restarts.min(10));
             eprintln!(
-                "[{}] exited ({status}); restart {} of {} in {:?}",
+                "[{}] exited ({why}); restart {} of {} in {:?}",
                 c.id,
                 c.restarts + 1,
                 spec.restart.max,
@@ -368,7 +384,7 @@ async fn supervise(
                 restarts: c.restarts + 1,
             });
         } else if failed && !stopping {
-            failure = Some(format!("node '{}' failed ({status})", c.id));
+            failure = Some(format!("node '{}' failed ({why})", c.id));
             stopping = true;
             terminate(&children);
         }
@@ -377,10 +393,7 @@ async fn supervise(
     tokio::time::sleep(Duration::from_millis(50)).await;
     let wall = start.elapsed();
     let stats = stats.lock().expect("stats").clone();
-    match failure {
-        Some(f) => Err(f),
-        None => Ok((stats, wall)),
-    }
+    Ok((stats, wall, failure))
 }
 
 /// The first of several futures to finish, with its index.
