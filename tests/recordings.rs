@@ -134,3 +134,38 @@ fn test_node_refuses_a_recording_without_the_nodes_edges() {
         "{e}"
     );
 }
+
+/// A bit flipped inside a compressed chunk is caught by the chunk's CRC: `inspect` reports
+/// it (what could be read before it, then the error) and exits 2 (issue 19 #8).
+#[test]
+fn a_corrupt_chunk_is_reported() {
+    let mut d = std::fs::read(bundled()).unwrap();
+    // Records after the 8-byte magic: opcode (1 byte), length (u64 LE), body. A chunk
+    // (0x06) holds start, end, size (3 × u64), its CRC (u32), the compression's name (u32
+    // length + bytes), the records' length (u64), then the compressed records.
+    let mut at = 8;
+    let chunk = loop {
+        let op = d[at];
+        let len = u64::from_le_bytes(d[at + 1..at + 9].try_into().unwrap()) as usize;
+        if op == 0x06 {
+            break at + 9;
+        }
+        at += 9 + len;
+        assert!(at < d.len(), "no chunk in the bundled recording");
+    };
+    let name_len = u32::from_le_bytes(d[chunk + 28..chunk + 32].try_into().unwrap()) as usize;
+    let records = chunk + 32 + name_len + 8;
+    let records_len = u64::from_le_bytes(d[records - 8..records].try_into().unwrap()) as usize;
+    d[records + records_len / 2] ^= 0x10;
+    let dir = tempfile::tempdir().unwrap();
+    let bad = dir.path().join("bad.mcap");
+    std::fs::write(&bad, &d).unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_microstereo"))
+        .args(["inspect", bad.to_str().unwrap()])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+    assert!(err.contains("CRC failed"), "{err}");
+}

@@ -431,7 +431,11 @@ fn open(path: &Path) -> Result<(File, bool), RecordingError> {
 /// The raw MCAP messages of `path`, with whether the file lacks its footer.
 fn raw_messages(path: &Path) -> Result<(RawMessages, bool), RecordingError> {
     let (f, truncated) = open(path)?;
-    let opts = mcap::sans_io::LinearReaderOptions::default().with_skip_end_magic(true);
+    // Chunk CRCs checked: a flipped bit inside a compressed chunk can decompress to valid
+    // records with wrong values, which nothing else would notice.
+    let opts = mcap::sans_io::LinearReaderOptions::default()
+        .with_skip_end_magic(true)
+        .with_validate_chunk_crcs(true);
     Ok((
         RawMessages {
             inner: mcap::sans_io::LinearReader::new_with_options(opts),
