@@ -346,6 +346,22 @@ fn children_of(ppid: u32) -> Vec<u32> {
         .collect()
 }
 
+/// The pid of node `id` of the run `sup` supervises, once it has started (within 20 s).
+fn wait_node_pid(sup: &Child, id: &str) -> u32 {
+    let begin = Instant::now();
+    loop {
+        let found = children_of(sup.id()).into_iter().find(|p| {
+            std::fs::read_to_string(format!("/proc/{p}/cmdline"))
+                .is_ok_and(|c| c.contains(&format!("--id\0{id}\0")))
+        });
+        if let Some(pid) = found {
+            return pid;
+        }
+        assert!(begin.elapsed() < Duration::from_secs(20), "no {id} process");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
 #[test]
 fn one_process_per_node_and_none_left_when_the_supervisor_is_killed() {
     let file = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/graph/small.toml");
@@ -445,19 +461,7 @@ fn a_node_killed_mid_run_is_restarted_and_the_run_completes_clean() {
     let instance = format!("killnode{}", std::process::id());
     let frames = 24u64;
     let sup = start_run(&file, frames, &instance);
-    let node_pid = |id: &str| {
-        children_of(sup.id()).into_iter().find(|p| {
-            std::fs::read_to_string(format!("/proc/{p}/cmdline"))
-                .is_ok_and(|c| c.contains(&format!("--id\0{id}\0")))
-        })
-    };
-    let begin = Instant::now();
-    let mut victim = None;
-    while victim.is_none() && begin.elapsed() < Duration::from_secs(20) {
-        victim = node_pid("match");
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    let victim = victim.expect("a match process");
+    let victim = wait_node_pid(&sup, "match");
     // A few frames in (8 per second), well before the last.
     std::thread::sleep(Duration::from_millis(800));
     // SAFETY: kill(2) on a process this test started (through the supervisor).
@@ -1326,18 +1330,7 @@ fn a_node_stopped_from_outside_ends_the_run_with_the_summary_and_the_reason() {
     let instance = format!("sigterm{}", std::process::id());
     // Enough frames that the run cannot end by itself before the signal lands.
     let sup = start_run(&file, 100_000, &instance);
-    let start = Instant::now();
-    let segment = loop {
-        let found = children_of(sup.id()).into_iter().find(|pid| {
-            std::fs::read(format!("/proc/{pid}/cmdline"))
-                .is_ok_and(|c| String::from_utf8_lossy(&c).contains("\0segment\0"))
-        });
-        if let Some(pid) = found {
-            break pid;
-        }
-        assert!(start.elapsed() < Duration::from_secs(30), "no segment node");
-        std::thread::sleep(Duration::from_millis(20));
-    };
+    let segment = wait_node_pid(&sup, "segment");
     // Let it take some frames first.
     std::thread::sleep(Duration::from_millis(1500));
     // SAFETY: kill(2) on a pid of this test's own run.

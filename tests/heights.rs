@@ -233,13 +233,10 @@ fn invert3(m: [[f64; 3]; 3]) -> Option<[[f64; 3]; 3]> {
     if det.abs() < 1e-300 {
         return None;
     }
-    let mut out = [[0.0; 3]; 3];
-    for i in 0..3 {
-        for j in 0..3 {
-            out[j][i] = c(i, j) / det;
-        }
-    }
-    Some(out)
+    // The adjugate is the transposed cofactor matrix.
+    Some(std::array::from_fn(|j| {
+        std::array::from_fn(|i| c(i, j) / det)
+    }))
 }
 
 /// The share of heights within 5 % that estimators reaching the bounds `rel` (relative
