@@ -227,12 +227,25 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
         ("--drift", a.drift, 0.0, 100.0),
         ("--cells", a.cells as f64, 0.0, 10_000.0),
         ("--debris", a.debris as f64, 0.0, 100_000.0),
+        ("--irregular", a.irregular, 0.0, 0.15),
     ];
-    if let Some(p) = a.pipette {
-        checked.push(("--pipette", p, 0.0, 10_000.0));
-    }
-    if let Some(n) = a.frames {
-        checked.push(("--frames", n as f64, 1.0, 100_000.0));
+    let optional = [
+        ("--pipette", a.pipette, 0.0, 10_000.0),
+        ("--frames", a.frames.map(|n| n as f64), 1.0, 100_000.0),
+        ("--gradient", a.gradient, -170.0, 170.0),
+        ("--vignetting", a.vignetting, 0.0, 0.9),
+        ("--rim", a.rim, 0.0, 170.0),
+        (
+            "--substrate-disparity",
+            a.substrate_disparity,
+            -1000.0,
+            1000.0,
+        ),
+    ];
+    for (n, v, lo, hi) in optional {
+        if let Some(v) = v {
+            checked.push((n, v, lo, hi));
+        }
     }
     for &z in a.stage_heights.iter().flatten() {
         checked.push(("--stage-heights", z, -10_000.0, 10_000.0));
@@ -269,8 +282,8 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
         LookPreset::Dic => Look::default(),
         LookPreset::Brightfield => Look::brightfield(),
     };
-    look.noise = a.noise.max(0.0);
-    look.blur = a.blur.max(0.0);
+    look.noise = a.noise;
+    look.blur = a.blur;
     look.texture = texture;
     if let Some(t) = a.substrate_texture {
         look.substrate_texture = match t {
@@ -278,30 +291,6 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
             TextureLevel::Faint => Look::default().substrate_texture,
             TextureLevel::Strong => 30.0,
         };
-    }
-    let ranged = [
-        ("--gradient", a.gradient, -170.0, 170.0),
-        ("--vignetting", a.vignetting, 0.0, 0.9),
-        ("--rim", a.rim, 0.0, 170.0),
-        (
-            "--substrate-disparity",
-            a.substrate_disparity,
-            -1000.0,
-            1000.0,
-        ),
-    ];
-    for (n, v, lo, hi) in ranged {
-        if let Some(v) = v
-            && !(lo..=hi).contains(&v)
-        {
-            return Err(other(format!("{n} {v} is out of range: use {lo}..{hi}")));
-        }
-    }
-    if !(0.0..=0.15).contains(&a.irregular) {
-        return Err(other(format!(
-            "--irregular {} is out of range: use 0..0.15",
-            a.irregular
-        )));
     }
     let tilt = match a.tilt.as_deref() {
         None => [0.0; 2],

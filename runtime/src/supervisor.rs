@@ -86,7 +86,7 @@ impl InstanceLock {
 }
 
 /// Runs `graph` as processes until its frames are done, Ctrl-C or SIGTERM; a node that
-/// fails beyond its restart policy stops the graph and is the error.
+/// fails beyond its restart policy stops the graph and is the report's `failure`.
 pub fn run(graph: &Graph, o: &RunOptions) -> Result<RunReport, String> {
     let stale = crate::process::remove_stale_resources();
     if stale.removed > 0 || stale.empty_files > 0 {
@@ -120,8 +120,7 @@ pub fn run(graph: &Graph, o: &RunOptions) -> Result<RunReport, String> {
     }
     let _lock = InstanceLock::take(&instance)?;
     let file = GraphFile(std::env::temp_dir().join(format!(
-        "microstereo-{}-{}.graph.json",
-        instance.replace(['/', '\\'], "_"),
+        "microstereo-{instance}-{}.graph.json",
         std::process::id()
     )));
     crate::process::write_graph(&file.0, graph)?;
