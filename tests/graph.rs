@@ -411,15 +411,20 @@ fn one_process_per_node_and_none_left_when_the_supervisor_is_killed() {
     // enough.
     std::thread::sleep(runtime::process::UNSIZED_AGE + Duration::from_millis(500));
     let dead_before = runtime::process::dead_nodes(&instance);
-    // The same instance again: the killed supervisor's hold on it went with it.
-    let out = run(&[
-        "run",
-        file.to_str().unwrap(),
-        "--frames",
-        "2",
-        "--instance",
-        &instance,
-    ]);
+    // The killed supervisor's hold on its instance went with it: the lock is free.
+    {
+        use std::os::fd::AsRawFd;
+        let lock =
+            std::fs::File::open(std::env::temp_dir().join(format!("microstereo-{instance}.lock")))
+                .unwrap();
+        // SAFETY: flock on a descriptor this test owns.
+        let rc = unsafe { libc::flock(lock.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) };
+        assert_eq!(
+            rc, 0,
+            "the instance is still locked after its supervisor died"
+        );
+    }
+    let out = run(&["run", file.to_str().unwrap(), "--frames", "2"]);
     assert!(
         out.status.success(),
         "{}",
