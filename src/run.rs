@@ -45,6 +45,7 @@ pub fn node_cmd(a: NodeArgs) -> Result<(), CliError> {
         id: a.id,
         instance: a.instance,
         frames: a.frames,
+        generation: runtime::process::generation_from_env()?,
     };
     let stats = runtime::process::run_graph_node(&crate::registry::builtin(), &args)?;
     runtime::process::print_stats(&stats);

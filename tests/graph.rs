@@ -1357,3 +1357,98 @@ fn a_node_stopped_from_outside_ends_the_run_with_the_summary_and_the_reason() {
         "no summary: {stdout}"
     );
 }
+
+/// The embedded default graph (lossless after its entry, depth 1), small, its source as fast
+/// as it goes (the graph is saturated), every node restarted on failure: after kill -9 of a
+/// node that others join with (match, segment, then triangulate) the controller gets scenes
+/// again. After the first restart the graph used to stand still: the joining node held
+/// frames whose partners had died with the killed node (issue 19 #1).
+#[test]
+fn the_default_graph_keeps_moving_through_restarts_of_joined_nodes() {
+    use std::io::BufRead;
+    let port = free_port();
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("launch.toml"))
+        .unwrap()
+        .replace(
+            "width = 1280, height = 1024, cells = 10, seed = 1 }",
+            "width = 320, height = 256, cells = 4, seed = 1 }",
+        )
+        .replace("127.0.0.1:7878", &format!("127.0.0.1:{port}"));
+    assert!(text.contains("cells = 4") && text.contains(&format!(":{port}")));
+    let with_restart: String =
+        text.lines()
+            .flat_map(|l| {
+                let restart = l.starts_with("kind = ");
+                [l, "\n"].into_iter().chain(restart.then_some(
+                    "restart = { policy = \"on-failure\", max = 3, backoff_ms = 200 }\n",
+                ))
+            })
+            .collect();
+    assert_eq!(with_restart.matches("restart = {").count(), 8);
+    let file = dir.path().join("restarts.toml");
+    std::fs::write(&file, &with_restart).unwrap();
+    let instance = format!("restarts{}", std::process::id());
+    // Until told to stop.
+    let sup = start_run(&file, 1_000_000, &instance);
+    let stream = connect_to_bridge(port, Duration::from_secs(30));
+    let (tx, scenes) = std::sync::mpsc::channel::<u64>();
+    std::thread::spawn(move || {
+        for line in std::io::BufReader::new(stream).lines() {
+            let Ok(line) = line else { break };
+            let scene: serde_json::Value = serde_json::from_str(&line).unwrap();
+            if tx.send(scene["frame"].as_u64().unwrap()).is_err() {
+                break;
+            }
+        }
+    });
+    // Twenty scenes within a minute each, or the graph stands still: more than the frames
+    // that the queues and joins after the killed node hold, which reach the controller
+    // even when nothing moves again.
+    let moving = |after: &str| {
+        let mut last = Instant::now();
+        let mut longest = Duration::ZERO;
+        for _ in 0..20 {
+            if scenes.recv_timeout(Duration::from_secs(60)).is_err() {
+                panic!("no scene for 60 s after {after}");
+            }
+            longest = longest.max(last.elapsed());
+            last = Instant::now();
+        }
+        longest
+    };
+    moving("the start");
+    for victim in ["match", "segment", "triangulate"] {
+        let pid = wait_node_pid(&sup, victim);
+        // The scenes sent before the kill.
+        while scenes.try_recv().is_ok() {}
+        // SAFETY: kill(2) on a pid of this test's own run.
+        unsafe {
+            libc::kill(pid as i32, libc::SIGKILL);
+        }
+        let gap = moving(&format!("the restart of {victim}"));
+        eprintln!("killed {victim}: the longest wait for a scene after it was {gap:?}");
+    }
+    // SAFETY: kill(2) on the supervisor this test started.
+    unsafe {
+        libc::kill(sup.id() as i32, libc::SIGTERM);
+    }
+    let out = finish(sup, Duration::from_secs(60));
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr),
+    );
+    assert!(out.status.success(), "{stdout}\n{stderr}");
+    for victim in ["match", "segment", "triangulate"] {
+        assert!(
+            stderr.contains(&format!(
+                "[{victim}] exited (signal: 9 (SIGKILL)); restart 1 of 3"
+            )),
+            "{victim}: {stderr}"
+        );
+    }
+    assert!(
+        stdout.contains(" frame(s) of 1000000"),
+        "no summary: {stdout}"
+    );
+}

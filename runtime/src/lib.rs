@@ -10,7 +10,8 @@
 //! - [`exec`]: the in-process executor (one pipeline: `reconstruct`, `bench` and the tests
 //!   run the graph's own node values);
 //! - [`transport`] and [`process`]: iceoryx2 edges and one node as a process;
-//! - [`supervisor`]: the graph as processes, restarts, stop and summary;
+//! - [`supervisor`]: the graph as processes, restarts, stop and summary; [`restarts`]: how
+//!   the nodes downstream of a restarted one get over the frames it lost;
 //! - [`harness`]: a node fed recorded inputs, its outputs compared with the recording;
 //! - [`hop`]: the transport benchmark.
 
@@ -22,6 +23,7 @@ pub mod launch;
 pub mod node;
 pub mod process;
 pub mod registry;
+pub mod restarts;
 pub mod stats;
 pub mod supervisor;
 pub mod transport;

@@ -13,9 +13,10 @@ pub use crate::edge::now_ns;
 use crate::launch::Graph;
 use crate::node::{GraphNode, Msg, Outputs};
 use crate::registry::Registry;
+use crate::restarts::Restarts;
 pub use crate::stats::{InputStats, NodeStats, STATS_PREFIX};
 use crate::transport::{
-    EdgePublisher, EdgeSubscriber, Message, Overflow, Transport, Wake, wait_loop,
+    EdgePublisher, EdgeSubscriber, Message, Overflow, Received, Transport, Wake, wait_loop,
 };
 use iceoryx2::node::NodeView;
 use iceoryx2::prelude::*;
@@ -113,6 +114,7 @@ pub fn run_node(
     id: &str,
     node: &mut dyn GraphNode,
     frames: Option<u64>,
+    generation: u64,
 ) -> Result<NodeStats, String> {
     let fps = node.fps();
     let spec = graph
@@ -187,6 +189,13 @@ pub fn run_node(
         }
         std::thread::sleep(Duration::from_millis(2));
     }
+    // A restarted node tells the nodes downstream that the frames its predecessor held are
+    // gone, before any frame of its own (see [`Restarts`]).
+    if generation > 0 {
+        for p in &pubs {
+            p.send_restart(generation, id).map_err(|e| e.to_string())?;
+        }
+    }
     let mut out = ShmOutputs {
         pubs: &pubs,
         sent: 0,
@@ -212,8 +221,16 @@ pub fn run_node(
             }
             feed(node)?;
             let (t, t_ns) = (Instant::now(), now_ns());
-            if !node.produce(seq, &mut out)? {
-                break;
+            match node.produce(seq, &mut out) {
+                Ok(true) => {}
+                Ok(false) => break,
+                // A stop request cuts a waiting send short with an error: the stop is what
+                // happened.
+                Err(_) if !transport.sleep(Duration::ZERO) => {
+                    stopped = true;
+                    break;
+                }
+                Err(e) => return Err(e),
             }
             times.push(t.elapsed().as_secs_f64() * 1e3);
             latencies.push(now_ns().saturating_sub(t_ns) as f64 / 1e6);
@@ -228,7 +245,10 @@ pub fn run_node(
         let mut pending: Vec<Vec<Message>> = subs.iter().map(|_| Vec::new()).collect();
         let seq_of = |m: &Message| m.user_header().sequence;
         let mut done = false;
-        wait_loop::<String>(&refs, Duration::from_secs(1), |wake, _| {
+        let mut restarts = Restarts::new(graph, spec, subs.len());
+        // The last frame number each input delivered.
+        let mut last_seq: Vec<Option<u64>> = vec![None; subs.len()];
+        let joined = wait_loop::<String>(&refs, Duration::from_secs(1), |wake, _| {
             if wake == Wake::Stop {
                 return Ok(false);
             }
@@ -236,19 +256,53 @@ pub fn run_node(
                 loop {
                     // An input ahead of the others holds its frames until they catch up, up
                     // to its borrow limit: then a lossy edge lets its oldest go, a lossless
-                    // one leaves the rest queued (its writer waits).
+                    // one leaves the rest queued (its writer waits) — unless a restart
+                    // upstream lost frames that the other inputs will never be joined with.
                     if pending[i].len() >= crate::transport::max_held(&s.config()) {
-                        if s.config().overflow == Overflow::DropOldest {
+                        if s.config().overflow == Overflow::DropOldest || restarts.active() {
                             pending[i].remove(0);
                             s.discard();
                         } else {
                             break;
                         }
                     }
-                    match s.receive()? {
-                        Some(m) => pending[i].push(m),
+                    match s.receive_item()? {
+                        Some(Received::Frame(m)) => {
+                            last_seq[i] = Some(seq_of(&m));
+                            restarts.frame(i);
+                            pending[i].push(m);
+                        }
+                        Some(Received::Restart { generation, node }) => {
+                            for (g, n) in restarts.marker(i, generation, &node) {
+                                for p in &pubs {
+                                    p.send_restart(g, &n).map_err(|e| e.to_string())?;
+                                }
+                            }
+                        }
                         None => break,
                     }
+                }
+            }
+            // A frame that an input has passed over (it delivered a later one without it)
+            // can never be joined: let it go on the others too.
+            for i in 0..pending.len() {
+                let before = pending[i].len();
+                let (others, this) = (&pending, &pending[i]);
+                let keep: Vec<bool> = this
+                    .iter()
+                    .map(|m| {
+                        let s = seq_of(m);
+                        (0..others.len()).all(|j| {
+                            j == i
+                                || last_seq[j].is_none_or(|l| l <= s)
+                                || others[j].iter().any(|o| seq_of(o) == s)
+                        })
+                    })
+                    .collect();
+                let mut k = keep.iter();
+                pending[i].retain(|_| *k.next().expect("one flag per frame"));
+                for _ in pending[i].len()..before {
+                    subs[i].discard();
                 }
             }
             // The oldest frame every input has; frames older than it can no longer be joined.
@@ -287,7 +341,12 @@ pub fn run_node(
                 }
             }
             Ok(true)
-        })?;
+        });
+        match joined {
+            Ok(()) => {}
+            Err(_) if !transport.sleep(Duration::ZERO) => {}
+            Err(e) => return Err(e),
+        }
         if done {
             linger(&transport, read_in_graph);
         }
@@ -513,6 +572,23 @@ pub struct NodeArgs {
     pub instance: String,
     /// Stop after this many frames.
     pub frames: Option<u64>,
+    /// The run's restart count when the supervisor started this process (0: first start;
+    /// given in [`GENERATION_ENV`], which programs built before it ignore).
+    pub generation: u64,
+}
+
+/// The environment variable in which the supervisor gives a restarted node process the
+/// run's restart count.
+pub const GENERATION_ENV: &str = "MICROSTEREO_RESTART_GENERATION";
+
+/// The restart count the supervisor gave this process (0 when none).
+pub fn generation_from_env() -> Result<u64, String> {
+    match std::env::var(GENERATION_ENV) {
+        Err(_) => Ok(0),
+        Ok(v) => v
+            .parse()
+            .map_err(|_| format!("{GENERATION_ENV}={v} is not a restart count")),
+    }
 }
 
 /// What a node program is asked to do.
@@ -573,12 +649,14 @@ impl Invocation {
         if describe {
             return Ok(Invocation::Describe { params, connected });
         }
+        let generation = generation_from_env()?;
         match (graph, id) {
             (Some(graph), Some(id)) => Ok(Invocation::Run(NodeArgs {
                 graph,
                 id,
                 instance: instance.unwrap_or_else(|| "default".into()),
                 frames,
+                generation,
             })),
             _ => Err(
                 "a node program runs with --graph FILE --id ID [--instance NAME] [--frames N] (as `microstereo run` starts it), or with --describe"
@@ -636,8 +714,15 @@ pub fn run_graph_node(registry: &Registry, a: &NodeArgs) -> Result<NodeStats, St
         None => registry.build_as_only_kind(spec),
     }
     .map_err(|e| format!("node '{}': {e}", a.id))?;
-    run_node(&graph, &a.instance, &a.id, node.as_mut(), a.frames)
-        .map_err(|e| format!("node '{}': {e}", a.id))
+    run_node(
+        &graph,
+        &a.instance,
+        &a.id,
+        node.as_mut(),
+        a.frames,
+        a.generation,
+    )
+    .map_err(|e| format!("node '{}': {e}", a.id))
 }
 
 /// Prints a node's statistics the way the supervisor reads them.

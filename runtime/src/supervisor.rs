@@ -149,6 +149,7 @@ fn spawn(
     file: &std::path::Path,
     instance: &str,
     id: &str,
+    generation: u64,
 ) -> Result<tokio::process::Child, String> {
     let spec = graph.node(id).expect("validated");
     let mut cmd = match &spec.runner {
@@ -169,9 +170,14 @@ fn spawn(
             id: id.into(),
             instance: instance.into(),
             frames: o.frames,
+            generation,
         }
         .to_args(),
     );
+    cmd.env_remove(crate::process::GENERATION_ENV);
+    if generation > 0 {
+        cmd.env(crate::process::GENERATION_ENV, generation.to_string());
+    }
     cmd.stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .stdin(if spec.logs {
@@ -287,7 +293,7 @@ async fn supervise(
     });
     let mut children = Vec::new();
     for n in &graph.nodes {
-        let mut proc = spawn(graph, a, file, instance, &n.id)?;
+        let mut proc = spawn(graph, a, file, instance, &n.id, 0)?;
         forward_logs(&n.id, n.logs, &mut proc, &stats, &tap);
         children.push(Child {
             id: n.id.clone(),
@@ -301,6 +307,8 @@ async fn supervise(
     // them) until it is told to stop.
     let mut failure: Option<String> = None;
     let mut stopping = false;
+    // Restarts so far in this run: a restarted node's markers carry the count.
+    let mut generation = 0u64;
     loop {
         if children.is_empty() {
             break;
@@ -364,10 +372,10 @@ async fn supervise(
                 spec.restart.max,
                 wait
             );
-            tokio::time::sleep(wait).await;
             if failed {
                 // A node that died holds its places on its edges (a full queue of a dead
-                // reader blocks a lossless writer): free them before its successor joins.
+                // reader blocks a lossless writer): free them at once, so that its writers
+                // go on while it is down.
                 let stale = tokio::task::spawn_blocking(crate::process::remove_stale_resources)
                     .await
                     .unwrap_or_default();
@@ -375,7 +383,9 @@ async fn supervise(
                     eprintln!("[{}] warning: its shared memory could not be removed", c.id);
                 }
             }
-            let mut proc = spawn(graph, a, file, instance, &c.id)?;
+            tokio::time::sleep(wait).await;
+            generation += 1;
+            let mut proc = spawn(graph, a, file, instance, &c.id, generation)?;
             forward_logs(&c.id, spec.logs, &mut proc, &stats, &tap);
             children.push(Child {
                 id: c.id,

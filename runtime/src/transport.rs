@@ -311,6 +311,18 @@ impl EdgePublisher {
         Ok(())
     }
 
+    /// Sends a restart marker: node `node` of the graph started anew as restart
+    /// `generation` of the run, so every frame after the marker on this edge comes from its
+    /// successor and the frames its predecessor held are lost.
+    pub fn send_restart(&self, generation: u64, node: &str) -> Result<(), TransportError> {
+        let header = FrameHeader {
+            sequence: generation,
+            kind: RESTART_KIND,
+            ..FrameHeader::default()
+        };
+        self.send(header, node.len(), |b| b.copy_from_slice(node.as_bytes()))
+    }
+
     /// The edge's name.
     pub fn edge(&self) -> &str {
         &self.edge
@@ -342,6 +354,25 @@ pub struct EdgeSubscriber {
     missing: Cell<u64>,
 }
 
+/// The header `kind` of a restart marker (no message kind of the schemas has it): a control
+/// message of the transport, never a frame.
+pub const RESTART_KIND: u32 = u32::MAX;
+
+/// What a reader takes off its edge.
+#[derive(Debug)]
+pub enum Received {
+    /// A frame's message.
+    Frame(Message),
+    /// A restart marker ([`EdgePublisher::send_restart`]): node `node` started anew as restart
+    /// `generation` of the run somewhere upstream of this edge.
+    Restart {
+        /// The run's restart count when it started.
+        generation: u64,
+        /// The restarted node's id.
+        node: String,
+    },
+}
+
 /// How many received messages a reader of an edge with `cfg` may hold at once (it holds
 /// frames while it waits for the same frame on its other inputs); receiving more fails until
 /// one is let go.
@@ -361,27 +392,45 @@ impl EdgeSubscriber {
         self.missing.set(self.missing.get() + 1);
     }
 
-    /// The next queued message, if any (oldest first).
+    /// The next queued frame message, if any (oldest first); restart markers are passed over.
     pub fn receive(&self) -> Result<Option<Message>, TransportError> {
-        let m = self
+        loop {
+            match self.receive_item()? {
+                None => return Ok(None),
+                Some(Received::Frame(m)) => return Ok(Some(m)),
+                Some(Received::Restart { .. }) => {}
+            }
+        }
+    }
+
+    /// The next queued message or restart marker, if any (oldest first).
+    pub fn receive_item(&self) -> Result<Option<Received>, TransportError> {
+        let Some(m) = self
             .subscriber
             .receive()
-            .map_err(|e| fail(&self.edge, "receiving")(&e))?;
-        if let Some(m) = &m {
-            let gap = |last: &Cell<Option<u64>>, now: u64| {
-                // A number at or below the last one is a restarted writer counting anew.
-                let g = last.get().map_or(0, |l| now.saturating_sub(l + 1));
-                last.set(Some(now));
-                g
-            };
-            let h = m.user_header();
-            self.missing
-                .set(self.missing.get() + gap(&self.last, h.sequence));
-            self.dropped
-                .set(self.dropped.get() + gap(&self.last_on_edge, h.edge_sequence));
-            self.received.set(self.received.get() + 1);
+            .map_err(|e| fail(&self.edge, "receiving")(&e))?
+        else {
+            return Ok(None);
+        };
+        let gap = |last: &Cell<Option<u64>>, now: u64| {
+            // A number at or below the last one is a restarted writer counting anew.
+            let g = last.get().map_or(0, |l| now.saturating_sub(l + 1));
+            last.set(Some(now));
+            g
+        };
+        let h = *m.user_header();
+        self.dropped
+            .set(self.dropped.get() + gap(&self.last_on_edge, h.edge_sequence));
+        if h.kind == RESTART_KIND {
+            return Ok(Some(Received::Restart {
+                generation: h.sequence,
+                node: String::from_utf8_lossy(m.payload()).into_owned(),
+            }));
         }
-        Ok(m)
+        self.missing
+            .set(self.missing.get() + gap(&self.last, h.sequence));
+        self.received.set(self.received.get() + 1);
+        Ok(Some(Received::Frame(m)))
     }
 
     /// Clears the wake-up events that brought the reader here.
