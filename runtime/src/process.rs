@@ -286,22 +286,20 @@ pub fn run_node(
             // A frame that an input has passed over (it delivered a later one without it)
             // can never be joined: let it go on the others too.
             for i in 0..pending.len() {
-                let before = pending[i].len();
-                let (others, this) = (&pending, &pending[i]);
-                let keep: Vec<bool> = this
-                    .iter()
-                    .map(|m| {
-                        let s = seq_of(m);
-                        (0..others.len()).all(|j| {
-                            j == i
-                                || last_seq[j].is_none_or(|l| l <= s)
-                                || others[j].iter().any(|o| seq_of(o) == s)
-                        })
+                let passed_over = |s: u64| {
+                    (0..pending.len()).any(|j| {
+                        j != i
+                            && last_seq[j].is_some_and(|l| l > s)
+                            && !pending[j].iter().any(|o| seq_of(o) == s)
                     })
+                };
+                let gone: Vec<u64> = pending[i]
+                    .iter()
+                    .map(seq_of)
+                    .filter(|s| passed_over(*s))
                     .collect();
-                let mut k = keep.iter();
-                pending[i].retain(|_| *k.next().expect("one flag per frame"));
-                for _ in pending[i].len()..before {
+                pending[i].retain(|m| !gone.contains(&seq_of(m)));
+                for _ in &gone {
                     subs[i].discard();
                 }
             }
