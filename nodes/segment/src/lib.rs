@@ -25,7 +25,7 @@ mod variance;
 
 pub use boxsum::BoxSums;
 pub use label::{Connectivity, label, label_where};
-pub use morph::{close, dilate, fill_holes, open, remove_small};
+pub use morph::{close, dilate, fill_broken_outlines, fill_holes, open, remove_small};
 pub use otsu::{histogram, otsu_threshold};
 pub use peel::peel_edges;
 pub use rings::absorb_rings;
@@ -129,6 +129,7 @@ pub fn segment(img: &Plane<u8>, p: &SegmentParams) -> Segmentation {
     mask = close(&open(&mask, p.open_radius), p.close_radius);
     if p.fill_holes && !mask.is_empty() {
         mask = fill_holes(&mask);
+        mask = fill_broken_outlines(&mask, p.variance_radius as u8 + 1);
     }
     if p.peel_edges {
         let m = p.variance_radius;

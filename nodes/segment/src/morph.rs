@@ -34,6 +34,106 @@ pub fn fill_holes(mask: &Mask) -> Mask {
     Plane::from_vec(w, h, data).expect("same size")
 }
 
+/// Fills the inside of outlines broken by gaps narrower than about `2·radius` px, which
+/// [`fill_holes`] leaves open: a tall cell's membrane rim, seen at a slant by one camera,
+/// thins to nothing on one side, and under a faint inner texture the variance threshold
+/// keeps only a horseshoe. What a closing with a disc of `radius` adds, with the holes it
+/// then encloses, joins the mask wherever it holds such a hole and borders one component
+/// only; the closing's bridges between neighbouring cells and its rounding of bays stay out.
+pub fn fill_broken_outlines(mask: &Mask, radius: u8) -> Mask {
+    if radius == 0 {
+        return mask.clone();
+    }
+    let closed = close_square(mask, radius);
+    let filled = fill_holes(&closed);
+    let (w, h) = (mask.width, mask.height);
+    let added = Plane::from_vec(
+        w,
+        h,
+        filled
+            .data
+            .iter()
+            .zip(&mask.data)
+            .map(|(&f, &m)| f != 0 && m == 0)
+            .collect::<Vec<bool>>(),
+    )
+    .expect("same size");
+    let (parts, n) = label_where(&added, |&a| a, Connectivity::Eight);
+    if n == 0 {
+        return mask.clone();
+    }
+    let (cells, _) = label(mask, Connectivity::Eight);
+    // Per added part: whether it holds a hole of the closed mask, and the one component it
+    // borders (`None` before any, `Some(u32::MAX)` for more than one).
+    let mut hole = vec![false; n as usize + 1];
+    let mut border: Vec<Option<u32>> = vec![None; n as usize + 1];
+    for y in 0..h {
+        for x in 0..w {
+            let p = *parts.get(x, y) as usize;
+            if p == 0 {
+                continue;
+            }
+            hole[p] |= *closed.get(x, y) == 0;
+            for (dx, dy) in [
+                (-1, -1),
+                (0, -1),
+                (1, -1),
+                (-1, 0),
+                (1, 0),
+                (-1, 1),
+                (0, 1),
+                (1, 1),
+            ] {
+                let (nx, ny) = (x as i64 + dx, y as i64 + dy);
+                if nx < 0 || ny < 0 || nx >= w as i64 || ny >= h as i64 {
+                    continue;
+                }
+                let c = *cells.get(nx as usize, ny as usize);
+                if c != 0 {
+                    border[p] = match border[p] {
+                        None => Some(c),
+                        Some(b) if b == c => Some(b),
+                        Some(_) => Some(u32::MAX),
+                    };
+                }
+            }
+        }
+    }
+    let keep: Vec<bool> = (0..=n as usize)
+        .map(|p| p > 0 && hole[p] && border[p].is_some_and(|b| b != u32::MAX))
+        .collect();
+    let data = mask
+        .data
+        .iter()
+        .zip(&parts.data)
+        .map(|(&m, &p)| if m != 0 || keep[p as usize] { 255 } else { 0 })
+        .collect();
+    Plane::from_vec(w, h, data).expect("same size")
+}
+
+/// Closing with a square of half-width `radius`, the image padded so that nothing sticks to
+/// its border. A square bridges a gap between the ends of an arc as wide as itself, where a
+/// disc's rounded edge leaves the gap's outer corners open.
+fn close_square(mask: &Mask, radius: u8) -> Mask {
+    let pad = radius as usize + 1;
+    let (w, h) = (mask.width, mask.height);
+    let g = GrayImage::from_fn((w + 2 * pad) as u32, (h + 2 * pad) as u32, |x, y| {
+        let (x, y) = (x as usize, y as usize);
+        let inside = (pad..pad + w).contains(&x) && (pad..pad + h).contains(&y);
+        image::Luma([if inside {
+            *mask.get(x - pad, y - pad)
+        } else {
+            0
+        }])
+    });
+    let c = imageproc::morphology::close(&g, Norm::LInf, radius);
+    let data = (0..h)
+        .flat_map(|y| (0..w).map(move |x| (x, y)))
+        .map(|(x, y)| c.get_pixel((x + pad) as u32, (y + pad) as u32).0[0])
+        .collect();
+    Plane::from_vec(w, h, data).expect("size")
+}
+
 /// Drops 8-connected blobs of fewer than `min_area` pixels.
 pub fn remove_small(mask: &Mask, min_area: usize) -> Mask {
     let (labels, n) = label(mask, Connectivity::Eight);
@@ -97,6 +197,48 @@ mod tests {
         // The centre touches the outside only through a corner: a hole for 8-connected cells.
         let m = mask(&["##.", "#.#", ".##"]);
         assert_eq!(fill_holes(&m), mask(&["##.", "###", ".##"]));
+    }
+
+    #[test]
+    fn a_ring_broken_by_a_gap_fills_but_neighbours_and_bays_stay_apart() {
+        // A thick ring open by two pixels on its left, and beside it two blocks a gap apart
+        // and an open bay: only the ring's inside (with its gap) joins the mask.
+        let m = mask(&[
+            "....................",
+            "..##########........",
+            "..##########........",
+            "..##......##..##.##.",
+            "..##......##..##.##.",
+            "..........##..##.##.",
+            "..........##..##.##.",
+            "..##......##..##.##.",
+            "..##......##..##.##.",
+            "..##########........",
+            "..##########..#####.",
+            "..............#...#.",
+            "..............#...#.",
+            "....................",
+        ]);
+        assert_eq!(
+            fill_broken_outlines(&m, 2),
+            mask(&[
+                "....................",
+                "..##########........",
+                "..##########........",
+                "..##########..##.##.",
+                "..##########..##.##.",
+                "..##########..##.##.",
+                "..##########..##.##.",
+                "..##########..##.##.",
+                "..##########..##.##.",
+                "..##########........",
+                "..##########..#####.",
+                "..............#...#.",
+                "..............#...#.",
+                "....................",
+            ])
+        );
+        assert_eq!(fill_broken_outlines(&m, 0), m);
     }
 
     #[test]

@@ -632,6 +632,76 @@ pub fn measure(
     out
 }
 
+/// The left cells [`measure`] left out (`measured`: what it gave), most of them without a
+/// partner in the right view (its segmentation lost or split them, or they stand at its
+/// edge), as obstacles of unknown height: a cell the
+/// pipette could touch is never left out of the targets. Each stands on the substrate where
+/// the evidence allows — the background plane that `bases` used, its own rim, or the median
+/// of the paired cells' bases — and is never trusted. A cell with none of these is left out
+/// (there is no depth to put it at).
+#[allow(clippy::too_many_arguments)]
+pub fn lone_cells(
+    (left, right): (&Plane<u8>, &Plane<u8>),
+    (labels, cells): (&Plane<u32>, &[Cell]),
+    measured: &[Cell3],
+    plane: Option<&DisparityPlane>,
+    bases: &[Option<Base>],
+    range: DisparityRange,
+    calib: &Calibration,
+) -> Vec<Cell3> {
+    let z_of = |d: f64| calib.baseline * calib.focal_px / (d + calib.cx_right - calib.cx);
+    let plane = plane.filter(|_| {
+        bases
+            .iter()
+            .flatten()
+            .any(|b| b.source == SubstrateSource::Plane)
+    });
+    let median = percentile(bases.iter().flatten().map(|b| b.d as f32).collect(), 0.5);
+    cells
+        .iter()
+        .filter(|c| !measured.iter().any(|m| m.id == c.id))
+        .filter_map(|cell| {
+            let [x, y] = cell.centroid;
+            let (d, std, source) = match plane {
+                Some(pl) => (pl.at(x, y), pl.std.max(0.05), SubstrateSource::Plane),
+                None => match substrate::rim_disparity(left, right, labels, cell, range) {
+                    Some(r) => (r.d, r.std, SubstrateSource::Rim),
+                    None => (median?, RING_STD, SubstrateSource::Rims),
+                },
+            };
+            let z_sub = z_of(d);
+            Some(Cell3 {
+                id: cell.id,
+                right_id: 0,
+                area_px: cell.area,
+                centroid_px: cell.centroid,
+                disparity: d,
+                centroid: crate::triangulate_pixel(x, y, d, calib)?,
+                substrate_z: z_sub,
+                height: None,
+                volume: 0.0,
+                contour: cell
+                    .contour
+                    .iter()
+                    .filter_map(|c| crate::triangulate_pixel(c[0] as f64, c[1] as f64, d, calib))
+                    .collect(),
+                valid_share: 0.0,
+                quality: CellQuality {
+                    substrate: source,
+                    substrate_std: std,
+                    height_std: None,
+                    residual: None,
+                    trusted: false,
+                    doubt: Some(
+                        "the cell could not be measured in both views (no partner in the right view, or no substrate or top under it): its height is unknown"
+                            .into(),
+                    ),
+                },
+            })
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -722,5 +792,89 @@ mod tests {
             (1, 1),
         );
         assert_eq!(c.range, None);
+    }
+
+    #[test]
+    fn cells_left_out_stand_on_the_substrate_untrusted_without_a_height() {
+        let calib = Calibration {
+            baseline: 100.0,
+            focal_px: 1000.0,
+            cx: 20.0,
+            cy: 10.0,
+            cx_right: 20.0,
+            unit: schemas::LengthUnit::Um,
+        };
+        let cells = [cell(1, 2, 2, 9, 9), cell(2, 20, 2, 29, 9)];
+        let labels = Plane::from_vec(
+            40,
+            20,
+            (0..20usize)
+                .flat_map(|y| (0..40usize).map(move |x| (x, y)))
+                .map(|(x, y)| match (x, y) {
+                    (2..=9, 2..=9) => 1,
+                    (20..=29, 2..=9) => 2,
+                    _ => 0,
+                })
+                .collect(),
+        )
+        .unwrap();
+        // A flat grey pair: no rim to match, so the substrate comes from the plane or
+        // the measured cells' bases.
+        let grey = Plane::filled(40, 20, 100u8);
+        let measured = Cell3 {
+            id: 1,
+            right_id: 1,
+            area_px: 64,
+            centroid_px: [5.5, 5.5],
+            disparity: 12.0,
+            centroid: [0.0; 3],
+            substrate_z: 10.0,
+            height: Some(1.0),
+            volume: 1.0,
+            contour: Vec::new(),
+            valid_share: 1.0,
+            quality: CellQuality::default(),
+        };
+        let base = |source| Base {
+            d: 10.0,
+            std: 0.1,
+            source,
+            doubt: None,
+        };
+        let range = DisparityRange::new(0, 16);
+        let plane = DisparityPlane {
+            d0: 8.0,
+            dx: 0.1,
+            dy: 0.0,
+            centre: [20.0, 5.5],
+            std: 0.01,
+            pixels: 100,
+        };
+        let lone = |plane: Option<&DisparityPlane>, bases: &[Option<Base>]| {
+            lone_cells(
+                (&grey, &grey),
+                (&labels, &cells),
+                std::slice::from_ref(&measured),
+                plane,
+                bases,
+                range,
+                &calib,
+            )
+        };
+        // The plane the bases stood on: at cell 2's centroid (24.5, 5.5), 8 + 0.45 px.
+        let out = lone(Some(&plane), &[Some(base(SubstrateSource::Plane))]);
+        assert_eq!(out.len(), 1);
+        let c = &out[0];
+        assert_eq!((c.id, c.right_id, c.height), (2, 0, None));
+        assert!((c.disparity - 8.45).abs() < 1e-12, "{}", c.disparity);
+        assert!((c.substrate_z - 100.0 * 1000.0 / 8.45).abs() < 1e-9);
+        assert!(!c.quality.trusted && c.quality.doubt.is_some());
+        assert_eq!(c.quality.substrate, SubstrateSource::Plane);
+        // A plane the bases did not use does not count: the bases' median does.
+        let out = lone(Some(&plane), &[Some(base(SubstrateSource::Rim))]);
+        assert_eq!(out[0].disparity, 10.0);
+        assert_eq!(out[0].quality.substrate, SubstrateSource::Rims);
+        // Nothing to stand on: left out.
+        assert!(lone(None, &[None]).is_empty());
     }
 }

@@ -2,7 +2,7 @@
 //! in 3D (when given the segmentation) and the final full-frame map out.
 
 use crate::calibration::Geometry;
-use crate::cells::{cell_heights, compose, mask_of, measure};
+use crate::cells::{cell_heights, compose, lone_cells, mask_of, measure};
 use runtime::node::{NodeError, Params, Stamp, Task};
 use schemas::{
     Calibration, CellLists, Cloud, Disparity, DisparityTiles, Image, Labels, StereoFrame, Targets,
@@ -141,13 +141,23 @@ impl Task for Triangulate {
                     i.disparity.margin,
                     &calib,
                 );
-                let cells = measure(
+                let mut cells = measure(
                     (&labels.left, &lists.left, &lists.right),
                     &c.pairs,
                     (&c.disparity, &c.raw),
                     (&bases, &tops),
                     &calib,
                 );
+                let lone = lone_cells(
+                    (left, right),
+                    (&labels.left, &lists.left),
+                    &cells,
+                    substrate.as_ref(),
+                    &bases,
+                    i.disparity.range,
+                    &calib,
+                );
+                cells.extend(lone);
                 (c.disparity, cells, substrate)
             }
             _ => (i.disparity.paste(), Vec::new(), None),
