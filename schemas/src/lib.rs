@@ -281,7 +281,8 @@ pub struct Cell3 {
     pub right_id: u32,
     /// Left-image pixels of the cell.
     pub area_px: u64,
-    /// Left-image centroid `[x, y]` in pixels.
+    /// Left-image centroid `[x, y]` in pixels: of the segmented cell, grown on a textured
+    /// background by the pixels the views show off the substrate's plane.
     pub centroid_px: [f64; 2],
     /// Disparity of the cell's top, pixels: a photometric dome fit over the cell's upper
     /// part (the 98th percentile of the matched map where the fit fails).

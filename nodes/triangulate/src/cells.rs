@@ -485,12 +485,15 @@ fn percentile(mut v: Vec<f32>, q: f64) -> Option<f64> {
 }
 
 /// Per-cell 3D figures from the left labels and cells, the right cells, their pairing, the
-/// final and LR-checked disparity maps and [`cell_heights`]' bases and tops.
+/// final and LR-checked disparity maps and [`cell_heights`]' bases and tops. On a textured
+/// `background`, a cell standing on its plane is the region the views show off the plane
+/// ([`raised_region`]) rather than its segmented pixels.
 pub fn measure(
     (labels, left_cells, right_cells): (&Plane<u32>, &[Cell], &[Cell]),
     pairs: &[(usize, usize)],
     (disparity, disparity_raw): (&DisparityMap, &DisparityMap),
     (bases, tops): (&[Option<Base>], &[Option<PeakFit>]),
+    background: Option<Background>,
     calib: &Calibration,
 ) -> Vec<Cell3> {
     let z_of = |d: f64| calib.baseline * calib.focal_px / (d + calib.cx_right - calib.cx);
@@ -516,6 +519,20 @@ pub fn measure(
         let matched = percentile(inside.iter().map(|p| p.2).collect(), 0.98);
         let Some(d_top) = tops[k].map(|t| t.peak).or(matched) else {
             continue;
+        };
+        let raised = background
+            .filter(|_| base.source == SubstrateSource::Plane)
+            .and_then(|bg| raised_region(labels, cell, (disparity, disparity_raw), bg));
+        let centroid_px = match raised {
+            Some(r) if !r.is_empty() => {
+                let n = r.len() as f64;
+                let c = r.iter().fold([0.0, 0.0], |a, p| {
+                    [a[0] + p.0 as f64 / n, a[1] + p.1 as f64 / n]
+                });
+                inside = r.into_iter().filter(|p| p.2.is_finite()).collect();
+                c
+            }
+            _ => cell.centroid,
         };
         let z_sub = z_of(d_sub);
         let pixel_area = (z_sub / calib.focal_px).powi(2);
@@ -611,7 +628,7 @@ pub fn measure(
             id: cell.id,
             right_id: right_cells[j].id,
             area_px: cell.area,
-            centroid_px: cell.centroid,
+            centroid_px,
             disparity: d_top,
             centroid,
             substrate_z: z_sub,
@@ -630,6 +647,157 @@ pub fn measure(
         });
     }
     out
+}
+
+/// The textured background a cell stands on, for [`measure`].
+#[derive(Clone, Copy)]
+pub struct Background<'a> {
+    /// The background's disparity plane.
+    pub plane: &'a DisparityPlane,
+    /// The margin matched around each cell, px.
+    pub margin: u8,
+    /// The rectified views.
+    pub views: (&'a Plane<u8>, &'a Plane<u8>),
+}
+
+/// Half-width of the patch [`raised_region`] compares the views over.
+const PATCH: i64 = 1;
+
+/// How much better (grey levels, mean absolute difference over the patch) the cell's own
+/// disparity must explain a pixel than the background plane for it to be the cell's.
+const PATCH_MARGIN: f64 = 1.0;
+
+/// Largest misfit (grey levels, as for [`PATCH_MARGIN`]) of a pixel the cell's disparity
+/// explains: sensor noise of 1.5 grey levels in both views gives about 1.4, interpolating a
+/// strongly textured cell adds to it (3 left a strongly textured cell 1.1 px off).
+const PATCH_FIT: f64 = 4.0;
+
+/// The pixels of `cell` by stereo, where a textured background's plane is known: those
+/// whose small patch the matched disparity explains better than the plane does (mean
+/// absolute difference between the views, each patch less its mean), grown from the
+/// segmented pixels through the matched margin around them (no other cell's). On a strongly
+/// textured substrate the variance threshold loses whole sides of a cell (its centroid
+/// 2.7 px off) while the views plainly disagree with the plane there; and the matcher's
+/// windows carry a cell's disparity a few pixels onto the substrate beside it, which the
+/// plane explains better. Segmented pixels stay whatever they show, and beside them only
+/// pixels that passed the LR check and that the matched disparity fits to noise can join.
+/// `None` when the region grows past twice the segmented area (then the disparities are
+/// not to be leaned on).
+fn raised_region(
+    labels: &Plane<u32>,
+    cell: &Cell,
+    (disparity, raw): (&DisparityMap, &DisparityMap),
+    bg: Background,
+) -> Option<Vec<(usize, usize, f32)>> {
+    let (b, m) = (cell.bbox, bg.margin as usize);
+    let (left, right) = bg.views;
+    let (x0, y0) = (
+        (b.x0 as usize).saturating_sub(m),
+        (b.y0 as usize).saturating_sub(m),
+    );
+    let x1 = (b.x1 as usize + m + 1).min(labels.width);
+    let y1 = (b.y1 as usize + m + 1).min(labels.height);
+    let (w, h) = (labels.width as i64, labels.height as i64);
+    // Mean absolute difference of the zero-mean patches around (x, y) with the right view
+    // shifted by `d(q)`; `None` off the views.
+    let misfit = |x: usize, y: usize, d: &dyn Fn(i64, i64) -> f64| -> Option<f64> {
+        let mut pairs = [(0.0, 0.0); ((2 * PATCH + 1) * (2 * PATCH + 1)) as usize];
+        let mut k = 0;
+        for dy in -PATCH..=PATCH {
+            for dx in -PATCH..=PATCH {
+                let (qx, qy) = (x as i64 + dx, y as i64 + dy);
+                if qx < 0 || qy < 0 || qx >= w || qy >= h {
+                    return None;
+                }
+                let xr = qx as f64 - d(qx, qy);
+                if !(xr >= 0.0 && xr <= (w - 1) as f64) {
+                    return None;
+                }
+                let i = (xr.floor() as usize).min(w as usize - 2);
+                let t = xr - i as f64;
+                let row = right.row(qy as usize);
+                let r = row[i] as f64 * (1.0 - t) + row[i + 1] as f64 * t;
+                pairs[k] = (*left.get(qx as usize, qy as usize) as f64, r);
+                k += 1;
+            }
+        }
+        let n = pairs.len() as f64;
+        let (ml, mr) = pairs
+            .iter()
+            .fold((0.0, 0.0), |a, p| (a.0 + p.0 / n, a.1 + p.1 / n));
+        Some(
+            pairs
+                .iter()
+                .map(|p| ((p.0 - ml) - (p.1 - mr)).abs())
+                .sum::<f64>()
+                / n,
+        )
+    };
+    let on_plane = |qx: i64, qy: i64| bg.plane.at(qx as f64, qy as f64);
+    // Beside the cell only what passed the LR check counts: the strip of substrate the
+    // cell hides from the right camera fits neither the plane nor any disparity, and
+    // post-processing fills it with the cell's.
+    let raised = |x: usize, y: usize| -> Option<f32> {
+        let l = *labels.get(x, y);
+        let d = *raw.get(x, y);
+        if !(l == cell.id || l == 0) || !d.is_finite() {
+            return None;
+        }
+        // The patch at the pixel's own disparity, flat: with its neighbours' own, a pixel
+        // of substrate beside the cell would borrow their fit.
+        let own = |_: i64, _: i64| d as f64;
+        let (p, c) = (misfit(x, y, &on_plane)?, misfit(x, y, &own)?);
+        (c + PATCH_MARGIN < p && c < PATCH_FIT).then_some(d)
+    };
+    let cw = x1 - x0;
+    let mut state = vec![0u8; cw * (y1 - y0)];
+    let mut stack = Vec::new();
+    for y in y0..y1 {
+        for x in x0..x1 {
+            if *labels.get(x, y) == cell.id {
+                state[(y - y0) * cw + x - x0] = 1;
+                stack.push((x, y));
+            }
+        }
+    }
+    let mut region = Vec::new();
+    // Segmented pixels stay whether or not they pass: the flank a cell turns away from the
+    // right camera is seen by the left one alone, which no disparity explains. The matched
+    // margin only adds to them.
+    while let Some((x, y)) = stack.pop() {
+        let d = if *labels.get(x, y) == cell.id {
+            *disparity.get(x, y)
+        } else {
+            let Some(d) = raised(x, y) else { continue };
+            d
+        };
+        region.push((x, y, d));
+        for (dx, dy) in [
+            (-1, -1),
+            (0, -1),
+            (1, -1),
+            (-1, 0),
+            (1, 0),
+            (-1, 1),
+            (0, 1),
+            (1, 1),
+        ] {
+            let (nx, ny) = (x as i64 + dx, y as i64 + dy);
+            if nx < x0 as i64 || ny < y0 as i64 || nx >= x1 as i64 || ny >= y1 as i64 {
+                continue;
+            }
+            let (nx, ny) = (nx as usize, ny as usize);
+            let k = (ny - y0) * cw + nx - x0;
+            if state[k] == 0 {
+                state[k] = 1;
+                stack.push((nx, ny));
+            }
+        }
+    }
+    (region.len() as u64 <= 2 * cell.area).then(|| {
+        region.sort_unstable_by_key(|p| (p.1, p.0));
+        region
+    })
 }
 
 /// The left cells [`measure`] left out (`measured`: what it gave), most of them without a
@@ -876,5 +1044,108 @@ mod tests {
         assert_eq!(out[0].quality.substrate, SubstrateSource::Rims);
         // Nothing to stand on: left out.
         assert!(lone(None, &[None]).is_empty());
+    }
+
+    #[test]
+    fn a_cell_the_segmentation_cut_short_is_whole_by_stereo() {
+        // Textured substrate at disparity 2, a textured 12×12 block at 6 (columns 20..32,
+        // rows 10..22); the segmentation has only its left half.
+        let tex = |x: i64, y: i64, k: u64| -> f64 {
+            let h = (x as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15)
+                ^ (y as u64).wrapping_mul(0xc2b2_ae3d_27d4_eb4f)
+                ^ k;
+            let h = h.wrapping_mul(0x2545_f491_4f6c_dd1d);
+            ((h >> 40) % 60) as f64
+        };
+        let block = |x: i64, y: i64| (20..32).contains(&x) && (10..22).contains(&y);
+        let (w, h) = (60usize, 32usize);
+        let left = Plane::from_vec(
+            w,
+            h,
+            (0..h as i64)
+                .flat_map(|y| (0..w as i64).map(move |x| (x, y)))
+                .map(|(x, y)| {
+                    if block(x, y) {
+                        (100.0 + tex(x, y, 1)) as u8
+                    } else {
+                        (40.0 + tex(x, y, 2)) as u8
+                    }
+                })
+                .collect(),
+        )
+        .unwrap();
+        // The right view: each right pixel shows what the left saw 6 (block) or 2 px to
+        // its right, the block in front.
+        let right = Plane::from_vec(
+            w,
+            h,
+            (0..h as i64)
+                .flat_map(|y| (0..w as i64).map(move |x| (x, y)))
+                .map(|(x, y)| {
+                    if block(x + 6, y) {
+                        (100.0 + tex(x + 6, y, 1)) as u8
+                    } else {
+                        (40.0 + tex(x + 2, y, 2)) as u8
+                    }
+                })
+                .collect(),
+        )
+        .unwrap();
+        let cut = |x: usize, y: usize| (20..26).contains(&x) && (10..22).contains(&y);
+        let labels = Plane::from_vec(
+            w,
+            h,
+            (0..h)
+                .flat_map(|y| (0..w).map(move |x| u32::from(cut(x, y))))
+                .collect(),
+        )
+        .unwrap();
+        // The matcher's maps, exact: 6 on the block, 2 on the substrate it leaves visible,
+        // nothing where the block hides it from the right view (columns 32..36).
+        let map = |hidden: f32| {
+            Plane::from_vec(
+                w,
+                h,
+                (0..h as i64)
+                    .flat_map(|y| (0..w as i64).map(move |x| (x, y)))
+                    .map(|(x, y)| {
+                        if block(x, y) {
+                            6.0
+                        } else if (10..22).contains(&y) && (32..36).contains(&x) {
+                            hidden
+                        } else {
+                            2.0
+                        }
+                    })
+                    .collect(),
+            )
+            .unwrap()
+        };
+        let (filled, raw) = (map(6.0), map(INVALID_DISPARITY));
+        let plane = DisparityPlane {
+            d0: 2.0,
+            dx: 0.0,
+            dy: 0.0,
+            centre: [30.0, 16.0],
+            std: 0.01,
+            pixels: 1000,
+        };
+        let c = cell(1, 20, 10, 25, 21);
+        let bg = Background {
+            plane: &plane,
+            margin: 8,
+            views: (&left, &right),
+        };
+        let region = raised_region(&labels, &c, (&filled, &raw), bg).unwrap();
+        let mut got: Vec<(usize, usize)> = region.iter().map(|p| (p.0, p.1)).collect();
+        got.sort_unstable();
+        // The segmented half, and the other half less its edge pixels, whose patch
+        // straddles the substrate (it fits neither disparity).
+        let mut want: Vec<(usize, usize)> = (20..26)
+            .flat_map(|x| (10..22).map(move |y| (x, y)))
+            .chain((26..31).flat_map(|x| (11..21).map(move |y| (x, y))))
+            .collect();
+        want.sort_unstable();
+        assert_eq!(got, want);
     }
 }

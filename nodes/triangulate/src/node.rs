@@ -2,7 +2,7 @@
 //! in 3D (when given the segmentation) and the final full-frame map out.
 
 use crate::calibration::Geometry;
-use crate::cells::{cell_heights, compose, lone_cells, mask_of, measure};
+use crate::cells::{Background, cell_heights, compose, lone_cells, mask_of, measure};
 use runtime::node::{NodeError, Params, Stamp, Task};
 use schemas::{
     Calibration, CellLists, Cloud, Disparity, DisparityTiles, Image, Labels, StereoFrame, Targets,
@@ -125,6 +125,7 @@ impl Task for Triangulate {
         let (map, cells, substrate) = match (&i.labels, &i.cells, &i.checked) {
             (Some(labels), Some(lists), Some(checked)) => {
                 let left_mask = mask_of(&labels.left);
+                let right_mask = mask_of(&labels.right);
                 let c = compose(
                     (&labels.left, &left_mask),
                     (&lists.left, &lists.right),
@@ -133,7 +134,7 @@ impl Task for Triangulate {
                 )?;
                 let (substrate, bases, tops) = cell_heights(
                     (left, right),
-                    (&labels.left, &left_mask, &mask_of(&labels.right)),
+                    (&labels.left, &left_mask, &right_mask),
                     &lists.left,
                     &c.pairs,
                     (&c.disparity, &c.raw),
@@ -146,6 +147,11 @@ impl Task for Triangulate {
                     &c.pairs,
                     (&c.disparity, &c.raw),
                     (&bases, &tops),
+                    substrate.as_ref().map(|plane| Background {
+                        plane,
+                        margin: i.disparity.margin,
+                        views: (left, right),
+                    }),
                     &calib,
                 );
                 let lone = lone_cells(
