@@ -110,6 +110,23 @@ fn frames_done(summary: &str, frames: u64) -> u64 {
         .expect("a summary")
 }
 
+/// From a run's summary: the frames node `id` took in, over every process that ran it,
+/// and how many processes did.
+fn node_frames_in(summary: &str, id: &str) -> (u64, u64) {
+    summary
+        .lines()
+        .find_map(|l| {
+            let rest = l.strip_prefix(id)?.strip_prefix(' ')?;
+            let n = rest.split_whitespace().next()?.parse().ok()?;
+            let runs = rest
+                .split_once("  (")
+                .and_then(|(_, r)| r.split_whitespace().next()?.parse().ok())
+                .unwrap_or(1);
+            Some((n, runs))
+        })
+        .expect("the node's row")
+}
+
 /// From a run's summary: the frames dropped on the edge printed as `edge` (`a/b → c.d`).
 fn drops_on(summary: &str, edge: &str) -> u64 {
     edge_figures(summary, edge).0
@@ -446,8 +463,10 @@ fn one_process_per_node_and_none_left_when_the_supervisor_is_killed() {
     assert_eq!(runtime::process::dead_nodes(&instance), 0);
 }
 
-#[test]
-fn a_node_killed_mid_run_is_restarted_and_the_run_completes_clean() {
+/// Runs the small graph paced at 8 frames/s for `frames` frames with a restart policy on
+/// node `victim`, kills it with SIGKILL 0.8 s in, and returns the run's output and its
+/// instance.
+fn kill_mid_run(victim: &str, frames: u64) -> (std::process::Output, String) {
     let dir = tempfile::tempdir().unwrap();
     let small = std::fs::read_to_string(
         Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/graph/small.toml"),
@@ -456,24 +475,31 @@ fn a_node_killed_mid_run_is_restarted_and_the_run_completes_clean() {
     // Paced, so that the kill lands mid-run.
     .replace("drift = 2.0 }", "drift = 2.0, fps = 8.0 }");
     let small = small.replacen(
-        "id = \"match\"\n",
-        "id = \"match\"\nrestart = { policy = \"on-failure\", max = 2, backoff_ms = 50 }\n",
+        &format!("id = \"{victim}\"\n"),
+        &format!(
+            "id = \"{victim}\"\nrestart = {{ policy = \"on-failure\", max = 2, backoff_ms = 50 }}\n"
+        ),
         1,
     );
     assert!(small.contains("restart = {"));
     let file = dir.path().join("kill-node.toml");
     std::fs::write(&file, small).unwrap();
-    let instance = format!("killnode{}", std::process::id());
-    let frames = 24u64;
+    let instance = format!("kill{victim}{}", std::process::id());
     let sup = start_run(&file, frames, &instance);
-    let victim = wait_node_pid(&sup, "match");
+    let pid = wait_node_pid(&sup, victim);
     // A few frames in (8 per second), well before the last.
     std::thread::sleep(Duration::from_millis(800));
     // SAFETY: kill(2) on a process this test started (through the supervisor).
     unsafe {
-        libc::kill(victim as i32, libc::SIGKILL);
+        libc::kill(pid as i32, libc::SIGKILL);
     }
-    let out = finish(sup, Duration::from_secs(120));
+    (finish(sup, Duration::from_secs(120)), instance)
+}
+
+#[test]
+fn a_node_killed_mid_run_is_restarted_and_the_run_completes_clean() {
+    let frames = 24u64;
+    let (out, instance) = kill_mid_run("match", frames);
     let (stdout, stderr) = (
         String::from_utf8_lossy(&out.stdout),
         String::from_utf8_lossy(&out.stderr),
@@ -502,6 +528,16 @@ fn a_node_killed_mid_run_is_restarted_and_the_run_completes_clean() {
             .any(|l| l.starts_with("match ") && !l.contains("no report")),
         "{stdout}"
     );
+    // Its row counts both processes (the killed one if it lived to report): every frame
+    // that reached the next node was one of their steps, bar one the killed one may have
+    // finished after its last report.
+    let (steps, runs) = node_frames_in(&stdout, "match");
+    assert!((1..=2).contains(&runs), "{stdout}");
+    assert!(
+        (frames - missed).saturating_sub(steps) <= 1 && steps <= frames - missed,
+        "match took {steps} steps for {} frames passed on\n{stdout}",
+        frames - missed
+    );
     // No process of the run is left, and no shared memory of a dead node of it.
     let left: Vec<u32> = std::fs::read_dir("/proc")
         .unwrap()
@@ -513,6 +549,31 @@ fn a_node_killed_mid_run_is_restarted_and_the_run_completes_clean() {
         .collect();
     assert!(left.is_empty(), "processes left: {left:?}");
     assert_eq!(runtime::process::dead_nodes(&instance), 0);
+}
+
+#[test]
+fn a_restarted_source_goes_on_from_its_last_frame() {
+    // Before, a restarted capture numbered its frames from 0 again and made the run's
+    // frame count anew: the run never ended at its count, and the frames of the two
+    // processes collided downstream.
+    let frames = 24u64;
+    let (out, _) = kill_mid_run("capture", frames);
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr),
+    );
+    assert!(out.status.success(), "{stdout}\n{stderr}");
+    assert!(
+        stderr.contains("[capture] exited (signal: 9 (SIGKILL)); restart 1 of 2"),
+        "{stderr}"
+    );
+    // Both processes together made the run's frames (one more when the killed one sent a
+    // frame after its last report, which its successor then makes again).
+    let (made, runs) = node_frames_in(&stdout, "capture");
+    assert!((1..=2).contains(&runs), "{stdout}");
+    assert!((frames..=frames + 1).contains(&made), "{stdout}");
+    let done = frames_done(&stdout, frames);
+    assert!(done <= frames && done >= frames / 2, "{stdout}");
 }
 
 #[test]

@@ -81,10 +81,15 @@ fn input_stats<'a>(
     spec.inputs
         .iter()
         .zip(subs)
-        .map(|(i, s)| InputStats {
-            port: i.port.clone(),
-            dropped: s.dropped(),
-            missing: s.missing(),
+        .map(|(i, s)| {
+            let (first, last) = s.frames_seen();
+            InputStats {
+                port: i.port.clone(),
+                dropped: s.dropped(),
+                missing: s.missing(),
+                first,
+                last,
+            }
         })
         .collect()
 }
@@ -105,6 +110,75 @@ pub(crate) fn percentile(v: &mut [f64], q: f64) -> f64 {
     }
     v.sort_by(f64::total_cmp);
     v[((v.len() - 1) as f64 * q).round() as usize]
+}
+
+/// Least time between two progress reports of a node.
+pub const PROGRESS_PERIOD: Duration = Duration::from_millis(20);
+
+/// What a node has done so far: its step and latency times, and when it last said so. A
+/// node reports its statistics after a step (at most every [`PROGRESS_PERIOD`]) and while it
+/// waits, not only when it ends: the supervisor keeps the last report of a node that dies
+/// (killed, it has no last word) and adds it to its successor's.
+struct Tally {
+    times: Vec<f64>,
+    latencies: Vec<f64>,
+    last_frame: Option<u64>,
+    reported: Instant,
+}
+
+impl Tally {
+    fn new() -> Self {
+        Self {
+            times: Vec::new(),
+            latencies: Vec::new(),
+            last_frame: None,
+            // The first step reports at once.
+            reported: Instant::now()
+                .checked_sub(PROGRESS_PERIOD)
+                .unwrap_or_else(Instant::now),
+        }
+    }
+
+    fn step(&mut self, ms: f64, latency_ms: f64, frame: u64) {
+        self.times.push(ms);
+        self.latencies.push(latency_ms);
+        self.last_frame = Some(frame);
+    }
+
+    fn stats<'a>(
+        &self,
+        id: &str,
+        spec: &crate::launch::NodeSpec,
+        sent: u64,
+        subs: impl IntoIterator<Item = &'a EdgeSubscriber>,
+    ) -> NodeStats {
+        let mut times = self.times.clone();
+        NodeStats {
+            id: id.into(),
+            frames_in: self.times.len() as u64,
+            frames_out: sent,
+            mean_ms: mean(&self.times),
+            p99_ms: percentile(&mut times, 0.99),
+            inputs: input_stats(spec, subs),
+            latency_ms: mean(&self.latencies),
+            last_frame: self.last_frame,
+            runs: 1,
+        }
+    }
+
+    /// Prints the statistics so far when the last report is old enough.
+    fn report<'a>(
+        &mut self,
+        id: &str,
+        spec: &crate::launch::NodeSpec,
+        sent: u64,
+        subs: impl IntoIterator<Item = &'a EdgeSubscriber>,
+    ) {
+        if self.reported.elapsed() >= PROGRESS_PERIOD {
+            print_stats(&self.stats(id, spec, sent, subs));
+            self.reported = Instant::now();
+        }
+    }
 }
 
 /// Runs node `id` of `graph` until its frames are done or it is told to stop.
@@ -137,14 +211,14 @@ pub fn run_node(
     // message, the others are joined by frame.
     let mut subs = readers(&transport, graph, instance, spec)?;
     let joined = spec.inputs.iter().filter(|i| !i.feedback).count();
-    let mut feedback: Vec<(usize, EdgeSubscriber)> = subs
+    let feedback: Vec<(usize, EdgeSubscriber)> = subs
         .split_off(joined)
         .into_iter()
         .enumerate()
         .map(|(j, s)| (joined + j, s))
         .collect();
-    let mut feed = |node: &mut dyn GraphNode| -> Result<(), String> {
-        for (k, s) in &mut feedback {
+    let feed = |node: &mut dyn GraphNode| -> Result<(), String> {
+        for (k, s) in &feedback {
             let mut newest = None;
             while let Some(m) = s.receive().map_err(|e| e.to_string())? {
                 newest = Some(m);
@@ -200,20 +274,19 @@ pub fn run_node(
         pubs: &pubs,
         sent: 0,
     };
-    let mut times = Vec::new();
-    let mut latencies = Vec::new();
-    let mut last_frame = None;
+    let mut tally = Tally::new();
     if subs.is_empty() {
         let period = fps
             .filter(|f| *f > 0.0)
             .map(|f| Duration::from_secs_f64(1.0 / f));
         let start = Instant::now();
-        let mut seq = 0u64;
+        let first = first_frame_from_env()?;
+        let mut seq = first;
         let mut stopped = false;
         while frames.is_none_or(|n| seq < n) {
             // Also the place where a stop request is noticed between frames.
             let wait = period.map_or(Duration::ZERO, |p| {
-                (start + p * seq as u32).saturating_duration_since(Instant::now())
+                (start + p * (seq - first) as u32).saturating_duration_since(Instant::now())
             });
             if !transport.sleep(wait) {
                 stopped = true;
@@ -232,9 +305,12 @@ pub fn run_node(
                 }
                 Err(e) => return Err(e),
             }
-            times.push(t.elapsed().as_secs_f64() * 1e3);
-            latencies.push(now_ns().saturating_sub(t_ns) as f64 / 1e6);
-            last_frame = Some(seq);
+            tally.step(
+                t.elapsed().as_secs_f64() * 1e3,
+                now_ns().saturating_sub(t_ns) as f64 / 1e6,
+                seq,
+            );
+            tally.report(id, spec, out.sent, feedback.iter().map(|(_, s)| s));
             seq += 1;
         }
         if !stopped {
@@ -248,10 +324,16 @@ pub fn run_node(
         let mut restarts = Restarts::new(graph, spec, subs.len());
         // The last frame number each input delivered.
         let mut last_seq: Vec<Option<u64>> = vec![None; subs.len()];
-        let joined = wait_loop::<String>(&refs, Duration::from_secs(1), |wake, _| {
+        let joined = wait_loop::<String>(&refs, Duration::from_millis(500), |wake, _| {
             if wake == Wake::Stop {
                 return Ok(false);
             }
+            tally.report(
+                id,
+                spec,
+                out.sent,
+                subs.iter().chain(feedback.iter().map(|(_, s)| s)),
+            );
             for (i, s) in subs.iter().enumerate() {
                 loop {
                     // An input ahead of the others holds its frames until they catch up, up
@@ -327,12 +409,20 @@ pub fn run_node(
                 feed(node)?;
                 let t = Instant::now();
                 node.step(&msgs, &mut out)?;
-                times.push(t.elapsed().as_secs_f64() * 1e3);
-                latencies.push(now_ns().saturating_sub(msgs[0].header.capture_ns) as f64 / 1e6);
-                last_frame = Some(seq);
+                tally.step(
+                    t.elapsed().as_secs_f64() * 1e3,
+                    now_ns().saturating_sub(msgs[0].header.capture_ns) as f64 / 1e6,
+                    seq,
+                );
                 for p in &mut pending {
                     p.retain(|m| seq_of(m) > seq);
                 }
+                tally.report(
+                    id,
+                    spec,
+                    out.sent,
+                    subs.iter().chain(feedback.iter().map(|(_, s)| s)),
+                );
                 if frames.is_some_and(|n| seq + 1 >= n) {
                     done = true;
                     return Ok(false);
@@ -349,17 +439,12 @@ pub fn run_node(
             linger(&transport, read_in_graph);
         }
     }
-    let steps = times.len() as u64;
-    Ok(NodeStats {
-        id: id.into(),
-        frames_in: steps,
-        frames_out: out.sent,
-        mean_ms: mean(&times),
-        p99_ms: percentile(&mut times, 0.99),
-        inputs: input_stats(spec, subs.iter().chain(feedback.iter().map(|(_, s)| s))),
-        latency_ms: mean(&latencies),
-        last_frame,
-    })
+    Ok(tally.stats(
+        id,
+        spec,
+        out.sent,
+        subs.iter().chain(feedback.iter().map(|(_, s)| s)),
+    ))
 }
 
 /// Runs node `id` of `graph` as a tap (a recorder or a viewer): every message on each of
@@ -409,6 +494,7 @@ pub fn run_tap(
         inputs: input_stats(spec, &subs),
         latency_ms: 0.0,
         last_frame,
+        runs: 1,
     })
 }
 
@@ -578,6 +664,21 @@ pub struct NodeArgs {
 /// The environment variable in which the supervisor gives a restarted node process the
 /// run's restart count.
 pub const GENERATION_ENV: &str = "MICROSTEREO_RESTART_GENERATION";
+
+/// The environment variable in which the supervisor gives a restarted source the number
+/// of its first frame: the one after the last its predecessor reported, so that a
+/// restarted capture neither numbers frames anew nor makes more than the run asks for.
+pub const FIRST_FRAME_ENV: &str = "MICROSTEREO_FIRST_FRAME";
+
+/// The first frame number the supervisor gave this process (0 when none).
+pub fn first_frame_from_env() -> Result<u64, String> {
+    match std::env::var(FIRST_FRAME_ENV) {
+        Err(_) => Ok(0),
+        Ok(v) => v
+            .parse()
+            .map_err(|_| format!("{FIRST_FRAME_ENV}={v} is not a frame number")),
+    }
+}
 
 /// The restart count the supervisor gave this process (0 when none).
 pub fn generation_from_env() -> Result<u64, String> {

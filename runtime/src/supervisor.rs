@@ -150,6 +150,7 @@ fn spawn(
     instance: &str,
     id: &str,
     generation: u64,
+    first_frame: Option<u64>,
 ) -> Result<tokio::process::Child, String> {
     let spec = graph.node(id).expect("validated");
     let mut cmd = match &spec.runner {
@@ -178,6 +179,10 @@ fn spawn(
     if generation > 0 {
         cmd.env(crate::process::GENERATION_ENV, generation.to_string());
     }
+    cmd.env_remove(crate::process::FIRST_FRAME_ENV);
+    if let Some(f) = first_frame {
+        cmd.env(crate::process::FIRST_FRAME_ENV, f.to_string());
+    }
     cmd.stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .stdin(if spec.logs {
@@ -198,7 +203,9 @@ fn spawn(
         .map_err(|e| format!("cannot start node '{id}': {e}"))
 }
 
-type StatsSink = std::sync::Arc<std::sync::Mutex<HashMap<String, NodeStats>>>;
+/// Per node id, the last report of each process that ran it, in the order they ran (`None`
+/// for one that never reported).
+type StatsSink = std::sync::Arc<std::sync::Mutex<HashMap<String, Vec<Option<NodeStats>>>>>;
 
 /// Where node log lines go besides the terminal: the Rerun viewer node's stdin, as
 /// `NODE<TAB>LEVEL<TAB>LINE`.
@@ -206,6 +213,7 @@ type LogTap = Option<tokio::sync::mpsc::UnboundedSender<String>>;
 
 fn forward_logs(
     id: &str,
+    run: usize,
     logs: bool,
     child: &mut tokio::process::Child,
     stats: &StatsSink,
@@ -219,7 +227,12 @@ fn forward_logs(
                 match l.strip_prefix(STATS_PREFIX) {
                     Some(j) => {
                         if let Ok(s) = serde_json::from_str::<NodeStats>(j) {
-                            stats.lock().expect("stats").insert(id.clone(), s);
+                            let mut all = stats.lock().expect("stats");
+                            let runs = all.entry(id.clone()).or_default();
+                            if runs.len() <= run {
+                                runs.resize(run + 1, None);
+                            }
+                            runs[run] = Some(s);
                         }
                     }
                     None => {
@@ -293,8 +306,8 @@ async fn supervise(
     });
     let mut children = Vec::new();
     for n in &graph.nodes {
-        let mut proc = spawn(graph, a, file, instance, &n.id, 0)?;
-        forward_logs(&n.id, n.logs, &mut proc, &stats, &tap);
+        let mut proc = spawn(graph, a, file, instance, &n.id, 0, None)?;
+        forward_logs(&n.id, 0, n.logs, &mut proc, &stats, &tap);
         children.push(Child {
             id: n.id.clone(),
             proc,
@@ -385,8 +398,26 @@ async fn supervise(
             }
             tokio::time::sleep(wait).await;
             generation += 1;
-            let mut proc = spawn(graph, a, file, instance, &c.id, generation)?;
-            forward_logs(&c.id, spec.logs, &mut proc, &stats, &tap);
+            // A source goes on from the frame after the last its predecessors reported.
+            let first_frame =
+                spec.inputs
+                    .is_empty()
+                    .then(|| {
+                        stats.lock().expect("stats").get(&c.id).and_then(|runs| {
+                            runs.iter().flatten().filter_map(|s| s.last_frame).max()
+                        })
+                    })
+                    .flatten()
+                    .map(|l| l + 1);
+            let mut proc = spawn(graph, a, file, instance, &c.id, generation, first_frame)?;
+            forward_logs(
+                &c.id,
+                c.restarts as usize + 1,
+                spec.logs,
+                &mut proc,
+                &stats,
+                &tap,
+            );
             children.push(Child {
                 id: c.id,
                 proc,
@@ -401,7 +432,15 @@ async fn supervise(
     // Give the log forwarders a moment to flush the last lines.
     tokio::time::sleep(Duration::from_millis(50)).await;
     let wall = start.elapsed();
-    let stats = stats.lock().expect("stats").clone();
+    let stats = stats
+        .lock()
+        .expect("stats")
+        .iter()
+        .filter_map(|(id, runs)| {
+            let runs: Vec<NodeStats> = runs.iter().flatten().cloned().collect();
+            Some((id.clone(), crate::stats::merge(&runs)?))
+        })
+        .collect();
     Ok((stats, wall, failure))
 }
 
@@ -438,8 +477,18 @@ pub fn print_summary(
     for n in &graph.nodes {
         match stats.get(&n.id) {
             Some(s) => println!(
-                "{:<20} {:>9} {:>9} {:>10.2} {:>10.2} {:>12.1}",
-                n.id, s.frames_in, s.frames_out, s.mean_ms, s.p99_ms, s.latency_ms
+                "{:<20} {:>9} {:>9} {:>10.2} {:>10.2} {:>12.1}{}",
+                n.id,
+                s.frames_in,
+                s.frames_out,
+                s.mean_ms,
+                s.p99_ms,
+                s.latency_ms,
+                if s.runs > 1 {
+                    format!("  ({} processes: restarted)", s.runs)
+                } else {
+                    String::new()
+                }
             ),
             None => println!("{:<20} (no report)", n.id),
         }

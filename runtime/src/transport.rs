@@ -241,6 +241,7 @@ impl Transport {
             subscriber,
             listener,
             cfg: *cfg,
+            first: Cell::new(None),
             last: Cell::new(None),
             last_on_edge: Cell::new(None),
             received: Cell::new(0),
@@ -347,6 +348,7 @@ pub struct EdgeSubscriber {
     subscriber: Subscriber<Service, [u8], FrameHeader>,
     listener: Listener<Service>,
     cfg: EdgeConfig,
+    first: Cell<Option<u64>>,
     last: Cell<Option<u64>>,
     last_on_edge: Cell<Option<u64>>,
     received: Cell<u64>,
@@ -429,6 +431,9 @@ impl EdgeSubscriber {
         }
         self.missing
             .set(self.missing.get() + gap(&self.last, h.sequence));
+        if self.first.get().is_none() {
+            self.first.set(Some(h.sequence));
+        }
         self.received.set(self.received.get() + 1);
         Ok(Some(Received::Frame(m)))
     }
@@ -446,6 +451,11 @@ impl EdgeSubscriber {
     /// Messages lost on this edge: overwritten in a full queue or let go unused.
     pub fn dropped(&self) -> u64 {
         self.dropped.get()
+    }
+
+    /// The first and the last frame number received, if any.
+    pub fn frames_seen(&self) -> (Option<u64>, Option<u64>) {
+        (self.first.get(), self.last.get())
     }
 
     /// Frames of the stream that never reached this reader's node, wherever they were lost
