@@ -464,9 +464,14 @@ fn one_process_per_node_and_none_left_when_the_supervisor_is_killed() {
 }
 
 /// Runs the small graph paced at 8 frames/s for `frames` frames with a restart policy on
-/// node `victim`, kills it with SIGKILL 0.8 s in, and returns the run's output and its
-/// instance.
-fn kill_mid_run(victim: &str, frames: u64) -> (std::process::Output, String) {
+/// node `victim` (and `restart_extra` in its restart table), sends it `signal` 0.8 s in,
+/// and returns the run's output and its instance.
+fn signal_mid_run(
+    victim: &str,
+    frames: u64,
+    signal: i32,
+    restart_extra: &str,
+) -> (std::process::Output, String) {
     let dir = tempfile::tempdir().unwrap();
     let small = std::fs::read_to_string(
         Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/graph/small.toml"),
@@ -477,7 +482,7 @@ fn kill_mid_run(victim: &str, frames: u64) -> (std::process::Output, String) {
     let small = small.replacen(
         &format!("id = \"{victim}\"\n"),
         &format!(
-            "id = \"{victim}\"\nrestart = {{ policy = \"on-failure\", max = 2, backoff_ms = 50 }}\n"
+            "id = \"{victim}\"\nrestart = {{ policy = \"on-failure\", max = 2, backoff_ms = 50{restart_extra} }}\n"
         ),
         1,
     );
@@ -491,9 +496,14 @@ fn kill_mid_run(victim: &str, frames: u64) -> (std::process::Output, String) {
     std::thread::sleep(Duration::from_millis(800));
     // SAFETY: kill(2) on a process this test started (through the supervisor).
     unsafe {
-        libc::kill(pid as i32, libc::SIGKILL);
+        libc::kill(pid as i32, signal);
     }
     (finish(sup, Duration::from_secs(120)), instance)
+}
+
+/// [`signal_mid_run`] with SIGKILL.
+fn kill_mid_run(victim: &str, frames: u64) -> (std::process::Output, String) {
+    signal_mid_run(victim, frames, libc::SIGKILL, "")
 }
 
 #[test]
@@ -574,6 +584,30 @@ fn a_restarted_source_goes_on_from_its_last_frame() {
     assert!((frames..=frames + 1).contains(&made), "{stdout}");
     let done = frames_done(&stdout, frames);
     assert!(done <= frames && done >= frames / 2, "{stdout}");
+}
+
+#[test]
+fn a_stopped_node_is_killed_by_the_watchdog_and_restarted() {
+    // SIGSTOP freezes the matcher: without a watchdog the graph waits for it for ever.
+    let frames = 24u64;
+    let (out, _) = signal_mid_run("match", frames, libc::SIGSTOP, ", heartbeat_ms = 1000");
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr),
+    );
+    assert!(out.status.success(), "{stdout}\n{stderr}");
+    assert!(
+        stderr.contains("[match] no report for") && stderr.contains("hung; killing it"),
+        "{stderr}"
+    );
+    assert!(
+        stderr.contains("[match] exited (hung: no report for") && stderr.contains("restart 1 of 2"),
+        "{stderr}"
+    );
+    let done = frames_done(&stdout, frames);
+    let missed = missing_at(&stdout, "match/left → validate.left");
+    assert!(done >= frames / 3, "{stdout}");
+    assert_eq!(done + missed, frames, "{stdout}");
 }
 
 #[test]

@@ -5,7 +5,7 @@
 //! id = "capture"
 //! kind = "capture"                       # a built-in kind, or exec = "path/to/binary"
 //! params = { source = "synthetic", width = 1280, height = 1024 }
-//! restart = { policy = "on-failure", max = 3, backoff_ms = 500 }
+//! restart = { policy = "on-failure", max = 3, backoff_ms = 500, heartbeat_ms = 5000 }
 //!
 //! [[node]]
 //! id = "segment"
@@ -84,7 +84,18 @@ pub struct Restart {
     /// Wait before a restart, doubled after each one.
     #[serde(default = "default_backoff_ms")]
     pub backoff_ms: u64,
+    /// The watchdog: a node that has not reported for this long (stuck in a step, stopped
+    /// by SIGSTOP, deadlocked) is killed, and then restarted by `policy` like any failed
+    /// node. Nodes report after every step and at least twice a second while they wait;
+    /// a step or a blocked send longer than this counts as a hang. Off when absent; the
+    /// watch starts with a node's first report, not while it starts up.
+    #[serde(default)]
+    pub heartbeat_ms: Option<u64>,
 }
+
+/// The shortest watchdog time a launch file may ask for: an idle node reports every
+/// 500 ms.
+pub const MIN_HEARTBEAT_MS: u64 = 1000;
 
 fn default_max_restarts() -> u32 {
     3
@@ -100,6 +111,7 @@ impl Default for Restart {
             policy: RestartPolicy::Never,
             max: default_max_restarts(),
             backoff_ms: default_backoff_ms(),
+            heartbeat_ms: None,
         }
     }
 }
@@ -797,6 +809,18 @@ impl LaunchFile {
                     );
                 }
             }
+            if let Some(r) = &n.restart
+                && let Some(h) = r.get_ref().heartbeat_ms
+                && !(MIN_HEARTBEAT_MS..=86_400_000).contains(&h)
+            {
+                err(
+                    &mut errs,
+                    r.span().start,
+                    format!(
+                        "node '{id}': heartbeat_ms = {h} is out of range; give {MIN_HEARTBEAT_MS} to 86400000 (a node reports every 500 ms while it waits)"
+                    ),
+                );
+            }
             nodes.push((
                 NodeSpec {
                     id,
@@ -1215,6 +1239,34 @@ inputs = { frame = "b/frame" }
             .replace_with_sources(&["zz".into()], "replay", &params)
             .unwrap_err();
         assert!(e.contains("no node 'zz'") && e.contains("a, b, c"), "{e}");
+    }
+
+    #[test]
+    fn a_watchdog_time_is_read_and_checked() {
+        let text = |h: &str| {
+            format!(
+                "[[node]]\nid = \"a\"\nkind = \"source\"\nrestart = {{ policy = \"on-failure\", heartbeat_ms = {h} }}\n"
+            )
+        };
+        let g = check(&text("2000")).unwrap();
+        assert_eq!(g.node("a").unwrap().restart.heartbeat_ms, Some(2000));
+        for bad in ["0", "999", "100000000"] {
+            let e = check(&text(bad)).unwrap_err().to_string();
+            assert!(
+                e.contains(&format!("heartbeat_ms = {bad} is out of range"))
+                    && e.contains("g.toml:4:"),
+                "{e}"
+            );
+        }
+        assert_eq!(
+            check("[[node]]\nid = \"a\"\nkind = \"source\"\n")
+                .unwrap()
+                .node("a")
+                .unwrap()
+                .restart
+                .heartbeat_ms,
+            None
+        );
     }
 
     #[test]

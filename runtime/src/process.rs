@@ -288,7 +288,9 @@ pub fn run_node(
             let wait = period.map_or(Duration::ZERO, |p| {
                 (start + p * (seq - first) as u32).saturating_duration_since(Instant::now())
             });
-            if !transport.sleep(wait) {
+            if !sleep_beating(&transport, wait, || {
+                tally.report(id, spec, out.sent, feedback.iter().map(|(_, s)| s))
+            }) {
                 stopped = true;
                 break;
             }
@@ -314,7 +316,9 @@ pub fn run_node(
             seq += 1;
         }
         if !stopped {
-            linger(&transport, read_in_graph);
+            linger(&transport, read_in_graph, || {
+                tally.report(id, spec, out.sent, feedback.iter().map(|(_, s)| s))
+            });
         }
     } else {
         let refs: Vec<&EdgeSubscriber> = subs.iter().collect();
@@ -436,7 +440,14 @@ pub fn run_node(
             Err(e) => return Err(e),
         }
         if done {
-            linger(&transport, read_in_graph);
+            linger(&transport, read_in_graph, || {
+                tally.report(
+                    id,
+                    spec,
+                    out.sent,
+                    subs.iter().chain(feedback.iter().map(|(_, s)| s)),
+                )
+            });
         }
     }
     Ok(tally.stats(
@@ -468,9 +479,26 @@ pub fn run_tap(
     let mut times = Vec::new();
     let mut last_frame = None;
     let mut received = 0u64;
-    wait_loop::<String>(&refs, Duration::from_secs(1), |wake, _| {
+    let mut reported = Instant::now();
+    wait_loop::<String>(&refs, Duration::from_millis(500), |wake, _| {
         if wake == Wake::Stop {
             return Ok(false);
+        }
+        // Reports for the watchdog (and for a restart's accounting) as a node does.
+        if reported.elapsed() >= PROGRESS_PERIOD {
+            let mut t = times.clone();
+            print_stats(&NodeStats {
+                id: id.into(),
+                frames_in: received,
+                frames_out: 0,
+                mean_ms: mean(&times),
+                p99_ms: percentile(&mut t, 0.99),
+                inputs: input_stats(spec, &subs),
+                latency_ms: 0.0,
+                last_frame,
+                runs: 1,
+            });
+            reported = Instant::now();
         }
         for (i, s) in subs.iter().enumerate() {
             while let Some(m) = s.receive()? {
@@ -498,11 +526,34 @@ pub fn run_tap(
     })
 }
 
+/// How often a node that sleeps (a paced source between frames, a node lingering after its
+/// last frame) wakes to report, for the supervisor's watchdog.
+const BEAT: Duration = Duration::from_millis(250);
+
 /// After its last frame, a node that other nodes read stays until it is told to stop: its
 /// readers may not have taken every frame yet, and a publisher that leaves takes its unread
 /// frames along (the supervisor stops such nodes once every node nobody reads has ended).
-fn linger(transport: &Transport, read_in_graph: bool) {
-    while read_in_graph && transport.sleep(Duration::from_secs(3600)) {}
+/// It reports (`beat`) while it waits.
+fn linger(transport: &Transport, read_in_graph: bool, mut beat: impl FnMut()) {
+    while read_in_graph && transport.sleep(BEAT) {
+        beat();
+    }
+}
+
+/// [`Transport::sleep`] for `wait`, reporting (`beat`) every [`BEAT`] on the way; false
+/// when a stop request cut it short.
+fn sleep_beating(transport: &Transport, wait: Duration, mut beat: impl FnMut()) -> bool {
+    let end = Instant::now() + wait;
+    loop {
+        let left = end.saturating_duration_since(Instant::now());
+        if !transport.sleep(left.min(BEAT)) {
+            return false;
+        }
+        if left <= BEAT {
+            return true;
+        }
+        beat();
+    }
 }
 
 /// Nodes of run `instance` on this machine that died without removing their shared memory.

@@ -141,6 +141,8 @@ struct Child {
     id: String,
     proc: tokio::process::Child,
     restarts: u32,
+    /// Killed by the watchdog, after this long without a report.
+    hung: Option<Duration>,
 }
 
 fn spawn(
@@ -203,9 +205,19 @@ fn spawn(
         .map_err(|e| format!("cannot start node '{id}': {e}"))
 }
 
+/// A process's last report and when it came.
+#[derive(Clone)]
+struct Heard {
+    stats: NodeStats,
+    at: Instant,
+}
+
 /// Per node id, the last report of each process that ran it, in the order they ran (`None`
 /// for one that never reported).
-type StatsSink = std::sync::Arc<std::sync::Mutex<HashMap<String, Vec<Option<NodeStats>>>>>;
+type StatsSink = std::sync::Arc<std::sync::Mutex<HashMap<String, Vec<Option<Heard>>>>>;
+
+/// How often the watchdog looks at the nodes' last reports.
+const WATCH_TICK: Duration = Duration::from_millis(100);
 
 /// Where node log lines go besides the terminal: the Rerun viewer node's stdin, as
 /// `NODE<TAB>LEVEL<TAB>LINE`.
@@ -232,7 +244,10 @@ fn forward_logs(
                             if runs.len() <= run {
                                 runs.resize(run + 1, None);
                             }
-                            runs[run] = Some(s);
+                            runs[run] = Some(Heard {
+                                stats: s,
+                                at: Instant::now(),
+                            });
                         }
                     }
                     None => {
@@ -312,6 +327,7 @@ async fn supervise(
             id: n.id.clone(),
             proc,
             restarts: 0,
+            hung: None,
         });
     }
     let mut sigterm =
@@ -331,30 +347,41 @@ async fn supervise(
             stopping = true;
             terminate(&children);
         }
-        let exited = {
+        let watched = !stopping && graph.nodes.iter().any(|n| n.restart.heartbeat_ms.is_some());
+        let event = {
             let waits = children
                 .iter_mut()
                 .enumerate()
                 .map(|(i, c)| Box::pin(async move { (i, c.proc.wait().await) }));
             tokio::select! {
-                (r, _, _) = futures_select(waits) => Some(r),
-                _ = tokio::signal::ctrl_c() => None,
-                _ = sigterm.recv() => None,
+                (r, _, _) = futures_select(waits) => Event::Exit(r.0, r.1),
+                _ = tokio::signal::ctrl_c() => Event::Stop,
+                _ = sigterm.recv() => Event::Stop,
                 _ = tokio::time::sleep(Duration::from_secs_f64(a.grace)), if stopping => {
                     for c in &mut children {
                         let _ = c.proc.start_kill();
                     }
-                    None
+                    Event::Tick
                 }
+                _ = tokio::time::sleep(WATCH_TICK), if watched => Event::Tick,
             }
         };
-        let Some((i, status)) = exited else {
-            if !stopping {
-                eprintln!("stopping the graph");
-                stopping = true;
-                terminate(&children);
+        let (i, status) = match event {
+            Event::Exit(i, status) => (i, status),
+            Event::Stop => {
+                if !stopping {
+                    eprintln!("stopping the graph");
+                    stopping = true;
+                    terminate(&children);
+                }
+                continue;
             }
-            continue;
+            Event::Tick => {
+                if !stopping {
+                    watch(graph, &stats, &mut children);
+                }
+                continue;
+            }
         };
         let status = status.map_err(|e| format!("waiting for a node: {e}"))?;
         let c = children.remove(i);
@@ -363,8 +390,13 @@ async fn supervise(
         // was stopped from outside (a SIGTERM it obeyed), and its readers would wait for
         // its frames for ever. It counts as failed.
         let ended_early = !stopping && status.success() && graph.is_read(&c.id);
-        let failed = !status.success() || ended_early;
-        let why = if ended_early {
+        let failed = !status.success() || ended_early || c.hung.is_some();
+        let why = if let Some(h) = c.hung {
+            format!(
+                "hung: no report for {} ms, killed by the watchdog",
+                h.as_millis()
+            )
+        } else if ended_early {
             format!("ended before the graph was done ({status}; stopped from outside?)")
         } else {
             format!("{status}")
@@ -399,16 +431,19 @@ async fn supervise(
             tokio::time::sleep(wait).await;
             generation += 1;
             // A source goes on from the frame after the last its predecessors reported.
-            let first_frame =
-                spec.inputs
-                    .is_empty()
-                    .then(|| {
-                        stats.lock().expect("stats").get(&c.id).and_then(|runs| {
-                            runs.iter().flatten().filter_map(|s| s.last_frame).max()
-                        })
+            let first_frame = spec
+                .inputs
+                .is_empty()
+                .then(|| {
+                    stats.lock().expect("stats").get(&c.id).and_then(|runs| {
+                        runs.iter()
+                            .flatten()
+                            .filter_map(|h| h.stats.last_frame)
+                            .max()
                     })
-                    .flatten()
-                    .map(|l| l + 1);
+                })
+                .flatten()
+                .map(|l| l + 1);
             let mut proc = spawn(graph, a, file, instance, &c.id, generation, first_frame)?;
             forward_logs(
                 &c.id,
@@ -422,6 +457,7 @@ async fn supervise(
                 id: c.id,
                 proc,
                 restarts: c.restarts + 1,
+                hung: None,
             });
         } else if failed && !stopping {
             failure = Some(format!("node '{}' failed ({why})", c.id));
@@ -437,11 +473,55 @@ async fn supervise(
         .expect("stats")
         .iter()
         .filter_map(|(id, runs)| {
-            let runs: Vec<NodeStats> = runs.iter().flatten().cloned().collect();
+            let runs: Vec<NodeStats> = runs.iter().flatten().map(|h| h.stats.clone()).collect();
             Some((id.clone(), crate::stats::merge(&runs)?))
         })
         .collect();
     Ok((stats, wall, failure))
+}
+
+/// What woke the supervisor.
+enum Event {
+    /// The child at this index exited.
+    Exit(usize, std::io::Result<std::process::ExitStatus>),
+    /// Ctrl-C or SIGTERM.
+    Stop,
+    /// Time to look at the watchdog (or the grace period ran out).
+    Tick,
+}
+
+/// The watchdog: kills each node whose `heartbeat_ms` has passed since its process's last
+/// report (its exit then goes the way of any failure: a restart by its policy, or the end
+/// of the run with the reason).
+fn watch(graph: &Graph, stats: &StatsSink, children: &mut [Child]) {
+    let heard = stats.lock().expect("stats");
+    for c in children.iter_mut().filter(|c| c.hung.is_none()) {
+        let Some(limit) = graph
+            .node(&c.id)
+            .and_then(|n| n.restart.heartbeat_ms)
+            .map(Duration::from_millis)
+        else {
+            continue;
+        };
+        let last = heard
+            .get(&c.id)
+            .and_then(|runs| runs.get(c.restarts as usize))
+            .and_then(|h| h.as_ref())
+            .map(|h| h.at);
+        // The watch starts with the process's first report.
+        let Some(last) = last else { continue };
+        let silent = last.elapsed();
+        if silent > limit {
+            eprintln!(
+                "[{}] no report for {} ms (heartbeat_ms = {}): hung; killing it",
+                c.id,
+                silent.as_millis(),
+                limit.as_millis()
+            );
+            c.hung = Some(silent);
+            let _ = c.proc.start_kill();
+        }
+    }
 }
 
 /// The first of several futures to finish, with its index.
