@@ -89,7 +89,8 @@ pub struct Restart {
     /// node. Nodes report after every step and at least twice a second while they wait;
     /// a step or a blocked send longer than this counts as a hang. Off when absent; the
     /// watch starts with a node's first report, not while it starts up.
-    #[serde(default)]
+    // Left out of the graph file when off: exec programs built before it refuse the field.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub heartbeat_ms: Option<u64>,
 }
 
