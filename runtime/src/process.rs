@@ -480,24 +480,24 @@ pub fn run_tap(
     let mut last_frame = None;
     let mut received = 0u64;
     let mut reported = Instant::now();
+    let stats = |received: u64, times: &[f64], last_frame: Option<u64>| NodeStats {
+        id: id.into(),
+        frames_in: received,
+        frames_out: 0,
+        mean_ms: mean(times),
+        p99_ms: percentile(&mut times.to_vec(), 0.99),
+        inputs: input_stats(spec, &subs),
+        latency_ms: 0.0,
+        last_frame,
+        runs: 1,
+    };
     wait_loop::<String>(&refs, Duration::from_millis(500), |wake, _| {
         if wake == Wake::Stop {
             return Ok(false);
         }
         // Reports for the watchdog (and for a restart's accounting) as a node does.
         if reported.elapsed() >= PROGRESS_PERIOD {
-            let mut t = times.clone();
-            print_stats(&NodeStats {
-                id: id.into(),
-                frames_in: received,
-                frames_out: 0,
-                mean_ms: mean(&times),
-                p99_ms: percentile(&mut t, 0.99),
-                inputs: input_stats(spec, &subs),
-                latency_ms: 0.0,
-                last_frame,
-                runs: 1,
-            });
+            print_stats(&stats(received, &times, last_frame));
             reported = Instant::now();
         }
         for (i, s) in subs.iter().enumerate() {
@@ -513,17 +513,7 @@ pub fn run_tap(
         }
         Ok(!(frames.is_some() && finished.iter().all(|f| *f)))
     })?;
-    Ok(NodeStats {
-        id: id.into(),
-        frames_in: received,
-        frames_out: 0,
-        mean_ms: mean(&times),
-        p99_ms: percentile(&mut times, 0.99),
-        inputs: input_stats(spec, &subs),
-        latency_ms: 0.0,
-        last_frame,
-        runs: 1,
-    })
+    Ok(stats(received, &times, last_frame))
 }
 
 /// How often a node that sleeps (a paced source between frames, a node lingering after its

@@ -11,6 +11,18 @@ pub enum Connectivity {
     Eight,
 }
 
+/// The offsets `(dx, dy)` of a pixel's eight neighbours.
+pub const NEIGHBOURS: [(i64, i64); 8] = [
+    (-1, -1),
+    (0, -1),
+    (1, -1),
+    (-1, 0),
+    (1, 0),
+    (-1, 1),
+    (0, 1),
+    (1, 1),
+];
+
 /// A run of "on" pixels `[x0, x1)` in row `y`.
 #[derive(Clone, Copy)]
 struct Run {

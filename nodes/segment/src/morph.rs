@@ -1,6 +1,6 @@
 //! Mask clean-up: hole filling, small-blob removal, opening and closing.
 
-use crate::label::{Connectivity, label, label_where};
+use crate::label::{Connectivity, NEIGHBOURS, label, label_where};
 use image::GrayImage;
 use imageproc::distance_transform::Norm;
 use schemas::{Mask, Plane};
@@ -74,16 +74,7 @@ pub fn fill_broken_outlines(mask: &Mask, radius: u8) -> Mask {
                 continue;
             }
             hole[p] |= *closed.get(x, y) == 0;
-            for (dx, dy) in [
-                (-1, -1),
-                (0, -1),
-                (1, -1),
-                (-1, 0),
-                (1, 0),
-                (-1, 1),
-                (0, 1),
-                (1, 1),
-            ] {
+            for (dx, dy) in NEIGHBOURS {
                 let (nx, ny) = (x as i64 + dx, y as i64 + dy);
                 if nx < 0 || ny < 0 || nx >= w as i64 || ny >= h as i64 {
                     continue;

@@ -772,16 +772,7 @@ fn raised_region(
             d
         };
         region.push((x, y, d));
-        for (dx, dy) in [
-            (-1, -1),
-            (0, -1),
-            (1, -1),
-            (-1, 0),
-            (1, 0),
-            (-1, 1),
-            (0, 1),
-            (1, 1),
-        ] {
+        for (dx, dy) in segment::NEIGHBOURS {
             let (nx, ny) = (x as i64 + dx, y as i64 + dy);
             if nx < x0 as i64 || ny < y0 as i64 || nx >= x1 as i64 || ny >= y1 as i64 {
                 continue;
