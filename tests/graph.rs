@@ -489,7 +489,7 @@ fn signal_mid_run(
     assert!(small.contains("restart = {"));
     let file = dir.path().join("kill-node.toml");
     std::fs::write(&file, small).unwrap();
-    let instance = format!("kill{victim}{}", std::process::id());
+    let instance = format!("sig{signal}{victim}{}", std::process::id());
     let sup = start_run(&file, frames, &instance);
     let pid = wait_node_pid(&sup, victim);
     // A few frames in (8 per second), well before the last.
