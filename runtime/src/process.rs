@@ -139,6 +139,23 @@ impl Tally {
         }
     }
 
+    /// A source's frame about to be made, reported before it is: a source killed after
+    /// sending it but before its report would otherwise have its successor make that
+    /// frame number again, and the nodes downstream take it twice. Killed before sending
+    /// it, the frame is missing downstream, lost in the dead process.
+    fn claim<'a>(
+        &mut self,
+        frame: u64,
+        id: &str,
+        spec: &crate::launch::NodeSpec,
+        sent: u64,
+        subs: impl IntoIterator<Item = &'a EdgeSubscriber>,
+    ) {
+        self.last_frame = Some(frame);
+        print_stats(&self.stats(id, spec, sent, subs));
+        self.reported = Instant::now();
+    }
+
     fn step(&mut self, ms: f64, latency_ms: f64, frame: u64) {
         self.times.push(ms);
         self.latencies.push(latency_ms);
@@ -295,6 +312,7 @@ pub fn run_node(
                 break;
             }
             feed(node)?;
+            tally.claim(seq, id, spec, out.sent, feedback.iter().map(|(_, s)| s));
             let (t, t_ns) = (Instant::now(), now_ns());
             match node.produce(seq, &mut out) {
                 Ok(true) => {}
