@@ -89,6 +89,7 @@ fn input_stats<'a>(
                 missing: s.missing(),
                 first,
                 last,
+                end: s.end(),
             }
         })
         .collect()
@@ -334,7 +335,10 @@ pub fn run_node(
             seq += 1;
         }
         if !stopped {
+            let last = seq.checked_sub(1);
+            let mut ends = EndMarkers::new(&pubs, last)?;
             linger(&transport, read_in_graph, || {
+                ends.resend();
                 tally.report(id, spec, out.sent, feedback.iter().map(|(_, s)| s))
             });
         }
@@ -343,6 +347,8 @@ pub fn run_node(
         let mut pending: Vec<Vec<Message>> = subs.iter().map(|_| Vec::new()).collect();
         let seq_of = |m: &Message| m.user_header().sequence;
         let mut done = false;
+        // Per input, the stream's last frame number once its writer said it had ended.
+        let mut ended: Vec<Option<u64>> = vec![None; subs.len()];
         let mut restarts = Restarts::new(graph, spec, subs.len());
         // The last frame number each input delivered.
         let mut last_seq: Vec<Option<u64>> = vec![None; subs.len()];
@@ -383,6 +389,7 @@ pub fn run_node(
                                 }
                             }
                         }
+                        Some(Received::End { last }) => ended[i] = ended[i].max(Some(last)),
                         None => break,
                     }
                 }
@@ -450,6 +457,17 @@ pub fn run_node(
                     return Ok(false);
                 }
             }
+            // Every input's stream has ended: what is still held can never be joined (its
+            // partners were lost upstream, near the run's end), and no frame is to come.
+            if ended.iter().all(Option::is_some) {
+                for (p, s) in pending.iter_mut().zip(&subs) {
+                    for _ in p.drain(..) {
+                        s.discard();
+                    }
+                }
+                done = true;
+                return Ok(false);
+            }
             Ok(true)
         });
         match joined {
@@ -458,7 +476,15 @@ pub fn run_node(
             Err(e) => return Err(e),
         }
         if done {
+            let last = ended
+                .iter()
+                .flatten()
+                .copied()
+                .max()
+                .or(frames.map(|n| n - 1));
+            let mut ends = EndMarkers::new(&pubs, last)?;
             linger(&transport, read_in_graph, || {
+                ends.resend();
                 tally.report(
                     id,
                     spec,
@@ -519,7 +545,16 @@ pub fn run_tap(
             reported = Instant::now();
         }
         for (i, s) in subs.iter().enumerate() {
-            while let Some(m) = s.receive()? {
+            while let Some(item) = s.receive_item()? {
+                let m = match item {
+                    Received::Frame(m) => m,
+                    // The stream ended (its last frames lost upstream, say): none will come.
+                    Received::End { .. } => {
+                        finished[i] = true;
+                        continue;
+                    }
+                    Received::Restart { .. } => continue,
+                };
                 let t = Instant::now();
                 let h = *m.user_header();
                 on_msg(i, &h, m.payload())?;
@@ -532,6 +567,50 @@ pub fn run_tap(
         Ok(!(frames.is_some() && finished.iter().all(|f| *f)))
     })?;
     Ok(stats(received, &times, last_frame))
+}
+
+/// A node's end markers: sent on every output when its last frame is done, and again to
+/// each reader that connects later (a reader restarted after the end was sent would wait
+/// for ever for frames that will not come).
+struct EndMarkers<'a> {
+    pubs: &'a [EdgePublisher],
+    last: Option<u64>,
+    /// Per output, the readers (their unique ids) that have been sent the marker.
+    told: Vec<Vec<String>>,
+}
+
+impl<'a> EndMarkers<'a> {
+    /// Sends the end of a stream whose last frame was `last` (none: no frame at all, nothing
+    /// to end) on every output.
+    fn new(pubs: &'a [EdgePublisher], last: Option<u64>) -> Result<Self, String> {
+        let mut m = Self {
+            pubs,
+            last,
+            told: vec![Vec::new(); pubs.len()],
+        };
+        m.send_new()?;
+        Ok(m)
+    }
+
+    fn send_new(&mut self) -> Result<(), String> {
+        let Some(last) = self.last else {
+            return Ok(());
+        };
+        for (p, told) in self.pubs.iter().zip(&mut self.told) {
+            let now = p.reader_ids();
+            if now.iter().any(|r| !told.contains(r)) {
+                p.send_end(last).map_err(|e| e.to_string())?;
+            }
+            *told = now;
+        }
+        Ok(())
+    }
+
+    /// Sends the marker again on the outputs where a reader connected since the last time.
+    fn resend(&mut self) {
+        // A send that fails here (a stop under way) ends nothing: the node is lingering.
+        let _ = self.send_new();
+    }
 }
 
 /// How often a node that sleeps (a paced source between frames, a node lingering after its

@@ -44,13 +44,17 @@ pub struct InputStats {
     /// The last frame number it delivered.
     #[serde(default)]
     pub last: Option<u64>,
+    /// The stream's last frame number, once its writer said the stream had ended.
+    #[serde(default)]
+    pub end: Option<u64>,
 }
 
 /// One node's figures over every process that ran it (a restarted node's, in the order
 /// they ran; a process that died reported last what it had done by then): frames and
 /// drops summed, means weighted by frames, the worst 99th percentile, and on each input
 /// the frames none of them received between one process's last and the next's first
-/// counted as missing.
+/// counted as missing, and so are those after the last one received up to the stream's
+/// end (no later frame shows their gap).
 pub fn merge(runs: &[NodeStats]) -> Option<NodeStats> {
     let (first, rest) = runs.split_first()?;
     let mut m = first.clone();
@@ -79,9 +83,18 @@ pub fn merge(runs: &[NodeStats]) -> Option<NodeStats> {
                     mi.missing += ri.missing + between;
                     mi.first = mi.first.or(ri.first);
                     mi.last = ri.last.or(mi.last);
+                    mi.end = mi.end.max(ri.end);
                 }
                 None => m.inputs.push(ri.clone()),
             }
+        }
+    }
+    for i in &mut m.inputs {
+        if let Some(e) = i.end {
+            i.missing += match i.last {
+                Some(l) => e.saturating_sub(l),
+                None => e + 1,
+            };
         }
     }
     m.runs = runs.len() as u32;
@@ -110,6 +123,7 @@ mod tests {
                 missing: input.1,
                 first: input.2,
                 last: input.3,
+                end: None,
             }],
             latency_ms: mean,
             last_frame: input.3,

@@ -247,6 +247,7 @@ impl Transport {
             received: Cell::new(0),
             dropped: Cell::new(0),
             missing: Cell::new(0),
+            end: Cell::new(None),
         })
     }
 }
@@ -324,9 +325,34 @@ impl EdgePublisher {
         self.send(header, node.len(), |b| b.copy_from_slice(node.as_bytes()))
     }
 
+    /// Sends an end marker: the writer has sent every frame it will, the stream's last
+    /// frame number being `last`. A reader that waits for a frame lost upstream near the end
+    /// of a run would otherwise wait for ever; and frames lost after the last one a reader
+    /// got show as no gap, so only the end tells it they are missing.
+    pub fn send_end(&self, last: u64) -> Result<(), TransportError> {
+        let header = FrameHeader {
+            sequence: last,
+            kind: END_KIND,
+            ..FrameHeader::default()
+        };
+        self.send(header, 1, |b| b.fill(0))
+    }
+
     /// The edge's name.
     pub fn edge(&self) -> &str {
         &self.edge
+    }
+
+    /// The readers connected to the edge now, one unique id each (a restarted reader has a
+    /// new one though its name is its predecessor's).
+    pub fn reader_ids(&self) -> Vec<String> {
+        use iceoryx2::service::port_factory::PortFactory;
+        let mut ids = Vec::new();
+        self.service.dynamic_config().list_subscribers(|s| {
+            ids.push(format!("{:?}", s.subscriber_id));
+            CallbackProgression::Continue
+        });
+        ids
     }
 
     /// Names of the readers connected to the edge now (empty for unnamed ones).
@@ -354,11 +380,15 @@ pub struct EdgeSubscriber {
     received: Cell<u64>,
     dropped: Cell<u64>,
     missing: Cell<u64>,
+    end: Cell<Option<u64>>,
 }
 
 /// The header `kind` of a restart marker (no message kind of the schemas has it): a control
 /// message of the transport, never a frame.
 pub const RESTART_KIND: u32 = u32::MAX;
+
+/// The header `kind` of an end marker ([`EdgePublisher::send_end`]), a control message too.
+pub const END_KIND: u32 = u32::MAX - 1;
 
 /// What a reader takes off its edge.
 #[derive(Debug)]
@@ -372,6 +402,12 @@ pub enum Received {
         generation: u64,
         /// The restarted node's id.
         node: String,
+    },
+    /// An end marker ([`EdgePublisher::send_end`]): no frame after this comes on the edge;
+    /// `last` is the stream's last frame number.
+    End {
+        /// The stream's last frame number.
+        last: u64,
     },
 }
 
@@ -394,13 +430,14 @@ impl EdgeSubscriber {
         self.missing.set(self.missing.get() + 1);
     }
 
-    /// The next queued frame message, if any (oldest first); restart markers are passed over.
+    /// The next queued frame message, if any (oldest first); restart and end markers are
+    /// passed over.
     pub fn receive(&self) -> Result<Option<Message>, TransportError> {
         loop {
             match self.receive_item()? {
                 None => return Ok(None),
                 Some(Received::Frame(m)) => return Ok(Some(m)),
-                Some(Received::Restart { .. }) => {}
+                Some(Received::Restart { .. } | Received::End { .. }) => {}
             }
         }
     }
@@ -429,6 +466,10 @@ impl EdgeSubscriber {
                 node: String::from_utf8_lossy(m.payload()).into_owned(),
             }));
         }
+        if h.kind == END_KIND {
+            self.end.set(self.end.get().max(Some(h.sequence)));
+            return Ok(Some(Received::End { last: h.sequence }));
+        }
         self.missing
             .set(self.missing.get() + gap(&self.last, h.sequence));
         if self.first.get().is_none() {
@@ -456,6 +497,11 @@ impl EdgeSubscriber {
     /// The first and the last frame number received, if any.
     pub fn frames_seen(&self) -> (Option<u64>, Option<u64>) {
         (self.first.get(), self.last.get())
+    }
+
+    /// The stream's last frame number, once an end marker told it.
+    pub fn end(&self) -> Option<u64> {
+        self.end.get()
     }
 
     /// Frames of the stream that never reached this reader's node, wherever they were lost
