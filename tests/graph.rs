@@ -1666,6 +1666,7 @@ fn chaos_run(frames: u64, kills: usize, seed: u64) -> Duration {
         Err(_) => false,
     };
     let mut stalled = false;
+    let mut pids: Vec<u32> = Vec::new();
     'kills: for &frame in &at {
         while seen < frame {
             if !next(&mut seen) {
@@ -1674,11 +1675,33 @@ fn chaos_run(frames: u64, kills: usize, seed: u64) -> Duration {
             }
         }
         let victim = nodes[rng.random_range(0..nodes.len())];
-        let pid = wait_node_pid(&sup, victim);
+        // Its live process: not one killed before and not yet reaped by the supervisor (a
+        // second kill of the same node in quick succession found the first's zombie).
+        let begin = Instant::now();
+        let pid = loop {
+            let live = children_of(sup.id()).into_iter().find(|p| {
+                !pids.contains(p)
+                    && std::fs::read_to_string(format!("/proc/{p}/cmdline"))
+                        .is_ok_and(|c| c.contains(&format!("--id\0{victim}\0")))
+                    && std::fs::read_to_string(format!("/proc/{p}/stat"))
+                        .ok()
+                        .and_then(|s| s.get(s.rfind(')')? + 2..)?.chars().next())
+                        .is_some_and(|state| state != 'Z')
+            });
+            if let Some(p) = live {
+                break p;
+            }
+            assert!(
+                begin.elapsed() < Duration::from_secs(30),
+                "no live {victim} process (seed {seed})"
+            );
+            std::thread::sleep(Duration::from_millis(10));
+        };
         // SAFETY: kill(2) on a node process of this test's own run.
         unsafe {
             libc::kill(pid as i32, libc::SIGKILL);
         }
+        pids.push(pid);
         killed.push(victim);
     }
     // The stall after the last kill, too (kills land at least 40 frames before the end).
