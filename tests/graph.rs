@@ -1708,7 +1708,6 @@ fn chaos_run(frames: u64, kills: usize, seed: u64) -> Duration {
     while !stalled && seen + 30 < frames {
         stalled = !next(&mut seen);
     }
-    drop(next);
     if stalled {
         // What the supervisor and its nodes said, for the failure.
         // SAFETY: kill(2) on the supervisor this test started.

@@ -336,7 +336,7 @@ pub fn run_node(
         }
         if !stopped {
             let last = seq.checked_sub(1);
-            let mut ends = EndMarkers::new(&pubs, last)?;
+            let mut ends = EndMarkers::new(&pubs, last);
             linger(&transport, read_in_graph, || {
                 ends.resend();
                 tally.report(id, spec, out.sent, feedback.iter().map(|(_, s)| s))
@@ -482,7 +482,7 @@ pub fn run_node(
                 .copied()
                 .max()
                 .or(frames.map(|n| n - 1));
-            let mut ends = EndMarkers::new(&pubs, last)?;
+            let mut ends = EndMarkers::new(&pubs, last);
             linger(&transport, read_in_graph, || {
                 ends.resend();
                 tally.report(
@@ -582,14 +582,14 @@ struct EndMarkers<'a> {
 impl<'a> EndMarkers<'a> {
     /// Sends the end of a stream whose last frame was `last` (none: no frame at all, nothing
     /// to end) on every output.
-    fn new(pubs: &'a [EdgePublisher], last: Option<u64>) -> Result<Self, String> {
+    fn new(pubs: &'a [EdgePublisher], last: Option<u64>) -> Self {
         let mut m = Self {
             pubs,
             last,
             told: vec![Vec::new(); pubs.len()],
         };
-        m.send_new()?;
-        Ok(m)
+        m.resend();
+        m
     }
 
     fn send_new(&mut self) -> Result<(), String> {
@@ -606,9 +606,10 @@ impl<'a> EndMarkers<'a> {
         Ok(())
     }
 
-    /// Sends the marker again on the outputs where a reader connected since the last time.
+    /// Sends the marker on the outputs where a reader connected since the last time.
     fn resend(&mut self) {
-        // A send that fails here (a stop under way) ends nothing: the node is lingering.
+        // A send that fails here (cut short by a stop) changes nothing: the node's work is
+        // done, and it only lingers for its readers.
         let _ = self.send_new();
     }
 }
