@@ -125,6 +125,21 @@ pub struct EvalArgs {
 
 /// Runs `microstereo eval`.
 pub fn eval(a: EvalArgs) -> Result<(), CliError> {
+    // A NaN, infinite or zero scale turned every ground-truth pixel into NaN or infinity,
+    // and the figures came out with exit 0.
+    for (flag, s) in [
+        ("--scale", a.scale),
+        ("--gt-scale", a.gt_scale),
+        ("--gt-right-scale", a.gt_right_scale),
+    ] {
+        if let Some(s) = s
+            && !(s > 0.0 && s <= 1e6)
+        {
+            return Err(CliError::Other(format!(
+                "{flag} {s} is not a scale: give the factor the PNG's values were multiplied by, above 0 and at most 1e6 (Middlebury: 4 for cones)"
+            )));
+        }
+    }
     let disp = io::read_disparity(&a.disparity, a.scale, "disparity map")?;
     let gt = io::read_disparity(&a.gt, a.gt_scale, "ground truth")?;
     if (disp.width, disp.height) != (gt.width, gt.height) {

@@ -1084,6 +1084,30 @@ fn bad_numbers_are_one_clear_error_before_anything_starts() {
         ),
         (geo(&["--median", "1000000000"]), "--median 1000000000"),
     ];
+    let (gt, disp) = (data("cones/disp2.png"), data("cones/disp6.png"));
+    let eval =
+        |flag: &'static str, v: &'static str| vec!["eval", s(&disp), "--gt", s(&gt), flag, v];
+    // Found by a sweep of bad values over every subcommand: eval took these with exit 0.
+    let cases: Vec<(Vec<&str>, &str)> = cases
+        .into_iter()
+        .chain([
+            (eval("--gt-scale", "NaN"), "--gt-scale NaN is not a scale"),
+            (eval("--gt-scale", "inf"), "--gt-scale inf is not a scale"),
+            (eval("--gt-scale", "0"), "--gt-scale 0 is not a scale"),
+            (
+                eval("--gt-scale", "1e9"),
+                "--gt-scale 1000000000 is not a scale",
+            ),
+            (
+                eval("--scale", "1e30"),
+                "--scale 1000000000000000000000000000000 is not",
+            ),
+            (
+                eval("--gt-right-scale", "NaN"),
+                "--gt-right-scale NaN is not",
+            ),
+        ])
+        .collect();
     for (args, needle) in cases {
         let out = run(&args);
         assert_clean_failure(&out, needle);
