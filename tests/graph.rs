@@ -501,6 +501,20 @@ fn signal_mid_run(
     (finish(sup, Duration::from_secs(120)), instance)
 }
 
+/// No process of run `instance` is left, and no shared memory of a dead node of it.
+fn assert_nothing_left(instance: &str) {
+    let left: Vec<u32> = std::fs::read_dir("/proc")
+        .unwrap()
+        .filter_map(|e| e.ok()?.file_name().to_str()?.parse::<u32>().ok())
+        .filter(|p| {
+            std::fs::read_to_string(format!("/proc/{p}/cmdline"))
+                .is_ok_and(|c| c.contains(instance))
+        })
+        .collect();
+    assert!(left.is_empty(), "processes left: {left:?}");
+    assert_eq!(runtime::process::dead_nodes(instance), 0);
+}
+
 /// [`signal_mid_run`] with SIGKILL.
 fn kill_mid_run(victim: &str, frames: u64) -> (std::process::Output, String) {
     signal_mid_run(victim, frames, libc::SIGKILL, "")
@@ -548,17 +562,7 @@ fn a_node_killed_mid_run_is_restarted_and_the_run_completes_clean() {
         "match took {steps} steps for {} frames passed on\n{stdout}",
         frames - missed
     );
-    // No process of the run is left, and no shared memory of a dead node of it.
-    let left: Vec<u32> = std::fs::read_dir("/proc")
-        .unwrap()
-        .filter_map(|e| e.ok()?.file_name().to_str()?.parse::<u32>().ok())
-        .filter(|p| {
-            std::fs::read_to_string(format!("/proc/{p}/cmdline"))
-                .is_ok_and(|c| c.contains(&instance))
-        })
-        .collect();
-    assert!(left.is_empty(), "processes left: {left:?}");
-    assert_eq!(runtime::process::dead_nodes(&instance), 0);
+    assert_nothing_left(&instance);
 }
 
 #[test]
@@ -1753,17 +1757,7 @@ fn chaos_run(frames: u64, kills: usize, seed: u64) -> Duration {
         frames,
         "seed {seed}, killed {killed:?}\n{stdout}"
     );
-    // No process of the run is left, and no shared memory of a dead node of it.
-    let left: Vec<u32> = std::fs::read_dir("/proc")
-        .unwrap()
-        .filter_map(|e| e.ok()?.file_name().to_str()?.parse::<u32>().ok())
-        .filter(|p| {
-            std::fs::read_to_string(format!("/proc/{p}/cmdline"))
-                .is_ok_and(|c| c.contains(&instance))
-        })
-        .collect();
-    assert!(left.is_empty(), "processes left: {left:?}");
-    assert_eq!(runtime::process::dead_nodes(&instance), 0);
+    assert_nothing_left(&instance);
     eprintln!(
         "chaos seed {seed}: {done} of {frames} frames through, {missing} lost, {dropped} dropped; killed {killed:?}; longest wait for a scene after a kill {longest:?}"
     );
