@@ -5,9 +5,11 @@
 //! every input, oldest first; a frame some input never got is dropped), steps, and
 //! publishes its outputs
 //! in loaned shared memory under the same frame number. Given a frame count, it ends after
-//! the last frame; a node that other nodes of the graph read then stays until it is told to
-//! stop, because a publisher that leaves takes its unread frames along. On exit it prints
-//! one [`NodeStats`] line for the supervisor.
+//! the last frame, or once every input has sent an end marker (the last frames were lost
+//! upstream, with a killed node); either way it sends an end marker on its outputs, and
+//! again to each reader that connects later. A node that other nodes of the graph read then
+//! stays until it is told to stop, because a publisher that leaves takes its unread frames
+//! along. On exit it prints one [`NodeStats`] line for the supervisor.
 
 pub use crate::edge::now_ns;
 use crate::launch::Graph;
