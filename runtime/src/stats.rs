@@ -154,4 +154,25 @@ mod tests {
         );
         assert_eq!(merge(&[]), None);
     }
+
+    #[test]
+    fn frames_lost_after_the_last_one_received_count_once_the_stream_has_ended() {
+        // Frames 0..=5, then the writer said the stream ended at 9: 6..=9 never came, and
+        // no later frame shows their gap.
+        let mut a = run(6, 10.0, 12.0, (0, 0, Some(0), Some(5)));
+        a.inputs[0].end = Some(9);
+        assert_eq!(
+            merge(std::slice::from_ref(&a)).unwrap().inputs[0].missing,
+            4
+        );
+        // A restarted process that got nothing before the end: everything after the first
+        // process's last frame is missing, once.
+        let mut b = run(0, 0.0, 0.0, (0, 0, None, None));
+        b.inputs[0].end = Some(9);
+        a.inputs[0].end = None;
+        let m = merge(&[a, b.clone()]).unwrap();
+        assert_eq!((m.inputs[0].missing, m.inputs[0].end), (4, Some(9)));
+        // An input that never received a frame: the whole stream.
+        assert_eq!(merge(&[b]).unwrap().inputs[0].missing, 10);
+    }
 }
