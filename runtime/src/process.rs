@@ -594,25 +594,18 @@ impl<'a> EndMarkers<'a> {
         m
     }
 
-    fn send_new(&mut self) -> Result<(), String> {
-        let Some(last) = self.last else {
-            return Ok(());
-        };
+    /// Sends the marker on the outputs where a reader connected since the last time.
+    fn resend(&mut self) {
+        let Some(last) = self.last else { return };
         for (p, told) in self.pubs.iter().zip(&mut self.told) {
             let now = p.reader_ids();
             if now.iter().any(|r| !told.contains(r)) {
-                p.send_end(last).map_err(|e| e.to_string())?;
+                // A send that fails (cut short by a stop) changes nothing: the node's work
+                // is done, and it only lingers for its readers.
+                let _ = p.send_end(last);
             }
             *told = now;
         }
-        Ok(())
-    }
-
-    /// Sends the marker on the outputs where a reader connected since the last time.
-    fn resend(&mut self) {
-        // A send that fails here (cut short by a stop) changes nothing: the node's work is
-        // done, and it only lingers for its readers.
-        let _ = self.send_new();
     }
 }
 

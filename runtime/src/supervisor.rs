@@ -141,7 +141,8 @@ struct Child {
     id: String,
     proc: tokio::process::Child,
     restarts: u32,
-    /// Failures in a row, each before handling a single frame: the back-off's exponent.
+    /// The back-off's exponent should this process fail before handling a frame: one more
+    /// than its predecessor's restart had (0 for the first process).
     streak: u32,
     /// Killed by the watchdog, after this long without a report.
     hung: Option<Duration>,

@@ -346,24 +346,28 @@ impl EdgePublisher {
     /// The readers connected to the edge now, one unique id each (a restarted reader has a
     /// new one though its name is its predecessor's).
     pub fn reader_ids(&self) -> Vec<String> {
-        use iceoryx2::service::port_factory::PortFactory;
-        let mut ids = Vec::new();
-        self.service.dynamic_config().list_subscribers(|s| {
-            ids.push(format!("{:?}", s.subscriber_id));
-            CallbackProgression::Continue
-        });
-        ids
+        self.readers(|s| format!("{:?}", s.subscriber_id))
     }
 
     /// Names of the readers connected to the edge now (empty for unnamed ones).
     pub fn reader_names(&self) -> Vec<String> {
+        self.readers(|s| s.subscriber_name.as_str().to_string())
+    }
+
+    /// `what` of each reader connected to the edge now.
+    fn readers(
+        &self,
+        what: impl Fn(
+            &iceoryx2::service::dynamic_config::publish_subscribe::SubscriberDetails,
+        ) -> String,
+    ) -> Vec<String> {
         use iceoryx2::service::port_factory::PortFactory;
-        let mut names = Vec::new();
+        let mut out = Vec::new();
         self.service.dynamic_config().list_subscribers(|s| {
-            names.push(s.subscriber_name.as_str().to_string());
+            out.push(what(s));
             CallbackProgression::Continue
         });
-        names
+        out
     }
 }
 
