@@ -390,9 +390,9 @@ fn wait_live_node_pid(sup: &Child, id: &str, except: &[u32], limit: Duration) ->
     }
 }
 
-/// Held by the two heaviest tests, so that they never run at once: the chaos run's thousand
-/// frames beside the closed loop's paced run pushed the latter past its time limit under
-/// two CPU hogs (its 73 s alone against a 90 s limit).
+/// Held by the two heaviest tests, so that they never load the machine at once: the chaos
+/// run's thousand frames and the closed loop's paced run (73 s alone under two CPU hogs,
+/// against its 90 s limit).
 fn heavy() -> std::sync::MutexGuard<'static, ()> {
     static HEAVY: std::sync::Mutex<()> = std::sync::Mutex::new(());
     HEAVY
