@@ -55,7 +55,14 @@ pub struct Mp285 {
     moving: Option<(P3, P3, Instant, f64)>,
     position: P3,
     timeout: Duration,
+    /// Whether opening found a move under way (an earlier driver's, e.g. a bridge killed
+    /// mid-move) and interrupted it.
+    interrupted_on_open: bool,
 }
+
+/// How long opening waits for the answer to its interrupt: the controller answers an
+/// interrupted move at once and an idle one not at all.
+const OPEN_INTERRUPT_WAIT: Duration = Duration::from_millis(150);
 
 impl Mp285 {
     /// Opens the controller on serial port `path` and reads its status and position.
@@ -85,9 +92,10 @@ impl Mp285 {
             moving: None,
             position: [0.0; 3],
             timeout,
+            interrupted_on_open: false,
         };
         let _ = d.port.set_timeout(READ_SLICE);
-        let _ = d.port.clear(serialport::ClearBuffer::All);
+        d.interrupted_on_open = d.stop_any_move()?;
         let status = d.command(b"s", 32)?;
         let per_um = u16::from_le_bytes([status[24], status[25]]);
         if per_um == 0 {
@@ -96,6 +104,53 @@ impl Mp285 {
         d.steps_per_um = per_um as f64;
         d.position = d.read_position()?;
         Ok(d)
+    }
+
+    /// Whether opening found the controller still moving and stopped it.
+    pub fn interrupted_on_open(&self) -> bool {
+        self.interrupted_on_open
+    }
+
+    /// Interrupts whatever move the controller may be making and waits for the line to
+    /// fall quiet, returning whether a move was interrupted. A driver that opens the line
+    /// cannot know whether an earlier one (a bridge killed mid-move and restarted) left a
+    /// move running: the controller would go on to that move's end, deaf to every command
+    /// meanwhile. An idle controller ignores the interrupt.
+    fn stop_any_move(&mut self) -> Result<bool, DeviceError> {
+        let _ = self.port.clear(serialport::ClearBuffer::All);
+        self.write(&[INTERRUPT])?;
+        let mut seen = Vec::new();
+        let mut quiet_since = Instant::now();
+        let deadline = Instant::now() + self.timeout.max(OPEN_INTERRUPT_WAIT);
+        let mut b = [0u8; 16];
+        while Instant::now() < deadline {
+            match self.port.read(&mut b) {
+                Ok(0) => {
+                    return Err(self.err("the line closed; is it still connected?".into()));
+                }
+                Ok(k) => {
+                    seen.extend_from_slice(&b[..k]);
+                    quiet_since = Instant::now();
+                }
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        std::io::ErrorKind::TimedOut | std::io::ErrorKind::Interrupted
+                    ) => {}
+                Err(e) => {
+                    return Err(self.err(format!("cannot read ({e}); is it still connected?")));
+                }
+            }
+            if quiet_since.elapsed() >= OPEN_INTERRUPT_WAIT {
+                break;
+            }
+        }
+        let _ = self.port.clear(serialport::ClearBuffer::Input);
+        // The interrupted move's answer is error 8 and a CR; a move that ended just before
+        // the interrupt answers with its CR alone.
+        Ok(seen
+            .windows(2)
+            .any(|w| matches!(w[0], b'8' | 8) && w[1] == CR))
     }
 
     /// Microsteps per µm, from the controller's status.

@@ -234,10 +234,17 @@ impl BridgeParams {
                 self.max_accel,
                 wall_clock(),
             ))),
-            "mp285" => Ok(Box::new(Mp285::open(
-                self.port.as_deref().unwrap_or_default(),
-                Duration::from_secs(2),
-            )?)),
+            "mp285" => {
+                let port = self.port.as_deref().unwrap_or_default();
+                let d = Mp285::open(port, Duration::from_secs(2))?;
+                if d.interrupted_on_open() {
+                    eprintln!(
+                        "manipulator-bridge: the MP-285 on {port} was still moving (an earlier \
+                         bridge's move); stopped it before anything else"
+                    );
+                }
+                Ok(Box::new(d))
+            }
             _ => Err(DeviceError("device = \"none\" in the launch file".into())),
         }
     }

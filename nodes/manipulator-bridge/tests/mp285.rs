@@ -87,6 +87,50 @@ fn an_interrupt_stops_a_move_where_it_is() {
     assert_eq!(wait_idle(&mut d), [0.0; 3]);
 }
 
+/// A bridge killed mid-move leaves the controller moving, deaf to commands until the
+/// move's end: the next driver to open the line stops it first, and knows where it is.
+#[test]
+fn opening_stops_a_move_an_earlier_driver_left_running() {
+    let (master, slave) = TTYPort::pair().expect("a pseudo-terminal");
+    let path = slave.name().expect("the pty has a path");
+    let state = emulator::spawn(Box::new(master));
+    let mut first = Mp285::open(&path, Duration::from_millis(500)).expect("driver connects");
+    assert!(
+        !first.interrupted_on_open(),
+        "an idle controller has nothing to stop"
+    );
+    // 100 µm at 20 µm/s: five seconds, far longer than the test waits.
+    first.start_move([100.0, 0.0, 0.0], 20.0).unwrap();
+    std::thread::sleep(Duration::from_millis(300));
+    drop(first);
+    let t0 = Instant::now();
+    let mut second = Mp285::open(&path, Duration::from_millis(500)).expect("driver connects");
+    let opened_in = t0.elapsed();
+    assert!(second.interrupted_on_open());
+    assert!(
+        opened_in < Duration::from_secs(2),
+        "opening waited {opened_in:?} (for the move's end?)"
+    );
+    let s = state.lock().unwrap().clone();
+    assert_eq!(s.interrupted, 1);
+    assert_eq!(s.moves, 0, "the move never reached its end");
+    let p = second.state().unwrap();
+    assert!(!p.moving);
+    assert_eq!(p.position[0], s.steps[0] as f64 / 25.0);
+    assert!(
+        p.position[0] > 3.0 && p.position[0] < 50.0,
+        "stopped at {:?}",
+        p.position
+    );
+    // Still stopped a while later: nothing carried the old move on.
+    std::thread::sleep(Duration::from_millis(300));
+    assert_eq!(state.lock().unwrap().steps, s.steps);
+    // And it takes commands at once.
+    second.start_move([0.0, 0.0, 0.0], 1000.0).unwrap();
+    assert_eq!(wait_idle(&mut second), [0.0; 3]);
+    drop(slave);
+}
+
 #[test]
 fn a_missing_a_silent_and_a_vanished_device_are_clear_errors() {
     let e = Mp285::open("/dev/does-not-exist-mp285", Duration::from_millis(200))
