@@ -49,7 +49,7 @@ def main():
         images = {}
         for _ in range(a.rounds):
             paths = ["--paths", a.paths] if a.paths else []
-            subprocess.run([a.bin, "bench", "--repeat", str(a.repeat), "--json", js,
+            subprocess.run([a.bin, "bench", "--overwrite", "--repeat", str(a.repeat), "--json", js,
                             "--write-pairs", tmp] + paths, check=True, stdout=subprocess.DEVNULL)
             ours = json.load(open(js))
             if not images:

@@ -12,12 +12,12 @@ mkdir -p "$out/truth"
 for img in "$data"/bbbc030/cho*[0-9].png; do
   n=$(basename "$img" .png)
   printf "%-12s " "$n"
-  "$bin" segment "$img" -o "$out/$n" --truth "$data/bbbc030/${n}_mask.png" | grep truth
+  "$bin" segment "$img" -o "$out/$n" --overwrite --truth "$data/bbbc030/${n}_mask.png" | grep truth
 done
 for img in "$data"/bbbc003/*[0-9].tif; do
   n=$(basename "$img" .tif)
   python3 -c "from PIL import Image; Image.open('$data/bbbc003/${n}_truth.tif').convert('L').save('$out/truth/$n.png')"
   printf "%-12s " "$n"
   # Embryos (~100 µm) at this magnification cover ~25 000 px; debris stays under 1000.
-  "$bin" segment "$img" -o "$out/$n" --truth "$out/truth/$n.png" --min-area 2000 | grep truth
+  "$bin" segment "$img" -o "$out/$n" --overwrite --truth "$out/truth/$n.png" --min-area 2000 | grep truth
 done

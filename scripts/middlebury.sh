@@ -10,7 +10,7 @@ for set in cones cloth3 reindeer wood2; do
   d=$data/$set
   if [ "$set" = cones ]; then l=im2.png r=im6.png gl=disp2.png gr=disp6.png s=4 max=63
   else l=view1.png r=view5.png gl=disp1.png gr=disp5.png s=2 max=127; fi
-  "$bin" reconstruct "$d/$l" "$d/$r" -o "$out/$mode/$set" --mode "$mode" \
+  "$bin" reconstruct "$d/$l" "$d/$r" -o "$out/$mode/$set" --overwrite --mode "$mode" \
      --min-disparity 0 --max-disparity $max "$@" > /dev/null
   b=$("$bin" eval "$out/$mode/$set/disparity.pfm" --gt "$d/$gl" --gt-scale $s \
        --gt-right "$d/$gr" --json | python3 -c 'import json,sys; print(json.load(sys.stdin)["nonocc"]["bad_1"])')

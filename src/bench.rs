@@ -25,6 +25,9 @@ pub struct BenchArgs {
     /// Also write the 1280×1024 pair as PNGs here (so other tools can time the same images).
     #[arg(long)]
     write_pairs: Option<PathBuf>,
+    /// Replace the files --json and --write-pairs name if they exist.
+    #[arg(long)]
+    overwrite: bool,
     /// Skip the 1280×1024 pair.
     #[arg(long)]
     cones_only: bool,
@@ -32,6 +35,9 @@ pub struct BenchArgs {
     #[arg(long, value_parser = clap::builder::TypedValueParser::map(clap::builder::PossibleValuesParser::new(["4", "8"]), |s: String| s.parse::<u8>().expect("4 or 8")))]
     paths: Option<u8>,
 }
+
+/// The 1280×1024 pair's files (`--write-pairs`).
+const PAIR_NAMES: [&str; 2] = ["synth1280_left.png", "synth1280_right.png"];
 
 /// One benchmark line.
 #[derive(Serialize)]
@@ -53,6 +59,12 @@ fn median(mut v: Vec<f64>) -> f64 {
 
 /// Runs `microstereo bench`.
 pub fn bench(a: BenchArgs) -> Result<(), CliError> {
+    let mut outputs: Vec<PathBuf> = a.json.iter().cloned().collect();
+    if let Some(d) = &a.write_pairs {
+        outputs.extend(crate::outputs::in_dir(d, PAIR_NAMES));
+    }
+    let (l, r) = (a.cones.join("im2.png"), a.cones.join("im6.png"));
+    crate::outputs::check(&outputs, &[&l, &r], a.overwrite, "choose other names")?;
     let tmp = std::env::temp_dir().join(format!("microstereo-bench-{}", std::process::id()));
     let dir = a.write_pairs.clone().unwrap_or_else(|| tmp.clone());
     let mut pairs = vec![(
@@ -65,15 +77,9 @@ pub fn bench(a: BenchArgs) -> Result<(), CliError> {
         std::fs::create_dir_all(&dir)
             .map_err(|e| CliError::Other(format!("cannot create '{}': {e}", dir.display())))?;
         let mut files = Vec::new();
-        for (name, p) in [
-            ("synth1280_left.png", &s.left),
-            ("synth1280_right.png", &s.right),
-        ] {
+        for (name, p) in PAIR_NAMES.into_iter().zip([&s.left, &s.right]) {
             let path = dir.join(name);
-            image::GrayImage::from_raw(p.width as u32, p.height as u32, p.data.clone())
-                .expect("size")
-                .save(&path)
-                .map_err(|e| CliError::Other(format!("cannot write '{}': {e}", path.display())))?;
+            formats::write_mask_png(&path, p)?;
             files.push(path);
         }
         pairs.push(("synth1280".into(), files[0].clone(), files[1].clone()));
@@ -148,8 +154,12 @@ fn bench_pairs(a: &BenchArgs, pairs: &[(String, PathBuf, PathBuf)]) -> Result<()
         }
     }
     if let Some(p) = &a.json {
-        std::fs::write(p, serde_json::to_string_pretty(&lines).expect("serialises"))
-            .map_err(|e| CliError::Other(format!("cannot write '{}': {e}", p.display())))?;
+        formats::atomic::write_bytes(
+            p,
+            serde_json::to_string_pretty(&lines)
+                .expect("serialises")
+                .as_bytes(),
+        )?;
     }
     Ok(())
 }

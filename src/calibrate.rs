@@ -47,35 +47,18 @@ fn check_output(
     stack: &[(PathBuf, PathBuf, f64)],
     overwrite: bool,
 ) -> Result<(), CliError> {
-    let same = |p: &Path| match (std::fs::canonicalize(p), std::fs::canonicalize(out)) {
-        (Ok(a), Ok(b)) => a == b,
-        _ => false,
-    };
-    let inputs = stack
+    let inputs: Vec<PathBuf> = stack
         .iter()
         .flat_map(|(l, r, _)| [l.clone(), r.clone()])
-        .chain([dir.join("heights.csv"), dir.join("calibration.toml")]);
-    for p in inputs {
-        if same(&p) {
-            return Err(CliError::Other(format!(
-                "output '{}' is an input of the stack (or its true calibration): give -o another file",
-                out.display()
-            )));
-        }
-    }
-    if out.is_dir() {
-        return Err(CliError::Other(format!(
-            "output '{}' is a directory: give -o a file name",
-            out.display()
-        )));
-    }
-    if out.exists() && !overwrite {
-        return Err(CliError::Other(format!(
-            "output '{}' exists: give --overwrite to replace it, or -o another file",
-            out.display()
-        )));
-    }
-    Ok(())
+        .chain([dir.join("heights.csv"), dir.join("calibration.toml")])
+        .collect();
+    let inputs: Vec<&Path> = inputs.iter().map(PathBuf::as_path).collect();
+    crate::outputs::check(
+        &[out.to_path_buf()],
+        &inputs,
+        overwrite,
+        "give -o another file",
+    )
 }
 
 /// The stack's pairs `(left, right, z)`.

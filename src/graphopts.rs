@@ -82,9 +82,9 @@ pub fn check_viewer_target(opts: &OutputOpts) -> Result<(), CliError> {
         }
         _ => {
             let path = Path::new(&opts.viewer[1]);
-            if path.exists() {
+            if path.exists() && !opts.overwrite {
                 return Err(CliError::Other(format!(
-                    "--viewer save {}: the file exists; choose another name",
+                    "--viewer save {}: the file exists; choose another name or add --overwrite",
                     path.display()
                 )));
             }
@@ -103,8 +103,8 @@ pub struct OutputOpts {
     /// characters, e.g. 'rectify/*' '*/disparity').
     #[arg(long, num_args = 1.., requires = "record")]
     pub edges: Vec<String>,
-    /// Replace the file given to --record if it exists.
-    #[arg(long, requires = "record")]
+    /// Replace the file given to --record or to --viewer save if it exists.
+    #[arg(long)]
     pub overwrite: bool,
     /// Show the graph in Rerun: `spawn` a viewer, `connect HOST:PORT` to a running one, or
     /// `save FILE.rrd` (needs the viewer binary: cargo build --release -p viewer).

@@ -4,7 +4,8 @@
 //! one-shot commands, launch files for `run`), runs them with the runtime's executor or
 //! supervisor, and writes what they produce.
 //!
-//! - [`cli`]: the commands and their dispatch; [`error`]: the one error type;
+//! - [`cli`]: the commands and their dispatch; [`error`]: the one error type; [`outputs`]:
+//!   what a command may write;
 //! - [`registry`]: the built-in node kinds, one list;
 //! - [`presets`]: the stereo graph of `reconstruct`, `bench` and `calibrate-depth`;
 //! - [`reconstruct`], [`bench`], [`segmentcmd`], [`synthcmd`], [`calibrate`]: one-shot
@@ -17,6 +18,7 @@ pub mod calibrate;
 pub mod cli;
 pub mod error;
 pub mod graphopts;
+pub mod outputs;
 pub mod presets;
 pub mod reconstruct;
 pub mod recording;

@@ -85,6 +85,9 @@ pub struct ReconstructArgs {
     /// Output directory (created if missing).
     #[arg(short, long)]
     output: PathBuf,
+    /// Replace the outputs of an earlier run in the output directory.
+    #[arg(long)]
+    overwrite: bool,
     /// Matcher: `quality` (semi-global) or `paper` (support value + NCC).
     #[arg(long, value_enum, default_value = "quality")]
     mode: ModeArg,
@@ -308,21 +311,13 @@ const OUTPUT_NAMES: &[&str] = &[
 /// `disparity.pfm`, say) would be destroyed: refused before any work.
 fn refuse_inputs_as_outputs(a: &ReconstructArgs) -> Result<(), CliError> {
     let inputs = [Some(&a.left), Some(&a.right), a.calibration.as_ref()];
-    for input in inputs.into_iter().flatten() {
-        let Ok(i) = std::fs::canonicalize(input) else {
-            continue;
-        };
-        for name in OUTPUT_NAMES {
-            if std::fs::canonicalize(a.output.join(name)).is_ok_and(|o| o == i) {
-                return Err(CliError::Other(format!(
-                    "input '{}' would be overwritten by the output {name} in '{}': give -o another directory",
-                    input.display(),
-                    a.output.display()
-                )));
-            }
-        }
-    }
-    Ok(())
+    let inputs: Vec<&std::path::Path> = inputs.into_iter().flatten().map(|p| p.as_path()).collect();
+    crate::outputs::check(
+        &crate::outputs::in_dir(&a.output, OUTPUT_NAMES),
+        &inputs,
+        a.overwrite,
+        "give -o another directory",
+    )
 }
 
 /// Runs one frame of `preset`: its messages and node times.
@@ -576,8 +571,7 @@ fn unit_of(symbol: &str) -> LengthUnit {
 
 fn write_json<T: Serialize>(path: &std::path::Path, v: &T) -> Result<(), CliError> {
     let json = serde_json::to_string_pretty(v).expect("serialises");
-    std::fs::write(path, json + "\n")
-        .map_err(|e| CliError::Other(format!("cannot write '{}': {e}", path.display())))
+    io::atomic::write_bytes(path, (json + "\n").as_bytes()).map_err(CliError::from)
 }
 
 /// What `reconstruct --cells` writes to cells.json.
@@ -640,9 +634,7 @@ fn write_cells(
     io::render::write_labels_png(&o.join("labels_left.png"), &labels.left)?;
     io::render::write_labels_png(&o.join("labels_right.png"), &labels.right)?;
     let ov = o.join("overlay_left.png");
-    io::render::overlay(&colour.to_rgb(), &lists.left)
-        .save(&ov)
-        .map_err(|e| CliError::Other(format!("cannot write '{}': {e}", ov.display())))?;
+    io::write_color_png(&ov, &io::render::overlay(&colour.to_rgb(), &lists.left))?;
     io::write_ply(&o.join("points.ply"), &cloud, unit)?;
     times.insert(
         "write".into(),

@@ -21,6 +21,9 @@ pub struct ViewArgs {
     /// Send it to a running viewer (HOST:PORT).
     #[arg(long, conflicts_with = "output")]
     pub connect: Option<String>,
+    /// Replace the --output file if it exists.
+    #[arg(long, requires = "output")]
+    pub overwrite: bool,
 }
 
 /// Shows a recording in Rerun, through the viewer binary (the same code as `--viewer`).
@@ -32,13 +35,24 @@ pub fn view(a: ViewArgs) -> Result<(), CliError> {
     };
     crate::graphopts::check_viewer_target(&OutputOpts {
         viewer,
+        overwrite: a.overwrite,
         ..OutputOpts::default()
     })?;
+    if let Some(o) = &a.output {
+        crate::outputs::check(
+            std::slice::from_ref(o),
+            &[&a.file],
+            a.overwrite,
+            "give -o another file",
+        )?;
+    }
+    // Saved under a temporary name, renamed when the viewer has written it all.
+    let tmp = a.output.as_deref().map(formats::atomic::temp_beside);
     // The viewer binary checks the recording itself before it shows anything.
     let mut cmd = std::process::Command::new(crate::graphopts::viewer_exe());
     cmd.arg("view").arg(&a.file);
-    if let Some(o) = &a.output {
-        cmd.arg("-o").arg(o);
+    if let Some(t) = &tmp {
+        cmd.arg("-o").arg(t);
     } else if let Some(c) = &a.connect {
         cmd.arg("--connect").arg(c);
     }
@@ -48,11 +62,22 @@ pub fn view(a: ViewArgs) -> Result<(), CliError> {
             crate::graphopts::viewer_exe().display()
         ))
     })?;
-    match status.code() {
+    let done = match status.code() {
         Some(0) => Ok(()),
         Some(code) => Err(CliError::Reported(code)),
         None => Err(CliError::Other(format!("the viewer failed ({status})"))),
+    };
+    if let (Some(t), Some(o)) = (&tmp, &a.output) {
+        let kept = done.and_then(|_| {
+            formats::atomic::commit(t, o, true)
+                .map_err(|e| CliError::Other(format!("cannot write '{}': {e}", o.display())))
+        });
+        if kept.is_err() {
+            let _ = std::fs::remove_file(t);
+        }
+        return kept;
     }
+    done
 }
 
 /// Reads the channel overview of a recording; a file that cannot be read to its end is an

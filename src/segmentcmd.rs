@@ -88,6 +88,9 @@ pub struct SegmentArgs {
     /// Output directory (created if missing).
     #[arg(short, long)]
     output: PathBuf,
+    /// Replace the outputs of an earlier run in the output directory.
+    #[arg(long)]
+    overwrite: bool,
     #[command(flatten)]
     opts: SegmentOpts,
     /// Ground-truth mask (non-zero = cell): prints Dice and the cell-count error.
@@ -103,6 +106,17 @@ pub fn segment_cmd(a: SegmentArgs) -> Result<(), CliError> {
     let params = a.opts.params();
     runtime::node::Params::check(&params)
         .map_err(|e| CliError::Other(crate::presets::in_flag_terms(&e, FLAGS)))?;
+    let inputs: Vec<&Path> = [Some(&a.image), a.truth.as_ref()]
+        .into_iter()
+        .flatten()
+        .map(PathBuf::as_path)
+        .collect();
+    crate::outputs::check(
+        &crate::outputs::in_dir(&a.output, OUTPUT_NAMES),
+        &inputs,
+        a.overwrite,
+        "give -o another directory",
+    )?;
     let img = capture::image::load(&a.image, "image").map_err(CliError::Other)?;
     let truth = match &a.truth {
         Some(p) => {
@@ -179,6 +193,15 @@ struct SegmentReport<'a> {
     cells: &'a [Cell],
 }
 
+/// What `segment` writes into its output directory.
+const OUTPUT_NAMES: [&str; 5] = [
+    "labels.png",
+    "overlay.png",
+    "variance.png",
+    "histogram.png",
+    "cells.json",
+];
+
 /// Writes labels.png, overlay.png, variance.png, histogram.png and cells.json into `dir`.
 pub fn write_segmentation(
     dir: &Path,
@@ -195,14 +218,13 @@ pub fn write_segmentation(
     std::fs::create_dir_all(dir).map_err(|e| werr(dir, &e))?;
     io::render::write_labels_png(&dir.join("labels.png"), &seg.labels)?;
     let ov = dir.join("overlay.png");
-    io::render::overlay(rgb, &seg.cells)
-        .save(&ov)
-        .map_err(|e| werr(&ov, &e))?;
+    io::write_color_png(&ov, &io::render::overlay(rgb, &seg.cells))?;
     io::write_mask_png(&dir.join("variance.png"), &seg.variance)?;
     let hp = dir.join("histogram.png");
-    io::render::histogram_chart(&seg.histogram, Some(seg.threshold))
-        .save(&hp)
-        .map_err(|e| werr(&hp, &e))?;
+    io::write_color_png(
+        &hp,
+        &io::render::histogram_chart(&seg.histogram, Some(seg.threshold)),
+    )?;
     let report = SegmentReport {
         image: image.display().to_string(),
         width: rgb.width,
@@ -217,5 +239,5 @@ pub fn write_segmentation(
     };
     let jp = dir.join("cells.json");
     let json = serde_json::to_string_pretty(&report).expect("serialises");
-    std::fs::write(&jp, json + "\n").map_err(|e| werr(&jp, &e))
+    io::atomic::write_bytes(&jp, (json + "\n").as_bytes())
 }

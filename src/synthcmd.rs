@@ -14,6 +14,9 @@ pub struct SynthArgs {
     /// Output directory (created if missing).
     #[arg(short, long)]
     pub output: PathBuf,
+    /// Replace the files of an earlier scene in the output directory.
+    #[arg(long)]
+    pub overwrite: bool,
     /// Image width, px.
     #[arg(long, default_value_t = 640)]
     pub width: usize,
@@ -153,6 +156,19 @@ fn save_grey(path: &Path, p: &Plane<u8>) -> Result<(), CliError> {
     io::write_mask_png(path, p).map_err(CliError::from)
 }
 
+/// The files [`write_scene`] writes for `prefix`.
+fn scene_files(prefix: &str) -> [String; 6] {
+    [
+        "left.png",
+        "right.png",
+        "disparity.pfm",
+        "depth.pfm",
+        "mask.png",
+        "truth.json",
+    ]
+    .map(|n| format!("{prefix}{n}"))
+}
+
 fn write_scene(dir: &Path, scene: &Scene, prefix: &str) -> Result<synth::Rendered, CliError> {
     let r = scene.render();
     save_grey(&dir.join(format!("{prefix}left.png")), &r.left)?;
@@ -184,11 +200,10 @@ fn write_scene(dir: &Path, scene: &Scene, prefix: &str) -> Result<synth::Rendere
         cells: &r.cells,
     };
     let p = dir.join(format!("{prefix}truth.json"));
-    std::fs::write(
+    io::atomic::write_bytes(
         &p,
-        serde_json::to_string_pretty(&t).expect("serialises") + "\n",
-    )
-    .map_err(|e| other(format!("cannot write '{}': {e}", p.display())))?;
+        (serde_json::to_string_pretty(&t).expect("serialises") + "\n").as_bytes(),
+    )?;
     Ok(r)
 }
 
@@ -312,6 +327,21 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
     if let Some(r) = a.rim {
         look.rim = r;
     }
+    let mut names = vec!["calibration.toml".to_string()];
+    match (&a.stage_heights, a.frames.unwrap_or(0)) {
+        (Some(zs), _) => {
+            names.push("heights.csv".into());
+            names.extend((0..zs.len()).flat_map(|i| scene_files(&format!("z{i:02}_"))));
+        }
+        (None, 0) => names.extend(scene_files("")),
+        (None, n) => names.extend((0..n).flat_map(|f| scene_files(&format!("f{f:04}_")))),
+    }
+    crate::outputs::check(
+        &crate::outputs::in_dir(&a.output, &names),
+        &[],
+        a.overwrite,
+        "give -o another directory",
+    )?;
     std::fs::create_dir_all(&a.output).map_err(|e| {
         other(format!(
             "cannot create output directory '{}': {e}",
@@ -328,8 +358,7 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
             write_scene(&a.output, &s, &prefix)?;
             csv += &format!("{prefix}left.png,{prefix}right.png,{z}\n");
         }
-        std::fs::write(a.output.join("heights.csv"), csv)
-            .map_err(|e| other(format!("cannot write heights.csv: {e}")))?;
+        io::atomic::write_bytes(&a.output.join("heights.csv"), csv.as_bytes())?;
         println!(
             "{} target pairs at stage heights {:?} µm; working distance {} µm; outputs in {}",
             zs.len(),

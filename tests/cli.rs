@@ -290,7 +290,16 @@ fn bad_input_gives_one_clear_error_and_keeps_existing_outputs() {
         ),
         (vec!["eval", s(&small), "--gt", l], "same view and size"),
     ];
-    for (args, needle) in cases {
+    // An earlier output is refused without --overwrite; with it, bad input still fails
+    // before anything is written.
+    assert_clean_failure(
+        &run(&["reconstruct", l, r, "-o", oo]),
+        "disparity.pfm' exists (from an earlier run?): add --overwrite",
+    );
+    for (mut args, needle) in cases {
+        if args[0] == "reconstruct" {
+            args.push("--overwrite");
+        }
         let out = run(&args);
         assert_clean_failure(&out, needle);
         assert_eq!(
@@ -316,6 +325,7 @@ fn bad_input_gives_one_clear_error_and_keeps_existing_outputs() {
         "0",
         "--max-disparity",
         "5",
+        "--overwrite",
     ]);
     assert_clean_failure(&out, "does not fit");
 }
@@ -583,7 +593,7 @@ fn synth_then_reconstruct_cells_writes_per_cell_figures() {
         assert!(m["volume"].as_f64().unwrap() > 0.0);
         assert!(!m["contour"].as_array().unwrap().is_empty());
     }
-    // The outputs of a cell run are all there.
+    // The outputs of a cell run are all there, and no temporary file is left beside them.
     for f in [
         "disparity.pfm",
         "points.ply",
@@ -592,6 +602,37 @@ fn synth_then_reconstruct_cells_writes_per_cell_figures() {
     ] {
         assert!(o.join(f).exists(), "{f}");
     }
+    for d in [&o, &sc] {
+        for e in std::fs::read_dir(d).unwrap() {
+            let name = e.unwrap().file_name().to_string_lossy().into_owned();
+            assert!(
+                !name.starts_with('.') && !name.contains(".tmp"),
+                "{name} left"
+            );
+        }
+    }
+    // Nothing is written over an earlier scene, segmentation or reconstruction without
+    // --overwrite; with it, the same command succeeds.
+    let before = std::fs::read(sc.join("left.png")).unwrap();
+    let again = ["synth", "-o", s(&sc), "--seed", "4", "--cells", "4"];
+    assert_clean_failure(
+        &run(&again),
+        "calibration.toml' exists (from an earlier run?)",
+    );
+    assert_eq!(std::fs::read(sc.join("left.png")).unwrap(), before);
+    let mut with = again.to_vec();
+    with.push("--overwrite");
+    assert!(run(&with).status.success());
+    assert_ne!(std::fs::read(sc.join("left.png")).unwrap(), before);
+    let seg = dir.path().join("seg");
+    let first = ["segment", s(&l), "-o", s(&seg)];
+    assert!(run(&first).status.success());
+    assert_clean_failure(&run(&first), "exists (from an earlier run?)");
+    // An output directory holding the image itself: the image is never an output.
+    let inside = sc.join("labels.png");
+    let onto = ["segment", s(&inside), "-o", s(&sc), "--overwrite"];
+    std::fs::copy(&l, sc.join("labels.png")).unwrap();
+    assert_clean_failure(&run(&onto), "would be overwritten by the output");
 }
 
 #[test]
@@ -643,14 +684,17 @@ fn calibrate_depth_recovers_f_eff_from_a_synthetic_stack() {
         truth
     );
     let again = ["calibrate-depth", s(&st), "--baseline", "1200"];
-    assert_clean_failure(&run(&again), "exists: give --overwrite");
+    assert_clean_failure(
+        &run(&again),
+        "exists (from an earlier run?): add --overwrite",
+    );
     let mut with = again.to_vec();
     with.push("--overwrite");
     assert!(run(&with).status.success());
     let onto_truth = st.join("calibration.toml");
     let mut bad = again.to_vec();
     bad.extend(["-o", s(&onto_truth), "--overwrite"]);
-    assert_clean_failure(&run(&bad), "is an input of the stack");
+    assert_clean_failure(&run(&bad), "would be overwritten by the output");
     assert_eq!(std::fs::read_to_string(&onto_truth).unwrap(), truth);
     // Too few heights.
     let two = dir.path().join("two");
@@ -1129,8 +1173,10 @@ fn reconstruct_never_writes_over_its_input() {
         s(&data("cones/im6.png")),
         "-o",
         s(dir.path()),
+        "--overwrite",
     ]);
-    assert_clean_failure(&out, "would be overwritten by the output disparity.png");
+    assert_clean_failure(&out, "would be overwritten by the output '");
+    assert!(String::from_utf8_lossy(&out.stderr).contains("disparity.png': give -o another"));
     assert_eq!(std::fs::read(&left).unwrap(), before);
     assert!(!dir.path().join("disparity.pfm").exists());
 }

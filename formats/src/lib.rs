@@ -2,12 +2,13 @@
 //! masks, colour-mapped maps with a legend, binary PLY point clouds ([`render`]: label images,
 //! cell overlays and histograms). Every error names the file and the fix.
 
+pub mod atomic;
 pub mod render;
 
 use image::{ImageBuffer, Luma, Rgb, RgbImage};
 use schemas::{Cloud, DisparityMap, INVALID_DISPARITY, LengthUnit, Mask, Plane};
 use std::fs::File;
-use std::io::{BufRead, BufReader, BufWriter, Read, Write};
+use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
 
 /// A failure reading or writing a file, with the path it concerns.
@@ -58,8 +59,6 @@ fn write_err(path: &Path, reason: impl ToString) -> IoError {
 
 /// Writes a Middlebury PFM (grey, little-endian, bottom row first; invalid = +inf).
 pub fn write_pfm(path: &Path, map: &DisparityMap) -> Result<(), IoError> {
-    let f = File::create(path).map_err(|e| write_err(path, e))?;
-    let mut out = BufWriter::new(f);
     let mut body = Vec::with_capacity(map.len() * 4 + 32);
     body.extend_from_slice(format!("Pf\n{} {}\n-1.0\n", map.width, map.height).as_bytes());
     for y in (0..map.height).rev() {
@@ -67,9 +66,7 @@ pub fn write_pfm(path: &Path, map: &DisparityMap) -> Result<(), IoError> {
             body.extend_from_slice(&v.to_le_bytes());
         }
     }
-    out.write_all(&body)
-        .and_then(|_| out.flush())
-        .map_err(|e| write_err(path, e))
+    atomic::write_bytes(path, &body)
 }
 
 /// Largest PFM side read, px: far past any camera, and small enough that the pixel count
@@ -252,7 +249,7 @@ pub fn write_disparity_png(path: &Path, map: &DisparityMap) -> Result<usize, IoE
         .collect();
     let img: ImageBuffer<Luma<u16>, Vec<u16>> =
         ImageBuffer::from_raw(map.width as u32, map.height as u32, data).expect("size");
-    img.save(path).map_err(|e| write_err(path, e))?;
+    atomic::write_atomically(path, |tmp| img.save(tmp).map_err(|e| write_err(path, e)))?;
     Ok(lost)
 }
 
@@ -261,7 +258,7 @@ pub fn write_mask_png(path: &Path, mask: &Mask) -> Result<(), IoError> {
     let img: ImageBuffer<Luma<u8>, Vec<u8>> =
         ImageBuffer::from_raw(mask.width as u32, mask.height as u32, mask.data.clone())
             .expect("size");
-    img.save(path).map_err(|e| write_err(path, e))
+    atomic::write_atomically(path, |tmp| img.save(tmp).map_err(|e| write_err(path, e)))
 }
 
 /// Turbo-like colour map (blue = far/small disparity, red = near/large), 0..1 in.
@@ -370,13 +367,11 @@ pub fn disparity_color(map: &DisparityMap, lo: f32, hi: f32) -> RgbImage {
 
 /// Writes the colour rendering to a PNG.
 pub fn write_color_png(path: &Path, img: &RgbImage) -> Result<(), IoError> {
-    img.save(path).map_err(|e| write_err(path, e))
+    atomic::write_atomically(path, |tmp| img.save(tmp).map_err(|e| write_err(path, e)))
 }
 
 /// Writes a binary little-endian PLY point cloud (float x y z, uchar red green blue).
 pub fn write_ply(path: &Path, cloud: &Cloud, unit: LengthUnit) -> Result<(), IoError> {
-    let f = File::create(path).map_err(|e| write_err(path, e))?;
-    let mut out = BufWriter::new(f);
     let header = format!(
         "ply\nformat binary_little_endian 1.0\ncomment microstereo point cloud, unit {}\n\
          element vertex {}\nproperty float x\nproperty float y\nproperty float z\n\
@@ -392,9 +387,7 @@ pub fn write_ply(path: &Path, cloud: &Cloud, unit: LengthUnit) -> Result<(), IoE
         }
         body.extend_from_slice(&p.rgb);
     }
-    out.write_all(&body)
-        .and_then(|_| out.flush())
-        .map_err(|e| write_err(path, e))
+    atomic::write_bytes(path, &body)
 }
 
 #[cfg(test)]

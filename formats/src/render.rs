@@ -141,13 +141,15 @@ pub fn histogram_chart(hist: &[u64; 256], threshold: Option<u16>) -> RgbImage {
 /// Writes a label image as a 16-bit PNG (labels above 65535 saturate; the caller warns).
 pub fn write_labels_png(path: &Path, labels: &Plane<u32>) -> Result<(), IoError> {
     let data: Vec<u16> = labels.data.iter().map(|&l| l.min(65535) as u16).collect();
-    ImageBuffer::<Luma<u16>, _>::from_raw(labels.width as u32, labels.height as u32, data)
-        .expect("size")
-        .save(path)
-        .map_err(|e| IoError::Write {
+    let img =
+        ImageBuffer::<Luma<u16>, _>::from_raw(labels.width as u32, labels.height as u32, data)
+            .expect("size");
+    crate::atomic::write_atomically(path, |tmp| {
+        img.save(tmp).map_err(|e| IoError::Write {
             path: path.into(),
             reason: e.to_string(),
         })
+    })
 }
 
 #[cfg(test)]

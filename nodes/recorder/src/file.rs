@@ -83,6 +83,9 @@ pub fn topic(edge: &str, side: Option<&str>) -> String {
 /// Writes edge messages into an MCAP file.
 pub struct RecordingWriter {
     path: PathBuf,
+    /// Where it is written until [`RecordingWriter::finish`] renames it to `path`.
+    part: PathBuf,
+    overwrite: bool,
     mcap: mcap::Writer<BufWriter<File>>,
     schemas: HashMap<&'static str, u16>,
     channels: HashMap<(String, Option<&'static str>), u16>,
@@ -101,33 +104,32 @@ impl std::fmt::Debug for RecordingWriter {
 }
 
 impl RecordingWriter {
-    /// Creates `path`; an existing file is refused unless `overwrite`, so that no earlier
-    /// recording is lost by accident.
+    /// Starts the recording `path`; an existing file is refused unless `overwrite`, so
+    /// that no earlier recording is lost by accident. It is written as `path.PID.part`
+    /// and renamed to `path` by [`RecordingWriter::finish`]: a recorder that dies leaves
+    /// its partial recording (readable up to its last flushed chunk) under that name, and
+    /// an earlier file at `path` intact.
     pub fn create(path: &Path, overwrite: bool) -> Result<Self, RecordingError> {
-        let io = |what: &'static str| {
-            let path = path.to_path_buf();
-            move |e: std::io::Error| RecordingError::Io {
-                path,
-                what,
-                reason: e.to_string(),
-            }
+        let exists = || RecordingError::Io {
+            path: path.into(),
+            what: "creating the recording",
+            reason: "the file exists; choose another name or allow overwriting it".into(),
         };
-        let file = if overwrite {
-            File::create(path)
-        } else {
-            File::options().write(true).create_new(true).open(path)
+        if !overwrite && path.exists() {
+            return Err(exists());
         }
-        .map_err(|e| {
-            if e.kind() == std::io::ErrorKind::AlreadyExists {
-                RecordingError::Io {
-                    path: path.into(),
-                    what: "creating the recording",
-                    reason: "the file exists; choose another name or allow overwriting it".into(),
-                }
-            } else {
-                io("creating the recording")(e)
-            }
-        })?;
+        let mut part = path.as_os_str().to_owned();
+        part.push(format!(".{}.part", std::process::id()));
+        let part = PathBuf::from(part);
+        let file = File::options()
+            .write(true)
+            .create_new(true)
+            .open(&part)
+            .map_err(|e| RecordingError::Io {
+                path: part.clone(),
+                what: "creating the recording",
+                reason: e.to_string(),
+            })?;
         let mcap = mcap::WriteOptions::new()
             .profile("ros2")
             .library(concat!("microstereo ", env!("CARGO_PKG_VERSION")))
@@ -142,6 +144,8 @@ impl RecordingWriter {
             })?;
         Ok(Self {
             path: path.into(),
+            part,
+            overwrite,
             mcap,
             schemas: HashMap::new(),
             channels: HashMap::new(),
@@ -326,10 +330,22 @@ impl RecordingWriter {
             })?
             .sync_all()
             .map_err(|e| RecordingError::Io {
-                path,
+                path: path.clone(),
                 what: "syncing the file",
                 reason: e.to_string(),
-            })
+            })?;
+        let part = self.part.display().to_string();
+        formats::atomic::commit(&self.part, &path, self.overwrite).map_err(|e| RecordingError::Io {
+            path,
+            what: "renaming the finished recording into place",
+            reason: if e.kind() == std::io::ErrorKind::AlreadyExists {
+                format!(
+                    "a file of that name appeared while recording; the recording is kept as {part}"
+                )
+            } else {
+                format!("{e}; the recording is kept as {part}")
+            },
+        })
     }
 }
 
@@ -866,6 +882,37 @@ mod tests {
         // An existing file is not overwritten by accident.
         let e = RecordingWriter::create(&path, false).unwrap_err();
         assert!(e.to_string().contains("exists"), "{e}");
+    }
+
+    /// A recording is written under a `.part` name and renamed when it is finished: a
+    /// recorder that dies leaves no half file under the final name, nor harms an earlier
+    /// one (with `overwrite`) before its own is whole.
+    #[test]
+    fn a_recording_takes_its_name_only_when_finished() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("r.mcap");
+        std::fs::write(&path, b"an earlier recording").unwrap();
+        let mut w = RecordingWriter::create(&path, true).unwrap();
+        let (h, p) = frame(0, 4);
+        w.write("cam/frame", MessageKind::StereoFrame, &h, &p, 50)
+            .unwrap();
+        let part = w.part.clone();
+        assert!(part.exists());
+        assert_eq!(std::fs::read(&path).unwrap(), b"an earlier recording");
+        // Dying here (dropped unfinished) keeps the partial file and the earlier one.
+        drop(w);
+        assert_eq!(std::fs::read(&path).unwrap(), b"an earlier recording");
+        assert!(part.exists());
+        std::fs::remove_file(&part).unwrap();
+        let mut w = RecordingWriter::create(&path, true).unwrap();
+        w.write("cam/frame", MessageKind::StereoFrame, &h, &p, 50)
+            .unwrap();
+        let part = w.part.clone();
+        w.finish().unwrap();
+        assert!(!part.exists());
+        assert_eq!(EdgeReader::open(&path, None).unwrap().count(), 1);
+        let names: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
+        assert_eq!(names.len(), 1, "{names:?}");
     }
 
     #[test]

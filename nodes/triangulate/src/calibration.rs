@@ -154,17 +154,7 @@ pub fn write(path: &Path, c: &Calibration, pitch: f64) -> Result<(), String> {
             LengthUnit::M => "m",
         }
     );
-    // Under a temporary name first: a crash or a full disk leaves no half file under the
-    // final one.
-    let mut tmp = path.as_os_str().to_owned();
-    tmp.push(".part");
-    let tmp = std::path::PathBuf::from(tmp);
-    std::fs::write(&tmp, text)
-        .and_then(|_| std::fs::rename(&tmp, path))
-        .map_err(|e| {
-            let _ = std::fs::remove_file(&tmp);
-            format!("cannot write '{}': {e}", path.display())
-        })
+    formats::atomic::write_bytes(path, text.as_bytes()).map_err(|e| e.to_string())
 }
 
 /// Where a triangulate node's geometry comes from (`calibration` in its params): the
