@@ -90,6 +90,10 @@ fn readable(path: &Path) -> Result<Overview, CliError> {
             path.display()
         )));
     }
+    // Damaged chunks cost their own messages only: the rest is used, the loss is said.
+    for d in &o.damaged {
+        eprintln!("warning: {}: {d}", path.display());
+    }
     Ok(o)
 }
 
@@ -175,7 +179,18 @@ pub fn inspect(a: InspectArgs) -> Result<(), CliError> {
         );
     }
     match stopped(&a.file, &o) {
-        None => Ok(()),
+        None if o.damaged.is_empty() => Ok(()),
+        None => {
+            // Every damaged part but the last on its own line; the last is the error.
+            let (last, rest) = o.damaged.split_last().expect("not empty");
+            for d in rest {
+                eprintln!("{}: {d}", a.file.display());
+            }
+            Err(CliError::Other(format!(
+                "{}: {last}; the figures above are the rest, read in full",
+                a.file.display()
+            )))
+        }
         Some(why) => Err(CliError::Other(format!(
             "{why}; the figures above are what could be read"
         ))),

@@ -396,6 +396,8 @@ pub struct Overview {
     pub error: Option<String>,
     /// The file ends without the MCAP footer.
     pub truncated: bool,
+    /// What was skipped and why (damaged chunks, found by their CRCs): the rest was read.
+    pub damaged: Vec<String>,
     /// Largest frame number seen.
     pub last_sequence: Option<u64>,
     /// Smallest frame number seen.
@@ -444,24 +446,48 @@ fn open(path: &Path) -> Result<(File, bool), RecordingError> {
     Ok((f, !complete))
 }
 
+/// Largest top-level record read whole (a chunk is 8 MiB as written; other writers' may be
+/// larger, but a length past this is damage, not data).
+const RECORD_LIMIT: u64 = 1 << 30;
+
 /// The raw MCAP messages of `path`, with whether the file lacks its footer.
 fn raw_messages(path: &Path) -> Result<(RawMessages, bool), RecordingError> {
-    let (f, truncated) = open(path)?;
-    // Chunk CRCs checked: a flipped bit inside a compressed chunk can decompress to valid
-    // records with wrong values, which nothing else would notice.
-    let opts = mcap::sans_io::LinearReaderOptions::default()
-        .with_skip_end_magic(true)
-        .with_validate_chunk_crcs(true);
-    Ok((
-        RawMessages {
-            inner: mcap::sans_io::LinearReader::new_with_options(opts),
-            file: BufReader::with_capacity(1 << 20, f),
-            channels: HashMap::new(),
-            schemas: HashMap::new(),
-            launch: None,
-        },
-        truncated,
-    ))
+    let (mut f, truncated) = open(path)?;
+    let len = f.metadata().map(|m| m.len()).unwrap_or(0);
+    let mut raw = RawMessages {
+        file: BufReader::with_capacity(
+            1 << 20,
+            f.try_clone().map_err(|e| RecordingError::Io {
+                path: path.into(),
+                what: "opening the recording",
+                reason: e.to_string(),
+            })?,
+        ),
+        offset: MAGIC.len() as u64,
+        len,
+        chunk: None,
+        ended: false,
+        channels: HashMap::new(),
+        schemas: HashMap::new(),
+        summary_channels: HashMap::new(),
+        summary_schemas: HashMap::new(),
+        launch: None,
+        damaged: Vec::new(),
+        undeclared: HashMap::new(),
+    };
+    if !truncated {
+        // The summary repeats every schema and channel: a message whose channel was
+        // declared in a damaged chunk can still be read.
+        raw.read_summary(&mut f);
+    }
+    raw.file
+        .seek(SeekFrom::Start(raw.offset))
+        .map_err(|e| RecordingError::Io {
+            path: path.into(),
+            what: "reading the recording",
+            reason: e.to_string(),
+        })?;
+    Ok((raw, truncated))
 }
 
 /// An MCAP message with its channel.
@@ -472,67 +498,263 @@ struct RawMessage {
     data: Vec<u8>,
 }
 
+/// The records of one chunk, read by mcap's own reader (decompression, CRC) from memory.
+struct ChunkRecords {
+    reader: mcap::sans_io::LinearReader,
+    bytes: Vec<u8>,
+    fed: usize,
+    /// The chunk's offset in the file.
+    at: u64,
+}
+
 /// Streams the records of an MCAP file, keeping channels, schemas and the launch metadata.
+/// It walks the top-level records itself and hands each chunk to a fresh reader that checks
+/// the chunk's CRC before giving any of its records: a damaged chunk is skipped whole and
+/// noted in `damaged`, and reading goes on with the next record.
 struct RawMessages {
-    inner: mcap::sans_io::LinearReader,
     file: BufReader<File>,
+    /// Where the next top-level record starts.
+    offset: u64,
+    len: u64,
+    chunk: Option<ChunkRecords>,
+    ended: bool,
     channels: HashMap<u16, Arc<mcap::records::Channel>>,
     schemas: HashMap<u16, String>,
+    /// Channels and schema names from the summary section.
+    summary_channels: HashMap<u16, Arc<mcap::records::Channel>>,
+    summary_schemas: HashMap<u16, String>,
     launch: Option<(String, String)>,
+    /// What was skipped, and why: damaged chunks and records.
+    damaged: Vec<String>,
+    /// Messages skipped on channels that no readable record declares, per channel.
+    undeclared: HashMap<u16, u64>,
+}
+
+/// A decoded record that matters here.
+enum Parsed {
+    Message(RawMessage),
+    Other,
 }
 
 impl RawMessages {
-    fn next_message(&mut self) -> Option<Result<RawMessage, String>> {
+    /// Reads the schemas and channels of the summary section (best effort: a damaged
+    /// summary only loses the fallback).
+    fn read_summary(&mut self, f: &mut File) {
+        use mcap::records::{Record, op};
+        // The footer: opcode, length, summary start, summary offset start, CRC; then the
+        // magic.
+        const FOOTER_LEN: u64 = 1 + 8 + 8 + 8 + 4;
+        let Some(footer_at) = self.len.checked_sub(MAGIC.len() as u64 + FOOTER_LEN) else {
+            return;
+        };
+        let mut footer = [0u8; FOOTER_LEN as usize];
+        if f.seek(SeekFrom::Start(footer_at)).is_err()
+            || f.read_exact(&mut footer).is_err()
+            || footer[0] != op::FOOTER
+        {
+            return;
+        }
+        let start = u64::from_le_bytes(footer[9..17].try_into().expect("8 bytes"));
+        if start == 0 || start >= footer_at || footer_at - start > RECORD_LIMIT {
+            return;
+        }
+        let mut summary = vec![0u8; (footer_at - start) as usize];
+        if f.seek(SeekFrom::Start(start)).is_err() || f.read_exact(&mut summary).is_err() {
+            return;
+        }
+        let mut at = 0usize;
+        while at + 9 <= summary.len() {
+            let opcode = summary[at];
+            let n = u64::from_le_bytes(summary[at + 1..at + 9].try_into().expect("8 bytes"));
+            let Some(end) = usize::try_from(n)
+                .ok()
+                .and_then(|n| (at + 9).checked_add(n))
+                .filter(|&e| e <= summary.len())
+            else {
+                return;
+            };
+            match mcap::parse_record(opcode, &summary[at + 9..end]) {
+                Ok(Record::Schema { header, .. }) => {
+                    self.summary_schemas.insert(header.id, header.name.clone());
+                }
+                Ok(Record::Channel(c)) => {
+                    self.summary_channels.insert(c.id, Arc::new(c));
+                }
+                _ => {}
+            }
+            at = end;
+        }
+    }
+
+    /// Takes one record (top-level or from a chunk).
+    fn take(&mut self, opcode: u8, data: &[u8]) -> Result<Parsed, String> {
         use mcap::records::Record;
+        match mcap::parse_record(opcode, data).map_err(|e| e.to_string())? {
+            Record::Schema { header, .. } => {
+                self.schemas.insert(header.id, header.name.clone());
+            }
+            Record::Channel(c) => {
+                self.channels.insert(c.id, Arc::new(c));
+            }
+            Record::Metadata(m) if m.name == META_LAUNCH => {
+                self.launch = Some((
+                    m.metadata.get("path").cloned().unwrap_or_default(),
+                    m.metadata.get("text").cloned().unwrap_or_default(),
+                ));
+            }
+            Record::Message { header, data } => {
+                // A channel or schema declared only in a damaged chunk is known from the
+                // summary.
+                let Some(channel) = self
+                    .channels
+                    .get(&header.channel_id)
+                    .or_else(|| self.summary_channels.get(&header.channel_id))
+                    .cloned()
+                else {
+                    *self.undeclared.entry(header.channel_id).or_default() += 1;
+                    return Ok(Parsed::Other);
+                };
+                let schema = self
+                    .schemas
+                    .get(&channel.schema_id)
+                    .or_else(|| self.summary_schemas.get(&channel.schema_id))
+                    .cloned();
+                return Ok(Parsed::Message(RawMessage {
+                    channel,
+                    schema,
+                    header,
+                    data: data.into_owned(),
+                }));
+            }
+            _ => {}
+        }
+        Ok(Parsed::Other)
+    }
+
+    /// What was skipped so far, each with where and why.
+    fn damage(&self) -> Vec<String> {
+        let mut d = self.damaged.clone();
+        let mut ids: Vec<_> = self.undeclared.iter().collect();
+        ids.sort();
+        for (id, n) in ids {
+            d.push(format!(
+                "{n} message(s) on channel {id}, which no readable record declares, skipped"
+            ));
+        }
+        d
+    }
+
+    /// The next message; `Err` ends the reading (the file breaks off or cannot be read on).
+    fn next_message(&mut self) -> Option<Result<RawMessage, String>> {
+        use mcap::records::op;
         use mcap::sans_io::LinearReadEvent;
         loop {
-            let event = self.inner.next_event()?;
-            match event {
-                Err(e) => return Some(Err(e.to_string())),
-                Ok(LinearReadEvent::ReadRequest(n)) => {
-                    let buf = self.inner.insert(n);
-                    match self.file.read(buf) {
-                        Ok(got) => self.inner.notify_read(got),
-                        Err(e) => return Some(Err(e.to_string())),
+            if let Some(c) = self.chunk.as_mut() {
+                let (opcode, data) = match c.reader.next_event() {
+                    None => {
+                        self.chunk = None;
+                        continue;
+                    }
+                    Some(Err(e)) => {
+                        let at = c.at;
+                        self.chunk = None;
+                        self.damaged.push(format!(
+                            "the chunk at byte {at} is damaged ({e}); its messages are skipped"
+                        ));
+                        continue;
+                    }
+                    Some(Ok(LinearReadEvent::ReadRequest(n))) => {
+                        let k = n.min(c.bytes.len() - c.fed);
+                        c.reader
+                            .insert(k)
+                            .copy_from_slice(&c.bytes[c.fed..c.fed + k]);
+                        c.reader.notify_read(k);
+                        c.fed += k;
+                        continue;
+                    }
+                    Some(Ok(LinearReadEvent::Record { opcode, data })) => (opcode, data.to_vec()),
+                };
+                match self.take(opcode, &data) {
+                    Ok(Parsed::Message(m)) => return Some(Ok(m)),
+                    Ok(Parsed::Other) => {}
+                    Err(e) => {
+                        let at = self.chunk.as_ref().map_or(0, |c| c.at);
+                        self.damaged.push(format!(
+                            "a record in the chunk at byte {at} cannot be read ({e}); skipped"
+                        ));
                     }
                 }
-                Ok(LinearReadEvent::Record { opcode, data }) => {
-                    let record = match mcap::parse_record(opcode, data) {
-                        Ok(r) => r,
-                        Err(e) => return Some(Err(e.to_string())),
-                    };
-                    match record {
-                        Record::Schema { header, .. } => {
-                            self.schemas.insert(header.id, header.name.clone());
-                        }
-                        Record::Channel(c) => {
-                            self.channels.insert(c.id, Arc::new(c));
-                        }
-                        Record::Metadata(m) if m.name == META_LAUNCH => {
-                            self.launch = Some((
-                                m.metadata.get("path").cloned().unwrap_or_default(),
-                                m.metadata.get("text").cloned().unwrap_or_default(),
-                            ));
-                        }
-                        Record::Message { header, data } => {
-                            let Some(channel) = self.channels.get(&header.channel_id).cloned()
-                            else {
-                                return Some(Err(format!(
-                                    "a message on channel {} which the file never declares",
-                                    header.channel_id
-                                )));
-                            };
-                            let schema = self.schemas.get(&channel.schema_id).cloned();
-                            return Some(Ok(RawMessage {
-                                channel,
-                                schema,
-                                header,
-                                data: data.into_owned(),
-                            }));
-                        }
-                        _ => {}
+                continue;
+            }
+            if self.ended {
+                return None;
+            }
+            let at = self.offset;
+            let mut head = [0u8; 9];
+            let mut got = 0;
+            while got < head.len() {
+                match self.file.read(&mut head[got..]) {
+                    Ok(0) => break,
+                    Ok(k) => got += k,
+                    Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                    Err(e) => {
+                        self.ended = true;
+                        return Some(Err(e.to_string()));
                     }
                 }
+            }
+            if got == 0 {
+                self.ended = true;
+                return None;
+            }
+            let n = u64::from_le_bytes(head[1..].try_into().expect("8 bytes"));
+            let end = at.saturating_add(9).saturating_add(n);
+            if got < head.len() || end > self.len {
+                self.ended = true;
+                return Some(Err(format!(
+                    "the record at byte {at} runs past the end of the file"
+                )));
+            }
+            if n > RECORD_LIMIT {
+                self.ended = true;
+                return Some(Err(format!(
+                    "the record at byte {at} claims {n} bytes; its length is damaged"
+                )));
+            }
+            let opcode = head[0];
+            if opcode == op::DATA_END || opcode == op::FOOTER {
+                // The data section ends here; the summary repeats what it held.
+                self.ended = true;
+                return None;
+            }
+            let mut body = vec![0u8; n as usize];
+            if let Err(e) = self.file.read_exact(&mut body) {
+                self.ended = true;
+                return Some(Err(e.to_string()));
+            }
+            self.offset = end;
+            if opcode == op::CHUNK {
+                let opts = mcap::sans_io::LinearReaderOptions::default()
+                    .with_skip_start_magic(true)
+                    .with_skip_end_magic(true)
+                    .with_prevalidate_chunk_crcs(true);
+                let mut bytes = Vec::with_capacity(9 + body.len());
+                bytes.extend_from_slice(&head);
+                bytes.extend_from_slice(&body);
+                self.chunk = Some(ChunkRecords {
+                    reader: mcap::sans_io::LinearReader::new_with_options(opts),
+                    bytes,
+                    fed: 0,
+                    at,
+                });
+                continue;
+            }
+            match self.take(opcode, &body) {
+                Ok(Parsed::Message(m)) => return Some(Ok(m)),
+                Ok(Parsed::Other) => {}
+                Err(e) => self.damaged.push(format!(
+                    "the record at byte {at} cannot be read ({e}); skipped"
+                )),
             }
         }
     }
@@ -582,6 +804,7 @@ pub fn overview(path: &Path) -> Result<Overview, RecordingError> {
         o.first_sequence = Some(o.first_sequence.map_or(seq, |s| s.min(seq)));
     }
     o.launch = raw.launch.take();
+    o.damaged = raw.damage();
     if truncated && o.error.is_none() {
         o.error = Some("the file ends without its MCAP footer".into());
     }
@@ -629,6 +852,11 @@ impl EdgeReader {
     /// first in files microstereo writes).
     pub fn launch(&self) -> Option<&(String, String)> {
         self.raw.launch.as_ref()
+    }
+
+    /// What was skipped so far and why (damaged chunks): the reader goes on past them.
+    pub fn damaged(&self) -> Vec<String> {
+        self.raw.damage()
     }
 
     fn message_error(&self, topic: &str, sequence: u64, reason: String) -> RecordingError {
@@ -770,6 +998,11 @@ impl FrameReader {
             ahead: BTreeMap::new(),
             incomplete: 0,
         })
+    }
+
+    /// What was skipped so far and why (damaged chunks): the reader goes on past them.
+    pub fn damaged(&self) -> Vec<String> {
+        self.reader.damaged()
     }
 }
 
@@ -913,6 +1146,80 @@ mod tests {
         assert_eq!(EdgeReader::open(&path, None).unwrap().count(), 1);
         let names: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
         assert_eq!(names.len(), 1, "{names:?}");
+    }
+
+    /// Offsets of the chunk records of an MCAP file and of their compressed records.
+    fn chunks(d: &[u8]) -> Vec<(usize, usize, usize)> {
+        let mut at = 8;
+        let mut out = Vec::new();
+        while at + 9 <= d.len() {
+            let op = d[at];
+            let len = u64::from_le_bytes(d[at + 1..at + 9].try_into().unwrap()) as usize;
+            if op == 0x06 {
+                let body = at + 9;
+                let name = u32::from_le_bytes(d[body + 28..body + 32].try_into().unwrap()) as usize;
+                let records = body + 32 + name + 8;
+                let n = u64::from_le_bytes(d[records - 8..records].try_into().unwrap()) as usize;
+                out.push((at, records, n));
+            }
+            if op == 0x0f {
+                break;
+            }
+            at += 9 + len;
+        }
+        out
+    }
+
+    /// A bit flipped inside one chunk costs that chunk's messages only: the chunk is
+    /// reported with where it lies, every other message reads back exactly, also those on
+    /// channels the damaged chunk declared (the summary repeats them).
+    #[test]
+    fn a_damaged_chunk_is_skipped_and_reported_and_the_rest_reads_back() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("r.mcap");
+        let mut w = RecordingWriter::create(&path, false).unwrap();
+        w.write_launch(Path::new("g.toml"), "[[node]]\n").unwrap();
+        // Four chunks of three frames each.
+        for seq in 0..12 {
+            let (h, p) = frame(seq, 64);
+            w.write("cam/frame", MessageKind::StereoFrame, &h, &p, 50 + seq)
+                .unwrap();
+            if seq % 3 == 2 {
+                w.mcap.flush().unwrap();
+            }
+        }
+        w.finish().unwrap();
+        let clean = std::fs::read(&path).unwrap();
+        let found = chunks(&clean);
+        assert_eq!(found.len(), 4, "{found:?}");
+        for (k, &(at, records, n)) in found.iter().enumerate() {
+            let mut d = clean.clone();
+            d[records + n / 2] ^= 0x10;
+            let bad = dir.path().join(format!("bad{k}.mcap"));
+            std::fs::write(&bad, &d).unwrap();
+            let o = overview(&bad).unwrap();
+            assert_eq!(o.error, None, "chunk {k}");
+            assert_eq!(o.damaged.len(), 1, "chunk {k}: {:?}", o.damaged);
+            assert!(
+                o.damaged[0].contains(&format!("the chunk at byte {at} is damaged")),
+                "{:?}",
+                o.damaged
+            );
+            let back: Vec<EdgeMessage> = EdgeReader::open(&bad, None)
+                .unwrap()
+                .collect::<Result<_, _>>()
+                .unwrap();
+            let seqs: Vec<u64> = back.iter().map(|m| m.header.sequence).collect();
+            let want: Vec<u64> = (0..12).filter(|s| s / 3 != k as u64).collect();
+            assert_eq!(seqs, want, "chunk {k}");
+            for m in &back {
+                let (h, p) = frame(m.header.sequence, 64);
+                assert_eq!((m.header, &m.payload), (h, &p));
+            }
+            let mut frames = FrameReader::open(&bad, vec!["cam/frame".into()]).unwrap();
+            assert_eq!(frames.by_ref().count(), 9);
+            assert_eq!(frames.damaged().len(), 1);
+        }
     }
 
     #[test]

@@ -242,6 +242,9 @@ impl GraphNode for ReplayNode {
             }
         }
         let Some(msgs) = msgs else {
+            for d in self.frames.damaged() {
+                eprintln!("{}: {d}", self.params.file.display());
+            }
             if self.skipped > 0 {
                 eprintln!(
                     "{}: {} recorded frame(s) lack some of {} and were skipped",

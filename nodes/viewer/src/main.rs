@@ -34,7 +34,13 @@ fn view(a: ViewCli) -> Result<(), String> {
         .map_err(|e| e.to_string())
         .and_then(|o| match o.error {
             Some(e) => Err(format!("{}: {e}", a.file.display())),
-            None => Ok(()),
+            None => {
+                // Damaged chunks are skipped; the rest is shown.
+                for d in o.damaged {
+                    eprintln!("warning: {}: {d}", a.file.display());
+                }
+                Ok(())
+            }
         })?;
     let mut sink = Sink::new(viewer::open(&target)?);
     let n = viewer::log_recording(&mut sink, &a.file)?;
