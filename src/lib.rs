@@ -5,7 +5,7 @@
 //! supervisor, and writes what they produce.
 //!
 //! - [`cli`]: the commands and their dispatch; [`error`]: the one error type; [`outputs`]:
-//!   what a command may write;
+//!   what a command may write; [`fuzzing`]: the fuzz targets' entry points;
 //! - [`registry`]: the built-in node kinds, one list;
 //! - [`presets`]: the stereo graph of `reconstruct`, `bench` and `calibrate-depth`;
 //! - [`reconstruct`], [`bench`], [`segmentcmd`], [`synthcmd`], [`calibrate`]: one-shot
@@ -17,6 +17,7 @@ pub mod bench;
 pub mod calibrate;
 pub mod cli;
 pub mod error;
+pub mod fuzzing;
 pub mod graphopts;
 pub mod outputs;
 pub mod presets;

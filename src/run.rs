@@ -113,7 +113,20 @@ pub fn run_graph(
     )?;
     runtime::supervisor::print_summary(graph, &report.stats, report.wall, frames);
     if let Some(f) = report.failure {
-        return Err(CliError::Other(format!("the run stopped early: {f}")));
+        let kept = out
+            .record
+            .as_deref()
+            .map(unfinished_recordings)
+            .unwrap_or_default();
+        let kept = if kept.is_empty() {
+            String::new()
+        } else {
+            format!(
+                "; the unfinished recording is kept as {} (readable up to its last flush)",
+                kept.join(", ")
+            )
+        };
+        return Err(CliError::Other(format!("the run stopped early: {f}{kept}")));
     }
     if let Some(path) = &out.record {
         let written = report
@@ -129,6 +142,30 @@ pub fn run_graph(
         );
     }
     Ok(())
+}
+
+/// The partial files a recorder that did not finish left for `path` (`path.PID.part`).
+fn unfinished_recordings(path: &std::path::Path) -> Vec<String> {
+    let (Some(dir), Some(name)) = (path.parent(), path.file_name()) else {
+        return Vec::new();
+    };
+    let dir = if dir.as_os_str().is_empty() {
+        std::path::Path::new(".")
+    } else {
+        dir
+    };
+    let prefix = format!("{}.", name.to_string_lossy());
+    let mut found: Vec<String> = std::fs::read_dir(dir)
+        .map(|d| {
+            d.filter_map(Result::ok)
+                .map(|e| e.file_name().to_string_lossy().into_owned())
+                .filter(|n| n.starts_with(&prefix) && n.ends_with(".part"))
+                .map(|n| dir.join(n).display().to_string())
+                .collect()
+        })
+        .unwrap_or_default();
+    found.sort();
+    found
 }
 
 /// Runs the graph: one process per node, logs prefixed, restarts, clean stop, summary.

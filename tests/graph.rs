@@ -1031,6 +1031,13 @@ fn a_recorder_killed_with_sigkill_leaves_a_file_readable_to_its_last_flush() {
         Some(2),
         "the run fails: its recorder died"
     );
+    // The recording never took its final name: what it holds is under the recorder's
+    // `.part` name, which the run's error names.
+    assert!(!rec.exists(), "a half recording under the final name");
+    let part = dir.path().join(format!("killed.mcap.{recorder}.part"));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains(part.to_str().unwrap()), "{err}");
+    let rec = part;
     let got: Vec<_> = recorder::EdgeReader::open(&rec, None).unwrap().collect();
     let (ok, bad): (Vec<_>, Vec<_>) = got.into_iter().partition(Result::is_ok);
     // 10 edges at 5 frames/s for 3.5 s; at most the last second can be lost.

@@ -1,0 +1,5 @@
+//! Fuzz target `mcap`: see `microstereo::fuzzing::mcap`.
+
+fn main() {
+    afl::fuzz!(|data: &[u8]| microstereo::fuzzing::mcap(data));
+}
