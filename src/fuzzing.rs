@@ -5,8 +5,11 @@
 
 use std::path::{Path, PathBuf};
 
+/// A fuzz target: arbitrary bytes in, no panic whatever they hold.
+pub type Target = fn(&[u8]);
+
 /// The targets by name, as `fuzz/` builds them and the corpus folders are named.
-pub const TARGETS: [(&str, fn(&[u8])); 6] = [
+pub const TARGETS: [(&str, Target); 6] = [
     ("launch", launch),
     ("calibration", calibration),
     ("pfm", pfm),
