@@ -16,14 +16,14 @@ pub struct BenchArgs {
     /// Directory with the cones pair (im2.png, im6.png).
     #[arg(long, default_value = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/cones"))]
     cones: PathBuf,
-    /// Runs per measurement (the median is reported).
-    #[arg(long, default_value_t = 5)]
+    /// Runs per measurement (the median is reported), 1..=1000.
+    #[arg(long, default_value_t = 5, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=1000))]
     repeat: usize,
     /// Write the results as JSON here too.
     #[arg(long)]
     json: Option<PathBuf>,
     /// Also write the 1280×1024 pair as PNGs here (so other tools can time the same images).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "cones_only")]
     write_pairs: Option<PathBuf>,
     /// Replace the files --json and --write-pairs name if they exist.
     #[arg(long)]

@@ -154,11 +154,20 @@ fn target_disparity(
 
 /// Runs `microstereo calibrate-depth`.
 pub fn calibrate_depth(a: CalibrateArgs) -> Result<(), CliError> {
-    if !(a.baseline > 0.0 && a.baseline.is_finite()) {
-        return Err(CliError::Other(format!(
-            "--baseline {} must be positive",
-            a.baseline
-        )));
+    // Every length in µm, within what optics have (a NaN is inside no range).
+    let lengths = [
+        ("--baseline", Some(a.baseline), 0.1, 1e7),
+        ("--pixel-pitch", a.pixel_pitch, 0.01, 1000.0),
+        ("--working-distance", a.working_distance, -1e7, 1e7),
+    ];
+    for (flag, v, lo, hi) in lengths {
+        if let Some(v) = v
+            && !(lo..=hi).contains(&v)
+        {
+            return Err(CliError::Other(format!(
+                "{flag} {v} is out of range: use {lo}..{hi} (µm)"
+            )));
+        }
     }
     let stack = read_stack(&a.dir)?;
     let out = a

@@ -320,6 +320,37 @@ fn refuse_inputs_as_outputs(a: &ReconstructArgs) -> Result<(), CliError> {
     )
 }
 
+/// Checks the flags that only some runs use (geometry without --cells, segmentation
+/// without --cells, range radii without --auto-range) before any work: a bad value is
+/// refused whether or not this run would have read it.
+fn check_every_flag(a: &ReconstructArgs) -> Result<(), CliError> {
+    for (flag, v) in [("--cx", a.cx), ("--cy", a.cy), ("--cx-right", a.cx_right)] {
+        if let Some(v) = v
+            && !(v.is_finite() && v.abs() <= 1e6)
+        {
+            return Err(CliError::Other(format!(
+                "{flag} {v} must be a pixel column or row within ±1e6"
+            )));
+        }
+    }
+    if let Some(r) = a.range_radii.iter().find(|r| !(1..=65_536).contains(*r)) {
+        return Err(CliError::Other(format!(
+            "--range-radii: {r} is out of range: use radii of 1..65536 px"
+        )));
+    }
+    runtime::node::Params::check(&a.seg.params())
+        .map_err(|e| CliError::Other(crate::presets::in_flag_terms(&e, FLAGS)))?;
+    if let Some(m) = a.min_region {
+        let post = postprocess::PostParams {
+            min_region: m,
+            ..crate::presets::post_for(a.mode())
+        };
+        runtime::node::Params::check(&post)
+            .map_err(|e| CliError::Other(crate::presets::in_flag_terms(&e, FLAGS)))?;
+    }
+    Ok(())
+}
+
 /// Runs one frame of `preset`: its messages and node times.
 pub fn run_once(preset: &Stereo) -> Result<Frame, CliError> {
     let (_, mut run) = preset.start(FLAGS)?;
@@ -417,6 +448,7 @@ fn occlusion(map: &DisparityMap) -> Mask {
 /// Runs `microstereo reconstruct`.
 pub fn reconstruct(a: ReconstructArgs) -> Result<(), CliError> {
     let t0 = Instant::now();
+    check_every_flag(&a)?;
     refuse_inputs_as_outputs(&a)?;
     if a.cells {
         if a.geometry().is_none() {

@@ -215,15 +215,6 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
             a.width, a.height
         )));
     }
-    let positive = [
-        ("--pixel-pitch", a.pixel_pitch),
-        ("--magnification", a.magnification),
-        ("--f-eff", a.f_eff),
-        ("--baseline", a.baseline),
-    ];
-    if let Some((n, v)) = positive.iter().find(|(_, v)| !(*v > 0.0 && v.is_finite())) {
-        return Err(other(format!("{n} {v} must be a positive number")));
-    }
     if a.diameter.len() != 2 || a.cell_height.len() != 2 {
         return Err(other(
             "--diameter and --cell-height take two numbers, MIN,MAX (e.g. --diameter 20,100)"
@@ -232,7 +223,12 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
     }
     // Every number in a checked range, NaN and infinities included (a NaN passes no
     // comparison, so each test is written as "inside").
+    // The optics: from a phone camera to a long-distance microscope (µm).
     let mut checked: Vec<(&str, f64, f64, f64)> = vec![
+        ("--pixel-pitch", a.pixel_pitch, 0.01, 1000.0),
+        ("--magnification", a.magnification, 0.01, 10_000.0),
+        ("--f-eff", a.f_eff, 1.0, 1e7),
+        ("--baseline", a.baseline, 0.1, 1e7),
         ("--diameter", a.diameter[0], 0.5, 2000.0),
         ("--diameter", a.diameter[1], 0.5, 2000.0),
         ("--cell-height", a.cell_height[0], 0.1, 1000.0),

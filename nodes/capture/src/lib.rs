@@ -63,9 +63,41 @@ impl Params for CaptureParams {
             // Listing the files is cheap and finds a wrong pattern before the graph starts;
             // a camera is opened only by the node (every process of a graph would find it
             // busy otherwise).
-            Self::Files(p) => files::FileCapture::new(p.clone()).map(|_| ()),
-            _ => Ok(()),
+            Self::Files(p) => {
+                check_fps(p.fps)?;
+                files::FileCapture::new(p.clone()).map(|_| ())
+            }
+            Self::Synthetic(p) => {
+                check_fps(p.fps)?;
+                if p.cells > 10_000 {
+                    return Err(format!("cells {} is out of range: use 0..=10000", p.cells));
+                }
+                if !(0.0..=100.0).contains(&p.drift) {
+                    return Err(format!(
+                        "drift {} is out of range: use 0..=100 µm per frame",
+                        p.drift
+                    ));
+                }
+                if let Some(h) = p.pipette
+                    && !(0.0..=10_000.0).contains(&h)
+                {
+                    return Err(format!("pipette {h} is out of range: use 0..=10000 µm"));
+                }
+                Ok(())
+            }
+            #[cfg(feature = "v4l")]
+            Self::V4l(p) => check_fps(p.fps),
         }
+    }
+}
+
+/// A frame rate, where one is given: above 0, at most 10 000 frames/s.
+fn check_fps(fps: Option<f64>) -> Result<(), String> {
+    match fps {
+        Some(f) if !(f > 0.0 && f <= 10_000.0) => Err(format!(
+            "fps {f} is out of range: use a rate above 0, at most 10000"
+        )),
+        _ => Ok(()),
     }
 }
 

@@ -164,26 +164,38 @@ impl Params for BridgeParams {
         }
         let c = p.config();
         c.planner.check()?;
+        if !p.offset.iter().all(|v| (-1e7..=1e7).contains(v)) {
+            return Err(format!(
+                "offset {:?} must be finite, each axis within ±1e7 µm",
+                p.offset
+            ));
+        }
         if !c.planner.workspace.contains(p.home) {
             return Err(format!(
                 "home {:?} is outside the workspace {:?} .. {:?}",
                 p.home, c.planner.workspace.min, c.planner.workspace.max
             ));
         }
-        for (name, v) in [
-            ("max_speed", p.max_speed),
-            ("max_accel", p.max_accel),
-            ("self_margin", p.self_margin),
-            ("track_radius", p.track_radius),
-            ("replan_tolerance", p.replan_tolerance),
-            ("untrusted_height", p.untrusted_height),
+        // Each above 0 and below what any manipulator has (µm, µm/s, µm/s²).
+        for (name, v, max) in [
+            ("max_speed", p.max_speed, 1e5),
+            ("max_accel", p.max_accel, 1e8),
+            ("self_margin", p.self_margin, 1e6),
+            ("track_radius", p.track_radius, 1e6),
+            ("replan_tolerance", p.replan_tolerance, 1e6),
+            ("untrusted_height", p.untrusted_height, 1e6),
         ] {
-            if !v.is_finite() || v <= 0.0 {
-                return Err(format!("{name} {v} must be positive"));
+            if !(v > 0.0 && v <= max) {
+                return Err(format!(
+                    "{name} {v} is out of range: use a value above 0, at most {max}"
+                ));
             }
         }
-        if p.poll_ms == 0 || p.stale_ms == 0 {
-            return Err("poll_ms and stale_ms must be positive".into());
+        if !(1..=60_000).contains(&p.poll_ms) || !(1..=3_600_000).contains(&p.stale_ms) {
+            return Err(format!(
+                "poll_ms {} and stale_ms {} are out of range: use 1..=60000 and 1..=3600000",
+                p.poll_ms, p.stale_ms
+            ));
         }
         Ok(())
     }

@@ -63,8 +63,12 @@ impl PipetteGeometry {
                 self.elevation_deg
             ));
         }
-        if !self.length.is_finite() || self.length <= 0.0 || !self.azimuth_deg.is_finite() {
-            return Err("pipette length must be positive and azimuth finite".into());
+        let length_ok = self.length > 0.0 && self.length <= 1e6;
+        if !(length_ok && (-360.0..=360.0).contains(&self.azimuth_deg)) {
+            return Err(format!(
+                "pipette length {} must be within 0..1e6 µm and azimuth {}° within ±360",
+                self.length, self.azimuth_deg
+            ));
         }
         Ok(())
     }
@@ -134,8 +138,9 @@ impl PlannerConfig {
             ("depth", self.depth),
             ("floor_margin", self.floor_margin),
         ] {
-            if !v.is_finite() || v < 0.0 {
-                return Err(format!("{name} {v} must be a non-negative number of µm"));
+            // Past a metre, a length is a typing error.
+            if !(0.0..=1e6).contains(&v) {
+                return Err(format!("{name} {v} must be within 0..1e6 µm"));
             }
         }
         Ok(())

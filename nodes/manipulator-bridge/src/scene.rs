@@ -56,11 +56,11 @@ impl Workspace {
 
     /// Says what is wrong with the box, if anything.
     pub fn check(&self) -> Result<(), String> {
-        if (0..3).any(|k| {
-            !self.min[k].is_finite() || !self.max[k].is_finite() || self.min[k] >= self.max[k]
-        }) {
+        // Manipulators travel centimetres; past 10 m a bound is a typing error.
+        let fits = |v: f64| v.abs() <= 1e7;
+        if (0..3).any(|k| !fits(self.min[k]) || !fits(self.max[k]) || self.min[k] >= self.max[k]) {
             return Err(format!(
-                "workspace min {:?} must be below max {:?} on every axis",
+                "workspace min {:?} must be below max {:?} on every axis, each within ±1e7 µm",
                 self.min, self.max
             ));
         }

@@ -16,6 +16,13 @@ impl Params for PostParams {
                 2 * crate::MAX_MEDIAN_RADIUS + 1
             ));
         }
+        // Regions past a 10 000 × 10 000 image's are typing errors, not settings.
+        if self.min_region > 100_000_000 {
+            return Err(format!(
+                "min_region {} is out of range: use 0..=100000000 pixels",
+                self.min_region
+            ));
+        }
         if !(self.region_max_diff >= 0.0 && self.region_max_diff.is_finite()) {
             return Err(format!(
                 "region_max_diff {} must be a number ≥ 0",

@@ -6,16 +6,24 @@ use schemas::{CellLists, Labels, StereoFrame};
 
 impl Params for SegmentParams {
     fn check(&self) -> Result<(), String> {
+        // Areas past a 10 000 × 10 000 image's are typing errors, not settings.
+        const MAX_AREA: usize = 100_000_000;
         if self.variance_radius == 0 || self.variance_radius > 50 {
             return Err(format!(
                 "variance_radius {} is out of range: use 1..=50",
                 self.variance_radius
             ));
         }
-        if !(self.min_std >= 0.0 && self.min_std.is_finite()) {
+        if !(0.0..=255.0).contains(&self.min_std) {
             return Err(format!(
-                "min_std {} must be a non-negative number",
+                "min_std {} is out of range: use 0..=255 grey levels",
                 self.min_std
+            ));
+        }
+        if self.min_area > MAX_AREA {
+            return Err(format!(
+                "min_area {} is out of range: use 0..={MAX_AREA} pixels",
+                self.min_area
             ));
         }
         if self.open_radius > 50 || self.close_radius > 50 {
