@@ -132,8 +132,8 @@ pub fn inspect(a: InspectArgs) -> Result<(), CliError> {
     };
     let total: u64 = o.channels.iter().map(|c| c.messages).sum();
     let bytes: u64 = o.channels.iter().map(|c| c.bytes).sum();
-    println!("{}", a.file.display());
-    println!(
+    runtime::outln!("{}", a.file.display());
+    runtime::outln!(
         "  {total} messages on {} channels, {:.2} s, frames {}–{}, {:.1} MB of CDR data",
         o.channels.len(),
         span,
@@ -142,7 +142,7 @@ pub fn inspect(a: InspectArgs) -> Result<(), CliError> {
         bytes as f64 / 1e6,
     );
     if let Some((path, _)) = &o.launch {
-        println!("  launch file: {path} (stored in the recording)");
+        runtime::outln!("  launch file: {path} (stored in the recording)");
     }
     let w = o
         .channels
@@ -158,9 +158,13 @@ pub fn inspect(a: InspectArgs) -> Result<(), CliError> {
         .max()
         .unwrap_or(4)
         .max(4);
-    println!(
+    runtime::outln!(
         "  {:<w$} {:<tw$} {:>8} {:>9} {:>10}",
-        "topic", "type", "messages", "rate Hz", "MB"
+        "topic",
+        "type",
+        "messages",
+        "rate Hz",
+        "MB"
     );
     for c in &o.channels {
         let dt = (c.last_ns - c.first_ns) as f64 / 1e9;
@@ -169,7 +173,7 @@ pub fn inspect(a: InspectArgs) -> Result<(), CliError> {
         } else {
             "-".into()
         };
-        println!(
+        runtime::outln!(
             "  {:<w$} {:<tw$} {:>8} {:>9} {:>10.2}",
             c.topic,
             c.schema,
@@ -368,7 +372,7 @@ pub fn test_node_cmd(a: TestNodeArgs) -> Result<(), CliError> {
         )));
     }
     let c = test_node(&a.file, a.launch.as_deref(), &a.node, a.tolerance)?;
-    println!(
+    runtime::outln!(
         "{}: {} frame(s) stepped on recorded inputs{}",
         c.node,
         c.frames,
@@ -379,7 +383,7 @@ pub fn test_node_cmd(a: TestNodeArgs) -> Result<(), CliError> {
         }
     );
     for o in &c.outputs {
-        println!(
+        runtime::outln!(
             "  {:<28} {:>4} compared {:>4} identical {:>4} within ±{}  max diff {}{}",
             o.edge,
             o.compared,
@@ -393,7 +397,7 @@ pub fn test_node_cmd(a: TestNodeArgs) -> Result<(), CliError> {
         );
     }
     if c.passed() {
-        println!("PASS");
+        runtime::outln!("PASS");
         Ok(())
     } else if c.frames == 0 {
         Err(CliError::Other(format!(

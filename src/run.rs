@@ -134,7 +134,7 @@ pub fn run_graph(
             .get(crate::graphopts::RECORDER_ID)
             .map_or(0, |s| s.frames_out);
         let size = std::fs::metadata(path).map_or(0, |m| m.len());
-        println!(
+        runtime::outln!(
             "recorded {written} message(s) into {} ({:.1} MB); `microstereo inspect {}` lists them",
             path.display(),
             size as f64 / 1e6,
@@ -220,7 +220,7 @@ pub fn bench_transport(a: BenchTransportArgs) -> Result<(), CliError> {
     for placement in placements {
         let (wake50, wake99) =
             runtime::hop::wake_floor(a.frames, placement).map_err(CliError::Other)?;
-        println!(
+        runtime::outln!(
             "writer and reader {} (a bare thread wake-up: p50 {wake50:.1} µs, p99 {wake99:.1} µs)",
             match placement {
                 Placement::OneCore => "on one core",
@@ -228,7 +228,7 @@ pub fn bench_transport(a: BenchTransportArgs) -> Result<(), CliError> {
                 Placement::Free => "where the scheduler puts them",
             }
         );
-        println!(
+        runtime::outln!(
             "{:<22} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>8} {:>8}",
             "frame",
             "shm p50",
@@ -250,7 +250,7 @@ pub fn bench_transport(a: BenchTransportArgs) -> Result<(), CliError> {
                 runtime::hop::iceoryx2(bytes, a.frames, placement).map_err(CliError::Other)?;
             let uds =
                 runtime::hop::unix_socket(bytes, a.frames, placement).map_err(CliError::Other)?;
-            println!(
+            runtime::outln!(
                 "{:<22} {:>9.1} {:>9.1} {:>9.0} {:>9.1} {:>9.1} {:>9.0} {:>8.1} {:>8.1}",
                 name,
                 shm.p50_us,
@@ -264,7 +264,7 @@ pub fn bench_transport(a: BenchTransportArgs) -> Result<(), CliError> {
             );
         }
     }
-    println!(
+    runtime::outln!(
         "latencies in µs, one frame at a time; fps back to back through a lossless edge of depth 4"
     );
     Ok(())

@@ -1180,3 +1180,37 @@ fn reconstruct_never_writes_over_its_input() {
     assert_eq!(std::fs::read(&left).unwrap(), before);
     assert!(!dir.path().join("disparity.pfm").exists());
 }
+
+/// A reader that goes away (`| head -1`) ends a command quietly: SIGPIPE as any Unix
+/// tool, or a normal end for the graph commands, which ignore SIGPIPE to stop their
+/// nodes cleanly; never a panic about printing (issue 19 #11).
+#[test]
+fn a_closed_stdout_ends_a_command_without_a_panic() {
+    use std::os::unix::process::ExitStatusExt;
+    let small = data("graph/small.toml");
+    let bundled = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("recordings/default.mcap");
+    let cases: Vec<Vec<&str>> = vec![
+        vec!["inspect", s(&bundled)],
+        vec!["run", s(&small), "--frames", "2"],
+        vec!["test-node", s(&bundled), "segment"],
+        vec!["--help"],
+    ];
+    for args in cases {
+        let mut child = bin()
+            .args(&args)
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        // The reading end closes before the command prints anything.
+        drop(child.stdout.take());
+        let out = child.wait_with_output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            !err.contains("panicked") && !err.contains("failed printing"),
+            "{args:?}: {err}"
+        );
+        let quiet = out.status.signal() == Some(libc::SIGPIPE) || out.status.code() == Some(0);
+        assert!(quiet, "{args:?}: {:?} {err}", out.status);
+    }
+}

@@ -15,6 +15,17 @@
 //! - [`harness`]: a node fed recorded inputs, its outputs compared with the recording;
 //! - [`hop`]: the transport benchmark.
 
+/// `println!` for what the graph commands print on stdout: a reader that went away (`| head
+/// -1`) is not an error of the run. The graph commands keep SIGPIPE ignored (a node's pipe
+/// closing must not kill the supervisor), so `println!` would panic on the closed stdout.
+#[macro_export]
+macro_rules! outln {
+    ($($t:tt)*) => {{
+        use std::io::Write as _;
+        let _ = writeln!(std::io::stdout(), $($t)*);
+    }};
+}
+
 pub mod edge;
 pub mod exec;
 pub mod harness;

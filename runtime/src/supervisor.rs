@@ -257,7 +257,7 @@ fn forward_logs(
                         if let Some(t) = &tap {
                             let _ = t.send(format!("{id}\tINFO\t{l}"));
                         }
-                        println!("[{id}] {l}")
+                        crate::outln!("[{id}] {l}")
                     }
                 }
             }
@@ -566,14 +566,19 @@ pub fn print_summary(
     wall: Duration,
     frames: Option<u64>,
 ) {
-    println!();
-    println!(
+    crate::outln!();
+    crate::outln!(
         "{:<20} {:>9} {:>9} {:>10} {:>10} {:>12}",
-        "node", "frames in", "out", "mean ms", "p99 ms", "latency ms"
+        "node",
+        "frames in",
+        "out",
+        "mean ms",
+        "p99 ms",
+        "latency ms"
     );
     for n in &graph.nodes {
         match stats.get(&n.id) {
-            Some(s) => println!(
+            Some(s) => crate::outln!(
                 "{:<20} {:>9} {:>9} {:>10.2} {:>10.2} {:>12.1}{}",
                 n.id,
                 s.frames_in,
@@ -587,7 +592,7 @@ pub fn print_summary(
                     String::new()
                 }
             ),
-            None => println!("{:<20} (no report)", n.id),
+            None => crate::outln!("{:<20} (no report)", n.id),
         }
     }
     // Per edge: messages its own queue lost, and frames of the stream that never reached
@@ -609,13 +614,15 @@ pub fn print_summary(
         .max()
         .unwrap_or(4)
         .max(4);
-    println!();
-    println!(
+    crate::outln!();
+    crate::outln!(
         "{:<width$} {:>8} {:>14}",
-        "edge", "dropped", "never arrived"
+        "edge",
+        "dropped",
+        "never arrived"
     );
     for (edge, lost) in &rows {
-        println!("{:<width$} {:>8} {:>14}", edge, lost.dropped, lost.missing);
+        crate::outln!("{:<width$} {:>8} {:>14}", edge, lost.dropped, lost.missing);
     }
     // The graph's own ends: nodes no other node reads, taps (recorder, viewer) and
     // feedback inputs aside.
@@ -634,7 +641,7 @@ pub fn print_summary(
         .filter_map(|n| stats.get(&n.id))
         .collect();
     let done = sinks.iter().map(|s| s.frames_in).min().unwrap_or(0);
-    println!(
+    crate::outln!(
         "{done} frame(s){} in {:.2} s: {:.2} frames/s; capture → last output latency {:.1} ms",
         frames.map_or(String::new(), |n| format!(" of {n}")),
         wall.as_secs_f64(),
