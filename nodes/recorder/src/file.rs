@@ -450,6 +450,10 @@ fn open(path: &Path) -> Result<(File, bool), RecordingError> {
 /// larger, but a length past this is damage, not data).
 const RECORD_LIMIT: u64 = 1 << 30;
 
+/// Largest uncompressed chunk or record inside one read (microstereo writes 8 MiB chunks;
+/// a larger claim is damage).
+const CHUNK_LIMIT: usize = 256 << 20;
+
 /// The raw MCAP messages of `path`, with whether the file lacks its footer.
 fn raw_messages(path: &Path) -> Result<(RawMessages, bool), RecordingError> {
     let (mut f, truncated) = open(path)?;
@@ -734,10 +738,13 @@ impl RawMessages {
             }
             self.offset = end;
             if opcode == op::CHUNK {
+                // The chunk's own sizes are untrusted: a damaged one must not allocate
+                // what it claims (fuzzing found terabyte claims).
                 let opts = mcap::sans_io::LinearReaderOptions::default()
                     .with_skip_start_magic(true)
                     .with_skip_end_magic(true)
-                    .with_prevalidate_chunk_crcs(true);
+                    .with_prevalidate_chunk_crcs(true)
+                    .with_record_length_limit(CHUNK_LIMIT);
                 let mut bytes = Vec::with_capacity(9 + body.len());
                 bytes.extend_from_slice(&head);
                 bytes.extend_from_slice(&body);

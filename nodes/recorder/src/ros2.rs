@@ -1065,7 +1065,8 @@ pub fn decode(
                 first.height as usize,
                 imgs.len() as u32,
             );
-            let mut payload = Vec::with_capacity(h.image_bytes());
+            // Sized by the data read, not by the header's claim (checked below).
+            let mut payload = Vec::with_capacity(imgs.iter().map(|i| i.data.len()).sum());
             for i in &imgs {
                 if (i.width, i.height, i.step, &i.encoding)
                     != (first.width, first.height, h.stride, &first.encoding)
