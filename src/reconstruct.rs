@@ -329,7 +329,7 @@ fn check_every_flag(a: &ReconstructArgs) -> Result<(), CliError> {
             && !(v.is_finite() && v.abs() <= 1e6)
         {
             return Err(CliError::Other(format!(
-                "{flag} {v} must be a pixel column or row within ±1e6"
+                "{flag} ({v}) must be a finite pixel column or row (within ±1e6)"
             )));
         }
     }
