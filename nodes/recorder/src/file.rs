@@ -494,6 +494,40 @@ fn raw_messages(path: &Path) -> Result<(RawMessages, bool), RecordingError> {
     Ok((raw, truncated))
 }
 
+/// Checks that the records of an uncompressed chunk (`body`: the chunk record's body) lie
+/// within it, each whole: mcap 0.26 overflows a counter on one that runs past the chunk's
+/// end (found by fuzzing). Compressed chunks are checked by their reader.
+fn uncompressed_framing(body: &[u8]) -> Result<(), &'static str> {
+    let u64_at = |i: usize| {
+        body.get(i..i.checked_add(8)?)
+            .map(|b| u64::from_le_bytes(b.try_into().expect("8 bytes")))
+    };
+    let short = "its header is cut short";
+    let name_len = body
+        .get(28..32)
+        .map(|b| u32::from_le_bytes(b.try_into().expect("4 bytes")) as usize)
+        .ok_or(short)?;
+    let at = 32usize.checked_add(name_len).ok_or(short)?;
+    if !body.get(32..at).ok_or(short)?.is_empty() {
+        return Ok(());
+    }
+    let n = u64_at(at).ok_or(short)?;
+    let records = body.get(at + 8..).ok_or(short)?;
+    if (records.len() as u64) < n {
+        return Err("its records run past its end");
+    }
+    let mut i = 0usize;
+    while (i as u64) < n {
+        let len = u64_at(at + 8 + i + 1).ok_or("a record's header is cut short")?;
+        i = (i as u64)
+            .checked_add(9)
+            .and_then(|x| x.checked_add(len))
+            .filter(|&x| x <= n)
+            .ok_or("a record runs past the chunk's end")? as usize;
+    }
+    Ok(())
+}
+
 /// An MCAP message with its channel.
 struct RawMessage {
     channel: Arc<mcap::records::Channel>,
@@ -577,6 +611,10 @@ impl RawMessages {
             else {
                 return;
             };
+            if !matches!(opcode, op::SCHEMA | op::CHANNEL) {
+                at = end;
+                continue;
+            }
             match mcap::parse_record(opcode, &summary[at + 9..end]) {
                 Ok(Record::Schema { header, .. }) => {
                     self.summary_schemas.insert(header.id, header.name.clone());
@@ -592,7 +630,15 @@ impl RawMessages {
 
     /// Takes one record (top-level or from a chunk).
     fn take(&mut self, opcode: u8, data: &[u8]) -> Result<Parsed, String> {
-        use mcap::records::Record;
+        use mcap::records::{Record, op};
+        // Only what is used is parsed: mcap 0.26 panics on some damaged records of other
+        // kinds (an attachment shorter than its header, found by fuzzing).
+        if !matches!(
+            opcode,
+            op::SCHEMA | op::CHANNEL | op::MESSAGE | op::METADATA
+        ) {
+            return Ok(Parsed::Other);
+        }
         match mcap::parse_record(opcode, data).map_err(|e| e.to_string())? {
             Record::Schema { header, .. } => {
                 self.schemas.insert(header.id, header.name.clone());
@@ -738,6 +784,12 @@ impl RawMessages {
             }
             self.offset = end;
             if opcode == op::CHUNK {
+                if let Err(e) = uncompressed_framing(&body) {
+                    self.damaged.push(format!(
+                        "the chunk at byte {at} is damaged ({e}); its messages are skipped"
+                    ));
+                    continue;
+                }
                 // The chunk's own sizes are untrusted: a damaged one must not allocate
                 // what it claims (fuzzing found terabyte claims).
                 let opts = mcap::sans_io::LinearReaderOptions::default()

@@ -888,8 +888,26 @@ fn to_cdr<T: Serialize>(v: &T) -> Result<Vec<u8>, String> {
     cdr::serialize::<_, _, cdr::CdrLe>(v, cdr::Infinite).map_err(|e| format!("CDR: {e}"))
 }
 
+/// Decodes CDR with `cdr-encoding`, whose reader checks every length against the bytes
+/// left before taking them (`cdr` allocates whatever a length field claims first: fuzzing
+/// found a damaged string length that zero-filled 4 GiB).
 fn from_cdr<'de, T: Deserialize<'de>>(b: &'de [u8], what: &str) -> Result<T, String> {
-    cdr::deserialize(b).map_err(|e| format!("not a CDR {what}: {e}"))
+    let err = |e: String| format!("not a CDR {what}: {e}");
+    // The encapsulation header: 0x00 0x01 is little-endian CDR, 0x00 0x00 big-endian.
+    let body = b
+        .get(4..)
+        .ok_or_else(|| err("shorter than its header".into()))?;
+    match (b[0], b[1]) {
+        (0, 1) => cdr_encoding::from_bytes::<T, byteorder::LittleEndian>(body),
+        (0, 0) => cdr_encoding::from_bytes::<T, byteorder::BigEndian>(body),
+        (x, y) => {
+            return Err(err(format!(
+                "encapsulation {x:#04x} {y:#04x} is not plain CDR"
+            )));
+        }
+    }
+    .map(|(v, _)| v)
+    .map_err(|e| err(e.to_string()))
 }
 
 /// Encodes one edge message of `kind` as its ROS 2 message(s).
