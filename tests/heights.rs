@@ -545,7 +545,7 @@ fn share_within(all: &[(Option<f64>, bool)], bound: f64) -> f64 {
 
 /// What holds today on every condition, and must keep holding: no negative height, every
 /// large error flagged (the bound is 8 %, not yet the 5 %), every cell found with its
-/// centroid within 1 px, and most heights within 5 % (93.7 % when this was written).
+/// centroid within 1 px, and most heights within 5 % (94.9 % when this was written).
 #[test]
 fn heights_are_never_negative_and_large_errors_are_flagged() {
     let f = run_matrix();
@@ -576,7 +576,7 @@ fn heights_are_never_negative_and_large_errors_are_flagged() {
         "heights off by more than 8 % (or missing) without a flag: {unflagged:?}"
     );
     assert!(
-        share >= 0.92,
+        share >= 0.94,
         "{:.1} % of heights within 5 %",
         100.0 * share
     );

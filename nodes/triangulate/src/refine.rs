@@ -458,13 +458,18 @@ pub struct PeakFit {
 const PEAK_MIN_PIXELS: usize = 24;
 
 /// The polynomial under a cell top's surface ([`refine_top`]).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub enum TopModel {
     /// Six terms, to second order: with a base, exact for an ellipsoidal cap.
     Quadratic,
     /// Fifteen terms, to fourth order: with a base, exact for an ellipsoidal cap and for a
     /// paraboloid (`h² = (1 − ρ²)²`), close for a flattened, spread cell (`1 − ρ⁴`).
     Quartic,
+    /// Four terms: the top's level and place and a curvature shaped like the cell's
+    /// footprint, `Q = c0 + c1·u + c2·v − c3·ρ²` with `ρ² = A·dx² + B·dx·dy + C·dy²` (px;
+    /// the footprint's normalised quadratic form, any scale): with a base, exact for an
+    /// ellipsoidal cap, and the fewest unknowns for a small cell's few pixels.
+    Footprint([f64; 3]),
 }
 
 /// Monomials of `(u, v)` up to fourth order, in the order the coefficients are kept; unused
@@ -591,15 +596,22 @@ pub fn refine_top(
     base: Option<Ground>,
     model: TopModel,
 ) -> Option<PeakFit> {
-    let (dome, p) = fit_top::<8>(left, right, pixels, init, base, None)?;
-    match model {
-        TopModel::Quadratic => Some(dome),
+    let quartic = match model {
+        TopModel::Footprint(shape) => {
+            return fit_top::<6>(left, right, pixels, init, base, None, Some(shape)).map(|f| f.0);
+        }
+        TopModel::Quadratic => false,
+        TopModel::Quartic => true,
+    };
+    let (dome, p) = fit_top::<8>(left, right, pixels, init, base, None, None)?;
+    match quartic {
+        false => Some(dome),
         // The quartic starts from the quadratic (a good fit it only refines: from the
         // matcher's map, clipped at the range's end on tall cells, it found a wrong
         // minimum 2 px low) and is read at the quadratic's apex: its own maximum rides its
         // noise's highest bump, 0.1–0.2 px up on a flat top. Where it does not converge,
         // the quadratic stands.
-        TopModel::Quartic => Some(
+        true => Some(
             fit_top::<17>(
                 left,
                 right,
@@ -607,6 +619,7 @@ pub fn refine_top(
                 init,
                 base,
                 Some((&p[..6], [p[6], p[7]], dome.at)),
+                None,
             )
             .map_or(dome, |q| q.0),
         ),
@@ -629,6 +642,7 @@ fn fit_top<const N: usize>(
     init: &[f32],
     base: Option<Ground>,
     start: Option<Start>,
+    footprint: Option<[f64; 3]>,
 ) -> Option<(PeakFit, [f64; N])> {
     let k = N - 2;
     if pixels.len() < PEAK_MIN_PIXELS.max(3 * N) || pixels.len() != init.len() {
@@ -643,9 +657,33 @@ fn fit_top<const N: usize>(
         .map(|p| (p[0] as f64 - centre[0]).hypot(p[1] as f64 - centre[1]))
         .fold(1.0, f64::max);
     let uv = |x: f64, y: f64| ((x - centre[0]) / radius, (y - centre[1]) / radius);
+    // With a footprint, the terms are 1, u, v and the footprint's own quadratic form (in
+    // the patch's units): the curvature's shape is the outline's, only its size is free.
+    let form = footprint.map(|[a, b, c]| [a, b, c].map(|x| x * radius * radius));
+    let mono = |u: f64, v: f64| -> [f64; N] {
+        match form {
+            Some([a, b, c]) => {
+                let mut f = [0.0; N];
+                f[..4].copy_from_slice(&[1.0, u, v, -(a * u * u + b * u * v + c * v * v)]);
+                f
+            }
+            None => monomials::<N>(u, v, k),
+        }
+    };
+    let grads = |u: f64, v: f64| -> ([f64; N], [f64; N]) {
+        match form {
+            Some([a, b, c]) => {
+                let (mut fu, mut fv) = ([0.0; N], [0.0; N]);
+                fu[..4].copy_from_slice(&[0.0, 1.0, 0.0, -(2.0 * a * u + b * v)]);
+                fv[..4].copy_from_slice(&[0.0, 0.0, 1.0, -(b * u + 2.0 * c * v)]);
+                (fu, fv)
+            }
+            None => monomial_gradients::<N>(u, v, k),
+        }
+    };
     let basis = |x: f64, y: f64| {
         let (u, v) = uv(x, y);
-        monomials::<N>(u, v, k)
+        mono(u, v)
     };
     let value = |p: &[f64; N], f: &[f64; N]| -> f64 { (0..k).map(|i| p[i] * f[i]).sum() };
     // Where pixel `q`'s ray stands on the ground at height `t` (px of disparity above the
@@ -686,8 +724,8 @@ fn fit_top<const N: usize>(
         for _ in 0..8 {
             let ([x, y], [dx, dy]) = foot(q, t);
             let (u, v) = uv(x, y);
-            f = monomials::<N>(u, v, k);
-            let (fu, fv) = monomial_gradients::<N>(u, v, k);
+            f = mono(u, v);
+            let (fu, fv) = grads(u, v);
             let along = (value(p, &fu) * dx + value(p, &fv) * dy) / radius;
             slope = 2.0 * t - along;
             let residual = t * t - value(p, &f);
@@ -829,12 +867,12 @@ fn fit_top<const N: usize>(
     }
     let (jtj, _) = normal_equations(&terms, 1.5 * scale);
     let cov = jtj.try_inverse();
-    let poly = |u: f64, v: f64| value(&p, &monomials::<N>(u, v, k));
+    let poly = |u: f64, v: f64| value(&p, &mono(u, v));
     let (u, v) = match start.map(|s| s.2) {
         Some([x, y]) if (x - centre[0]).hypot(y - centre[1]) <= radius => uv(x, y),
         _ => peak_of(&poly, pixels.iter().map(|q| uv(q[0] as f64, q[1] as f64))),
     };
-    let f = monomials::<N>(u, v, k);
+    let f = mono(u, v);
     let q = value(&p, &f);
     // d and ∂d/∂Q at the top, where the surface is level (its ray meets it once).
     let (d, dq) = match base {
@@ -1124,6 +1162,24 @@ mod tests {
             (fit.at[0] - cx).abs() < 1.0 && (fit.at[1] - cy).abs() < 1.0,
             "{:?}",
             fit.at
+        );
+        // The footprint's shape for the curvature (its second moments, any scale: here the
+        // ellipse's own), four terms: as exact.
+        let shape = [1.0 / (a * a), 0.0, 1.0 / (b * b)].map(|v| v * 7.0);
+        let fp = refine_top(
+            &l,
+            &r,
+            &pixels,
+            &init,
+            flat(base),
+            TopModel::Footprint(shape),
+        )
+        .expect("a fit");
+        assert!((fp.peak - (base + top)).abs() < 0.05, "{}", fp.peak);
+        assert!(
+            (fp.at[0] - cx).abs() < 1.0 && (fp.at[1] - cy).abs() < 1.0,
+            "{:?}",
+            fp.at
         );
         // Without a base the surface is a plain quadratic: close, not exact, on a cap.
         let quad = refine_top(&l, &r, &pixels, &init, None, TopModel::Quadratic).expect("a fit");
