@@ -3,7 +3,8 @@
 # one after the other: `fuzz/run.sh [EXECS] [SECONDS] [TARGET...]` stops a target at EXECS
 # executions (default 1000000) or SECONDS (default 3600), whichever comes first. Prints
 # executions, paths and crashes per target; every crash or hang found is copied to
-# regressions/TARGET (which tests/fuzz_corpus.rs replays) and the script exits 1.
+# regressions/TARGET (which tests/fuzz_corpus.rs replays) and the script exits 3 (any
+# other failure: the fuzzer could not be installed, built or started).
 set -euo pipefail
 cd "$(dirname "$0")"
 execs=${1:-1000000}
@@ -28,9 +29,10 @@ for t in "${targets[@]}"; do
   # runtime's own 64 KiB (a smaller shared map is written past its end).
   map=$(AFL_DUMP_MAP_SIZE=1 "target/release/$t" || true)
   export AFL_MAP_SIZE=$(( map > 65536 ? map : 65536 ))
-  # A hang is an input that takes over a second (the readers take milliseconds).
+  # A hang is an input that takes over a second (the readers take milliseconds;
+  # FUZZ_TIMEOUT_MS sets another limit, e.g. on a loaded machine).
   # `-c -`: no CmpLog (cargo-afl asks for it; it needs a nightly build of the target).
-  cargo afl fuzz -c - -t 1000 -E "$execs" -V "$secs" -i "corpus/$t" -o "$out" "target/release/$t" \
+  cargo afl fuzz -c - -t "${FUZZ_TIMEOUT_MS:-1000}" -E "$execs" -V "$secs" -i "corpus/$t" -o "$out" "target/release/$t" \
     >"$log" 2>&1 || { echo "afl-fuzz failed on $t:"; tail -20 "$log"; exit 1; }
   stats="$out/default/fuzzer_stats"
   get() { awk -F' *: *' -v k="$1" '$1 == k { print $2 }' "$stats"; }
@@ -46,5 +48,5 @@ for t in "${targets[@]}"; do
 done
 if [ "$found" -ne 0 ]; then
   echo "crashes or hangs found: copied to regressions/ (replayed by tests/fuzz_corpus.rs)"
-  exit 1
+  exit 3
 fi
