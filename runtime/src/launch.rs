@@ -597,7 +597,15 @@ impl LaunchFile {
                 err(
                     &mut errs,
                     id_at,
-                    format!("node id '{id}' must be 1 to 64 letters, digits, '-' or '_'"),
+                    format!(
+                        "node id '{}' must be 1 to 64 letters, digits, '-' or '_'",
+                        // A runaway id is shown by its start, not repeated whole.
+                        match id.char_indices().nth(40) {
+                            Some((i, _)) =>
+                                format!("{}… ({} characters)", &id[..i], id.chars().count()),
+                            None => id.clone(),
+                        }
+                    ),
                 );
             }
             if let Some(first) = seen.insert(id.clone(), id_at) {
@@ -1329,6 +1337,18 @@ ports = { inputs = { frame = "stereo-frame" }, outputs = { cloud = "point-cloud"
             .iter()
             .map(|e| e.to_string())
             .collect()
+    }
+
+    /// A runaway id (issue 19: 5,000 characters) is refused, and shown by its start only.
+    #[test]
+    fn a_runaway_id_is_refused_and_not_echoed_whole() {
+        let id = "x".repeat(5000);
+        let m = messages(&format!("[[node]]\nid = \"{id}\"\nkind = \"source\"\n"));
+        assert!(
+            m[0].contains("must be 1 to 64 letters") && m[0].contains("… (5000 characters)"),
+            "{m:?}"
+        );
+        assert!(m[0].len() < 200, "{} characters", m[0].len());
     }
 
     #[test]
