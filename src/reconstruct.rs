@@ -322,7 +322,8 @@ fn refuse_inputs_as_outputs(a: &ReconstructArgs) -> Result<(), CliError> {
 
 /// Checks the flags that only some runs use (geometry without --cells, segmentation
 /// without --cells, range radii without --auto-range) before any work: a bad value is
-/// refused whether or not this run would have read it.
+/// refused whether or not this run would have read it. (Flags every run uses are checked
+/// with their node's parameters when the graph is built, before it runs.)
 fn check_every_flag(a: &ReconstructArgs) -> Result<(), CliError> {
     for (flag, v) in [("--cx", a.cx), ("--cy", a.cy), ("--cx-right", a.cx_right)] {
         if let Some(v) = v
@@ -340,14 +341,6 @@ fn check_every_flag(a: &ReconstructArgs) -> Result<(), CliError> {
     }
     runtime::node::Params::check(&a.seg.params())
         .map_err(|e| CliError::Other(crate::presets::in_flag_terms(&e, FLAGS)))?;
-    if let Some(m) = a.min_region {
-        let post = postprocess::PostParams {
-            min_region: m,
-            ..crate::presets::post_for(a.mode())
-        };
-        runtime::node::Params::check(&post)
-            .map_err(|e| CliError::Other(crate::presets::in_flag_terms(&e, FLAGS)))?;
-    }
     Ok(())
 }
 

@@ -699,17 +699,15 @@ impl RawMessages {
         use mcap::records::op;
         use mcap::sans_io::LinearReadEvent;
         loop {
-            if let Some(c) = self.chunk.as_mut() {
-                let (opcode, data) = match c.reader.next_event() {
-                    None => {
-                        self.chunk = None;
-                        continue;
-                    }
+            // The chunk is taken out while its record is read, so that the record is
+            // parsed where it lies in the reader's buffer (one copy, into the message).
+            if let Some(mut c) = self.chunk.take() {
+                let taken = match c.reader.next_event() {
+                    None => continue,
                     Some(Err(e)) => {
-                        let at = c.at;
-                        self.chunk = None;
                         self.damaged.push(format!(
-                            "the chunk at byte {at} is damaged ({e}); its messages are skipped"
+                            "the chunk at byte {} is damaged ({e}); its messages are skipped",
+                            c.at
                         ));
                         continue;
                     }
@@ -720,19 +718,20 @@ impl RawMessages {
                             .copy_from_slice(&c.bytes[c.fed..c.fed + k]);
                         c.reader.notify_read(k);
                         c.fed += k;
-                        continue;
+                        None
                     }
-                    Some(Ok(LinearReadEvent::Record { opcode, data })) => (opcode, data.to_vec()),
+                    Some(Ok(LinearReadEvent::Record { opcode, data })) => {
+                        Some(self.take(opcode, data))
+                    }
                 };
-                match self.take(opcode, &data) {
-                    Ok(Parsed::Message(m)) => return Some(Ok(m)),
-                    Ok(Parsed::Other) => {}
-                    Err(e) => {
-                        let at = self.chunk.as_ref().map_or(0, |c| c.at);
-                        self.damaged.push(format!(
-                            "a record in the chunk at byte {at} cannot be read ({e}); skipped"
-                        ));
-                    }
+                let at = c.at;
+                self.chunk = Some(c);
+                match taken {
+                    Some(Ok(Parsed::Message(m))) => return Some(Ok(m)),
+                    Some(Err(e)) => self.damaged.push(format!(
+                        "a record in the chunk at byte {at} cannot be read ({e}); skipped"
+                    )),
+                    Some(Ok(Parsed::Other)) | None => {}
                 }
                 continue;
             }
@@ -777,14 +776,18 @@ impl RawMessages {
                 self.ended = true;
                 return None;
             }
-            let mut body = vec![0u8; n as usize];
-            if let Err(e) = self.file.read_exact(&mut body) {
+            // The record whole, its opcode and length first: a chunk is handed to its
+            // reader as it lies here.
+            let mut record = vec![0u8; 9 + n as usize];
+            record[..9].copy_from_slice(&head);
+            if let Err(e) = self.file.read_exact(&mut record[9..]) {
                 self.ended = true;
                 return Some(Err(e.to_string()));
             }
             self.offset = end;
+            let body = &record[9..];
             if opcode == op::CHUNK {
-                if let Err(e) = uncompressed_framing(&body) {
+                if let Err(e) = uncompressed_framing(body) {
                     self.damaged.push(format!(
                         "the chunk at byte {at} is damaged ({e}); its messages are skipped"
                     ));
@@ -797,18 +800,15 @@ impl RawMessages {
                     .with_skip_end_magic(true)
                     .with_prevalidate_chunk_crcs(true)
                     .with_record_length_limit(CHUNK_LIMIT);
-                let mut bytes = Vec::with_capacity(9 + body.len());
-                bytes.extend_from_slice(&head);
-                bytes.extend_from_slice(&body);
                 self.chunk = Some(ChunkRecords {
                     reader: mcap::sans_io::LinearReader::new_with_options(opts),
-                    bytes,
+                    bytes: record,
                     fed: 0,
                     at,
                 });
                 continue;
             }
-            match self.take(opcode, &body) {
+            match self.take(opcode, body) {
                 Ok(Parsed::Message(m)) => return Some(Ok(m)),
                 Ok(Parsed::Other) => {}
                 Err(e) => self.damaged.push(format!(
