@@ -5,7 +5,7 @@
 
 use schemas::{ManipulatorState, StereoFrame};
 use serde::Deserialize;
-use synth::{CellSpec, Look, Optics, Pipette, Scene};
+use synth::{Backdrop, CellSpec, Look, Optics, Pipette, Scene};
 
 /// `params` of a `capture` node with `source = "synthetic"`.
 #[derive(Clone, Debug, Deserialize)]
@@ -81,6 +81,9 @@ pub struct SyntheticCapture {
     step: f64,
     /// The pipette where the manipulator last said it was.
     manipulated: Option<Pipette>,
+    /// The scene's bare substrate, rendered once: a frame renders only what its cells and
+    /// pipette touch (a tenth of the time at 1280×1024 with 10 cells), to the same bytes.
+    backdrop: Option<Backdrop>,
 }
 
 impl SyntheticCapture {
@@ -109,6 +112,7 @@ impl SyntheticCapture {
             drift: p.drift,
             step: 4.0 * s,
             manipulated: None,
+            backdrop: None,
         }
     }
 
@@ -143,7 +147,7 @@ impl SyntheticCapture {
         if self.manipulated.is_some() {
             scene.pipette = self.manipulated;
         }
-        let (left, right) = scene.render_views();
+        let (left, right) = scene.render_views_over(&mut self.backdrop);
         StereoFrame { left, right }
     }
 }

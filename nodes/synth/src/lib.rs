@@ -343,6 +343,9 @@ pub struct Scene {
     pub debris: Vec<Debris>,
     /// Seed of textures and noise.
     pub seed: u64,
+    /// Which frame of the scene this is ([`Scene::at_frame`]): the sensor noise is drawn
+    /// anew for each, the textures stay the scene's.
+    pub frame: u64,
 }
 
 /// How random scenes are drawn.
@@ -443,6 +446,7 @@ impl Scene {
             tilt: [0.0; 2],
             debris: Vec::new(),
             seed,
+            frame: 0,
         }
     }
 
@@ -458,6 +462,7 @@ impl Scene {
             tilt: [0.0; 2],
             debris: Vec::new(),
             seed,
+            frame: 0,
         }
     }
 
@@ -521,8 +526,34 @@ impl Scene {
         if let Some(p) = &mut s.pipette {
             p.tip[0] += pipette_step * frame as f64;
         }
-        s.seed = self.seed.wrapping_add(frame as u64 * 0x9e37);
+        // Only the sensor noise is new: a substrate's and a cell's texture are theirs (until
+        // December 2026 they were drawn anew for every frame, a flicker no camera shows).
+        s.frame = frame as u64;
         s
+    }
+}
+
+/// Both views of a scene's bare substrate (no cells, no pipette) before blur and noise:
+/// what stays from frame to frame of a scene ([`Scene::at_frame`]), so that
+/// [`Scene::render_views_over`] renders only what its cells and pipette touch.
+#[derive(Clone, Debug)]
+pub struct Backdrop {
+    /// The scene it shows, less its cells and pipette.
+    bare: Scene,
+    /// Left and right means.
+    views: [Plane<f64>; 2],
+}
+
+impl Backdrop {
+    /// Renders the backdrop of `scene`.
+    pub fn of(scene: &Scene) -> Self {
+        let bare = scene.bare();
+        let cal = bare.optics.calibration();
+        let (left, right) = rayon::join(|| bare.view(false, &cal), || bare.view(true, &cal));
+        Self {
+            bare,
+            views: [left, right],
+        }
     }
 }
 
@@ -865,16 +896,36 @@ impl Scene {
     }
 
     fn view(&self, right: bool, cal: &Calibration) -> Plane<f64> {
+        self.view_over(right, cal, None)
+    }
+
+    /// One view's means; over a `backdrop` (this scene's bare substrate in that view), only
+    /// the pixels [`Scene::touched`] marks are rendered.
+    fn view_over(
+        &self,
+        right: bool,
+        cal: &Calibration,
+        backdrop: Option<&Plane<f64>>,
+    ) -> Plane<f64> {
         let (w, h) = (self.optics.width, self.optics.height);
         let n = self.look.supersample.max(1);
         let rows: Vec<Vec<f64>> = (0..h)
             .into_par_iter()
             .map(|v| {
                 let sub_row = |j: usize| v as f64 + (j as f64 + 0.5) / n as f64 - 0.5;
+                let touched = backdrop.map(|_| self.touched(right, v, cal));
+                if touched.as_ref().is_some_and(|t| !t.contains(&true)) {
+                    return backdrop.expect("with touched").row(v).to_vec();
+                }
                 let on_row: Vec<Vec<usize>> =
                     (0..n).map(|j| self.cells_on_row(sub_row(j), cal)).collect();
                 (0..w)
                     .map(|u| {
+                        if let (Some(t), Some(b)) = (&touched, backdrop)
+                            && !t[u]
+                        {
+                            return *b.get(u, v);
+                        }
                         let mut acc = 0.0;
                         for (j, candidates) in on_row.iter().enumerate() {
                             let sv = sub_row(j);
@@ -905,21 +956,136 @@ impl Scene {
 
     /// Renders both views, without the ground truth (what a camera would give).
     pub fn render_views(&self) -> (Plane<u8>, Plane<u8>) {
+        let (left, right) = self.render_means();
+        self.finish((left, right))
+    }
+
+    /// Renders both views as [`Scene::render_views`] does, to the same bytes, from a
+    /// [`Backdrop`] of the scene's substrate: only the pixels its cells and pipette can
+    /// touch are rendered. `backdrop` is made (or made anew) where it is not this scene's.
+    pub fn render_views_over(&self, backdrop: &mut Option<Backdrop>) -> (Plane<u8>, Plane<u8>) {
+        if !backdrop.as_ref().is_some_and(|b| b.bare == self.bare()) {
+            *backdrop = Some(Backdrop::of(self));
+        }
+        let b = backdrop.as_ref().expect("made above");
+        let cal = self.optics.calibration();
+        let (left, right) = rayon::join(
+            || {
+                gaussian_blur(
+                    &self.view_over(false, &cal, Some(&b.views[0])),
+                    self.look.blur,
+                )
+            },
+            || {
+                gaussian_blur(
+                    &self.view_over(true, &cal, Some(&b.views[1])),
+                    self.look.blur,
+                )
+            },
+        );
+        self.finish((left, right))
+    }
+
+    /// Sensor noise and rounding on both views' means.
+    fn finish(&self, (left, right): (Plane<f64>, Plane<f64>)) -> (Plane<u8>, Plane<u8>) {
         let (w, h) = (self.optics.width, self.optics.height);
-        let mut rng_l = ChaCha8Rng::seed_from_u64(self.seed ^ 0x1ef7);
-        let mut rng_r = ChaCha8Rng::seed_from_u64(self.seed ^ 0x7197);
-        let finish = |img: Plane<f64>, rng: &mut ChaCha8Rng| -> Plane<u8> {
+        let seed = self.seed.wrapping_add(self.frame.wrapping_mul(0x9e37));
+        let finish = |img: Plane<f64>, salt: u64| -> Plane<u8> {
+            let mut rng = ChaCha8Rng::seed_from_u64(seed ^ salt);
             let data = img
                 .data
                 .iter()
-                .map(|&v| (v + self.look.noise * gauss(rng)).round().clamp(0.0, 255.0) as u8)
+                .map(|&v| {
+                    (v + self.look.noise * gauss(&mut rng))
+                        .round()
+                        .clamp(0.0, 255.0) as u8
+                })
                 .collect();
             Plane::from_vec(w, h, data).expect("size")
         };
-        let (left, right) = self.render_means();
-        let left = finish(left, &mut rng_l);
-        let right = finish(right, &mut rng_r);
-        (left, right)
+        rayon::join(|| finish(left, 0x1ef7), || finish(right, 0x7197))
+    }
+
+    /// The scene without its cells and pipette, at its first frame: what a [`Backdrop`]
+    /// depends on.
+    fn bare(&self) -> Scene {
+        Scene {
+            cells: Vec::new(),
+            pipette: None,
+            frame: 0,
+            ..self.clone()
+        }
+    }
+
+    /// Which pixels of row `v` of a view a ray may meet a cell or the pipette through, or
+    /// see a cell's membrane rim darken the substrate (`true`); elsewhere the view is its
+    /// bare substrate's. Each cell's reach (with its rim) and the pipette's bounds, over
+    /// every height they span, are projected through the row's extent, with a pixel to
+    /// spare.
+    fn touched(&self, right: bool, v: usize, cal: &Calibration) -> Vec<bool> {
+        let w = self.optics.width;
+        let mut mask = vec![false; w];
+        let f = cal.focal_px;
+        let (ox, cx) = if right {
+            (0.5 * self.optics.baseline, cal.cx_right)
+        } else {
+            (-0.5 * self.optics.baseline, cal.cx)
+        };
+        let z0 = self.z0();
+        let sy = [(v as f64 - 0.5 - cal.cy) / f, (v as f64 + 0.5 - cal.cy) / f];
+        // World boxes `[x0, x1] × [y0, y1]` over heights `[s0, s1]`, and where in the row
+        // they show.
+        let mut mark = |[x0, x1]: [f64; 2], [y0, y1]: [f64; 2], [s0, s1]: [f64; 2]| {
+            let depths = [z0 - s0, z0 - s1];
+            if depths.iter().any(|d| *d <= 0.0) {
+                mask.fill(true);
+                return;
+            }
+            let ys = sy.iter().flat_map(|a| depths.iter().map(move |d| a * d));
+            let (ylo, yhi) = ys.fold((f64::MAX, f64::MIN), |(a, b), y| (a.min(y), b.max(y)));
+            if yhi < y0 || ylo > y1 {
+                return;
+            }
+            let us = [x0, x1]
+                .into_iter()
+                .flat_map(|x| depths.iter().map(move |d| cx + f * (x - ox) / d));
+            let (ulo, uhi) = us.fold((f64::MAX, f64::MIN), |(a, b), u| (a.min(u), b.max(u)));
+            let lo = (ulo - 1.0).floor().max(0.0);
+            let hi = (uhi + 1.0).ceil().min(w as f64 - 1.0);
+            if lo <= hi {
+                mask[lo as usize..=hi as usize].fill(true);
+            }
+        };
+        let rim = if self.look.rim > 0.0 {
+            4.0 * RIM_WIDTH
+        } else {
+            0.0
+        };
+        let [tx, ty] = self.tilt;
+        for c in &self.cells {
+            let m = c.reach() + rim + 2.0;
+            let base = self.substrate_at(c.centre[0], c.centre[1]);
+            let slack = (tx.abs() + ty.abs()) * m + 1.0;
+            mark(
+                [c.centre[0] - m, c.centre[0] + m],
+                [c.centre[1] - m, c.centre[1] + m],
+                [base - slack, base + c.height + 1.0],
+            );
+        }
+        if let Some(p) = &self.pipette {
+            let len = 2.0 * (self.optics.width as f64 * self.optics.um_per_px());
+            let (ce, se) = (p.elevation.cos(), p.elevation.sin());
+            let r = p.tip_radius + p.taper * len;
+            let reach = p.tip[0] + p.tip_radius + ((p.taper - ce) * len).max(0.0) + 2.0;
+            let hmax = p.height + p.tip_radius + (p.taper + se.max(0.0)) * len + 1.0;
+            let hmin = (p.height - r + se.min(0.0) * len - 1.0).min(0.0);
+            mark(
+                [f64::MIN / 4.0, reach],
+                [p.tip[1] - r - 2.0, p.tip[1] + r + 2.0],
+                [hmin, hmax],
+            );
+        }
+        mask
     }
 
     /// Renders both views and the ground truth.
@@ -1236,5 +1402,70 @@ mod tests {
         assert_eq!(a.right, b.right);
         let c = Scene::random(o, Look::default(), &spec, 4).render();
         assert_ne!(a.left, c.left);
+    }
+
+    /// Frames rendered over a backdrop are the full render's bytes, whatever the look, the
+    /// tilt, the debris, the pipette and the frame; the textures stay, the noise changes.
+    #[test]
+    fn frames_over_a_backdrop_are_the_full_renders_bytes() {
+        let o = Optics {
+            width: 160,
+            height: 120,
+            ..Optics::default()
+        };
+        let spec = CellSpec {
+            count: 3,
+            diameter: [20.0, 40.0],
+            irregular: 0.1,
+            ..CellSpec::default()
+        };
+        let mut looks = vec![Look::default(), Look::brightfield()];
+        looks[0].blur = 0.8;
+        looks[1].supersample = 3;
+        for (k, look) in looks.into_iter().enumerate() {
+            for seed in 1..=3u64 {
+                let mut scene = Scene::random(o, look.clone(), &spec, seed)
+                    .with_substrate_disparity(4.0 * k as f64)
+                    .with_debris(6, [1.0, 3.0], seed);
+                scene.tilt = [0.02, -0.03];
+                if seed != 2 {
+                    scene.pipette = Some(Pipette {
+                        tip: [-20.0, 5.0 * seed as f64],
+                        height: 15.0,
+                        tip_radius: 1.5,
+                        taper: 0.08,
+                        elevation: 0.1 * (seed as f64 - 1.0),
+                    });
+                }
+                if seed == 2 {
+                    let cal = o.calibration();
+                    let touched: usize = (0..o.height)
+                        .map(|v| scene.touched(false, v, &cal).iter().filter(|t| **t).count())
+                        .sum();
+                    assert!(touched < o.width * o.height / 2, "{touched} pixels touched");
+                }
+                let mut backdrop = None;
+                let mut first = None;
+                for f in 0..3 {
+                    let frame = scene.at_frame(f, 2.0, 15.0);
+                    let fast = frame.render_views_over(&mut backdrop);
+                    assert_eq!(fast, frame.render_views(), "look {k} seed {seed} frame {f}");
+                    // A substrate pixel far from everything keeps its texture and changes
+                    // only by the sensor noise.
+                    let mean = frame.render_means().0;
+                    match &first {
+                        None => first = Some(mean),
+                        Some(m0) => {
+                            assert_eq!(m0.get(o.width - 2, 1), mean.get(o.width - 2, 1));
+                        }
+                    }
+                }
+                // Another stage makes another backdrop.
+                let mut raised = scene.at_frame(1, 2.0, 15.0);
+                raised.stage += 3.0;
+                let fast = raised.render_views_over(&mut backdrop);
+                assert_eq!(fast, raised.render_views(), "raised, look {k} seed {seed}");
+            }
+        }
     }
 }
