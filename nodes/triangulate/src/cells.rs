@@ -9,6 +9,7 @@ use crate::refine::{
     DisparityPlane, Ground, Parallax, PeakFit, TopModel, fit_disparity_plane, refine_top,
 };
 use crate::substrate::{self, Base, RimFit};
+use rayon::prelude::*;
 use schemas::{
     Calibration, Cell, Cell3, CellQuality, DisparityMap, DisparityRange, DisparityTiles,
     INVALID_DISPARITY, Mask, Plane, SubstrateSource,
@@ -270,9 +271,10 @@ pub fn cell_heights(
             });
         }
     }
+    // Each cell's top is its own fit: in parallel, to the same values.
     let tops = bases
-        .iter()
-        .zip(&paired)
+        .par_iter()
+        .zip(paired.par_iter())
         .map(|(base, cell)| {
             base.as_ref().and_then(|b| {
                 let ground = Ground {
