@@ -243,20 +243,19 @@ pub fn fit_disparity_plane(
 ) -> Option<DisparityPlane> {
     let (w, h) = (left.width, left.height);
     let (hl, hr) = rayon::join(|| band_pass(left, 4), || band_pass(right, 4));
-    let all: Vec<[usize; 2]> = (0..h)
-        .flat_map(|y| (1..w.saturating_sub(1)).map(move |x| [x, y]))
-        .filter(|&[x, y]| *usable.get(x, y) != 0)
-        .collect();
-    if (all.len() as u64) < PLANE_MIN_PIXELS {
+    let usable_at = move |&[x, y]: &[usize; 2]| *usable.get(x, y) != 0;
+    let all = || {
+        (0..h)
+            .flat_map(move |y| (1..w.saturating_sub(1)).map(move |x| [x, y]))
+            .filter(usable_at)
+    };
+    let count = all().count();
+    if (count as u64) < PLANE_MIN_PIXELS {
         return None;
     }
     // A few hundred thousand pixels fix a plane to a few thousandths of a pixel; more only
     // cost time.
-    let pixels: Vec<[usize; 2]> = all
-        .iter()
-        .copied()
-        .step_by(all.len().div_ceil(PLANE_MAX_PIXELS))
-        .collect();
+    let pixels: Vec<[usize; 2]> = all().step_by(count.div_ceil(PLANE_MAX_PIXELS)).collect();
     // A sparse sample is plenty for one integer.
     let sparse = pixels.len().div_ceil(PLANE_MAX_PIXELS / 8);
     let sample: Vec<[usize; 2]> = pixels.iter().step_by(sparse).copied().collect();
