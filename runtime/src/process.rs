@@ -173,6 +173,7 @@ impl Tally {
         subs: impl IntoIterator<Item = &'a EdgeSubscriber>,
     ) -> NodeStats {
         let mut times = self.times.clone();
+        let mut latencies = self.latencies.clone();
         NodeStats {
             id: id.into(),
             frames_in: self.times.len() as u64,
@@ -183,6 +184,9 @@ impl Tally {
             latency_ms: mean(&self.latencies),
             last_frame: self.last_frame,
             runs: 1,
+            cpu_ms: crate::stats::process_cpu_ms(),
+            latency_p50_ms: percentile(&mut latencies, 0.5),
+            latency_p99_ms: percentile(&mut latencies, 0.99),
         }
     }
 
@@ -536,6 +540,9 @@ pub fn run_tap(
         latency_ms: 0.0,
         last_frame,
         runs: 1,
+        cpu_ms: crate::stats::process_cpu_ms(),
+        latency_p50_ms: 0.0,
+        latency_p99_ms: 0.0,
     };
     wait_loop::<String>(&refs, Duration::from_millis(500), |wake, _| {
         if wake == Wake::Stop {

@@ -27,6 +27,29 @@ pub struct NodeStats {
     /// How many processes ran the node in the run (restarts + 1; set by [`merge`]).
     #[serde(default)]
     pub runs: u32,
+    /// CPU time its process used (user and system, every thread), ms.
+    #[serde(default)]
+    pub cpu_ms: f64,
+    /// Median time from capture to the end of this node's step, ms.
+    #[serde(default)]
+    pub latency_p50_ms: f64,
+    /// 99th-percentile time from capture to the end of this node's step, ms.
+    #[serde(default)]
+    pub latency_p99_ms: f64,
+}
+
+/// CPU time this process has used so far (user and system, every thread), ms.
+pub fn process_cpu_ms() -> f64 {
+    // SAFETY: getrusage only writes the struct it is given, which is zeroed plain data.
+    let usage = unsafe {
+        let mut u: libc::rusage = std::mem::zeroed();
+        if libc::getrusage(libc::RUSAGE_SELF, &mut u) != 0 {
+            return 0.0;
+        }
+        u
+    };
+    let ms = |t: libc::timeval| t.tv_sec as f64 * 1e3 + t.tv_usec as f64 / 1e3;
+    ms(usage.ru_utime) + ms(usage.ru_stime)
 }
 
 /// What one input of a node lost.
@@ -68,6 +91,10 @@ pub fn merge(runs: &[NodeStats]) -> Option<NodeStats> {
     for r in rest {
         m.mean_ms = weighted(m.mean_ms, m.frames_in, r.mean_ms, r.frames_in);
         m.latency_ms = weighted(m.latency_ms, m.frames_in, r.latency_ms, r.frames_in);
+        // A median over several processes is not theirs weighted, but close to it.
+        m.latency_p50_ms = weighted(m.latency_p50_ms, m.frames_in, r.latency_p50_ms, r.frames_in);
+        m.latency_p99_ms = m.latency_p99_ms.max(r.latency_p99_ms);
+        m.cpu_ms += r.cpu_ms;
         m.p99_ms = m.p99_ms.max(r.p99_ms);
         m.frames_in += r.frames_in;
         m.frames_out += r.frames_out;
@@ -128,6 +155,9 @@ mod tests {
             latency_ms: mean,
             last_frame: input.3,
             runs: 0,
+            cpu_ms: frames as f64 * mean,
+            latency_p50_ms: mean,
+            latency_p99_ms: p99,
         }
     }
 
@@ -142,6 +172,10 @@ mod tests {
         assert!((m.mean_ms - (60.0 + 300.0) / 21.0).abs() < 1e-12);
         assert_eq!(m.p99_ms, 30.0);
         assert_eq!(m.last_frame, Some(23));
+        // CPU adds up over the processes; the latency's p99 is the worse one's.
+        assert_eq!(m.cpu_ms, 6.0 * 10.0 + 15.0 * 20.0);
+        assert_eq!(m.latency_p99_ms, 30.0);
+        assert!((m.latency_p50_ms - (60.0 + 300.0) / 21.0).abs() < 1e-12);
         let i = &m.inputs[0];
         assert_eq!(
             (i.dropped, i.missing, i.first, i.last),
@@ -174,5 +208,20 @@ mod tests {
         assert_eq!((m.inputs[0].missing, m.inputs[0].end), (4, Some(9)));
         // An input that never received a frame: the whole stream.
         assert_eq!(merge(&[b]).unwrap().inputs[0].missing, 10);
+    }
+
+    #[test]
+    fn the_process_cpu_time_grows_with_work() {
+        let start = process_cpu_ms();
+        assert!(start > 0.0);
+        // Spin until 20 ms of CPU are used (however long a loaded machine takes).
+        let wall = std::time::Instant::now();
+        let mut x = 1u64;
+        while process_cpu_ms() < start + 20.0 {
+            for _ in 0..100_000 {
+                x = std::hint::black_box(x.wrapping_mul(6364136223846793005).wrapping_add(1));
+            }
+            assert!(wall.elapsed().as_secs() < 60, "no CPU time counted");
+        }
     }
 }

@@ -568,24 +568,28 @@ pub fn print_summary(
 ) {
     crate::outln!();
     crate::outln!(
-        "{:<20} {:>9} {:>9} {:>10} {:>10} {:>12}",
+        "{:<20} {:>9} {:>9} {:>10} {:>10} {:>12} {:>7}",
         "node",
         "frames in",
         "out",
         "mean ms",
         "p99 ms",
-        "latency ms"
+        "latency ms",
+        "CPU %"
     );
+    // CPU: the share of one core the node's processes used over the run.
+    let wall_ms = wall.as_secs_f64().max(1e-9) * 1e3;
     for n in &graph.nodes {
         match stats.get(&n.id) {
             Some(s) => crate::outln!(
-                "{:<20} {:>9} {:>9} {:>10.2} {:>10.2} {:>12.1}{}",
+                "{:<20} {:>9} {:>9} {:>10.2} {:>10.2} {:>12.1} {:>7.1}{}",
                 n.id,
                 s.frames_in,
                 s.frames_out,
                 s.mean_ms,
                 s.p99_ms,
                 s.latency_ms,
+                100.0 * s.cpu_ms / wall_ms,
                 if s.runs > 1 {
                     format!("  ({} processes: restarted)", s.runs)
                 } else {
@@ -641,11 +645,15 @@ pub fn print_summary(
         .filter_map(|n| stats.get(&n.id))
         .collect();
     let done = sinks.iter().map(|s| s.frames_in).min().unwrap_or(0);
+    let worst = |f: fn(&NodeStats) -> f64| sinks.iter().map(|s| f(s)).fold(0.0, f64::max);
     crate::outln!(
-        "{done} frame(s){} in {:.2} s: {:.2} frames/s; capture → last output latency {:.1} ms",
+        "{done} frame(s){} in {:.2} s: {:.2} frames/s; capture → last output latency {:.1} ms (p50 {:.1}, p99 {:.1}); CPU {:.0} % of one core",
         frames.map_or(String::new(), |n| format!(" of {n}")),
         wall.as_secs_f64(),
         done as f64 / wall.as_secs_f64().max(1e-9),
-        sinks.iter().map(|s| s.latency_ms).fold(0.0, f64::max)
+        worst(|s| s.latency_ms),
+        worst(|s| s.latency_p50_ms),
+        worst(|s| s.latency_p99_ms),
+        100.0 * stats.values().map(|s| s.cpu_ms).sum::<f64>() / wall_ms
     );
 }
