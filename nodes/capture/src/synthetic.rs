@@ -5,7 +5,7 @@
 
 use schemas::{ManipulatorState, StereoFrame};
 use serde::Deserialize;
-use synth::{Backdrop, CellSpec, Look, Optics, Pipette, Scene};
+use synth::{Backdrop, CellSpec, Look, NoiseTable, Optics, Pipette, Scene};
 
 /// `params` of a `capture` node with `source = "synthetic"`.
 #[derive(Clone, Debug, Deserialize)]
@@ -84,6 +84,8 @@ pub struct SyntheticCapture {
     /// The scene's bare substrate, rendered once: a frame renders only what its cells and
     /// pipette touch (a tenth of the time at 1280×1024 with 10 cells), to the same bytes.
     backdrop: Option<Backdrop>,
+    /// The sensor noise, drawn once (a frame's own would cost more than its rendering).
+    noise: Option<NoiseTable>,
 }
 
 impl SyntheticCapture {
@@ -113,6 +115,7 @@ impl SyntheticCapture {
             step: 4.0 * s,
             manipulated: None,
             backdrop: None,
+            noise: None,
         }
     }
 
@@ -147,7 +150,13 @@ impl SyntheticCapture {
         if self.manipulated.is_some() {
             scene.pipette = self.manipulated;
         }
-        let (left, right) = scene.render_views_over(&mut self.backdrop);
+        let means = scene.render_means_over(&mut self.backdrop);
+        let (w, h) = (scene.optics.width, scene.optics.height);
+        if !self.noise.as_ref().is_some_and(|n| n.fits(w, h)) {
+            self.noise = Some(NoiseTable::new(w, h, scene.seed));
+        }
+        let noise = self.noise.as_ref().expect("made above");
+        let (left, right) = noise.apply(means, scene.look.noise, seq);
         StereoFrame { left, right }
     }
 }
