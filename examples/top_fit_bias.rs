@@ -20,29 +20,8 @@
 //! does not help (the biased fit is the better fit).
 
 use synth::{CellSpec, Look, Optics, Profile, Scene};
+use triangulate::cells::footprint_form;
 use triangulate::refine::{Ground, Parallax, TopModel, refine_top};
-
-/// The normalised quadratic form of a label's pixels (as `triangulate::cells` takes it).
-fn footprint(labels: &schemas::Plane<u32>, id: u32) -> [f64; 3] {
-    let (mut n, mut sx, mut sy, mut sxx, mut sxy, mut syy) = (0.0f64, 0.0, 0.0, 0.0, 0.0, 0.0);
-    for y in 0..labels.height {
-        for x in 0..labels.width {
-            if *labels.get(x, y) == id {
-                let (xf, yf) = (x as f64, y as f64);
-                n += 1.0;
-                sx += xf;
-                sy += yf;
-                sxx += xf * xf;
-                sxy += xf * yf;
-                syy += yf * yf;
-            }
-        }
-    }
-    let (mx, my) = (sx / n, sy / n);
-    let (cxx, cxy, cyy) = (sxx / n - mx * mx, sxy / n - mx * my, syy / n - my * my);
-    let det = cxx * cyy - cxy * cxy;
-    [cyy / det / 4.0, -2.0 * cxy / det / 4.0, cxx / det / 4.0]
-}
 
 fn main() {
     let env = |k: &str| std::env::var(k).ok();
@@ -77,7 +56,9 @@ fn main() {
             .render();
         for t in &r.cells {
             let [base, top] = t.disparity_base_top;
-            let shape = footprint(&r.labels, t.id);
+            let (w, h) = (r.labels.width, r.labels.height);
+            let shape = footprint_form(&r.labels, t.id, (0, 0), (w - 1, h - 1))
+                .expect("a cell of more than 10 pixels");
             let model = match env("X_MODEL").as_deref() {
                 Some("quadratic") => TopModel::Quadratic,
                 Some("quartic") => TopModel::Quartic,

@@ -423,10 +423,26 @@ fn top_of_cell(
 /// (`ρ² = A·dx² + B·dx·dy + C·dy²`, 1 on the ellipse of the same second moments).
 fn footprint(labels: &Plane<u32>, cell: &Cell) -> Option<[f64; 3]> {
     let b = cell.bbox;
+    footprint_form(
+        labels,
+        cell.id,
+        (b.x0 as usize, b.y0 as usize),
+        (b.x1 as usize, b.y1 as usize),
+    )
+}
+
+/// The normalised quadratic form of label `id`'s pixels within `[x0, x1] × [y0, y1]`
+/// ([`TopModel::Footprint`]'s shape); `None` for fewer than 10 pixels or a line.
+pub fn footprint_form(
+    labels: &Plane<u32>,
+    id: u32,
+    (x0, y0): (usize, usize),
+    (x1, y1): (usize, usize),
+) -> Option<[f64; 3]> {
     let (mut n, mut sx, mut sy, mut sxx, mut sxy, mut syy) = (0.0f64, 0.0, 0.0, 0.0, 0.0, 0.0);
-    for y in b.y0 as usize..=b.y1 as usize {
-        for x in b.x0 as usize..=b.x1 as usize {
-            if *labels.get(x, y) == cell.id {
+    for y in y0..=y1 {
+        for x in x0..=x1 {
+            if *labels.get(x, y) == id {
                 let (xf, yf) = (x as f64, y as f64);
                 n += 1.0;
                 sx += xf;
