@@ -1,6 +1,6 @@
 //! Cell segmentation for the stereo microscope, the paper's §3 steps as plain functions:
 //!
-//! 1. [`local_variance`] over a `(2M+1)²` window from integral images (O(1) per pixel) and
+//! 1. [`local_variance`] over a `(2M+1)²` window from sliding integer sums (O(1) per pixel) and
 //!    [`normalise`] onto 0–255: cells are textured, the background is smooth;
 //! 2. [`otsu_threshold`] on its [`histogram`] (with an absolute floor, `min_std`, so a
 //!    textureless image yields no cells instead of half its noise);

@@ -1,6 +1,5 @@
-//! Local variance over a `(2M+1)²` window in O(1) per pixel from integral images of I and I².
+//! Local variance over a `(2M+1)²` window in O(1) per pixel from sliding sums of I and I².
 
-use crate::BoxSums;
 use schemas::Plane;
 use serde::{Deserialize, Serialize};
 
@@ -22,18 +21,59 @@ pub enum VarianceScale {
 }
 
 /// Variance of the `(2·radius+1)²` window around every pixel; at the borders the window is
-/// clipped to the image (the variance of the pixels that exist).
+/// clipped to the image (the variance of the pixels that exist). The window's sums of I and
+/// I² slide: per column over the window's rows, then along the row, in integers, so every
+/// value is exact (and the same as from integral images, the way it was computed before,
+/// without their two 8-byte-per-pixel tables).
 pub fn local_variance(img: &Plane<u8>, radius: usize) -> Plane<f32> {
     let (w, h) = (img.width, img.height);
-    let s1 = BoxSums::new(w, h, |x, y| *img.get(x, y) as u64);
-    let s2 = BoxSums::new(w, h, |x, y| (*img.get(x, y) as u64).pow(2));
     let mut out = Plane::filled(w, h, 0f32);
+    if w == 0 || h == 0 {
+        return out;
+    }
+    let (mut c1, mut c2) = (vec![0u64; w], vec![0u64; w]);
+    let add_row = |c1: &mut [u64], c2: &mut [u64], y: usize, sign_add: bool| {
+        for (x, &v) in img.row(y).iter().enumerate() {
+            let v = v as u64;
+            if sign_add {
+                c1[x] += v;
+                c2[x] += v * v;
+            } else {
+                c1[x] -= v;
+                c2[x] -= v * v;
+            }
+        }
+    };
+    for y in 0..radius.min(h) {
+        add_row(&mut c1, &mut c2, y, true);
+    }
     for y in 0..h {
+        if y + radius < h {
+            add_row(&mut c1, &mut c2, y + radius, true);
+        }
+        if y > radius {
+            add_row(&mut c1, &mut c2, y - radius - 1, false);
+        }
+        let rows = (y + radius + 1).min(h) - y.saturating_sub(radius);
+        let (mut s1, mut s2) = (0u64, 0u64);
+        for x in 0..radius.min(w) {
+            s1 += c1[x];
+            s2 += c2[x];
+        }
+        let row = out.row_mut(y);
         for x in 0..w {
-            let ((s, n), (s2, _)) = (s1.around(x, y, radius), s2.around(x, y, radius));
+            if x + radius < w {
+                s1 += c1[x + radius];
+                s2 += c2[x + radius];
+            }
+            if x > radius {
+                s1 -= c1[x - radius - 1];
+                s2 -= c2[x - radius - 1];
+            }
+            let n = (rows * ((x + radius + 1).min(w) - x.saturating_sub(radius))) as u64;
             // Exact in integers: n·ΣI² − (ΣI)² ≥ 0, so no cancellation below zero.
-            let num = n * s2 - s * s;
-            *out.get_mut(x, y) = (num as f64 / (n * n) as f64) as f32;
+            let num = n * s2 - s1 * s1;
+            row[x] = (num as f64 / (n * n) as f64) as f32;
         }
     }
     out
@@ -117,6 +157,7 @@ impl<'a> Levels<'a> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::BoxSums;
 
     fn brute(img: &Plane<u8>, r: usize) -> Plane<f32> {
         let mut out = Plane::filled(img.width, img.height, 0f32);
@@ -226,6 +267,41 @@ mod tests {
                         assert_eq!(table.of(t), bounds.partition_point(|&c| c <= t) as u8);
                     }
                 }
+            }
+        }
+    }
+
+    /// [`local_variance`] from integral images, the reference it is checked against.
+    fn local_variance_integral(img: &Plane<u8>, radius: usize) -> Plane<f32> {
+        let (w, h) = (img.width, img.height);
+        let s1 = BoxSums::new(w, h, |x, y| *img.get(x, y) as u64);
+        let s2 = BoxSums::new(w, h, |x, y| (*img.get(x, y) as u64).pow(2));
+        let mut out = Plane::filled(w, h, 0f32);
+        for y in 0..h {
+            for x in 0..w {
+                let ((s, n), (s2, _)) = (s1.around(x, y, radius), s2.around(x, y, radius));
+                let num = n * s2 - s * s;
+                *out.get_mut(x, y) = (num as f64 / (n * n) as f64) as f32;
+            }
+        }
+        out
+    }
+
+    /// The sliding sums give the integral images' values bit for bit, at every radius
+    /// (wider than the image too) and size.
+    #[test]
+    fn sliding_variance_equals_the_integral_one() {
+        for (w, h) in [(1, 1), (1, 7), (9, 1), (23, 17), (64, 40)] {
+            let data: Vec<u8> = (0..w * h)
+                .map(|i| ((i * 97 + i * i * 31) % 256) as u8)
+                .collect();
+            let img = Plane::from_vec(w, h, data).unwrap();
+            for r in [0, 1, 2, 3, 9, 70] {
+                assert_eq!(
+                    local_variance(&img, r).data,
+                    local_variance_integral(&img, r).data,
+                    "{w}×{h}, r = {r}"
+                );
             }
         }
     }
