@@ -61,6 +61,12 @@ pub struct RunArgs {
     /// Stop after this many frames (run until Ctrl-C without it).
     #[arg(long)]
     pub frames: Option<u64>,
+    /// Run every node in this process instead, one after another for each frame (the
+    /// executor `reconstruct` and the tests use), and print each node's step times and the
+    /// frame rate: the yardstick for the processes' rate. Needs --frames; sources are not
+    /// paced and no frame is dropped.
+    #[arg(long, requires = "frames", conflicts_with_all = ["record", "viewer", "instance"])]
+    pub in_process: bool,
     /// How the processes are run.
     #[command(flatten)]
     pub supervision: Supervision,
@@ -173,8 +179,61 @@ pub fn run_cmd(a: RunArgs) -> Result<(), CliError> {
     crate::graphopts::check_record_target(&a.out)?;
     crate::graphopts::check_viewer_target(&a.out)?;
     let mut graph = load(&a.launch)?;
+    if a.in_process {
+        return run_in_process(&graph, a.frames.unwrap_or(1));
+    }
     a.out.apply(&mut graph)?;
     run_graph(&graph, a.frames, &a.supervision, &a.out)
+}
+
+/// Runs `graph` in this process for `frames` frames and prints per node the mean and 99th
+/// percentile step time, then the frame rate and the CPU used.
+fn run_in_process(graph: &Graph, frames: u64) -> Result<(), CliError> {
+    if frames == 0 {
+        return Err(CliError::Other(
+            "--frames 0 runs nothing: give at least 1".into(),
+        ));
+    }
+    let mut exec = runtime::exec::InProcess::new(graph, &crate::registry::builtin())
+        .map_err(CliError::Other)?;
+    let cpu0 = runtime::stats::process_cpu_ms();
+    let t0 = std::time::Instant::now();
+    let mut times: Vec<(String, Vec<f64>)> = Vec::new();
+    let mut done = 0u64;
+    for _ in 0..frames {
+        let Some(f) = exec.step().map_err(CliError::Other)? else {
+            break;
+        };
+        for (k, (id, ms)) in f.ms.into_iter().enumerate() {
+            match times.get_mut(k) {
+                Some(t) => t.1.push(ms),
+                None => times.push((id, vec![ms])),
+            }
+        }
+        done += 1;
+    }
+    let wall = t0.elapsed().as_secs_f64();
+    let cpu = runtime::stats::process_cpu_ms() - cpu0;
+    runtime::outln!();
+    runtime::outln!(
+        "{:<20} {:>9} {:>10} {:>10}",
+        "node",
+        "frames",
+        "mean ms",
+        "p99 ms"
+    );
+    for (id, mut t) in times {
+        let mean = t.iter().sum::<f64>() / t.len().max(1) as f64;
+        t.sort_by(f64::total_cmp);
+        let p99 = t[((t.len() - 1) as f64 * 0.99).round() as usize];
+        runtime::outln!("{:<20} {:>9} {:>10.2} {:>10.2}", id, t.len(), mean, p99);
+    }
+    runtime::outln!(
+        "{done} frame(s) in one process in {wall:.2} s: {:.2} frames/s; CPU {:.0} % of one core",
+        done as f64 / wall.max(1e-9),
+        100.0 * cpu / (wall * 1e3).max(1e-9)
+    );
+    Ok(())
 }
 
 /// Where `bench-transport` runs the two ends of the edge.

@@ -1214,3 +1214,49 @@ fn a_closed_stdout_ends_a_command_without_a_panic() {
         assert!(quiet, "{args:?}: {:?} {err}", out.status);
     }
 }
+
+/// `run --in-process` steps every node of the launch file in this process: each node
+/// reports every frame, and it refuses what only processes do.
+#[test]
+fn run_in_process_steps_every_node_on_every_frame() {
+    let small = data("graph/small.toml");
+    let out = run(&["run", s(&small), "--frames", "3", "--in-process"]);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{text}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    for node in [
+        "capture",
+        "segment",
+        "match",
+        "validate",
+        "postprocess",
+        "triangulate",
+        "manipulator-bridge",
+    ] {
+        let line = text
+            .lines()
+            .find(|l| l.split_whitespace().next() == Some(node))
+            .unwrap_or_else(|| panic!("no line for {node}: {text}"));
+        assert_eq!(line.split_whitespace().nth(1), Some("3"), "{line}");
+    }
+    assert!(text.contains("3 frame(s) in one process"), "{text}");
+    for bad in [
+        vec!["run", s(&small), "--in-process"],
+        vec![
+            "run",
+            s(&small),
+            "--in-process",
+            "--frames",
+            "2",
+            "--record",
+            "x.mcap",
+        ],
+        vec!["run", s(&small), "--in-process", "--frames", "0"],
+    ] {
+        let out = run(&bad);
+        assert_eq!(out.status.code(), Some(2), "{bad:?}");
+    }
+}
