@@ -223,9 +223,8 @@ fn run_in_process(graph: &Graph, frames: u64) -> Result<(), CliError> {
         "p99 ms"
     );
     for (id, mut t) in times {
-        let mean = t.iter().sum::<f64>() / t.len().max(1) as f64;
-        t.sort_by(f64::total_cmp);
-        let p99 = t[((t.len() - 1) as f64 * 0.99).round() as usize];
+        let mean = runtime::stats::mean(&t);
+        let p99 = runtime::stats::percentile(&mut t, 0.99);
         runtime::outln!("{:<20} {:>9} {:>10.2} {:>10.2}", id, t.len(), mean, p99);
     }
     runtime::outln!(

@@ -17,6 +17,7 @@ use crate::node::{GraphNode, Msg, Outputs};
 use crate::registry::Registry;
 use crate::restarts::Restarts;
 pub use crate::stats::{InputStats, NodeStats, STATS_PREFIX};
+pub(crate) use crate::stats::{mean, percentile};
 use crate::transport::{
     EdgePublisher, EdgeSubscriber, Message, Overflow, Received, Transport, Wake, wait_loop,
 };
@@ -95,24 +96,6 @@ fn input_stats<'a>(
             }
         })
         .collect()
-}
-
-/// The mean of `v` (0 when empty).
-pub(crate) fn mean(v: &[f64]) -> f64 {
-    if v.is_empty() {
-        0.0
-    } else {
-        v.iter().sum::<f64>() / v.len() as f64
-    }
-}
-
-/// The `q` quantile of `v` (sorted in place; 0 when empty).
-pub(crate) fn percentile(v: &mut [f64], q: f64) -> f64 {
-    if v.is_empty() {
-        return 0.0;
-    }
-    v.sort_by(f64::total_cmp);
-    v[((v.len() - 1) as f64 * q).round() as usize]
 }
 
 /// Least time between two progress reports of a node.

@@ -38,6 +38,24 @@ pub struct NodeStats {
     pub latency_p99_ms: f64,
 }
 
+/// The mean of `v` (0 when empty).
+pub fn mean(v: &[f64]) -> f64 {
+    if v.is_empty() {
+        0.0
+    } else {
+        v.iter().sum::<f64>() / v.len() as f64
+    }
+}
+
+/// The `q` quantile of `v` (sorted in place; 0 when empty).
+pub fn percentile(v: &mut [f64], q: f64) -> f64 {
+    if v.is_empty() {
+        return 0.0;
+    }
+    v.sort_by(f64::total_cmp);
+    v[((v.len() - 1) as f64 * q).round() as usize]
+}
+
 /// CPU time this process has used so far (user and system, every thread), ms.
 pub fn process_cpu_ms() -> f64 {
     // SAFETY: getrusage only writes the struct it is given, which is zeroed plain data.

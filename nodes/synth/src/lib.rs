@@ -1031,11 +1031,17 @@ impl Scene {
     /// around, with noise of standard deviation `look.noise` (for bounds on what any
     /// estimator can reach from the views).
     pub fn render_means(&self) -> (Plane<f64>, Plane<f64>) {
+        self.means(None)
+    }
+
+    /// Both views blurred, each rendered whole or over its view of a backdrop.
+    fn means(&self, backdrop: Option<&Backdrop>) -> (Plane<f64>, Plane<f64>) {
         let cal = self.optics.calibration();
-        (
-            gaussian_blur(&self.view(false, &cal), self.look.blur),
-            gaussian_blur(&self.view(true, &cal), self.look.blur),
-        )
+        let one = |k: usize| {
+            let over = backdrop.map(|b| &b.views[k]);
+            gaussian_blur(&self.view_over(k == 1, &cal, over), self.look.blur)
+        };
+        rayon::join(|| one(0), || one(1))
     }
 
     /// Renders both views, without the ground truth (what a camera would give).
@@ -1057,23 +1063,7 @@ impl Scene {
         if !backdrop.as_ref().is_some_and(|b| b.bare == self.bare()) {
             *backdrop = Some(Backdrop::of(self));
         }
-        let b = backdrop.as_ref().expect("made above");
-        let cal = self.optics.calibration();
-        let (left, right) = rayon::join(
-            || {
-                gaussian_blur(
-                    &self.view_over(false, &cal, Some(&b.views[0])),
-                    self.look.blur,
-                )
-            },
-            || {
-                gaussian_blur(
-                    &self.view_over(true, &cal, Some(&b.views[1])),
-                    self.look.blur,
-                )
-            },
-        );
-        (left, right)
+        self.means(backdrop.as_ref())
     }
 
     /// Sensor noise and rounding on both views' means.
