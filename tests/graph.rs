@@ -1681,8 +1681,10 @@ fn chaos_run(frames: u64, kills: usize, seed: u64) -> Duration {
     let mut last = Instant::now();
     let mut killed: Vec<&str> = Vec::new();
     // False when no scene came for 60 s: the graph stands still.
+    let mut delivered: Vec<u64> = Vec::new();
     let mut next = |seen: &mut u64| match scenes.recv_timeout(Duration::from_secs(60)) {
         Ok(f) => {
+            delivered.push(f);
             *seen = (*seen).max(f);
             longest = longest.max(last.elapsed());
             last = Instant::now();
@@ -1724,6 +1726,16 @@ fn chaos_run(frames: u64, kills: usize, seed: u64) -> Duration {
     let out = finish(sup, Duration::from_secs(300));
     over.store(true, std::sync::atomic::Ordering::Relaxed);
     reader.join().unwrap();
+    delivered.extend(scenes.try_iter());
+    // A restarted source goes on after its predecessor's last frame, never from an earlier
+    // one: no frame number reaches the bridge twice.
+    let mut sorted = delivered.clone();
+    sorted.sort_unstable();
+    let twice: Vec<u64> = sorted
+        .windows(2)
+        .filter(|w| w[0] == w[1])
+        .map(|w| w[0])
+        .collect();
     let (stdout, stderr) = (
         String::from_utf8_lossy(&out.stdout),
         String::from_utf8_lossy(&out.stderr),
@@ -1735,6 +1747,10 @@ fn chaos_run(frames: u64, kills: usize, seed: u64) -> Duration {
     assert!(
         out.status.success(),
         "seed {seed}, killed {killed:?}\n{stdout}\n{stderr}"
+    );
+    assert!(
+        twice.is_empty(),
+        "frames {twice:?} reached the bridge twice (seed {seed}, killed {killed:?})"
     );
     assert_eq!(
         stderr

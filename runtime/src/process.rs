@@ -563,12 +563,17 @@ pub fn run_tap(
 
 /// A node's end markers: sent on every output when its last frame is done, and again to
 /// each reader that connects later (a reader restarted after the end was sent would wait
-/// for ever for frames that will not come).
+/// for ever for frames that will not come), and on a lossless edge until every reader got
+/// it: a restarted writer's reader that has not yet opened its connection to it, with a
+/// full queue, is skipped (what a CPU-starved reader of a fast restarted source met: it
+/// waited for ever).
 struct EndMarkers<'a> {
     pubs: &'a [EdgePublisher],
     last: Option<u64>,
     /// Per output, the readers (their unique ids) that have been sent the marker.
     told: Vec<Vec<String>>,
+    /// Per output, whether the last marker reached fewer readers than there were.
+    short: Vec<bool>,
 }
 
 impl<'a> EndMarkers<'a> {
@@ -579,20 +584,33 @@ impl<'a> EndMarkers<'a> {
             pubs,
             last,
             told: vec![Vec::new(); pubs.len()],
+            short: vec![false; pubs.len()],
         };
-        m.resend();
+        m.send(true);
         m
     }
 
-    /// Sends the marker on the outputs where a reader connected since the last time.
+    /// Sends the marker on the outputs where a reader connected since the last time, or
+    /// that a lossless edge's last marker did not reach whole.
     fn resend(&mut self) {
+        self.send(false);
+    }
+
+    /// `wait`: the first marker waits for room in a reader's full queue, as a frame does;
+    /// later ones skip it (a reader that has ended takes nothing more: its queue would
+    /// fill, and the writer wait for ever).
+    fn send(&mut self, wait: bool) {
         let Some(last) = self.last else { return };
-        for (p, told) in self.pubs.iter().zip(&mut self.told) {
+        for ((p, told), short) in self.pubs.iter().zip(&mut self.told).zip(&mut self.short) {
             let now = p.reader_ids();
-            if now.iter().any(|r| !told.contains(r)) {
+            if now.iter().any(|r| !told.contains(r)) || *short {
                 // A send that fails (cut short by a stop) changes nothing: the node's work
                 // is done, and it only lingers for its readers.
-                let _ = p.send_end(last);
+                // A drop-oldest edge delivers to every connected reader (at the cost of its
+                // oldest message); a lossless one may skip one, and sends again.
+                *short = p
+                    .send_end(last, wait)
+                    .is_ok_and(|n| p.lossless() && n < now.len());
             }
             *told = now;
         }

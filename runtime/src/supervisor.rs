@@ -146,6 +146,9 @@ struct Child {
     streak: u32,
     /// Killed by the watchdog, after this long without a report.
     hung: Option<Duration>,
+    /// The task reading the process's stdout (its reports): awaited when the process
+    /// exits, so that its last report is in before a restart reads where it got to.
+    reports: Option<tokio::task::JoinHandle<()>>,
 }
 
 fn spawn(
@@ -233,8 +236,8 @@ fn forward_logs(
     child: &mut tokio::process::Child,
     stats: &StatsSink,
     tap: &LogTap,
-) {
-    if let Some(out) = child.stdout.take() {
+) -> Option<tokio::task::JoinHandle<()>> {
+    let reports = child.stdout.take().map(|out| {
         let (id, stats, tap) = (id.to_string(), stats.clone(), tap.clone());
         tokio::spawn(async move {
             let mut lines = BufReader::new(out).lines();
@@ -261,8 +264,8 @@ fn forward_logs(
                     }
                 }
             }
-        });
-    }
+        })
+    });
     if let Some(err) = child.stderr.take() {
         let (id, tap) = (id.to_string(), tap.clone());
         tokio::spawn(async move {
@@ -291,6 +294,7 @@ fn forward_logs(
             }
         });
     }
+    reports
 }
 
 /// The receiving end of the log tap, taken by the first viewer process started.
@@ -325,13 +329,14 @@ async fn supervise(
     let mut children = Vec::new();
     for n in &graph.nodes {
         let mut proc = spawn(graph, a, file, instance, &n.id, 0, None)?;
-        forward_logs(&n.id, 0, n.logs, &mut proc, &stats, &tap);
+        let reports = forward_logs(&n.id, 0, n.logs, &mut proc, &stats, &tap);
         children.push(Child {
             id: n.id.clone(),
             proc,
             restarts: 0,
             streak: 0,
             hung: None,
+            reports,
         });
     }
     let mut sigterm =
@@ -388,7 +393,14 @@ async fn supervise(
             }
         };
         let status = status.map_err(|e| format!("waiting for a node: {e}"))?;
-        let c = children.remove(i);
+        let mut c = children.remove(i);
+        // Its last reports may still be in the pipe (the reader task runs beside this one,
+        // and lags under load): a restarted source would otherwise go on from a frame
+        // before its predecessor's last and send frame numbers twice. Bounded, in case
+        // something the node started keeps the pipe open.
+        if let Some(r) = c.reports.take() {
+            let _ = tokio::time::timeout(Duration::from_secs(2), r).await;
+        }
         let spec = graph.node(&c.id).expect("validated");
         // A node others read never ends on its own before the graph stops: one that did
         // was stopped from outside (a SIGTERM it obeyed), and its readers would wait for
@@ -461,7 +473,7 @@ async fn supervise(
                 .flatten()
                 .map(|l| l + 1);
             let mut proc = spawn(graph, a, file, instance, &c.id, generation, first_frame)?;
-            forward_logs(
+            let reports = forward_logs(
                 &c.id,
                 c.restarts as usize + 1,
                 spec.logs,
@@ -475,6 +487,7 @@ async fn supervise(
                 restarts: c.restarts + 1,
                 streak: exponent + 1,
                 hung: None,
+                reports,
             });
         } else if failed && !stopping {
             failure = Some(format!("node '{}' failed ({why})", c.id));

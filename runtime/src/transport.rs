@@ -154,8 +154,20 @@ impl Transport {
     /// The writing end of `edge`.
     pub fn publisher(&self, edge: &str, cfg: &EdgeConfig) -> Result<EdgePublisher, TransportError> {
         let (pubsub, event) = self.services(edge, cfg)?;
+        let lenient = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let handler = {
+            let lenient = lenient.clone();
+            move |_: &iceoryx2::port::BackpressureInfo| {
+                if lenient.load(std::sync::atomic::Ordering::Relaxed) {
+                    iceoryx2::port::BackpressureAction::DiscardData
+                } else {
+                    iceoryx2::port::BackpressureAction::FollowBackpressureyStrategy
+                }
+            }
+        };
         let publisher = pubsub
             .publisher_builder()
+            .set_backpressure_handler(handler)
             .initial_max_slice_len(4096)
             .allocation_strategy(AllocationStrategy::PowerOfTwo)
             .backpressure_strategy(match cfg.overflow {
@@ -178,6 +190,8 @@ impl Transport {
             notifier,
             service: pubsub,
             sent: Cell::new(0),
+            overflow: cfg.overflow,
+            lenient,
         })
     }
 
@@ -260,6 +274,10 @@ pub struct EdgePublisher {
     notifier: Notifier<Service>,
     service: EdgeData,
     sent: Cell<u64>,
+    overflow: Overflow,
+    /// While set, a send skips a reader whose queue is full instead of waiting for it
+    /// (the publisher's back-pressure handler reads it).
+    lenient: std::sync::Arc<std::sync::atomic::AtomicBool>,
 }
 
 impl EdgePublisher {
@@ -271,7 +289,7 @@ impl EdgePublisher {
         len: usize,
         fill: impl FnOnce(&mut [u8]),
     ) -> Result<(), TransportError> {
-        self.send_impl(header, len, fill, false)
+        self.send_impl(header, len, fill, false).map(|_| ())
     }
 
     /// [`send`](Self::send) with the capture time set once the payload is written (to time
@@ -282,7 +300,7 @@ impl EdgePublisher {
         len: usize,
         fill: impl FnOnce(&mut [u8]),
     ) -> Result<(), TransportError> {
-        self.send_impl(header, len, fill, true)
+        self.send_impl(header, len, fill, true).map(|_| ())
     }
 
     fn send_impl(
@@ -291,7 +309,7 @@ impl EdgePublisher {
         len: usize,
         fill: impl FnOnce(&mut [u8]),
         stamp: bool,
-    ) -> Result<(), TransportError> {
+    ) -> Result<usize, TransportError> {
         let mut sample = self
             .publisher
             .loan_slice_uninit(len)
@@ -305,12 +323,12 @@ impl EdgePublisher {
         if stamp {
             sample.user_header_mut().capture_ns = crate::edge::now_ns();
         }
-        sample.send().map_err(|e| fail(&self.edge, "sending")(&e))?;
+        let readers = sample.send().map_err(|e| fail(&self.edge, "sending")(&e))?;
         self.sent.set(self.sent.get() + 1);
         self.notifier
             .notify()
             .map_err(|e| fail(&self.edge, "notifying the readers")(&e))?;
-        Ok(())
+        Ok(readers)
     }
 
     /// Sends a restart marker: node `node` of the graph started anew as restart
@@ -329,13 +347,27 @@ impl EdgePublisher {
     /// frame number being `last`. A reader that waits for a frame lost upstream near the end
     /// of a run would otherwise wait for ever; and frames lost after the last one a reader
     /// got show as no gap, so only the end tells it they are missing.
-    pub fn send_end(&self, last: u64) -> Result<(), TransportError> {
+    ///
+    /// Returns how many readers it reached. A reader whose connection to this writer is not
+    /// open yet (a restarted writer's readers open it when they next look) and whose queue
+    /// is full is skipped by iceoryx2 even on a lossless edge; with `wait` false, a reader
+    /// whose queue is full is skipped too instead of waited for.
+    pub fn send_end(&self, last: u64, wait: bool) -> Result<usize, TransportError> {
         let header = FrameHeader {
             sequence: last,
             kind: END_KIND,
             ..FrameHeader::default()
         };
-        self.send(header, 1, |b| b.fill(0))
+        use std::sync::atomic::Ordering::Relaxed;
+        self.lenient.store(!wait, Relaxed);
+        let sent = self.send_impl(header, 1, |b| b.fill(0), false);
+        self.lenient.store(false, Relaxed);
+        sent
+    }
+
+    /// Whether the edge's writer waits for a reader with a full queue.
+    pub fn lossless(&self) -> bool {
+        self.overflow == Overflow::Block
     }
 
     /// The edge's name.
@@ -703,6 +735,42 @@ mod tests {
             assert!(sub.receive().unwrap().is_some());
         }
         assert_eq!((sub.received(), sub.dropped(), sub.missing()), (5, 0, 6));
+    }
+
+    #[test]
+    fn an_end_marker_says_which_readers_it_missed_and_a_lenient_one_never_waits() {
+        let edge = edge_name("end");
+        let cfg = EdgeConfig {
+            depth: 1,
+            overflow: Overflow::Block,
+        };
+        let t = Transport::new("both").unwrap();
+        // The reader exists before the writer, as for a restarted writer: it opens its
+        // connection to the writer only when it next receives.
+        let sub = t.subscriber(&edge, &cfg).unwrap();
+        let p = t.publisher(&edge, &cfg).unwrap();
+        assert!(p.lossless());
+        p.send(header(0, 8), 8, |b| b.fill(0)).unwrap();
+        // The queue is full and the reader not connected: iceoryx2 skips it, lossless edge
+        // or not, and the marker says it reached no reader.
+        assert_eq!(p.send_end(0, true).unwrap(), 0);
+        let m = sub.receive_item().unwrap();
+        assert!(matches!(m, Some(Received::Frame(ref f)) if f.user_header().sequence == 0));
+        drop(m);
+        assert!(
+            sub.receive_item().unwrap().is_none(),
+            "the first marker was lost"
+        );
+        // Connected now: the marker sent again arrives.
+        assert_eq!(p.send_end(0, false).unwrap(), 1);
+        // The queue is full again; a lenient marker skips the reader instead of waiting.
+        assert_eq!(p.send_end(0, false).unwrap(), 0);
+        assert!(matches!(
+            sub.receive_item().unwrap(),
+            Some(Received::End { last: 0 })
+        ));
+        assert!(sub.receive_item().unwrap().is_none());
+        assert_eq!(sub.end(), Some(0));
     }
 
     #[test]
