@@ -105,23 +105,86 @@ pub fn fill_broken_outlines(mask: &Mask, radius: u8) -> Mask {
 /// Closing with a square of half-width `radius`, the image padded so that nothing sticks to
 /// its border. A square bridges a gap between the ends of an arc as wide as itself, where a
 /// disc's rounded edge leaves the gap's outer corners open.
+///
+/// Separable running counts: the dilation over the image grown by `radius` on every side
+/// (outside it the mask is background), then the erosion of that, back on the image; the
+/// same pixels as imageproc's distance-transform closing of a padded copy (the test below),
+/// in a fifth of the time on a mostly empty 1280×1024 frame.
 fn close_square(mask: &Mask, radius: u8) -> Mask {
-    let pad = radius as usize + 1;
+    let r = radius as usize;
     let (w, h) = (mask.width, mask.height);
-    let g = GrayImage::from_fn((w + 2 * pad) as u32, (h + 2 * pad) as u32, |x, y| {
-        let (x, y) = (x as usize, y as usize);
-        let inside = (pad..pad + w).contains(&x) && (pad..pad + h).contains(&y);
-        image::Luma([if inside {
-            *mask.get(x - pad, y - pad)
-        } else {
-            0
-        }])
-    });
-    let c = imageproc::morphology::close(&g, Norm::LInf, radius);
-    let data = (0..h)
-        .flat_map(|y| (0..w).map(move |x| (x, y)))
-        .map(|(x, y)| c.get_pixel((x + pad) as u32, (y + pad) as u32).0[0])
-        .collect();
+    let (pw, ph) = (w + 2 * r, h + 2 * r);
+    let span = 2 * r + 1;
+    // Along rows: padded column i (x = i − r) is set where the mask has a pixel in x ± r.
+    let mut across = vec![0u8; h * pw];
+    for (row, out) in mask
+        .data
+        .chunks_exact(w.max(1))
+        .zip(across.chunks_exact_mut(pw))
+    {
+        let mut count = 0u32;
+        for (i, o) in out.iter_mut().enumerate() {
+            if i < w && row[i] != 0 {
+                count += 1;
+            }
+            if i >= span && i - span < w && row[i - span] != 0 {
+                count -= 1;
+            }
+            *o = u8::from(count > 0);
+        }
+    }
+    // Down columns: padded row j (y = j − r) is set where a row within y ± r is.
+    let mut dilated = vec![0u8; ph * pw];
+    let mut counts = vec![0u32; pw];
+    for j in 0..ph {
+        if j < h {
+            for (c, &a) in counts.iter_mut().zip(&across[j * pw..(j + 1) * pw]) {
+                *c += u32::from(a);
+            }
+        }
+        if j >= span && j - span < h {
+            let k = j - span;
+            for (c, &a) in counts.iter_mut().zip(&across[k * pw..(k + 1) * pw]) {
+                *c -= u32::from(a);
+            }
+        }
+        for (d, &c) in dilated[j * pw..(j + 1) * pw].iter_mut().zip(&counts) {
+            *d = u8::from(c > 0);
+        }
+    }
+    // The erosion: image pixel (x, y) stays where all of padded [x, x + 2r] × [y, y + 2r]
+    // is set. Along rows first, then down columns.
+    let mut full = vec![0u8; ph * w];
+    for (row, out) in dilated
+        .chunks_exact(pw)
+        .zip(full.chunks_exact_mut(w.max(1)))
+    {
+        let mut count: usize = row[..span - 1].iter().map(|&v| v as usize).sum();
+        for (x, o) in out.iter_mut().enumerate() {
+            count += row[x + span - 1] as usize;
+            *o = u8::from(count == span);
+            count -= row[x] as usize;
+        }
+    }
+    let mut data = vec![0u8; w * h];
+    let mut counts = vec![0usize; w];
+    for j in 0..span - 1 {
+        for (c, &f) in counts.iter_mut().zip(&full[j * w..(j + 1) * w]) {
+            *c += f as usize;
+        }
+    }
+    for y in 0..h {
+        let add = y + span - 1;
+        for (c, &f) in counts.iter_mut().zip(&full[add * w..(add + 1) * w]) {
+            *c += f as usize;
+        }
+        for (d, &c) in data[y * w..(y + 1) * w].iter_mut().zip(&counts) {
+            *d = if c == span { 255 } else { 0 };
+        }
+        for (c, &f) in counts.iter_mut().zip(&full[y * w..(y + 1) * w]) {
+            *c -= f as usize;
+        }
+    }
     Plane::from_vec(w, h, data).expect("size")
 }
 
@@ -174,7 +237,57 @@ pub fn dilate(mask: &Mask, radius: u8) -> Mask {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The first [`close_square`]: imageproc's closing of a padded copy.
+    fn close_square_reference(mask: &Mask, radius: u8) -> Mask {
+        let pad = radius as usize + 1;
+        let (w, h) = (mask.width, mask.height);
+        let g = GrayImage::from_fn((w + 2 * pad) as u32, (h + 2 * pad) as u32, |x, y| {
+            let (x, y) = (x as usize, y as usize);
+            let inside = (pad..pad + w).contains(&x) && (pad..pad + h).contains(&y);
+            image::Luma([if inside {
+                *mask.get(x - pad, y - pad)
+            } else {
+                0
+            }])
+        });
+        let c = imageproc::morphology::close(&g, Norm::LInf, radius);
+        let data = (0..h)
+            .flat_map(|y| (0..w).map(move |x| (x, y)))
+            .map(|(x, y)| c.get_pixel((x + pad) as u32, (y + pad) as u32).0[0])
+            .collect();
+        Plane::from_vec(w, h, data).expect("size")
+    }
     use crate::testutil::mask;
+
+    #[test]
+    fn the_running_count_closing_matches_imageproc() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let mut changed = 0;
+        for case in 0..300 {
+            let (w, h) = (rng.random_range(1..60), rng.random_range(1..60));
+            let density = [0.02, 0.1, 0.3, 0.6, 0.95][case % 5];
+            let data = (0..w * h)
+                .map(|_| if rng.random_bool(density) { 255 } else { 0 })
+                .collect();
+            let m = Plane::from_vec(w, h, data).unwrap();
+            let radius = rng.random_range(0..7u8);
+            let fast = close_square(&m, radius);
+            assert_eq!(
+                fast,
+                close_square_reference(&m, radius),
+                "{w}×{h}, density {density}, radius {radius}"
+            );
+            changed += fast
+                .data
+                .iter()
+                .zip(&m.data)
+                .filter(|(a, b)| a != b)
+                .count();
+        }
+        assert!(changed > 1000, "the closings change {changed} pixels");
+    }
 
     #[test]
     fn holes_fill_but_bays_open_to_the_border_stay() {

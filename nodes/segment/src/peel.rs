@@ -47,21 +47,28 @@ pub fn peel_edges(img: &Plane<u8>, mask: &Mask, layers: usize, bg_radius: usize,
             0
         }
     });
-    // Every test below reads r many times over, for the same pixels round after round:
-    // tabulated once (NaN where the window holds no background).
-    let table: Vec<f64> = (0..h)
-        .flat_map(|y| (0..w).map(move |x| (x, y)))
-        .map(|(x, y)| {
-            let c = n.around(x, y, bg_radius).0;
-            if c > 0 {
-                *img.get(x, y) as f64 - s.around(x, y, bg_radius).0 as f64 / c as f64
-            } else {
-                f64::NAN
-            }
-        })
-        .collect();
+    // Every test below reads r many times over, for the same pixels round after round, but
+    // only near the mask's edge: kept once worked out (NaN where the window holds no
+    // background). The store holds each value's bits XOR those of infinity, which r never
+    // is, so that zeroed memory (untouched pages, for a mostly empty frame) means "not yet".
+    let unset = f64::INFINITY.to_bits();
+    let mut zeroed = vec![0u64; w * h];
+    let store = std::cell::Cell::from_mut(&mut zeroed[..]).as_slice_of_cells();
     let r = |x: usize, y: usize| {
-        let v = table[y * w + x];
+        let i = y * w + x;
+        let v = match store[i].get() {
+            0 => {
+                let c = n.around(x, y, bg_radius).0;
+                let v = if c > 0 {
+                    *img.get(x, y) as f64 - s.around(x, y, bg_radius).0 as f64 / c as f64
+                } else {
+                    f64::NAN
+                };
+                store[i].set(v.to_bits() ^ unset);
+                v
+            }
+            b => f64::from_bits(b ^ unset),
+        };
         (!v.is_nan()).then_some(v)
     };
     // Spread of the background about its local mean (median absolute deviation), from
@@ -96,17 +103,10 @@ pub fn peel_edges(img: &Plane<u8>, mask: &Mask, layers: usize, bg_radius: usize,
     // cell: nothing deeper in the mask is peeled. Without the cap a strongly textured
     // background (its spread wide, so the tests loose) ate 3–5 px into the dim side of a
     // cell and moved its centroid by up to 3 px.
-    let depth = {
-        let bg = image::GrayImage::from_fn(w as u32, h as u32, |x, y| {
-            image::Luma([u8::from(is_bg(x as usize, y as usize))])
-        });
-        imageproc::distance_transform::distance_transform(
-            &bg,
-            imageproc::distance_transform::Norm::LInf,
-        )
-    };
-    let shallow =
-        |x: usize, y: usize| (depth.get_pixel(x as u32, y as u32).0[0] as usize) <= layers;
+    // Within `layers` px of the background: some background in the window of that radius.
+    // (The Chebyshev distance transform this replaces saturates at min(w + h, 255).)
+    let everywhere = layers >= (w + h).min(255);
+    let shallow = |x: usize, y: usize| everywhere || n.around(x, y, layers).0 > 0;
     let quiet = |x: usize, y: usize| shallow(x, y) && quiet(x, y);
     let alone = |x: usize, y: usize| shallow(x, y) && alone(x, y);
     let mut boundary: Vec<(usize, usize)> = (0..h)
@@ -188,6 +188,133 @@ fn peel_boundary(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The first version of [`peel_edges`] (every r tabulated, the depth from a distance
+    /// transform), which the fast one must match.
+    fn peel_edges_reference(
+        img: &Plane<u8>,
+        mask: &Mask,
+        layers: usize,
+        bg_radius: usize,
+        k: f64,
+    ) -> Mask {
+        let (w, h) = (img.width, img.height);
+        let mut out = mask.clone();
+        if layers == 0 || w == 0 || h == 0 {
+            return out;
+        }
+        let is_bg = |x: usize, y: usize| *mask.get(x, y) == 0;
+        let n = BoxSums::new(w, h, |x, y| u64::from(is_bg(x, y)));
+        let s = BoxSums::new(w, h, |x, y| {
+            if is_bg(x, y) {
+                *img.get(x, y) as u64
+            } else {
+                0
+            }
+        });
+        // Every test below reads r many times over, for the same pixels round after round:
+        // tabulated once (NaN where the window holds no background).
+        let table: Vec<f64> = (0..h)
+            .flat_map(|y| (0..w).map(move |x| (x, y)))
+            .map(|(x, y)| {
+                let c = n.around(x, y, bg_radius).0;
+                if c > 0 {
+                    *img.get(x, y) as f64 - s.around(x, y, bg_radius).0 as f64 / c as f64
+                } else {
+                    f64::NAN
+                }
+            })
+            .collect();
+        let r = |x: usize, y: usize| {
+            let v = table[y * w + x];
+            (!v.is_nan()).then_some(v)
+        };
+        // Spread of the background about its local mean (median absolute deviation), from
+        // every third pixel along both axes: plenty for one number.
+        let mut dev: Vec<f64> = (0..h)
+            .step_by(3)
+            .flat_map(|y| (0..w).step_by(3).map(move |x| (x, y)))
+            .filter(|&(x, y)| is_bg(x, y))
+            .filter_map(|(x, y)| r(x, y).map(f64::abs))
+            .collect();
+        if dev.is_empty() {
+            return out;
+        }
+        let mid = dev.len() / 2;
+        let (_, m, _) = dev.select_nth_unstable_by(mid, f64::total_cmp);
+        let tol = k * 1.4826 * m.max(0.5);
+        // The neighbourhood test averages nine pixels, so it can be tighter.
+        let quiet_tol = 0.75 * tol;
+        let quiet = |x: usize, y: usize| {
+            let (mut e, mut c) = (0.0, 0.0);
+            for v in y.saturating_sub(1)..(y + 2).min(h) {
+                for u in x.saturating_sub(1)..(x + 2).min(w) {
+                    // No background around: as far from it as a grey level can be.
+                    e += r(u, v).map_or(255.0 * 255.0, |d| d * d);
+                    c += 1.0;
+                }
+            }
+            e / c <= quiet_tol * quiet_tol
+        };
+        let alone = |x: usize, y: usize| r(x, y).is_some_and(|v| v.abs() <= tol);
+        // The variance window lifts at most `layers` px of skirt (Chebyshev distance) around a
+        // cell: nothing deeper in the mask is peeled. Without the cap a strongly textured
+        // background (its spread wide, so the tests loose) ate 3–5 px into the dim side of a
+        // cell and moved its centroid by up to 3 px.
+        let depth = {
+            let bg = image::GrayImage::from_fn(w as u32, h as u32, |x, y| {
+                image::Luma([u8::from(is_bg(x as usize, y as usize))])
+            });
+            imageproc::distance_transform::distance_transform(
+                &bg,
+                imageproc::distance_transform::Norm::LInf,
+            )
+        };
+        let shallow =
+            |x: usize, y: usize| (depth.get_pixel(x as u32, y as u32).0[0] as usize) <= layers;
+        let quiet = |x: usize, y: usize| shallow(x, y) && quiet(x, y);
+        let alone = |x: usize, y: usize| shallow(x, y) && alone(x, y);
+        let mut boundary: Vec<(usize, usize)> = (0..h)
+            .flat_map(|y| (0..w).map(move |x| (x, y)))
+            .filter(|&(x, y)| {
+                *mask.get(x, y) != 0 && neighbours4(x, y, w, h).any(|(u, v)| is_bg(u, v))
+            })
+            .collect();
+        let mut listed = vec![false; w * h];
+        let test_rounds: [(PeelTest, usize); 2] = [(&quiet, 2 * layers), (&alone, 1)];
+        for (test, rounds) in test_rounds {
+            for _ in 0..rounds {
+                let (gone, kept): (Vec<_>, Vec<_>) =
+                    boundary.iter().partition(|&&(x, y)| test(x, y));
+                if !peel_boundary(&mut out, &mut boundary, gone, kept, &mut listed) {
+                    break;
+                }
+            }
+        }
+        // What is left of the skirt can hang on by a corner: a pixel with at most one
+        // 4-neighbour or three 8-neighbours in the mask ends a line or a spur, and one with four
+        // sticks out (on a cell's rounded edge every pixel has five) — gone if it is within
+        // 1.5 kσ of the background.
+        for _ in 0..2 * layers {
+            let (gone, kept): (Vec<_>, Vec<_>) = boundary.iter().partition(|&&(x, y)| {
+                let n4 = neighbours4(x, y, w, h)
+                    .filter(|&(u, v)| *out.get(u, v) != 0)
+                    .count();
+                let n8 = (y.saturating_sub(1)..(y + 2).min(h))
+                    .flat_map(|v| (x.saturating_sub(1)..(x + 2).min(w)).map(move |u| (u, v)))
+                    .filter(|&(u, v)| (u, v) != (x, y) && *out.get(u, v) != 0)
+                    .count();
+                shallow(x, y)
+                    && (n4 <= 1
+                        || n8 <= 3
+                        || (n8 <= 4 && r(x, y).is_some_and(|v| v.abs() <= 1.5 * tol)))
+            });
+            if !peel_boundary(&mut out, &mut boundary, gone, kept, &mut listed) {
+                break;
+            }
+        }
+        out
+    }
 
     /// A 40×30 background at 100 (± 1 by a fixed pattern) with a disc of radius 8.3 at
     /// (20, 15) whose pixels alternate 60 / 150.
@@ -271,5 +398,71 @@ mod tests {
         // A mask covering everything has no background to compare with: kept whole.
         let all = Plane::filled(40, 30, 255u8);
         assert_eq!(peel_edges(&img, &all, 4, 12, 2.0), all);
+    }
+
+    /// A `w × h` scene of textured blobs on a noisy background with a lighting gradient,
+    /// and a mask that overshoots them by up to 5 px, with specks and a hole or two: what
+    /// the variance threshold hands on.
+    pub(crate) fn blobs(w: usize, h: usize, seed: u64) -> (Plane<u8>, Mask) {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        let discs: Vec<(f64, f64, f64, f64)> = (0..rng.random_range(1..8))
+            .map(|_| {
+                (
+                    rng.random_range(0.0..w as f64),
+                    rng.random_range(0.0..h as f64),
+                    rng.random_range(3.0..18.0),
+                    rng.random_range(0.0..5.0),
+                )
+            })
+            .collect();
+        let mut img = Plane::filled(w, h, 0u8);
+        let mut mask = Plane::filled(w, h, 0u8);
+        for y in 0..h {
+            for x in 0..w {
+                let (fx, fy) = (x as f64, y as f64);
+                let mut v = 90.0 + 30.0 * fx / w as f64 + rng.random_range(-4.0..4.0);
+                for &(cx, cy, r, grow) in &discs {
+                    let d = (fx - cx).hypot(fy - cy);
+                    if d <= r {
+                        v = rng.random_range(40.0..190.0);
+                    }
+                    if d <= r + grow && d > 1.5 {
+                        *mask.get_mut(x, y) = 255;
+                    }
+                }
+                if rng.random_bool(0.002) {
+                    *mask.get_mut(x, y) = 255;
+                }
+                *img.get_mut(x, y) = v as u8;
+            }
+        }
+        (img, mask)
+    }
+
+    #[test]
+    fn the_fast_peel_matches_the_first_version_exactly() {
+        let mut peeled = 0;
+        for seed in 0..40 {
+            let (w, h) = [(96, 64), (40, 120), (17, 9), (150, 150)][seed as usize % 4];
+            let (img, mask) = blobs(w, h, seed);
+            for (layers, bg_radius, k) in [(4, 16, 2.25), (1, 4, 2.0), (6, 9, 3.0), (300, 5, 2.25)]
+            {
+                let fast = peel_edges(&img, &mask, layers, bg_radius, k);
+                assert_eq!(
+                    fast,
+                    peel_edges_reference(&img, &mask, layers, bg_radius, k),
+                    "seed {seed}, layers {layers}, radius {bg_radius}, k {k}"
+                );
+                peeled += fast
+                    .data
+                    .iter()
+                    .zip(&mask.data)
+                    .filter(|(a, b)| a != b)
+                    .count();
+            }
+        }
+        // The scenes give the peel work to do.
+        assert!(peeled > 5000, "{peeled} pixels peeled");
     }
 }
