@@ -181,7 +181,6 @@ pub fn compose(
     let mut disparity = Plane::filled(w, h, INVALID_DISPARITY);
     let mut raw = Plane::filled(w, h, INVALID_DISPARITY);
     let mut occlusion = Plane::filled(w, h, 0u8);
-    let support = segment::dilate(mask, margin);
     let index = |list: &[Cell], id: u32, view: &str| {
         list.iter()
             .position(|c| c.id == id)
@@ -205,12 +204,13 @@ pub fn compose(
         }
         let (x0, y0, x1, y1) = (t.x, t.y, t.x + t.map.width, t.y + t.map.height);
         let dist = distance_to_cell(labels, lid, (x0, y0), (x1, y1));
+        let (support, (sx, sy)) = dilated_near(mask, margin, (x0, y0), (x1, y1));
         for y in y0..y1 {
             for x in x0..x1 {
                 // Own cell plus the ring around it (other cells get their own crop).
                 let own = *labels.get(x, y) == lid
                     || (*labels.get(x, y) == 0
-                        && *support.get(x, y) != 0
+                        && *support.get(x - sx, y - sy) != 0
                         && dist.get_pixel((x - x0) as u32, (y - y0) as u32).0[0] <= margin);
                 if !own {
                     continue;
@@ -479,6 +479,34 @@ fn mean_top(a: PeakFit, b: PeakFit) -> PeakFit {
 
 /// Chebyshev distance (px, capped at 255) from each pixel of the window `[x0, x1) × [y0, y1)`
 /// to the nearest pixel of cell `id`, which must lie wholly inside the window.
+/// `mask` dilated by a disc of `radius` over `[x0, x1) × [y0, y1)`: the dilation of the
+/// crop grown by `radius` (every pixel that can reach the window), and where that crop
+/// starts. The same values as dilating the whole frame there, for a cell's tile instead of
+/// 1280×1024 pixels per frame.
+fn dilated_near(
+    mask: &Mask,
+    radius: u8,
+    (x0, y0): (usize, usize),
+    (x1, y1): (usize, usize),
+) -> (Mask, (usize, usize)) {
+    let r = radius as usize;
+    let (cx0, cy0) = (x0.saturating_sub(r), y0.saturating_sub(r));
+    let (cx1, cy1) = ((x1 + r).min(mask.width), (y1 + r).min(mask.height));
+    let crop = Plane::from_vec(
+        cx1 - cx0,
+        cy1 - cy0,
+        (cy0..cy1)
+            .flat_map(|y| {
+                mask.data[y * mask.width + cx0..y * mask.width + cx1]
+                    .iter()
+                    .copied()
+            })
+            .collect(),
+    )
+    .expect("size");
+    (segment::dilate(&crop, radius), (cx0, cy0))
+}
+
 pub(crate) fn distance_to_cell(
     labels: &Plane<u32>,
     id: u32,
@@ -921,6 +949,34 @@ pub fn lone_cells(
 mod tests {
     use super::*;
     use schemas::BoundingBox;
+
+    #[test]
+    fn a_window_dilated_alone_is_the_frame_dilated_there() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
+        for case in 0..200 {
+            let (w, h) = (rng.random_range(1..70), rng.random_range(1..70));
+            let density = [0.002, 0.02, 0.2][case % 3];
+            let data = (0..w * h)
+                .map(|_| if rng.random_bool(density) { 255 } else { 0 })
+                .collect();
+            let mask = Plane::from_vec(w, h, data).unwrap();
+            let radius = rng.random_range(0..9u8);
+            let whole = segment::dilate(&mask, radius);
+            let (x0, y0) = (rng.random_range(0..w), rng.random_range(0..h));
+            let (x1, y1) = (rng.random_range(x0 + 1..=w), rng.random_range(y0 + 1..=h));
+            let (near, (sx, sy)) = dilated_near(&mask, radius, (x0, y0), (x1, y1));
+            for y in y0..y1 {
+                for x in x0..x1 {
+                    assert_eq!(
+                        near.get(x - sx, y - sy),
+                        whole.get(x, y),
+                        "case {case}: ({x}, {y}) of {w}×{h}, radius {radius}"
+                    );
+                }
+            }
+        }
+    }
 
     fn cell(id: u32, x0: u32, y0: u32, x1: u32, y1: u32) -> Cell {
         let area = ((x1 - x0 + 1) * (y1 - y0 + 1)) as u64;
