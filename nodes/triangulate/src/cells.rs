@@ -295,24 +295,48 @@ pub fn cell_heights(
 /// 300,000 pixels with 60 cells), where the plane then locked onto a wrong disparity.
 fn clear_background(left: &Mask, right: &Mask, range: DisparityRange, margin: usize) -> Mask {
     let (w, h) = (left.width, left.height);
-    let sl = segment::BoxSums::new(w, h, |x, y| u64::from(*left.get(x, y) != 0));
-    let sr = segment::BoxSums::new(w, h, |x, y| u64::from(*right.get(x, y) != 0));
     let clip = |v: i64, hi: usize| v.clamp(0, hi as i64) as usize;
     let m = margin as i64;
-    let data = (0..h)
-        .flat_map(|y| (0..w).map(move |x| (x, y)))
-        .map(|(x, y)| {
-            let (xi, yi) = (x as i64, y as i64);
-            let (y0, y1) = (clip(yi - m, h), clip(yi + m + 1, h));
-            let own = sl.rect(clip(xi - m, w), y0, clip(xi + m + 1, w), y1);
+    // Per row: each column's mask count over the rows within the margin (kept as the rows
+    // slide), then prefix sums along the row, so that every window is two lookups.
+    let (mut cl, mut cr) = (vec![0u32; w], vec![0u32; w]);
+    let add = |counts: &mut [u32], mask: &Mask, y: usize, sign: bool| {
+        for (c, &v) in counts.iter_mut().zip(&mask.data[y * w..(y + 1) * w]) {
+            if v != 0 {
+                if sign { *c += 1 } else { *c -= 1 }
+            }
+        }
+    };
+    for y in 0..margin.min(h) {
+        add(&mut cl, left, y, true);
+        add(&mut cr, right, y, true);
+    }
+    let (mut pl, mut pr) = (vec![0u32; w + 1], vec![0u32; w + 1]);
+    let mut data = vec![0u8; w * h];
+    for y in 0..h {
+        if y + margin < h {
+            add(&mut cl, left, y + margin, true);
+            add(&mut cr, right, y + margin, true);
+        }
+        if y > margin {
+            add(&mut cl, left, y - margin - 1, false);
+            add(&mut cr, right, y - margin - 1, false);
+        }
+        for x in 0..w {
+            pl[x + 1] = pl[x] + cl[x];
+            pr[x + 1] = pr[x] + cr[x];
+        }
+        for (x, d) in data[y * w..(y + 1) * w].iter_mut().enumerate() {
+            let xi = x as i64;
+            let own = pl[clip(xi + m + 1, w)] - pl[clip(xi - m, w)];
             let (r0, r1) = (
                 clip(xi - range.max as i64 - m, w),
                 clip(xi - range.min as i64 + m + 1, w),
             );
-            let other = if r0 < r1 { sr.rect(r0, y0, r1, y1) } else { 0 };
-            if own == 0 && other == 0 { 255 } else { 0 }
-        })
-        .collect();
+            let other = if r0 < r1 { pr[r1] - pr[r0] } else { 0 };
+            *d = if own == 0 && other == 0 { 255 } else { 0 };
+        }
+    }
     Plane::from_vec(w, h, data).expect("size")
 }
 
@@ -949,6 +973,64 @@ pub fn lone_cells(
 mod tests {
     use super::*;
     use schemas::BoundingBox;
+
+    /// The first [`clear_background`], from two summed-area tables.
+    fn clear_background_reference(
+        left: &Mask,
+        right: &Mask,
+        range: DisparityRange,
+        margin: usize,
+    ) -> Mask {
+        let (w, h) = (left.width, left.height);
+        let sl = segment::BoxSums::new(w, h, |x, y| u64::from(*left.get(x, y) != 0));
+        let sr = segment::BoxSums::new(w, h, |x, y| u64::from(*right.get(x, y) != 0));
+        let clip = |v: i64, hi: usize| v.clamp(0, hi as i64) as usize;
+        let m = margin as i64;
+        let data = (0..h)
+            .flat_map(|y| (0..w).map(move |x| (x, y)))
+            .map(|(x, y)| {
+                let (xi, yi) = (x as i64, y as i64);
+                let (y0, y1) = (clip(yi - m, h), clip(yi + m + 1, h));
+                let own = sl.rect(clip(xi - m, w), y0, clip(xi + m + 1, w), y1);
+                let (r0, r1) = (
+                    clip(xi - range.max as i64 - m, w),
+                    clip(xi - range.min as i64 + m + 1, w),
+                );
+                let other = if r0 < r1 { sr.rect(r0, y0, r1, y1) } else { 0 };
+                if own == 0 && other == 0 { 255 } else { 0 }
+            })
+            .collect();
+        Plane::from_vec(w, h, data).expect("size")
+    }
+
+    #[test]
+    fn the_sliding_clearance_matches_the_summed_area_one() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(4);
+        let mut random = |w: usize, h: usize, density: f64| {
+            let data = (0..w * h)
+                .map(|_| if rng.random_bool(density) { 255 } else { 0 })
+                .collect();
+            Plane::from_vec(w, h, data).unwrap()
+        };
+        let mut cleared = 0;
+        for case in 0..200usize {
+            let (w, h) = (1 + case % 37 * 2, 1 + case % 23 * 3);
+            let density = [0.001, 0.01, 0.05][case % 3];
+            let (l, r) = (random(w, h, density), random(w, h, density));
+            let min = (case % 11) as i32 - 5;
+            let range = DisparityRange::new(min, min + (case % 7) as i32 * 4);
+            let margin = case % 5;
+            let fast = clear_background(&l, &r, range, margin);
+            assert_eq!(
+                fast,
+                clear_background_reference(&l, &r, range, margin),
+                "case {case}: {w}×{h}, range {range:?}, margin {margin}"
+            );
+            cleared += fast.data.iter().filter(|&&v| v == 0).count();
+        }
+        assert!(cleared > 1000, "{cleared} pixels not clear");
+    }
 
     #[test]
     fn a_window_dilated_alone_is_the_frame_dilated_there() {
