@@ -1680,8 +1680,8 @@ fn chaos_run(frames: u64, kills: usize, seed: u64) -> Duration {
     let mut longest = Duration::ZERO;
     let mut last = Instant::now();
     let mut killed: Vec<&str> = Vec::new();
-    // False when no scene came for 60 s: the graph stands still.
     let mut delivered: Vec<u64> = Vec::new();
+    // False when no scene came for 60 s: the graph stands still.
     let mut next = |seen: &mut u64| match scenes.recv_timeout(Duration::from_secs(60)) {
         Ok(f) => {
             delivered.push(f);
@@ -1729,9 +1729,8 @@ fn chaos_run(frames: u64, kills: usize, seed: u64) -> Duration {
     delivered.extend(scenes.try_iter());
     // A restarted source goes on after its predecessor's last frame, never from an earlier
     // one: no frame number reaches the bridge twice.
-    let mut sorted = delivered.clone();
-    sorted.sort_unstable();
-    let twice: Vec<u64> = sorted
+    delivered.sort_unstable();
+    let twice: Vec<u64> = delivered
         .windows(2)
         .filter(|w| w[0] == w[1])
         .map(|w| w[0])

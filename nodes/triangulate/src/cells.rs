@@ -501,8 +501,6 @@ fn mean_top(a: PeakFit, b: PeakFit) -> PeakFit {
     }
 }
 
-/// Chebyshev distance (px, capped at 255) from each pixel of the window `[x0, x1) × [y0, y1)`
-/// to the nearest pixel of cell `id`, which must lie wholly inside the window.
 /// `mask` dilated by a disc of `radius` over `[x0, x1) × [y0, y1)`: the dilation of the
 /// crop grown by `radius` (every pixel that can reach the window), and where that crop
 /// starts. The same values as dilating the whole frame there, for a cell's tile instead of
@@ -516,21 +514,14 @@ fn dilated_near(
     let r = radius as usize;
     let (cx0, cy0) = (x0.saturating_sub(r), y0.saturating_sub(r));
     let (cx1, cy1) = ((x1 + r).min(mask.width), (y1 + r).min(mask.height));
-    let crop = Plane::from_vec(
-        cx1 - cx0,
-        cy1 - cy0,
-        (cy0..cy1)
-            .flat_map(|y| {
-                mask.data[y * mask.width + cx0..y * mask.width + cx1]
-                    .iter()
-                    .copied()
-            })
-            .collect(),
+    (
+        segment::dilate(&crop(mask, cx0, cy0, cx1, cy1), radius),
+        (cx0, cy0),
     )
-    .expect("size");
-    (segment::dilate(&crop, radius), (cx0, cy0))
 }
 
+/// Chebyshev distance (px, capped at 255) from each pixel of the window `[x0, x1) × [y0, y1)`
+/// to the nearest pixel of cell `id`, which must lie wholly inside the window.
 pub(crate) fn distance_to_cell(
     labels: &Plane<u32>,
     id: u32,
