@@ -124,6 +124,9 @@ const PLANE_MIN_PIXELS: u64 = 2000;
 /// Most pixels a plane is fitted on (an even sample of the usable ones).
 const PLANE_MAX_PIXELS: usize = 300_000;
 
+/// Fewest usable pixels from which the plane's first (Huber) phase runs on every fourth.
+const PLANE_COARSE_FROM: usize = 40_000;
+
 /// Least relative dip of the background's matching cost at the plane's disparity below the
 /// cost's median over the range. Textured substrates dip 10–30 %; on a textureless one the
 /// views differ by noise alone and the cost is flat to 1–2 % (noise, vignetting and the
@@ -266,19 +269,33 @@ pub fn fit_disparity_plane(
 ) -> Option<DisparityPlane> {
     let (w, h) = (left.width, left.height);
     let (hl, hr) = rayon::join(|| band_pass(left, 4), || band_pass(right, 4));
-    let usable_at = move |&[x, y]: &[usize; 2]| *usable.get(x, y) != 0;
-    let all = || {
-        (0..h)
-            .flat_map(move |y| (1..w.saturating_sub(1)).map(move |x| [x, y]))
-            .filter(usable_at)
+    // The usable pixels off the frame's first and last column, row by row.
+    let inner = |y: usize| match usable.row(y) {
+        r if w >= 3 => &r[1..w - 1],
+        r => &r[..0],
     };
-    let count = all().count();
+    let count: usize = (0..h)
+        .map(|y| inner(y).iter().filter(|&&v| v != 0).count())
+        .sum();
     if (count as u64) < PLANE_MIN_PIXELS {
         return None;
     }
     // A few hundred thousand pixels fix a plane to a few thousandths of a pixel; more only
-    // cost time.
-    let pixels: Vec<[usize; 2]> = all().step_by(count.div_ceil(PLANE_MAX_PIXELS)).collect();
+    // cost time: every `every`-th usable pixel in row order.
+    let every = count.div_ceil(PLANE_MAX_PIXELS);
+    let mut pixels: Vec<[usize; 2]> = Vec::with_capacity(count.div_ceil(every));
+    let mut skip = 0;
+    for y in 0..h {
+        for (i, &v) in inner(y).iter().enumerate() {
+            if v != 0 {
+                if skip == 0 {
+                    pixels.push([i + 1, y]);
+                    skip = every;
+                }
+                skip -= 1;
+            }
+        }
+    }
     // A sparse sample is plenty for one integer.
     let sparse = pixels.len().div_ceil(PLANE_MAX_PIXELS / 8);
     let sample: Vec<[usize; 2]> = pixels.iter().step_by(sparse).copied().collect();
@@ -332,9 +349,17 @@ pub fn fit_disparity_plane(
     // outlier pull with its (large) gradient, and a few hundred sharp pixels off the plane
     // would shift it by hundredths of a pixel; the biweight drops them.
     let mut redescend = false;
+    // The Huber phase only brings the plane near its minimum: every fourth pixel does that
+    // as well; the biweight's steps, which fix it, take them all.
+    let coarse: Vec<[usize; 2]> =
+        if pixels.len() >= PLANE_COARSE_FROM && std::env::var_os("X_NOCOARSE").is_none() {
+            pixels.iter().step_by(4).copied().collect()
+        } else {
+            pixels.clone()
+        };
     for it in 1..=80 {
         let (jtj, jte, used) = ordered_sum(
-            &pixels,
+            if redescend { &pixels } else { &coarse },
             || ([[0.0f64; 3]; 3], [0.0f64; 3], 0u64),
             |(a, b, n), &[x, y]| {
                 if let Some((r, j)) = term(&p, x, y) {
