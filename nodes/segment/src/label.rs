@@ -39,13 +39,23 @@ fn find(parent: &mut [u32], mut i: u32) -> u32 {
     i
 }
 
-/// Labels the pixels where `on(value)` holds: 0 elsewhere, components 1..=n numbered in raster
-/// order of their first pixel. Returns the label image and `n`.
-pub fn label_where<T>(
+/// The components of the pixels where `on(value)` holds, as row runs: what a label image
+/// holds, without painting one (operations that only count or keep whole components read
+/// the runs).
+pub struct Components {
+    /// Each run `(y, x0, x1, label)`: pixels `[x0, x1)` of row `y`, in raster order, and
+    /// its component 1..=n.
+    pub runs: Vec<(usize, usize, usize, u32)>,
+    /// Number of components, numbered in raster order of their first pixel.
+    pub n: u32,
+}
+
+/// The components of the pixels where `on(value)` holds (see [`Components`]).
+pub fn components_where<T>(
     img: &Plane<T>,
     on: impl Fn(&T) -> bool,
     conn: Connectivity,
-) -> (Plane<u32>, u32) {
+) -> Components {
     let (w, h) = (img.width, img.height);
     let mut runs: Vec<Run> = Vec::new();
     let mut row_start = Vec::with_capacity(h + 1);
@@ -91,18 +101,33 @@ pub fn label_where<T>(
             }
         }
     }
-    let mut out = Plane::filled(w, h, 0u32);
     let mut label_of_root = vec![0u32; runs.len()];
     let mut n = 0;
+    let mut labelled = Vec::with_capacity(runs.len());
     for (i, r) in runs.iter().enumerate() {
         let root = find(&mut parent, i as u32) as usize;
         if label_of_root[root] == 0 {
             n += 1;
             label_of_root[root] = n;
         }
-        out.row_mut(r.y)[r.x0..r.x1].fill(label_of_root[root]);
+        labelled.push((r.y, r.x0, r.x1, label_of_root[root]));
     }
-    (out, n)
+    Components { runs: labelled, n }
+}
+
+/// Labels the pixels where `on(value)` holds: 0 elsewhere, components 1..=n numbered in raster
+/// order of their first pixel. Returns the label image and `n`.
+pub fn label_where<T>(
+    img: &Plane<T>,
+    on: impl Fn(&T) -> bool,
+    conn: Connectivity,
+) -> (Plane<u32>, u32) {
+    let c = components_where(img, on, conn);
+    let mut out = Plane::filled(img.width, img.height, 0u32);
+    for &(y, x0, x1, l) in &c.runs {
+        out.row_mut(y)[x0..x1].fill(l);
+    }
+    (out, c.n)
 }
 
 /// Labels the on-pixels (non-zero) of a mask.

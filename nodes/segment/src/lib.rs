@@ -24,7 +24,7 @@ mod trace;
 mod variance;
 
 pub use boxsum::BoxSums;
-pub use label::{Connectivity, NEIGHBOURS, label, label_where};
+pub use label::{Components, Connectivity, NEIGHBOURS, components_where, label, label_where};
 pub use morph::{close, dilate, fill_broken_outlines, fill_holes, open, remove_small};
 pub use otsu::{histogram, otsu_threshold};
 pub use peel::peel_edges;

@@ -1,6 +1,6 @@
 //! Mask clean-up: hole filling, small-blob removal, opening and closing.
 
-use crate::label::{Connectivity, NEIGHBOURS, label, label_where};
+use crate::label::{Connectivity, NEIGHBOURS, components_where, label, label_where};
 use image::GrayImage;
 use imageproc::distance_transform::Norm;
 use schemas::{Mask, Plane};
@@ -8,30 +8,27 @@ use schemas::{Mask, Plane};
 /// Sets every background pixel that is not 4-connected to the image border (a hole in an
 /// 8-connected foreground) to foreground.
 pub fn fill_holes(mask: &Mask) -> Mask {
-    let (bg, n) = label_where(mask, |&v| v == 0, Connectivity::Four);
     let (w, h) = (mask.width, mask.height);
-    let mut outside = vec![false; n as usize + 1];
-    for x in 0..w {
-        outside[*bg.get(x, 0) as usize] = true;
-        outside[*bg.get(x, h - 1) as usize] = true;
+    let bg = components_where(mask, |&v| v == 0, Connectivity::Four);
+    let mut outside = vec![false; bg.n as usize + 1];
+    for &(y, x0, x1, l) in &bg.runs {
+        outside[l as usize] |= y == 0 || y + 1 == h || x0 == 0 || x1 == w;
     }
-    for y in 0..h {
-        outside[*bg.get(0, y) as usize] = true;
-        outside[*bg.get(w - 1, y) as usize] = true;
+    let mut out = Plane::from_vec(
+        w,
+        h,
+        mask.data
+            .iter()
+            .map(|&m| if m != 0 { 255 } else { 0 })
+            .collect(),
+    )
+    .expect("same size");
+    for &(y, x0, x1, l) in &bg.runs {
+        if !outside[l as usize] {
+            out.row_mut(y)[x0..x1].fill(255);
+        }
     }
-    let data = mask
-        .data
-        .iter()
-        .zip(&bg.data)
-        .map(|(&m, &l)| {
-            if m != 0 || !outside[l as usize] {
-                255
-            } else {
-                0
-            }
-        })
-        .collect();
-    Plane::from_vec(w, h, data).expect("same size")
+    out
 }
 
 /// Fills the inside of outlines broken by gaps narrower than about `2·radius` px, which
@@ -190,23 +187,18 @@ fn close_square(mask: &Mask, radius: u8) -> Mask {
 
 /// Drops 8-connected blobs of fewer than `min_area` pixels.
 pub fn remove_small(mask: &Mask, min_area: usize) -> Mask {
-    let (labels, n) = label(mask, Connectivity::Eight);
-    let mut area = vec![0usize; n as usize + 1];
-    for &l in &labels.data {
-        area[l as usize] += 1;
+    let c = components_where(mask, |&v| v != 0, Connectivity::Eight);
+    let mut area = vec![0usize; c.n as usize + 1];
+    for &(_, x0, x1, l) in &c.runs {
+        area[l as usize] += x1 - x0;
     }
-    let data = labels
-        .data
-        .iter()
-        .map(|&l| {
-            if l != 0 && area[l as usize] >= min_area {
-                255
-            } else {
-                0
-            }
-        })
-        .collect();
-    Plane::from_vec(mask.width, mask.height, data).expect("same size")
+    let mut out = Plane::filled(mask.width, mask.height, 0u8);
+    for &(y, x0, x1, l) in &c.runs {
+        if area[l as usize] >= min_area {
+            out.row_mut(y)[x0..x1].fill(255);
+        }
+    }
+    out
 }
 
 /// Applies an imageproc binary morphology operation with a disc of `radius` (0 = none).
@@ -237,6 +229,111 @@ pub fn dilate(mask: &Mask, radius: u8) -> Mask {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The first hole filling: a label image of the background.
+    fn fill_holes_reference(mask: &Mask) -> Mask {
+        let (bg, n) = label_where(mask, |&v| v == 0, Connectivity::Four);
+        let (w, h) = (mask.width, mask.height);
+        let mut outside = vec![false; n as usize + 1];
+        for x in 0..w {
+            outside[*bg.get(x, 0) as usize] = true;
+            outside[*bg.get(x, h - 1) as usize] = true;
+        }
+        for y in 0..h {
+            outside[*bg.get(0, y) as usize] = true;
+            outside[*bg.get(w - 1, y) as usize] = true;
+        }
+        let data = mask
+            .data
+            .iter()
+            .zip(&bg.data)
+            .map(|(&m, &l)| {
+                if m != 0 || !outside[l as usize] {
+                    255
+                } else {
+                    0
+                }
+            })
+            .collect();
+        Plane::from_vec(w, h, data).expect("same size")
+    }
+
+    /// The first small-blob removal: a label image of the mask.
+    fn remove_small_reference(mask: &Mask, min_area: usize) -> Mask {
+        let (labels, n) = label(mask, Connectivity::Eight);
+        let mut area = vec![0usize; n as usize + 1];
+        for &l in &labels.data {
+            area[l as usize] += 1;
+        }
+        let data = labels
+            .data
+            .iter()
+            .map(|&l| {
+                if l != 0 && area[l as usize] >= min_area {
+                    255
+                } else {
+                    0
+                }
+            })
+            .collect();
+        Plane::from_vec(mask.width, mask.height, data).expect("same size")
+    }
+
+    #[test]
+    fn run_based_filling_and_removal_match_the_label_images() {
+        let mut seed = 11u64;
+        let mut rnd = move || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (seed >> 33) as usize
+        };
+        let (mut filled, mut removed) = (0, 0);
+        for case in 0..200 {
+            let (w, h) = (1 + rnd() % 40, 1 + rnd() % 30);
+            let density = 20 + rnd() % 60;
+            // Values other than 255 too: any non-zero pixel is foreground.
+            let mask = Plane::from_vec(
+                w,
+                h,
+                (0..w * h)
+                    .map(|_| {
+                        if rnd() % 100 < density {
+                            [1, 255][rnd() % 2]
+                        } else {
+                            0
+                        }
+                    })
+                    .collect(),
+            )
+            .expect("size");
+            let a = fill_holes(&mask);
+            assert_eq!(a, fill_holes_reference(&mask), "holes, case {case}");
+            filled += a
+                .data
+                .iter()
+                .zip(&mask.data)
+                .filter(|(a, m)| **a != 0 && **m == 0)
+                .count();
+            let min_area = rnd() % 8;
+            let b = remove_small(&mask, min_area);
+            assert_eq!(
+                b,
+                remove_small_reference(&mask, min_area),
+                "small, case {case}"
+            );
+            removed += b
+                .data
+                .iter()
+                .zip(&mask.data)
+                .filter(|(b, m)| **b == 0 && **m != 0)
+                .count();
+        }
+        assert!(
+            filled > 100 && removed > 100,
+            "{filled} filled, {removed} removed"
+        );
+    }
 
     /// The first [`close_square`]: imageproc's closing of a padded copy.
     fn close_square_reference(mask: &Mask, radius: u8) -> Mask {

