@@ -249,18 +249,13 @@ pub fn cell_heights(
     Vec<Option<Base>>,
     Vec<Option<PeakFit>>,
 ) {
-    let t0 = std::time::Instant::now();
     let usable = clear_background(left_mask, right_mask, range, margin as usize);
-    let t1 = std::time::Instant::now();
     let plane = fit_disparity_plane(left, right, &usable, range, SUBSTRATE_MAX_STD);
-    let t2 = std::time::Instant::now();
     let paired: Vec<&Cell> = pairs.iter().map(|&(i, _)| &cells[i]).collect();
     let rims: Vec<Option<RimFit>> = paired
         .iter()
         .map(|c| substrate::rim_disparity(left, right, labels, c, range))
         .collect();
-    let t3 = std::time::Instant::now();
-    scopeguard_print(t0, t1, t2, t3);
     let mut bases = substrate::bases(&paired, plane.as_ref(), &rims);
     for (base, cell) in bases.iter_mut().zip(&paired) {
         if base.is_none() {
@@ -277,8 +272,7 @@ pub fn cell_heights(
         }
     }
     // Each cell's top is its own fit: in parallel, to the same values.
-    let t4 = std::time::Instant::now();
-    let tops: Vec<Option<PeakFit>> = bases
+    let tops = bases
         .par_iter()
         .zip(paired.par_iter())
         .map(|(base, cell)| {
@@ -291,26 +285,7 @@ pub fn cell_heights(
             })
         })
         .collect();
-    if std::env::var_os("MS_TIMES").is_some() {
-        eprintln!("tops {:.1}", t4.elapsed().as_secs_f64() * 1e3);
-    }
     (plane, bases, tops)
-}
-
-fn scopeguard_print(
-    t0: std::time::Instant,
-    t1: std::time::Instant,
-    t2: std::time::Instant,
-    t3: std::time::Instant,
-) {
-    if std::env::var_os("MS_TIMES").is_some() {
-        eprintln!(
-            "clear {:.1} plane {:.1} rims {:.1}",
-            (t1 - t0).as_secs_f64() * 1e3,
-            (t2 - t1).as_secs_f64() * 1e3,
-            (t3 - t2).as_secs_f64() * 1e3
-        );
-    }
 }
 
 /// 255 at the left pixels whose `margin` square is clear of the left cells and whose every
