@@ -351,12 +351,11 @@ pub fn fit_disparity_plane(
     let mut redescend = false;
     // The Huber phase only brings the plane near its minimum: every fourth pixel does that
     // as well; the biweight's steps, which fix it, take them all.
-    let coarse: Vec<[usize; 2]> =
-        if pixels.len() >= PLANE_COARSE_FROM && std::env::var_os("X_NOCOARSE").is_none() {
-            pixels.iter().step_by(4).copied().collect()
-        } else {
-            pixels.clone()
-        };
+    let coarse: Vec<[usize; 2]> = if pixels.len() >= PLANE_COARSE_FROM {
+        pixels.iter().step_by(4).copied().collect()
+    } else {
+        pixels.clone()
+    };
     for it in 1..=80 {
         let (jtj, jte, used) = ordered_sum(
             if redescend { &pixels } else { &coarse },
