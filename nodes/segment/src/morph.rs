@@ -1,6 +1,6 @@
 //! Mask clean-up: hole filling, small-blob removal, opening and closing.
 
-use crate::label::{Connectivity, NEIGHBOURS, components_where, label, label_where};
+use crate::label::{Connectivity, components_where, label};
 use image::GrayImage;
 use imageproc::distance_transform::Norm;
 use schemas::{Mask, Plane};
@@ -55,48 +55,54 @@ pub fn fill_broken_outlines(mask: &Mask, radius: u8) -> Mask {
             .collect::<Vec<bool>>(),
     )
     .expect("same size");
-    let (parts, n) = label_where(&added, |&a| a, Connectivity::Eight);
+    let parts = components_where(&added, |&a| a, Connectivity::Eight);
+    let n = parts.n;
     if n == 0 {
         return mask.clone();
     }
     let (cells, _) = label(mask, Connectivity::Eight);
     // Per added part: whether it holds a hole of the closed mask, and the one component it
-    // borders (`None` before any, `Some(u32::MAX)` for more than one).
+    // borders (`None` before any, `Some(u32::MAX)` for more than one): read along each of
+    // its runs and the pixels around the run.
     let mut hole = vec![false; n as usize + 1];
     let mut border: Vec<Option<u32>> = vec![None; n as usize + 1];
-    for y in 0..h {
-        for x in 0..w {
-            let p = *parts.get(x, y) as usize;
-            if p == 0 {
-                continue;
-            }
-            hole[p] |= *closed.get(x, y) == 0;
-            for (dx, dy) in NEIGHBOURS {
-                let (nx, ny) = (x as i64 + dx, y as i64 + dy);
-                if nx < 0 || ny < 0 || nx >= w as i64 || ny >= h as i64 {
-                    continue;
-                }
-                let c = *cells.get(nx as usize, ny as usize);
-                if c != 0 {
-                    border[p] = match border[p] {
-                        None => Some(c),
-                        Some(b) if b == c => Some(b),
-                        Some(_) => Some(u32::MAX),
-                    };
-                }
+    for &(y, x0, x1, l) in &parts.runs {
+        let p = l as usize;
+        hole[p] |= closed.row(y)[x0..x1].iter().any(|&v| v == 0);
+        let (lo, hi) = (x0.saturating_sub(1), (x1 + 1).min(w));
+        let above_below = [y.checked_sub(1), (y + 1 < h).then_some(y + 1)];
+        let ends = [x0.checked_sub(1), (x1 < w).then_some(x1)];
+        let around = above_below
+            .into_iter()
+            .flatten()
+            .flat_map(|v| cells.row(v)[lo..hi].iter())
+            .chain(ends.into_iter().flatten().map(|x| cells.get(x, y)));
+        for &c in around {
+            if c != 0 {
+                border[p] = match border[p] {
+                    None => Some(c),
+                    Some(b) if b == c => Some(b),
+                    Some(_) => Some(u32::MAX),
+                };
             }
         }
     }
-    let keep: Vec<bool> = (0..=n as usize)
-        .map(|p| p > 0 && hole[p] && border[p].is_some_and(|b| b != u32::MAX))
-        .collect();
-    let data = mask
-        .data
-        .iter()
-        .zip(&parts.data)
-        .map(|(&m, &p)| if m != 0 || keep[p as usize] { 255 } else { 0 })
-        .collect();
-    Plane::from_vec(w, h, data).expect("same size")
+    let mut out = Plane::from_vec(
+        w,
+        h,
+        mask.data
+            .iter()
+            .map(|&m| if m != 0 { 255 } else { 0 })
+            .collect(),
+    )
+    .expect("same size");
+    for &(y, x0, x1, l) in &parts.runs {
+        let p = l as usize;
+        if hole[p] && border[p].is_some_and(|b| b != u32::MAX) {
+            out.row_mut(y)[x0..x1].fill(255);
+        }
+    }
+    out
 }
 
 /// Closing with a square of half-width `radius`, the image padded so that nothing sticks to
@@ -229,6 +235,7 @@ pub fn dilate(mask: &Mask, radius: u8) -> Mask {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::label::{NEIGHBOURS, label_where};
 
     /// The first hole filling: a label image of the background.
     fn fill_holes_reference(mask: &Mask) -> Mask {
@@ -279,6 +286,69 @@ mod tests {
         Plane::from_vec(mask.width, mask.height, data).expect("same size")
     }
 
+    /// The first broken-outline filling: label images of the added parts and the mask.
+    fn fill_broken_outlines_reference(mask: &Mask, radius: u8) -> Mask {
+        if radius == 0 {
+            return mask.clone();
+        }
+        let closed = close_square(mask, radius);
+        let filled = fill_holes_reference(&closed);
+        let (w, h) = (mask.width, mask.height);
+        let added = Plane::from_vec(
+            w,
+            h,
+            filled
+                .data
+                .iter()
+                .zip(&mask.data)
+                .map(|(&f, &m)| f != 0 && m == 0)
+                .collect::<Vec<bool>>(),
+        )
+        .expect("same size");
+        let (parts, n) = label_where(&added, |&a| a, Connectivity::Eight);
+        if n == 0 {
+            return mask.clone();
+        }
+        let (cells, _) = label(mask, Connectivity::Eight);
+        // Per added part: whether it holds a hole of the closed mask, and the one component it
+        // borders (`None` before any, `Some(u32::MAX)` for more than one).
+        let mut hole = vec![false; n as usize + 1];
+        let mut border: Vec<Option<u32>> = vec![None; n as usize + 1];
+        for y in 0..h {
+            for x in 0..w {
+                let p = *parts.get(x, y) as usize;
+                if p == 0 {
+                    continue;
+                }
+                hole[p] |= *closed.get(x, y) == 0;
+                for (dx, dy) in NEIGHBOURS {
+                    let (nx, ny) = (x as i64 + dx, y as i64 + dy);
+                    if nx < 0 || ny < 0 || nx >= w as i64 || ny >= h as i64 {
+                        continue;
+                    }
+                    let c = *cells.get(nx as usize, ny as usize);
+                    if c != 0 {
+                        border[p] = match border[p] {
+                            None => Some(c),
+                            Some(b) if b == c => Some(b),
+                            Some(_) => Some(u32::MAX),
+                        };
+                    }
+                }
+            }
+        }
+        let keep: Vec<bool> = (0..=n as usize)
+            .map(|p| p > 0 && hole[p] && border[p].is_some_and(|b| b != u32::MAX))
+            .collect();
+        let data = mask
+            .data
+            .iter()
+            .zip(&parts.data)
+            .map(|(&m, &p)| if m != 0 || keep[p as usize] { 255 } else { 0 })
+            .collect();
+        Plane::from_vec(w, h, data).expect("same size")
+    }
+
     #[test]
     fn run_based_filling_and_removal_match_the_label_images() {
         let mut seed = 11u64;
@@ -288,12 +358,15 @@ mod tests {
                 .wrapping_add(1442695040888963407);
             (seed >> 33) as usize
         };
-        let (mut filled, mut removed) = (0, 0);
+        let (mut filled, mut removed, mut outlined) = (0, 0, 0);
         for case in 0..200 {
-            let (w, h) = (1 + rnd() % 40, 1 + rnd() % 30);
+            let (w, h) = match case % 2 {
+                0 => (1 + rnd() % 40, 1 + rnd() % 30),
+                _ => (20 + rnd() % 30, 20 + rnd() % 30),
+            };
             let density = 20 + rnd() % 60;
             // Values other than 255 too: any non-zero pixel is foreground.
-            let mask = Plane::from_vec(
+            let mut mask = Plane::from_vec(
                 w,
                 h,
                 (0..w * h)
@@ -307,6 +380,26 @@ mod tests {
                     .collect(),
             )
             .expect("size");
+            // Every other case: sparse specks and rings with gaps (outlines to mend).
+            if case % 2 == 1 {
+                mask.data
+                    .iter_mut()
+                    .for_each(|v| *v = u8::from(rnd() % 40 == 0) * 255);
+                for _ in 0..2 + rnd() % 4 {
+                    let (cx, cy) = ((rnd() % w) as f64, (rnd() % h) as f64);
+                    let (r, gap) = (3.0 + (rnd() % 6) as f64, 0.3 + (rnd() % 5) as f64 * 0.2);
+                    let turn = (rnd() % 628) as f64 / 100.0;
+                    for y in 0..h {
+                        for x in 0..w {
+                            let (dx, dy) = (x as f64 - cx, y as f64 - cy);
+                            let a = (dy.atan2(dx) - turn).rem_euclid(std::f64::consts::TAU);
+                            if (dx.hypot(dy) - r).abs() < 0.8 && a > gap {
+                                *mask.get_mut(x, y) = 255;
+                            }
+                        }
+                    }
+                }
+            }
             let a = fill_holes(&mask);
             assert_eq!(a, fill_holes_reference(&mask), "holes, case {case}");
             filled += a
@@ -314,6 +407,19 @@ mod tests {
                 .iter()
                 .zip(&mask.data)
                 .filter(|(a, m)| **a != 0 && **m == 0)
+                .count();
+            let radius = (rnd() % 4) as u8;
+            let c = fill_broken_outlines(&mask, radius);
+            assert_eq!(
+                c,
+                fill_broken_outlines_reference(&mask, radius),
+                "outlines, case {case}"
+            );
+            outlined += c
+                .data
+                .iter()
+                .zip(&a.data)
+                .filter(|(c, a)| **c != 0 && **a == 0)
                 .count();
             let min_area = rnd() % 8;
             let b = remove_small(&mask, min_area);
@@ -330,8 +436,8 @@ mod tests {
                 .count();
         }
         assert!(
-            filled > 100 && removed > 100,
-            "{filled} filled, {removed} removed"
+            filled > 100 && removed > 100 && outlined > 300,
+            "{filled} filled, {removed} removed, {outlined} more inside broken outlines"
         );
     }
 
