@@ -68,7 +68,7 @@ pub fn fill_broken_outlines(mask: &Mask, radius: u8) -> Mask {
     let mut border: Vec<Option<u32>> = vec![None; n as usize + 1];
     for &(y, x0, x1, l) in &parts.runs {
         let p = l as usize;
-        hole[p] |= closed.row(y)[x0..x1].iter().any(|&v| v == 0);
+        hole[p] |= closed.row(y)[x0..x1].contains(&0);
         let (lo, hi) = (x0.saturating_sub(1), (x1 + 1).min(w));
         let above_below = [y.checked_sub(1), (y + 1 < h).then_some(y + 1)];
         let ends = [x0.checked_sub(1), (x1 < w).then_some(x1)];
