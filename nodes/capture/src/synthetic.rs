@@ -35,6 +35,12 @@ pub struct SyntheticParams {
     /// Frames per second (as fast as possible without it).
     #[serde(default)]
     pub fps: Option<f64>,
+    /// Render this many frames once, each when first asked for, and play them in a loop:
+    /// frame `n` is frame `n mod repeat`, so a frame costs a copy, as a camera's would, not
+    /// a render (the renderer took a fifth of the default graph's CPU). Every frame is
+    /// rendered without it, and while the pipette follows a manipulator.
+    #[serde(default)]
+    pub repeat: Option<usize>,
 }
 
 fn synthetic() -> String {
@@ -69,6 +75,18 @@ impl SyntheticParams {
         if p.fps.is_some_and(|f| f.is_nan() || f <= 0.0) {
             return Err("fps must be positive".into());
         }
+        if let Some(n) = p.repeat {
+            // Two bytes a pixel per frame are kept: at most 2 GiB in all.
+            let bytes = (n as u128) * (p.width * p.height * 2) as u128;
+            if n == 0 || bytes > 2 << 30 {
+                return Err(format!(
+                    "repeat = {n} would keep {} MiB of frames at {}×{}: give 1 or more frames, at most 2 GiB of them (omit repeat to render every frame)",
+                    bytes >> 20,
+                    p.width,
+                    p.height
+                ));
+            }
+        }
         Ok(p)
     }
 }
@@ -86,6 +104,8 @@ pub struct SyntheticCapture {
     backdrop: Option<Backdrop>,
     /// The sensor noise, drawn once (a frame's own would cost more than its rendering).
     noise: Option<NoiseTable>,
+    /// With `repeat`, the loop's frames rendered so far.
+    played: Vec<Option<StereoFrame>>,
 }
 
 impl SyntheticCapture {
@@ -116,6 +136,7 @@ impl SyntheticCapture {
             manipulated: None,
             backdrop: None,
             noise: None,
+            played: vec![None; p.repeat.unwrap_or(0)],
         }
     }
 
@@ -144,8 +165,21 @@ impl SyntheticCapture {
         self.manipulated = Some(pipette_at(m, self.scene.optics.working_distance()));
     }
 
-    /// Renders frame `seq`.
+    /// Frame `seq`: rendered, or with `repeat` (and no manipulator) taken from the loop.
     pub fn frame(&mut self, seq: u64) -> StereoFrame {
+        let n = self.played.len() as u64;
+        if n == 0 || self.manipulated.is_some() {
+            return self.render(seq);
+        }
+        let k = (seq % n) as usize;
+        if self.played[k].is_none() {
+            self.played[k] = Some(self.render(k as u64));
+        }
+        self.played[k].clone().expect("rendered above")
+    }
+
+    /// Renders frame `seq`.
+    fn render(&mut self, seq: u64) -> StereoFrame {
         let mut scene = self.scene.at_frame(seq as usize, self.drift, self.step);
         if self.manipulated.is_some() {
             scene.pipette = self.manipulated;
@@ -158,5 +192,71 @@ impl SyntheticCapture {
         let noise = self.noise.as_ref().expect("made above");
         let (left, right) = noise.apply(means, scene.look.noise, seq);
         StereoFrame { left, right }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn params(repeat: Option<usize>) -> SyntheticParams {
+        let mut t = toml::Table::new();
+        t.insert("width".into(), toml::Value::Integer(64));
+        t.insert("height".into(), toml::Value::Integer(48));
+        t.insert("cells".into(), toml::Value::Integer(2));
+        if let Some(n) = repeat {
+            t.insert("repeat".into(), toml::Value::Integer(n as i64));
+        }
+        SyntheticParams::from_table(&t).expect("valid params")
+    }
+
+    #[test]
+    fn a_repeated_sequence_is_the_rendered_one_in_a_loop() {
+        let mut live = SyntheticCapture::new(&params(None));
+        let mut looped = SyntheticCapture::new(&params(Some(3)));
+        let first: Vec<StereoFrame> = (0..3).map(|k| live.frame(k)).collect();
+        assert_ne!(first[0], first[1], "the cells drift and the noise changes");
+        // Asked out of order, as after a restart that goes on from a later frame.
+        for seq in [4, 0, 1, 2, 3, 5, 7, 6] {
+            assert_eq!(looped.frame(seq), first[(seq % 3) as usize], "frame {seq}");
+        }
+        assert_ne!(live.frame(3), first[0], "without repeat every frame is new");
+    }
+
+    #[test]
+    fn a_manipulated_pipette_is_drawn_live_even_with_repeat() {
+        let mut looped = SyntheticCapture::new(&params(Some(2)));
+        let mut live = SyntheticCapture::new(&params(None));
+        let plain = live.frame(2);
+        looped.frame(0);
+        let state = ManipulatorState {
+            frame: 0,
+            capture_ns: 0,
+            device: "sim".into(),
+            status: "idle".into(),
+            // 20 µm above the substrate (at −working distance), in the frame's middle.
+            tip: [0.0, 0.0, 20.0 - looped.scene.optics.working_distance()],
+            elevation_deg: 20.0,
+            azimuth_deg: 180.0,
+            clearance: 10.0,
+            trajectory: Vec::new(),
+            plan: None,
+            ignored: Vec::new(),
+        };
+        looped.set_tip(&state);
+        live.set_tip(&state);
+        let drawn = looped.frame(2);
+        assert_ne!(drawn, plain, "the pipette is in this frame");
+        assert_eq!(drawn, live.frame(2), "rendered live, not the loop's frame 0");
+    }
+
+    #[test]
+    fn repeat_must_be_a_loop_that_fits_memory() {
+        for (n, ok) in [(0, false), (1, true), (100_000_000, false)] {
+            let mut t = toml::Table::new();
+            t.insert("repeat".into(), toml::Value::Integer(n));
+            let r = SyntheticParams::from_table(&t);
+            assert_eq!(r.is_ok(), ok, "repeat = {n}: {r:?}");
+        }
     }
 }

@@ -770,13 +770,17 @@ fn fit_top<const N: usize>(
             let f = basis(q[0] as f64, q[1] as f64);
             return (f, value(p, &f), 1.0);
         };
-        let mut f = basis(q[0] as f64, q[1] as f64);
         // Newton on t² − Q(foot(t)) = 0 from the last height, at first from the height
         // straight above (the ray's last meeting with the dome from above is the surface the
         // camera sees; a warm start near a grazing flank may settle on the other meeting).
+        // The loop's first step sets the basis: only a cold start needs it beforehand.
+        let mut f = [0.0; N];
         let mut t = match warm[i].get() {
             w if w.is_finite() => w,
-            _ => value(p, &f).max(DOME_FLOOR * DOME_FLOOR).sqrt(),
+            _ => {
+                f = basis(q[0] as f64, q[1] as f64);
+                value(p, &f).max(DOME_FLOOR * DOME_FLOOR).sqrt()
+            }
         };
         let mut slope = 2.0 * t;
         for _ in 0..8 {
@@ -849,24 +853,26 @@ fn fit_top<const N: usize>(
         }
         rows
     };
+    // Sized for every pixel up front: grown by doubling, the terms (up to 136 bytes each)
+    // were copied over and over.
     let terms_at = |p: &[f64; N]| -> Vec<(f64, [f64; N])> {
-        pixels
-            .iter()
-            .enumerate()
-            .filter_map(|(i, q)| {
-                let (f, d, dq) = hit(i, q, p);
-                let (rv, rg) = sample(&rows[q[1]], q[0] as f64 - d)?;
-                let e = *left.get(q[0], q[1]) as f64 - (p[k] * rv + p[k + 1]);
-                let g = p[k] * rg * dq;
-                let mut j = [0.0; N];
-                for i in 0..k {
-                    j[i] = g * f[i];
-                }
-                j[k] = -rv;
-                j[k + 1] = -1.0;
-                Some((e, j))
-            })
-            .collect()
+        let mut terms = Vec::with_capacity(pixels.len());
+        for (i, q) in pixels.iter().enumerate() {
+            let (f, d, dq) = hit(i, q, p);
+            let Some((rv, rg)) = sample(&rows[q[1]], q[0] as f64 - d) else {
+                continue;
+            };
+            let e = *left.get(q[0], q[1]) as f64 - (p[k] * rv + p[k + 1]);
+            let g = p[k] * rg * dq;
+            let mut j = [0.0; N];
+            for i in 0..k {
+                j[i] = g * f[i];
+            }
+            j[k] = -rv;
+            j[k + 1] = -1.0;
+            terms.push((e, j));
+        }
+        terms
     };
     let cost = |t: &[(f64, [f64; N])], h: f64| -> f64 {
         t.iter()
