@@ -1265,7 +1265,7 @@ fn default_graph_on(left: &Path, right: &Path) -> String {
     let text =
         std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("launch.toml")).unwrap();
     let capture =
-        "params = { source = \"synthetic\", width = 1280, height = 1024, cells = 10, seed = 1, repeat = 30 }";
+        "params = { source = \"synthetic\", width = 1280, height = 1024, cells = 10, seed = 1, repeat = 30, fps = 30 }";
     assert!(text.contains(capture), "the default capture changed");
     text.replace(
         capture,
@@ -1507,7 +1507,7 @@ fn the_default_graph_keeps_moving_through_restarts_of_joined_nodes() {
     let text = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("launch.toml"))
         .unwrap()
         .replace(
-            "width = 1280, height = 1024, cells = 10, seed = 1, repeat = 30 }",
+            "width = 1280, height = 1024, cells = 10, seed = 1, repeat = 30, fps = 30 }",
             "width = 320, height = 256, cells = 4, seed = 1, repeat = 30 }",
         )
         .replace("127.0.0.1:7878", &format!("127.0.0.1:{port}"));
