@@ -23,6 +23,25 @@ impl BoxSums {
         Self { w1, h: height, t }
     }
 
+    /// Tabulates a grid given row by row: `fill(y, row)` writes row `y`'s values into `row`
+    /// (the same table as [`BoxSums::new`], without a call per cell).
+    pub fn from_rows(width: usize, height: usize, mut fill: impl FnMut(usize, &mut [u64])) -> Self {
+        let w1 = width + 1;
+        let mut t = vec![0u64; w1 * (height + 1)];
+        let mut row = vec![0u64; width];
+        for y in 0..height {
+            fill(y, &mut row);
+            let (above, below) = t.split_at_mut((y + 1) * w1);
+            let above = &above[y * w1 + 1..];
+            let mut acc = 0;
+            for ((out, &up), &v) in below[1..w1].iter_mut().zip(above).zip(&row) {
+                acc += v;
+                *out = up + acc;
+            }
+        }
+        Self { w1, h: height, t }
+    }
+
     /// Sum over `[x0, x1) × [y0, y1)`.
     pub fn rect(&self, x0: usize, y0: usize, x1: usize, y1: usize) -> u64 {
         let w1 = self.w1;
@@ -62,5 +81,11 @@ mod tests {
             }
         }
         assert_eq!(b.rect(2, 1, 2, 5), 0);
+        let rows = BoxSums::from_rows(9, 6, |y, row| {
+            for (x, v) in row.iter_mut().enumerate() {
+                *v = f(x, y);
+            }
+        });
+        assert_eq!(rows.t, b.t);
     }
 }

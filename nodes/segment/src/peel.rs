@@ -57,11 +57,9 @@ fn peel_with(
     // grey levels fits 32 bits, and a window's sums are differences of the table's, each
     // field non-negative), half the memory and one pass; two tables for larger frames.
     let sums = if packed {
-        Sums::Packed(BoxSums::new(w, h, |x, y| {
-            if is_bg(x, y) {
-                1 << 32 | *img.get(x, y) as u64
-            } else {
-                0
+        Sums::Packed(BoxSums::from_rows(w, h, |y, row| {
+            for ((v, &m), &g) in row.iter_mut().zip(mask.row(y)).zip(img.row(y)) {
+                *v = if m == 0 { 1 << 32 | g as u64 } else { 0 };
             }
         }))
     } else {
@@ -154,10 +152,15 @@ fn peel_with(
     let shallow = |x: usize, y: usize| everywhere || background(x, y, layers).0 > 0;
     let quiet = |x: usize, y: usize| shallow(x, y) && quiet(x, y);
     let alone = |x: usize, y: usize| shallow(x, y) && alone(x, y);
-    let mut boundary: Vec<(usize, usize)> = (0..h)
-        .flat_map(|y| (0..w).map(move |x| (x, y)))
-        .filter(|&(x, y)| *mask.get(x, y) != 0 && neighbours4(x, y, w, h).any(|(u, v)| is_bg(u, v)))
-        .collect();
+    // The mask's pixels with a 4-neighbour in the background, in raster order.
+    let mut boundary: Vec<(usize, usize)> = Vec::new();
+    for y in 0..h {
+        for (x, _) in mask.row(y).iter().enumerate().filter(|(_, m)| **m != 0) {
+            if neighbours4(x, y, w, h).any(|(u, v)| is_bg(u, v)) {
+                boundary.push((x, y));
+            }
+        }
+    }
     let mut listed = vec![false; w * h];
     let test_rounds: [(PeelTest, usize); 2] = [(&quiet, 2 * layers), (&alone, 1)];
     for (test, rounds) in test_rounds {
