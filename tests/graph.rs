@@ -1264,8 +1264,7 @@ fn the_sim_manipulator_approaches_a_cell_and_retracts_in_closed_loop() {
 fn default_graph_on(left: &Path, right: &Path) -> String {
     let text =
         std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("launch.toml")).unwrap();
-    let capture =
-        "params = { source = \"synthetic\", width = 1280, height = 1024, cells = 10, seed = 1, repeat = 30, fps = 30 }";
+    let capture = "params = { source = \"synthetic\", width = 1280, height = 1024, cells = 10, seed = 1, repeat = 30, fps = 30 }";
     assert!(text.contains(capture), "the default capture changed");
     text.replace(
         capture,

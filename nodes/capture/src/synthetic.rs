@@ -247,7 +247,11 @@ mod tests {
         live.set_tip(&state);
         let drawn = looped.frame(2);
         assert_ne!(drawn, plain, "the pipette is in this frame");
-        assert_eq!(drawn, live.frame(2), "rendered live, not the loop's frame 0");
+        assert_eq!(
+            drawn,
+            live.frame(2),
+            "rendered live, not the loop's frame 0"
+        );
     }
 
     #[test]
