@@ -274,7 +274,7 @@ pub fn replay(a: ReplayArgs) -> Result<(), CliError> {
         (None, true) => None,
         (None, false) => o.last_sequence.map(|s| s + 1),
     };
-    crate::run::run_graph(&graph, frames, &a.supervision, &a.out)
+    crate::run::run_graph(&graph, frames, &a.supervision, &a.out).map(|_| ())
 }
 
 /// Feeds node `id` of the recording's graph (or of `launch`) its recorded inputs and

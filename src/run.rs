@@ -67,6 +67,10 @@ pub struct RunArgs {
     /// paced and no frame is dropped.
     #[arg(long, requires = "frames", conflicts_with_all = ["record", "viewer", "instance"])]
     pub in_process: bool,
+    /// Run the nodes as processes, then the same nodes in one process (as --in-process),
+    /// and print the processes' frame rate as a share of the in-process one. Needs --frames.
+    #[arg(long, requires = "frames", conflicts_with_all = ["in_process", "record", "viewer"])]
+    pub compare: bool,
     /// How the processes are run.
     #[command(flatten)]
     pub supervision: Supervision,
@@ -87,13 +91,13 @@ pub struct Supervision {
     pub instance: Option<String>,
 }
 
-/// Runs `graph` as processes and prints the summary.
+/// Runs `graph` as processes and prints the summary; returns the frame rate.
 pub fn run_graph(
     graph: &Graph,
     frames: Option<u64>,
     s: &Supervision,
     out: &OutputOpts,
-) -> Result<(), CliError> {
+) -> Result<f64, CliError> {
     if !(0.0..=600.0).contains(&s.grace) {
         return Err(CliError::Other(format!(
             "--grace {} is out of range: use 0..600 seconds",
@@ -117,7 +121,7 @@ pub fn run_graph(
             instance: s.instance.clone(),
         },
     )?;
-    runtime::supervisor::print_summary(graph, &report.stats, report.wall, frames);
+    let rate = runtime::supervisor::print_summary(graph, &report.stats, report.wall, frames);
     if let Some(f) = report.failure {
         let kept = out
             .record
@@ -147,7 +151,7 @@ pub fn run_graph(
             path.display()
         );
     }
-    Ok(())
+    Ok(rate)
 }
 
 /// The partial files a recorder that did not finish left for `path` (`path.PID.part`).
@@ -180,15 +184,24 @@ pub fn run_cmd(a: RunArgs) -> Result<(), CliError> {
     crate::graphopts::check_viewer_target(&a.out)?;
     let mut graph = load(&a.launch)?;
     if a.in_process {
-        return run_in_process(&graph, a.frames.unwrap_or(1));
+        return run_in_process(&graph, a.frames.unwrap_or(1)).map(|_| ());
     }
     a.out.apply(&mut graph)?;
-    run_graph(&graph, a.frames, &a.supervision, &a.out)
+    let rate = run_graph(&graph, a.frames, &a.supervision, &a.out)?;
+    if a.compare {
+        // In one process after the processes: a bridge there keeps its port to the end.
+        let alone = run_in_process(&load(&a.launch)?, a.frames.unwrap_or(1))?;
+        runtime::outln!(
+            "as processes {rate:.2} frames/s, in one process {alone:.2}: {:.2}× the in-process rate (the processes' sources keep their pace and their entrances drop what the graph cannot take; in one process every frame is taken in turn)",
+            rate / alone.max(1e-9)
+        );
+    }
+    Ok(())
 }
 
 /// Runs `graph` in this process for `frames` frames and prints per node the mean and 99th
 /// percentile step time, then the frame rate and the CPU used.
-fn run_in_process(graph: &Graph, frames: u64) -> Result<(), CliError> {
+fn run_in_process(graph: &Graph, frames: u64) -> Result<f64, CliError> {
     if frames == 0 {
         return Err(CliError::Other(
             "--frames 0 runs nothing: give at least 1".into(),
@@ -227,12 +240,12 @@ fn run_in_process(graph: &Graph, frames: u64) -> Result<(), CliError> {
         let p99 = runtime::stats::percentile(&mut t, 0.99);
         runtime::outln!("{:<20} {:>9} {:>10.2} {:>10.2}", id, t.len(), mean, p99);
     }
+    let rate = done as f64 / wall.max(1e-9);
     runtime::outln!(
-        "{done} frame(s) in one process in {wall:.2} s: {:.2} frames/s; CPU {:.0} % of one core",
-        done as f64 / wall.max(1e-9),
+        "{done} frame(s) in one process in {wall:.2} s: {rate:.2} frames/s; CPU {:.0} % of one core",
         100.0 * cpu / (wall * 1e3).max(1e-9)
     );
-    Ok(())
+    Ok(rate)
 }
 
 /// Where `bench-transport` runs the two ends of the edge.

@@ -1215,6 +1215,71 @@ fn a_closed_stdout_ends_a_command_without_a_panic() {
     }
 }
 
+/// `run --compare` runs the graph in one process, then as processes, and says what share
+/// of the in-process rate the processes reach, from the two summaries' own rates.
+#[test]
+fn run_compare_gives_the_processes_rate_as_a_share_of_the_in_process_one() {
+    let small = data("graph/small.toml");
+    let out = run(&["run", s(&small), "--frames", "3", "--compare"]);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{text}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let rate = |line: &str| -> f64 {
+        let before = line.split(" frames/s").next().expect("a rate");
+        before
+            .rsplit(' ')
+            .next()
+            .unwrap()
+            .parse()
+            .expect("a number")
+    };
+    let alone = text
+        .lines()
+        .find(|l| l.contains("frame(s) in one process"))
+        .map(rate)
+        .unwrap_or_else(|| panic!("no in-process summary: {text}"));
+    let procs = text
+        .lines()
+        .find(|l| l.contains("frame(s) of 3 in"))
+        .map(rate)
+        .unwrap_or_else(|| panic!("no processes' summary: {text}"));
+    let line = text
+        .lines()
+        .find(|l| l.contains("the in-process rate"))
+        .unwrap_or_else(|| panic!("no comparison: {text}"));
+    let share: f64 = line
+        .split('×')
+        .next()
+        .unwrap()
+        .rsplit(' ')
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!(alone > 0.0 && procs > 0.0, "{text}");
+    // All three printed to two decimals.
+    assert!(
+        (share - procs / alone).abs() <= 0.01,
+        "{line} from {procs} and {alone}"
+    );
+    for bad in [
+        vec!["run", s(&small), "--compare"],
+        vec![
+            "run",
+            s(&small),
+            "--compare",
+            "--in-process",
+            "--frames",
+            "2",
+        ],
+    ] {
+        assert_eq!(run(&bad).status.code(), Some(2), "{bad:?}");
+    }
+}
+
 /// `run --in-process` steps every node of the launch file in this process: each node
 /// reports every frame, and it refuses what only processes do.
 #[test]

@@ -572,13 +572,13 @@ where
 }
 
 /// Prints the run's summary: per node frames and step times, per edge what was lost, the
-/// frame rate and the latency of the graph's ends.
+/// frame rate and the latency of the graph's ends; returns the frame rate.
 pub fn print_summary(
     graph: &Graph,
     stats: &HashMap<String, NodeStats>,
     wall: Duration,
     frames: Option<u64>,
-) {
+) -> f64 {
     crate::outln!();
     crate::outln!(
         "{:<20} {:>9} {:>9} {:>10} {:>10} {:>12} {:>7}",
@@ -659,14 +659,15 @@ pub fn print_summary(
         .collect();
     let done = sinks.iter().map(|s| s.frames_in).min().unwrap_or(0);
     let worst = |f: fn(&NodeStats) -> f64| sinks.iter().map(|s| f(s)).fold(0.0, f64::max);
+    let rate = done as f64 / wall.as_secs_f64().max(1e-9);
     crate::outln!(
-        "{done} frame(s){} in {:.2} s: {:.2} frames/s; capture → last output latency {:.1} ms (p50 {:.1}, p99 {:.1}); CPU {:.0} % of one core",
+        "{done} frame(s){} in {:.2} s: {rate:.2} frames/s; capture → last output latency {:.1} ms (p50 {:.1}, p99 {:.1}); CPU {:.0} % of one core",
         frames.map_or(String::new(), |n| format!(" of {n}")),
         wall.as_secs_f64(),
-        done as f64 / wall.as_secs_f64().max(1e-9),
         worst(|s| s.latency_ms),
         worst(|s| s.latency_p50_ms),
         worst(|s| s.latency_p99_ms),
         100.0 * stats.values().map(|s| s.cpu_ms).sum::<f64>() / wall_ms
     );
+    rate
 }
