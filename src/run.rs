@@ -189,7 +189,6 @@ pub fn run_cmd(a: RunArgs) -> Result<(), CliError> {
     a.out.apply(&mut graph)?;
     let rate = run_graph(&graph, a.frames, &a.supervision, &a.out)?;
     if a.compare {
-        // In one process after the processes: a bridge there keeps its port to the end.
         let alone = run_in_process(&load(&a.launch)?, a.frames.unwrap_or(1))?;
         runtime::outln!(
             "as processes {rate:.2} frames/s, in one process {alone:.2}: {:.2}× the in-process rate (the processes' sources keep their pace and their entrances drop what the graph cannot take; in one process every frame is taken in turn)",

@@ -115,6 +115,17 @@ pub struct Bridge {
     clients: Arc<Mutex<Clients>>,
     /// Where it listens.
     pub addr: SocketAddr,
+    /// Set when the bridge is dropped: the accepting thread then ends and frees the port.
+    closing: Arc<AtomicBool>,
+}
+
+impl Drop for Bridge {
+    fn drop(&mut self) {
+        // The accepting thread waits in accept(): a connection of our own wakes it to see
+        // the flag (an in-process graph's bridge kept its port until the program ended).
+        self.closing.store(true, Ordering::SeqCst);
+        let _ = TcpStream::connect_timeout(&self.addr, Duration::from_millis(500));
+    }
 }
 
 /// What the controller thread is doing.
@@ -191,10 +202,11 @@ impl Bridge {
         }));
         let clients: Arc<Mutex<Clients>> = Arc::default();
         let estop = Arc::new(AtomicBool::new(false));
+        let closing = Arc::new(AtomicBool::new(false));
         let (tx, rx) = channel();
         {
-            let (clients, estop) = (clients.clone(), estop.clone());
-            std::thread::spawn(move || accept(listener, clients, tx, estop));
+            let (clients, estop, closing) = (clients.clone(), estop.clone(), closing.clone());
+            std::thread::spawn(move || accept(listener, clients, tx, estop, closing));
         }
         let mut c = Controller {
             cfg: cfg.clone(),
@@ -223,6 +235,7 @@ impl Bridge {
             shared,
             clients,
             addr,
+            closing,
         })
     }
 
@@ -285,8 +298,12 @@ fn accept(
     clients: Arc<Mutex<Clients>>,
     tx: Sender<(u64, Command)>,
     estop: Arc<AtomicBool>,
+    closing: Arc<AtomicBool>,
 ) {
     for s in listener.incoming().flatten() {
+        if closing.load(Ordering::SeqCst) {
+            return;
+        }
         let _ = s.set_nodelay(true);
         // A controller that stops reading must not stall the graph: a write that cannot
         // go out within this time drops it.

@@ -421,3 +421,22 @@ fn stop_to_device_stopped_latency_over_tcp() {
     );
     assert!(at(0.99) < 500.0, "p99 {:.1} ms", at(0.99));
 }
+
+/// A dropped bridge frees its port (an in-process graph's bridge kept it until the program
+/// ended, so the same graph could not then run as processes).
+#[test]
+fn a_dropped_bridge_frees_its_port() {
+    let cfg = config(2000);
+    let b = Bridge::start(cfg.clone(), "127.0.0.1:0", sim(&cfg)).unwrap();
+    let addr = b.addr;
+    assert!(
+        std::net::TcpListener::bind(addr).is_err(),
+        "the port is taken"
+    );
+    drop(b);
+    let free = (0..100).any(|_| {
+        std::thread::sleep(Duration::from_millis(20));
+        std::net::TcpListener::bind(addr).is_ok()
+    });
+    assert!(free, "{addr} still taken after the bridge was dropped");
+}
