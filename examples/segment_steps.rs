@@ -8,23 +8,16 @@ use segment::{
     remove_small,
 };
 use std::time::Instant;
-use synth::{CellSpec, Look, Optics, Scene};
 
 fn main() {
     let runs: usize = std::env::args()
         .nth(1)
         .and_then(|a| a.parse().ok())
         .unwrap_or(5);
-    let optics = Optics {
-        width: 1280,
-        height: 1024,
-        ..Optics::default()
-    };
-    let spec = CellSpec {
-        count: 10,
-        ..CellSpec::default()
-    };
-    let (img, _) = Scene::random(optics, Look::default(), &spec, 1).render_views();
+    // The default graph's capture, with its default parameters: its first frame's left view.
+    let params = capture::synthetic::SyntheticParams::from_table(&toml::Table::new())
+        .expect("the default parameters");
+    let img = capture::synthetic::SyntheticCapture::new(&params).frame(0).left;
     let p = SegmentParams::default();
     let mut steps: Vec<(&str, f64)> = Vec::new();
     let mut add = |name: &'static str, t: Instant| {

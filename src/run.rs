@@ -186,10 +186,11 @@ pub fn run_cmd(a: RunArgs) -> Result<(), CliError> {
     if a.in_process {
         return run_in_process(&graph, a.frames.unwrap_or(1)).map(|_| ());
     }
+    let alone_graph = a.compare.then(|| graph.clone());
     a.out.apply(&mut graph)?;
     let rate = run_graph(&graph, a.frames, &a.supervision, &a.out)?;
-    if a.compare {
-        let alone = run_in_process(&load(&a.launch)?, a.frames.unwrap_or(1))?;
+    if let Some(g) = alone_graph {
+        let alone = run_in_process(&g, a.frames.unwrap_or(1))?;
         runtime::outln!(
             "as processes {rate:.2} frames/s, in one process {alone:.2}: {:.2}× the in-process rate (the processes' sources keep their pace and their entrances drop what the graph cannot take; in one process every frame is taken in turn)",
             rate / alone.max(1e-9)

@@ -1,6 +1,6 @@
 //! Mask clean-up: hole filling, small-blob removal, opening and closing.
 
-use crate::label::{Connectivity, components_where, label};
+use crate::label::{Components, Connectivity, components_where, label};
 use image::GrayImage;
 use imageproc::distance_transform::Norm;
 use schemas::{Mask, Plane};
@@ -14,17 +14,20 @@ pub fn fill_holes(mask: &Mask) -> Mask {
     for &(y, x0, x1, l) in &bg.runs {
         outside[l as usize] |= y == 0 || y + 1 == h || x0 == 0 || x1 == w;
     }
-    let mut out = Plane::from_vec(
-        w,
-        h,
-        mask.data
-            .iter()
-            .map(|&m| if m != 0 { 255 } else { 0 })
-            .collect(),
-    )
-    .expect("same size");
-    for &(y, x0, x1, l) in &bg.runs {
-        if !outside[l as usize] {
+    with_runs(mask, &bg, |l| !outside[l as usize])
+}
+
+/// `mask` at 255 wherever it is non-zero, and on every run of `parts` whose component
+/// `keep` picks.
+fn with_runs(mask: &Mask, parts: &Components, keep: impl Fn(u32) -> bool) -> Mask {
+    let data = mask
+        .data
+        .iter()
+        .map(|&m| if m != 0 { 255 } else { 0 })
+        .collect();
+    let mut out = Plane::from_vec(mask.width, mask.height, data).expect("same size");
+    for &(y, x0, x1, l) in &parts.runs {
+        if keep(l) {
             out.row_mut(y)[x0..x1].fill(255);
         }
     }
@@ -87,22 +90,9 @@ pub fn fill_broken_outlines(mask: &Mask, radius: u8) -> Mask {
             }
         }
     }
-    let mut out = Plane::from_vec(
-        w,
-        h,
-        mask.data
-            .iter()
-            .map(|&m| if m != 0 { 255 } else { 0 })
-            .collect(),
-    )
-    .expect("same size");
-    for &(y, x0, x1, l) in &parts.runs {
-        let p = l as usize;
-        if hole[p] && border[p].is_some_and(|b| b != u32::MAX) {
-            out.row_mut(y)[x0..x1].fill(255);
-        }
-    }
-    out
+    with_runs(mask, &parts, |l| {
+        hole[l as usize] && border[l as usize].is_some_and(|b| b != u32::MAX)
+    })
 }
 
 /// Closing with a square of half-width `radius`, the image padded so that nothing sticks to
