@@ -17,7 +17,9 @@ fn main() {
     // The default graph's capture, with its default parameters: its first frame's left view.
     let params = capture::synthetic::SyntheticParams::from_table(&toml::Table::new())
         .expect("the default parameters");
-    let img = capture::synthetic::SyntheticCapture::new(&params).frame(0).left;
+    let img = capture::synthetic::SyntheticCapture::new(&params)
+        .frame(0)
+        .left;
     let p = SegmentParams::default();
     let mut steps: Vec<(&str, f64)> = Vec::new();
     let mut add = |name: &'static str, t: Instant| {
