@@ -64,30 +64,34 @@ fn band_pass(img: &Plane<u8>, r: usize) -> Plane<f32> {
         }
     });
     let mut out = vec![0f32; w * h];
-    out.par_chunks_mut(w).enumerate().for_each(|(y, orow)| {
-        let rows: [&[f32]; 5] =
-            std::array::from_fn(|k| &tmp[clamp(y as isize + k as isize - 2, h) * w..][..w]);
-        let (y0, y1) = (y.saturating_sub(r), (y + r + 1).min(h));
-        // The window's column sums, then its sums along the row from their prefix sums:
-        // whole numbers, the same as any other way of adding them.
-        let mut cols = vec![0u32; w];
-        for yy in y0..y1 {
-            for (c, &v) in cols.iter_mut().zip(img.row(yy)) {
-                *c += v as u32;
+    // Each thread's column and prefix sums are kept from row to row (one pair of buffers a
+    // thread, not a pair a row).
+    let buffers = || (vec![0u32; w], vec![0u32; w + 1]);
+    out.par_chunks_mut(w)
+        .enumerate()
+        .for_each_init(buffers, |(cols, prefix), (y, orow)| {
+            let rows: [&[f32]; 5] =
+                std::array::from_fn(|k| &tmp[clamp(y as isize + k as isize - 2, h) * w..][..w]);
+            let (y0, y1) = (y.saturating_sub(r), (y + r + 1).min(h));
+            // The window's column sums, then its sums along the row from their prefix sums:
+            // whole numbers, the same as any other way of adding them.
+            cols.fill(0);
+            for yy in y0..y1 {
+                for (c, &v) in cols.iter_mut().zip(img.row(yy)) {
+                    *c += v as u32;
+                }
             }
-        }
-        let mut prefix = vec![0u32; w + 1];
-        for x in 0..w {
-            prefix[x + 1] = prefix[x] + cols[x];
-        }
-        for (x, o) in orow.iter_mut().enumerate() {
-            let v = |k: usize| K[k] * rows[k][x];
-            let smooth = ((((v(0) + v(1)) + v(2)) + v(3)) + v(4)) / 16.0;
-            let (x0, x1) = (x.saturating_sub(r), (x + r + 1).min(w));
-            let s = prefix[x1] - prefix[x0];
-            *o = smooth - s as f32 / ((x1 - x0) * (y1 - y0)) as f32;
-        }
-    });
+            for x in 0..w {
+                prefix[x + 1] = prefix[x] + cols[x];
+            }
+            for (x, o) in orow.iter_mut().enumerate() {
+                let v = |k: usize| K[k] * rows[k][x];
+                let smooth = ((((v(0) + v(1)) + v(2)) + v(3)) + v(4)) / 16.0;
+                let (x0, x1) = (x.saturating_sub(r), (x + r + 1).min(w));
+                let s = prefix[x1] - prefix[x0];
+                *o = smooth - s as f32 / ((x1 - x0) * (y1 - y0)) as f32;
+            }
+        });
     Plane::from_vec(w, h, out).expect("size")
 }
 
