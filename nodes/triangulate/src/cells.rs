@@ -294,49 +294,62 @@ pub fn cell_heights(
 /// square as wide as the range took most of the background of a crowded frame (3,000 of
 /// 300,000 pixels with 60 cells), where the plane then locked onto a wrong disparity.
 fn clear_background(left: &Mask, right: &Mask, range: DisparityRange, margin: usize) -> Mask {
+    /// Rows a task takes.
+    const BAND_ROWS: usize = 32;
     let (w, h) = (left.width, left.height);
-    let clip = |v: i64, hi: usize| v.clamp(0, hi as i64) as usize;
     let m = margin as i64;
-    // Per row: each column's mask count over the rows within the margin (kept as the rows
-    // slide), then prefix sums along the row, so that every window is two lookups.
-    let (mut cl, mut cr) = (vec![0u32; w], vec![0u32; w]);
-    let add = |counts: &mut [u32], mask: &Mask, y: usize, sign: bool| {
-        for (c, &v) in counts.iter_mut().zip(&mask.data[y * w..(y + 1) * w]) {
-            if v != 0 {
-                if sign { *c += 1 } else { *c -= 1 }
-            }
-        }
-    };
-    for y in 0..margin.min(h) {
-        add(&mut cl, left, y, true);
-        add(&mut cr, right, y, true);
-    }
-    let (mut pl, mut pr) = (vec![0u32; w + 1], vec![0u32; w + 1]);
+    // The prefix sums are padded with their end values, so that every window's bounds,
+    // clamped to the row or not, give the same count; `lo` cells before column 0.
+    let lo = (range.max as i64 + m).max(m).max(0) as usize;
+    let hi = (m + 1 - range.min as i64).max(m + 1).max(0) as usize;
     let mut data = vec![0u8; w * h];
-    for y in 0..h {
-        if y + margin < h {
-            add(&mut cl, left, y + margin, true);
-            add(&mut cr, right, y + margin, true);
-        }
-        if y > margin {
-            add(&mut cl, left, y - margin - 1, false);
-            add(&mut cr, right, y - margin - 1, false);
-        }
-        for x in 0..w {
-            pl[x + 1] = pl[x] + cl[x];
-            pr[x + 1] = pr[x] + cr[x];
-        }
-        for (x, d) in data[y * w..(y + 1) * w].iter_mut().enumerate() {
-            let xi = x as i64;
-            let own = pl[clip(xi + m + 1, w)] - pl[clip(xi - m, w)];
-            let (r0, r1) = (
-                clip(xi - range.max as i64 - m, w),
-                clip(xi - range.min as i64 + m + 1, w),
-            );
-            let other = if r0 < r1 { pr[r1] - pr[r0] } else { 0 };
-            *d = if own == 0 && other == 0 { 255 } else { 0 };
-        }
-    }
+    data.par_chunks_mut(w * BAND_ROWS)
+        .enumerate()
+        .for_each(|(band, chunk)| {
+            // Per row: each column's mask count over the rows within the margin (kept as
+            // the rows slide), then prefix sums along the row.
+            let (mut cl, mut cr) = (vec![0u32; w], vec![0u32; w]);
+            let (mut pl, mut pr) = (vec![0u32; lo + w + 1 + hi], vec![0u32; lo + w + 1 + hi]);
+            let add = |counts: &mut [u32], mask: &Mask, y: usize, sign: bool| {
+                for (c, &v) in counts.iter_mut().zip(mask.row(y)) {
+                    let one = u32::from(v != 0);
+                    if sign { *c += one } else { *c -= one }
+                }
+            };
+            let mut window: Option<(usize, usize)> = None;
+            for (i, out) in chunk.chunks_mut(w).enumerate() {
+                let y = band * BAND_ROWS + i;
+                let (y0, y1) = (y.saturating_sub(margin), (y + margin + 1).min(h));
+                let (p0, p1) = window.unwrap_or((y0, y0));
+                for yy in p1.max(y0)..y1 {
+                    add(&mut cl, left, yy, true);
+                    add(&mut cr, right, yy, true);
+                }
+                for yy in p0..y0.min(p1) {
+                    add(&mut cl, left, yy, false);
+                    add(&mut cr, right, yy, false);
+                }
+                window = Some((y0, y1));
+                for (p, c) in [(&mut pl, &cl), (&mut pr, &cr)] {
+                    for x in 0..w {
+                        p[lo + x + 1] = p[lo + x] + c[x];
+                    }
+                    let end = p[lo + w];
+                    p[lo + w + 1..].fill(end);
+                }
+                // Column x's own window is [x − m, x + m], its matches' window
+                // [x − max − m, x − min + m]: offsets into the padded sums.
+                let own_end = &pl[lo + m as usize + 1..][..w];
+                let own_start = &pl[lo - m as usize..][..w];
+                let other_end = &pr[(lo as i64 + m + 1 - range.min as i64) as usize..][..w];
+                let other_start = &pr[(lo as i64 - range.max as i64 - m) as usize..][..w];
+                for (x, d) in out.iter_mut().enumerate() {
+                    let own = own_end[x] - own_start[x];
+                    let other = other_end[x] - other_start[x];
+                    *d = if own == 0 && other == 0 { 255 } else { 0 };
+                }
+            }
+        });
     Plane::from_vec(w, h, data).expect("size")
 }
 
