@@ -249,7 +249,7 @@ fn tiled_start(
         tiles[(3 * p[1] / h).min(2) * 3 + (3 * p[0] / w).min(2)].push(p);
     }
     let starts: Vec<[f64; 3]> = tiles
-        .iter()
+        .par_iter()
         .filter(|t| t.len() >= 500)
         .filter_map(|t| {
             let (d, dip) = integer_start(hl, hr, t, range)?;
@@ -315,28 +315,41 @@ pub fn fit_disparity_plane(
         r if w >= 3 => &r[1..w - 1],
         r => &r[..0],
     };
-    let count: usize = (0..h)
+    let counts: Vec<usize> = (0..h)
+        .into_par_iter()
         .map(|y| inner(y).iter().filter(|&&v| v != 0).count())
-        .sum();
+        .collect();
+    let count: usize = counts.iter().sum();
     if (count as u64) < PLANE_MIN_PIXELS {
         return None;
     }
     // A few hundred thousand pixels fix a plane to a few thousandths of a pixel; more only
-    // cost time: every `every`-th usable pixel in row order.
+    // cost time: every `every`-th usable pixel in row order (by rows in parallel, each row
+    // starting from the count of usable pixels above it).
     let every = count.div_ceil(PLANE_MAX_PIXELS);
-    let mut pixels: Vec<[usize; 2]> = Vec::with_capacity(count.div_ceil(every));
-    let mut skip = 0;
-    for y in 0..h {
-        for (i, &v) in inner(y).iter().enumerate() {
-            if v != 0 {
-                if skip == 0 {
-                    pixels.push([i + 1, y]);
-                    skip = every;
-                }
-                skip -= 1;
-            }
-        }
-    }
+    let firsts: Vec<usize> = counts
+        .iter()
+        .scan(0, |above, &c| {
+            let first = *above;
+            *above += c;
+            Some(first)
+        })
+        .collect();
+    let pixels: Vec<[usize; 2]> = (0..h)
+        .into_par_iter()
+        .flat_map_iter(|y| {
+            let mut seen = firsts[y];
+            inner(y)
+                .iter()
+                .enumerate()
+                .filter(|(_, v)| **v != 0)
+                .filter_map(move |(i, _)| {
+                    let keep = seen % every == 0;
+                    seen += 1;
+                    keep.then_some([i + 1, y])
+                })
+        })
+        .collect();
     // A sparse sample is plenty for one integer.
     let sparse = pixels.len().div_ceil(PLANE_MAX_PIXELS / 8);
     let sample: Vec<[usize; 2]> = pixels.iter().step_by(sparse).copied().collect();
@@ -357,29 +370,23 @@ pub fn fit_disparity_plane(
     let mut p = tiled_start(&hl, &hr, &sample, range, (w, h))
         .map(|[d0, dx, dy]| [d0 + dx * centre[0] + dy * centre[1], dx * s, dy * s])
         .unwrap_or([d_start as f64, 0.0, 0.0]);
-    // Residual after linearising at the rounded shift, r = e + g·(d − k), is linear in p
-    // with Jacobian g·[1, u, v].
-    let term = |p: &[f64; 3], x: usize, y: usize| -> Option<(f64, [f64; 3])> {
-        let (u, v) = ((x as f64 - centre[0]) / s, (y as f64 - centre[1]) / s);
-        let d = p[0] + p[1] * u + p[2] * v;
-        let k = d.round();
-        let xr = x as f64 - k;
-        if !(xr >= 1.0 && xr <= (w - 2) as f64) {
-            return None;
-        }
-        let (lrow, rrow) = (hl.row(y), hr.row(y));
-        let xr = xr as usize;
-        let e = (lrow[x] - rrow[xr]) as f64;
-        let g = 0.25 * ((lrow[x + 1] - lrow[x - 1]) + (rrow[xr + 1] - rrow[xr - 1])) as f64;
-        Some((e + g * (d - k), [g, g * u, g * v]))
+    // Each pixel's place in the plane's coordinates, worked out once for every iteration.
+    let uv = |ps: &[[usize; 2]]| -> Vec<[f64; 2]> {
+        ps.par_iter()
+            .map(|&[x, y]| [(x as f64 - centre[0]) / s, (y as f64 - centre[1]) / s])
+            .collect()
+    };
+    let pixels: Vec<([usize; 2], [f64; 2])> = pixels.iter().copied().zip(uv(&pixels)).collect();
+    let term = |p: &[f64; 3], &([x, y], [u, v]): &([usize; 2], [f64; 2])| {
+        plane_term(&hl, &hr, p, x, y, u, v)
     };
     // The robust scale from a sparse sample of the residuals.
     let scale_at = |p: &[f64; 3]| {
         robust_scale(
             pixels
-                .iter()
+                .par_iter()
                 .step_by(7)
-                .filter_map(|&[x, y]| term(p, x, y).map(|t| t.0))
+                .filter_map(|px| term(p, px).map(|t| t.0))
                 .collect(),
         )
         .max(1e-6)
@@ -392,7 +399,7 @@ pub fn fit_disparity_plane(
     let mut redescend = false;
     // The Huber phase only brings the plane near its minimum: every fourth pixel does that
     // as well; the biweight's steps, which fix it, take them all.
-    let coarse: Vec<[usize; 2]> = if pixels.len() >= PLANE_COARSE_FROM {
+    let coarse: Vec<([usize; 2], [f64; 2])> = if pixels.len() >= PLANE_COARSE_FROM {
         pixels.iter().step_by(4).copied().collect()
     } else {
         pixels.clone()
@@ -401,8 +408,8 @@ pub fn fit_disparity_plane(
         let (jtj, jte, used) = ordered_sum(
             if redescend { &pixels } else { &coarse },
             || ([[0.0f64; 3]; 3], [0.0f64; 3], 0u64),
-            |(a, b, n), &[x, y]| {
-                if let Some((r, j)) = term(&p, x, y) {
+            |(a, b, n), px| {
+                if let Some((r, j)) = term(&p, px) {
                     let wt = if redescend {
                         tukey(r, TUKEY_C / 1.5 * k_huber)
                     } else {
@@ -465,6 +472,33 @@ pub fn fit_disparity_plane(
         std,
         pixels: pixels.len() as u64,
     })
+}
+
+/// One background pixel's residual under plane `p` (`d = p₀ + p₁·u + p₂·v` at the pixel's
+/// plane coordinates `(u, v)`), linearised at the rounded shift — `r = e + g·(d − k)`, linear
+/// in p with Jacobian `g·[1, u, v]` — or `None` when its match falls off the right view.
+#[inline(always)]
+fn plane_term(
+    hl: &Plane<f32>,
+    hr: &Plane<f32>,
+    p: &[f64; 3],
+    x: usize,
+    y: usize,
+    u: f64,
+    v: f64,
+) -> Option<(f64, [f64; 3])> {
+    let w = hl.width;
+    let d = p[0] + p[1] * u + p[2] * v;
+    let k = d.round();
+    let xr = x as f64 - k;
+    if !(xr >= 1.0 && xr <= (w - 2) as f64) {
+        return None;
+    }
+    let (lrow, rrow) = (hl.row(y), hr.row(y));
+    let xr = xr as usize;
+    let e = (lrow[x] - rrow[xr]) as f64;
+    let g = 0.25 * ((lrow[x + 1] - lrow[x - 1]) + (rrow[xr + 1] - rrow[xr - 1])) as f64;
+    Some((e + g * (d - k), [g, g * u, g * v]))
 }
 
 /// Adds `add` over `items` in fixed chunks on all cores, then the chunk sums in order: the
