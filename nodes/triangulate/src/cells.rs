@@ -233,7 +233,8 @@ pub fn compose(
 /// The substrate's disparity plane over the background clear of every cell (in both views'
 /// masks) when the background has the texture to fix one, and per pair the substrate under
 /// the left cell ([`substrate::bases`]: the plane or the rims, cross-checked; the ring
-/// median, doubted, without either) and its refined top.
+/// median, doubted, without either) and its refined top. `prior`: the last frame's plane,
+/// where one is tracked ([`fit_disparity_plane`]).
 #[allow(clippy::too_many_arguments)]
 pub fn cell_heights(
     (left, right): (&Plane<u8>, &Plane<u8>),
@@ -244,13 +245,14 @@ pub fn cell_heights(
     range: DisparityRange,
     margin: u8,
     calib: &Calibration,
+    prior: Option<&DisparityPlane>,
 ) -> (
     Option<DisparityPlane>,
     Vec<Option<Base>>,
     Vec<Option<PeakFit>>,
 ) {
     let usable = clear_background(left_mask, right_mask, range, margin as usize);
-    let plane = fit_disparity_plane(left, right, &usable, range, SUBSTRATE_MAX_STD);
+    let plane = fit_disparity_plane(left, right, &usable, range, SUBSTRATE_MAX_STD, prior);
     let paired: Vec<&Cell> = pairs.iter().map(|&(i, _)| &cells[i]).collect();
     let rims: Vec<Option<RimFit>> = paired
         .iter()

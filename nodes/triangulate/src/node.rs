@@ -5,7 +5,8 @@ use crate::calibration::Geometry;
 use crate::cells::{Background, cell_heights, compose, lone_cells, mask_of, measure};
 use runtime::node::{NodeError, Params, Stamp, Task};
 use schemas::{
-    Calibration, CellLists, Cloud, Disparity, DisparityTiles, Image, Labels, StereoFrame, Targets,
+    Calibration, CellLists, Cloud, Disparity, DisparityPlane, DisparityRange, DisparityTiles,
+    Image, Labels, StereoFrame, Targets,
 };
 use serde::Deserialize;
 
@@ -17,10 +18,19 @@ pub struct TriangulateParams {
     /// its keys inline.
     #[serde(default = "synthetic")]
     pub calibration: Geometry,
+    /// Start each frame's substrate plane from the last frame's where they agree to a pixel
+    /// (a live substrate moves slowly; the plane then costs a third of the time); `false`
+    /// fits every frame from scratch, as `reconstruct` does.
+    #[serde(default = "yes")]
+    pub track_substrate: bool,
 }
 
 fn synthetic() -> Geometry {
     Geometry::Synthetic
+}
+
+fn yes() -> bool {
+    true
 }
 
 impl Params for TriangulateParams {
@@ -64,6 +74,8 @@ runtime::ports! {
 pub struct Triangulate {
     params: TriangulateParams,
     calibration: Option<(usize, usize, Calibration)>,
+    /// The last frame's substrate plane, its frame size and disparity range.
+    plane: Option<((usize, usize), DisparityRange, DisparityPlane)>,
 }
 
 impl Triangulate {
@@ -92,6 +104,7 @@ impl Task for Triangulate {
         Ok(Self {
             params,
             calibration: None,
+            plane: None,
         })
     }
 
@@ -132,6 +145,11 @@ impl Task for Triangulate {
                     &i.disparity,
                     checked,
                 )?;
+                let range = i.disparity.range;
+                let prior = match &self.plane {
+                    Some((size, r, p)) if *size == (w, h) && *r == range => Some(p),
+                    _ => None,
+                };
                 let (substrate, bases, tops) = cell_heights(
                     (left, right),
                     (&labels.left, &left_mask, &right_mask),
@@ -141,7 +159,9 @@ impl Task for Triangulate {
                     i.disparity.range,
                     i.disparity.margin,
                     &calib,
+                    prior.filter(|_| self.params.track_substrate),
                 );
+                self.plane = substrate.map(|p| ((w, h), range, p));
                 let mut cells = measure(
                     (&labels.left, &lists.left, &lists.right),
                     &c.pairs,
