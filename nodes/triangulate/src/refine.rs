@@ -349,7 +349,7 @@ pub fn fit_disparity_plane(
                 .enumerate()
                 .filter(|(_, v)| **v != 0)
                 .filter_map(move |(i, _)| {
-                    let keep = seen % every == 0;
+                    let keep = seen.is_multiple_of(every);
                     seen += 1;
                     keep.then_some([i + 1, y])
                 })
