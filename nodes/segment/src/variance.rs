@@ -47,6 +47,9 @@ pub fn local_variance(img: &Plane<u8>, radius: usize) -> Plane<f32> {
     for y in 0..radius.min(h) {
         add_row(&mut c1, &mut c2, y, true);
     }
+    // Per row, prefix sums of the column sums: every window's sums are two lookups, and the
+    // columns whose window lies whole in the row share one count, so their loop vectorises.
+    let (mut p1, mut p2) = (vec![0u64; w + 1], vec![0u64; w + 1]);
     for y in 0..h {
         if y + radius < h {
             add_row(&mut c1, &mut c2, y + radius, true);
@@ -55,25 +58,37 @@ pub fn local_variance(img: &Plane<u8>, radius: usize) -> Plane<f32> {
             add_row(&mut c1, &mut c2, y - radius - 1, false);
         }
         let rows = (y + radius + 1).min(h) - y.saturating_sub(radius);
-        let (mut s1, mut s2) = (0u64, 0u64);
-        for x in 0..radius.min(w) {
-            s1 += c1[x];
-            s2 += c2[x];
+        // Running sums in registers: read back from the table, each waited on its store.
+        let (mut a1, mut a2) = (0u64, 0u64);
+        for (x, (&v1, &v2)) in c1.iter().zip(&c2).enumerate() {
+            a1 += v1;
+            a2 += v2;
+            p1[x + 1] = a1;
+            p2[x + 1] = a2;
         }
         let row = out.row_mut(y);
-        for x in 0..w {
-            if x + radius < w {
-                s1 += c1[x + radius];
-                s2 += c2[x + radius];
-            }
-            if x > radius {
-                s1 -= c1[x - radius - 1];
-                s2 -= c2[x - radius - 1];
-            }
-            let n = (rows * ((x + radius + 1).min(w) - x.saturating_sub(radius))) as u64;
+        let at = |x0: usize, x1: usize| {
+            let n = (rows * (x1 - x0)) as u64;
+            let (s1, s2) = (p1[x1] - p1[x0], p2[x1] - p2[x0]);
             // Exact in integers: n·ΣI² − (ΣI)² ≥ 0, so no cancellation below zero.
             let num = n * s2 - s1 * s1;
-            row[x] = (num as f64 / (n * n) as f64) as f32;
+            (num as f64 / (n * n) as f64) as f32
+        };
+        let (lo, hi) = (radius.min(w), w.saturating_sub(radius).max(radius.min(w)));
+        for x in (0..lo).chain(hi..w) {
+            row[x] = at(x.saturating_sub(radius), (x + radius + 1).min(w));
+        }
+        let m = hi - lo;
+        if m > 0 {
+            let span = 2 * radius + 1;
+            let n = (rows * span) as u64;
+            let nn = (n * n) as f64;
+            let (t1, b1) = (&p1[span..][..m], &p1[..m]);
+            let (t2, b2) = (&p2[span..][..m], &p2[..m]);
+            for (j, o) in row[lo..hi].iter_mut().enumerate() {
+                let (s1, s2) = (t1[j] - b1[j], t2[j] - b2[j]);
+                *o = ((n * s2 - s1 * s1) as f64 / nn) as f32;
+            }
         }
     }
     out

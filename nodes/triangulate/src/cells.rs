@@ -333,8 +333,12 @@ fn clear_background(left: &Mask, right: &Mask, range: DisparityRange, margin: us
                 }
                 window = Some((y0, y1));
                 for (p, c) in [(&mut pl, &cl), (&mut pr, &cr)] {
-                    for x in 0..w {
-                        p[lo + x + 1] = p[lo + x] + c[x];
+                    // A running sum in a register (read back from the table, each add
+                    // waited on the store before it).
+                    let mut acc = 0;
+                    for (q, &v) in p[lo + 1..lo + w + 1].iter_mut().zip(c.iter()) {
+                        acc += v;
+                        *q = acc;
                     }
                     let end = p[lo + w];
                     p[lo + w + 1..].fill(end);

@@ -94,8 +94,12 @@ fn band_pass(img: &Plane<u8>, r: usize) -> Plane<f32> {
                     }
                 }
                 window = Some((y0, y1));
-                for x in 0..w {
-                    prefix[x + 1] = prefix[x] + cols[x];
+                // A running sum in a register: read back from the table, each add waited
+                // on the store before it.
+                let mut acc = 0;
+                for (p, &c) in prefix[1..].iter_mut().zip(&cols) {
+                    acc += c;
+                    *p = acc;
                 }
                 let rows: [&[f32]; 5] =
                     std::array::from_fn(|k| &tmp[clamp(y as isize + k as isize - 2, h) * w..][..w]);
