@@ -52,6 +52,52 @@ impl BoxSums {
     }
 }
 
+/// A summed-area table of `u32` values added with wrap-around, at half the memory of
+/// [`BoxSums`]: a window's sum is exact whenever it is below 2³² (the wrapped differences
+/// come back to it), whatever the whole grid's sum.
+#[derive(Clone, Debug)]
+pub struct WrappingBoxSums {
+    w1: usize,
+    h: usize,
+    t: Vec<u32>,
+}
+
+impl WrappingBoxSums {
+    /// Tabulates a grid given row by row: `fill(y, row)` writes row `y`'s values into `row`.
+    pub fn from_rows(width: usize, height: usize, mut fill: impl FnMut(usize, &mut [u32])) -> Self {
+        let w1 = width + 1;
+        let mut t = vec![0u32; w1 * (height + 1)];
+        let mut row = vec![0u32; width];
+        for y in 0..height {
+            fill(y, &mut row);
+            let (above, below) = t.split_at_mut((y + 1) * w1);
+            let above = &above[y * w1 + 1..];
+            let mut acc = 0u32;
+            for ((out, &up), &v) in below[1..w1].iter_mut().zip(above).zip(&row) {
+                acc = acc.wrapping_add(v);
+                *out = up.wrapping_add(acc);
+            }
+        }
+        Self { w1, h: height, t }
+    }
+
+    /// Sum over `[x0, x1) × [y0, y1)`, modulo 2³².
+    pub fn rect(&self, x0: usize, y0: usize, x1: usize, y1: usize) -> u32 {
+        let w1 = self.w1;
+        self.t[y1 * w1 + x1]
+            .wrapping_add(self.t[y0 * w1 + x0])
+            .wrapping_sub(self.t[y0 * w1 + x1])
+            .wrapping_sub(self.t[y1 * w1 + x0])
+    }
+
+    /// Sum over the `(2r+1)²` window centred on `(x, y)`, clipped to the grid (modulo 2³²).
+    pub fn around(&self, x: usize, y: usize, r: usize) -> u32 {
+        let (x0, x1) = (x.saturating_sub(r), (x + r + 1).min(self.w1 - 1));
+        let (y0, y1) = (y.saturating_sub(r), (y + r + 1).min(self.h));
+        self.rect(x0, y0, x1, y1)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -76,5 +122,28 @@ mod tests {
             }
         }
         assert_eq!(b.rect(2, 1, 2, 5), 0);
+    }
+
+    #[test]
+    fn wrapped_window_sums_are_exact_below_two_to_the_32() {
+        // Values large enough for the whole grid's sum to wrap many times over.
+        let f = |x: usize, y: usize| ((x * 7919 + y * 104_729) % 1_000_003) as u64 * 97;
+        let (w, h) = (40, 30);
+        let wide = BoxSums::new(w, h, f);
+        let wrapped = WrappingBoxSums::from_rows(w, h, |y, row| {
+            for (x, v) in row.iter_mut().enumerate() {
+                *v = f(x, y) as u32;
+            }
+        });
+        assert!(wide.rect(0, 0, w, h) > 1 << 35);
+        for y in 0..h {
+            for x in 0..w {
+                for r in 0..3 {
+                    let (s, _) = wide.around(x, y, r);
+                    assert!(s < 1 << 32);
+                    assert_eq!(wrapped.around(x, y, r) as u64, s, "({x}, {y}) r {r}");
+                }
+            }
+        }
     }
 }

@@ -4,7 +4,7 @@
 //! [`peel_edges`] takes back that skirt: mask pixels on the outside of the mask that look
 //! like the smooth background around them are removed, layer by layer.
 
-use crate::BoxSums;
+use crate::{BoxSums, WrappingBoxSums};
 use schemas::{Mask, Plane};
 
 /// Whether a boundary pixel `(x, y)` goes to the background.
@@ -33,18 +33,45 @@ fn neighbours4(x: usize, y: usize, w: usize, h: usize) -> impl Iterator<Item = (
 /// with four that lie within 1.5kσ of the background. Pixels with no background in
 /// their window are kept.
 pub fn peel_edges(img: &Plane<u8>, mask: &Mask, layers: usize, bg_radius: usize, k: f64) -> Mask {
-    let packed = (img.width * img.height) as u64 * 255 < 1 << 32;
-    peel_with(img, mask, layers, bg_radius, k, packed)
+    let table = match wrapped_sum_bits(img.width, img.height, bg_radius.max(layers)) {
+        Some(bits) => Table::Wrapped(bits),
+        None if (img.width * img.height) as u64 * 255 < 1 << 32 => Table::Packed,
+        None => Table::Apart,
+    };
+    peel_with(img, mask, layers, bg_radius, k, table)
 }
 
-/// [`peel_edges`] with the background's window sums in one table (`packed`) or two.
+/// How the background's window sums are tabulated.
+#[derive(Clone, Copy, Debug)]
+enum Table {
+    /// Count and grey-level sum packed in one wrapping `u32` table, the sum in the low
+    /// bits given: exact while a window's two fields fit in 32 bits (4 MB for a 1280×1024
+    /// view).
+    Wrapped(u32),
+    /// Both in one `u64` table: exact while the whole frame's sum fits 32 bits.
+    Packed,
+    /// Two `u64` tables.
+    Apart,
+}
+
+/// The bits of the grey-level sum's field when a window of radius `r` (clipped to the frame)
+/// packs its count and sum into 32 bits, `None` when they do not fit.
+fn wrapped_sum_bits(w: usize, h: usize, r: usize) -> Option<u32> {
+    let side = |n: usize| (2 * r + 1).min(n) as u64;
+    let most = side(w) * side(h);
+    let bits = |v: u64| 64 - v.leading_zeros();
+    let sum_bits = bits(255 * most);
+    (sum_bits + bits(most) <= 32).then_some(sum_bits)
+}
+
+/// [`peel_edges`] with the background's window sums in the given table.
 fn peel_with(
     img: &Plane<u8>,
     mask: &Mask,
     layers: usize,
     bg_radius: usize,
     k: f64,
-    packed: bool,
+    table: Table,
 ) -> Mask {
     let (w, h) = (img.width, img.height);
     let mut out = mask.clone();
@@ -56,14 +83,21 @@ fn peel_with(
     // (count in the high 32 bits, sum in the low: exact while the whole frame's sum of
     // grey levels fits 32 bits, and a window's sums are differences of the table's, each
     // field non-negative), half the memory and one pass; two tables for larger frames.
-    let sums = if packed {
-        Sums::Packed(BoxSums::from_rows(w, h, |y, row| {
+    let sums = match table {
+        Table::Wrapped(bits) => Sums::Wrapped(
+            WrappingBoxSums::from_rows(w, h, |y, row| {
+                for ((v, &m), &g) in row.iter_mut().zip(mask.row(y)).zip(img.row(y)) {
+                    *v = if m == 0 { 1 << bits | g as u32 } else { 0 };
+                }
+            }),
+            bits,
+        ),
+        Table::Packed => Sums::Packed(BoxSums::from_rows(w, h, |y, row| {
             for ((v, &m), &g) in row.iter_mut().zip(mask.row(y)).zip(img.row(y)) {
                 *v = if m == 0 { 1 << 32 | g as u64 } else { 0 };
             }
-        }))
-    } else {
-        Sums::Apart(
+        })),
+        Table::Apart => Sums::Apart(
             BoxSums::new(w, h, |x, y| u64::from(is_bg(x, y))),
             BoxSums::new(w, h, |x, y| {
                 if is_bg(x, y) {
@@ -72,10 +106,14 @@ fn peel_with(
                     0
                 }
             }),
-        )
+        ),
     };
     let background = |x: usize, y: usize, r: usize| -> (u64, u64) {
         match &sums {
+            Sums::Wrapped(t, bits) => {
+                let v = t.around(x, y, r);
+                ((v >> bits) as u64, (v & ((1 << bits) - 1)) as u64)
+            }
             Sums::Packed(t) => {
                 let v = t.around(x, y, r).0;
                 (v >> 32, v & 0xffff_ffff)
@@ -198,6 +236,7 @@ fn peel_with(
 
 /// The background's window sums: both in one table, or apart.
 enum Sums {
+    Wrapped(WrappingBoxSums, u32),
     Packed(BoxSums),
     Apart(BoxSums, BoxSums),
 }
@@ -508,9 +547,15 @@ mod tests {
                     fast, first,
                     "seed {seed}, layers {layers}, radius {bg_radius}, k {k}"
                 );
-                // Frames too large for one packed table take two: the same mask.
-                let apart = peel_with(&img, &mask, layers, bg_radius, k, false);
-                assert_eq!(apart, first, "two tables, seed {seed}");
+                // Every table gives the same mask: wrapped (where it fits), packed in u64
+                // (frames whose sum fits 32 bits) and two tables (larger frames).
+                for table in [Table::Packed, Table::Apart]
+                    .into_iter()
+                    .chain(wrapped_sum_bits(w, h, bg_radius.max(layers)).map(Table::Wrapped))
+                {
+                    let other = peel_with(&img, &mask, layers, bg_radius, k, table);
+                    assert_eq!(other, first, "{table:?}, seed {seed}");
+                }
                 peeled += fast
                     .data
                     .iter()
