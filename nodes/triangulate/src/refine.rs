@@ -554,10 +554,14 @@ fn normal_equations<const N: usize>(
         || ([[0.0f64; N]; N], [0.0f64; N]),
         |(a, b), (e, j)| {
             let wt = huber(*e, k);
+            // Whole rows, not the upper triangle: the same products for the half that is
+            // read ((wt·jᵣ)·j꜀ either way), in straight vector loops (the triangle's ragged
+            // rows were added one by one).
             for r in 0..N {
-                b[r] += wt * j[r] * e;
-                for c in r..N {
-                    a[r][c] += wt * j[r] * j[c];
+                let wr = wt * j[r];
+                b[r] += wr * e;
+                for (acc, &jc) in a[r].iter_mut().zip(j) {
+                    *acc += wr * jc;
                 }
             }
         },
