@@ -34,7 +34,7 @@ fn main() {
             .map(|(n, p)| {
                 let (header, payload) = &log[&(n.to_string(), p.to_string())][k];
                 Some(Msg {
-                    header: header.clone(),
+                    header: *header,
                     payload,
                 })
             })
