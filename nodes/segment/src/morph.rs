@@ -108,22 +108,27 @@ fn close_square(mask: &Mask, radius: u8) -> Mask {
     let (w, h) = (mask.width, mask.height);
     let (pw, ph) = (w + 2 * r, h + 2 * r);
     let span = 2 * r + 1;
-    // Along rows: padded column i (x = i − r) is set where the mask has a pixel in x ± r.
+    // Along rows: padded column i (x = i − r) is set where the mask has a pixel in x ± r,
+    // that is in [i − 2r, i]: a difference of the row's prefix counts (kept in a register
+    // as they are made; the differences then run as vector loops).
     let mut across = vec![0u8; h * pw];
+    let mut prefix = vec![0u32; pw + 1];
     for (row, out) in mask
         .data
         .chunks_exact(w.max(1))
         .zip(across.chunks_exact_mut(pw))
     {
-        let mut count = 0u32;
-        for (i, o) in out.iter_mut().enumerate() {
-            if i < w && row[i] != 0 {
-                count += 1;
-            }
-            if i >= span && i - span < w && row[i - span] != 0 {
-                count -= 1;
-            }
-            *o = u8::from(count > 0);
+        running_counts(row, &mut prefix);
+        let head = (span - 1).min(pw);
+        for (o, &p) in out[..head].iter_mut().zip(&prefix[1..]) {
+            *o = u8::from(p > 0);
+        }
+        for ((o, &p), &q) in out[head..]
+            .iter_mut()
+            .zip(&prefix[head + 1..])
+            .zip(&prefix[head + 1 - span.min(head + 1)..])
+        {
+            *o = u8::from(p > q);
         }
     }
     // Down columns: padded row j (y = j − r) is set where a row within y ± r is.
@@ -146,17 +151,15 @@ fn close_square(mask: &Mask, radius: u8) -> Mask {
         }
     }
     // The erosion: image pixel (x, y) stays where all of padded [x, x + 2r] × [y, y + 2r]
-    // is set. Along rows first, then down columns.
+    // is set. Along rows first (a difference of prefix counts again), then down columns.
     let mut full = vec![0u8; ph * w];
     for (row, out) in dilated
         .chunks_exact(pw)
         .zip(full.chunks_exact_mut(w.max(1)))
     {
-        let mut count: usize = row[..span - 1].iter().map(|&v| v as usize).sum();
-        for (x, o) in out.iter_mut().enumerate() {
-            count += row[x + span - 1] as usize;
-            *o = u8::from(count == span);
-            count -= row[x] as usize;
+        running_counts(row, &mut prefix);
+        for ((o, &p), &q) in out.iter_mut().zip(&prefix[span..]).zip(&prefix[..w]) {
+            *o = u8::from(p - q == span as u32);
         }
     }
     let mut data = vec![0u8; w * h];
@@ -179,6 +182,20 @@ fn close_square(mask: &Mask, radius: u8) -> Mask {
         }
     }
     Plane::from_vec(w, h, data).expect("size")
+}
+
+/// `prefix[k]` = the number of non-zero values among `row[..k]`, for every `k` up to
+/// `prefix.len() − 1` (past the row's end the count stays).
+fn running_counts(row: &[u8], prefix: &mut [u32]) {
+    let mut acc = 0u32;
+    prefix[0] = 0;
+    let n = row.len().min(prefix.len() - 1);
+    let (inside, past) = prefix[1..].split_at_mut(n);
+    for (p, &v) in inside.iter_mut().zip(row) {
+        acc += u32::from(v != 0);
+        *p = acc;
+    }
+    past.fill(acc);
 }
 
 /// Drops 8-connected blobs of fewer than `min_area` pixels.
