@@ -151,15 +151,19 @@ fn peel_with(
     };
     // Spread of the background about its local mean (median absolute deviation), from
     // every third pixel along both axes: plenty for one number.
-    let mut dev: Vec<f64> = (0..h)
-        .step_by(3)
-        .flat_map(|y| (0..w).step_by(3).map(move |x| (x, y)))
-        .filter(|&(x, y)| is_bg(x, y))
-        // Not kept: the sample spans the frame, the tests only its edges.
-        .map(|(x, y)| r_of(x, y))
-        .filter(|v| !v.is_nan())
-        .map(f64::abs)
-        .collect();
+    // Not kept: the sample spans the frame, the tests only its edges.
+    let mut dev: Vec<f64> = Vec::with_capacity(w.div_ceil(3) * h.div_ceil(3));
+    for y in (0..h).step_by(3) {
+        let row = mask.row(y);
+        for x in (0..w).step_by(3) {
+            if row[x] == 0 {
+                let v = r_of(x, y);
+                if !v.is_nan() {
+                    dev.push(v.abs());
+                }
+            }
+        }
+    }
     if dev.is_empty() {
         return out;
     }
