@@ -130,23 +130,11 @@ fn peel_with(
             f64::NAN
         }
     };
-    // Every test below reads r many times over, for the same pixels round after round, but
-    // only near the mask's edge: kept once worked out (NaN where the window holds no
-    // background). The store holds each value's bits XOR those of infinity, which r never
-    // is, so that zeroed memory (untouched pages, for a mostly empty frame) means "not yet".
-    let unset = f64::INFINITY.to_bits();
-    let mut zeroed = vec![0u64; w * h];
-    let store = std::cell::Cell::from_mut(&mut zeroed[..]).as_slice_of_cells();
+    // Worked out where read: each test keeps what it kept (below), so each pixel's r is
+    // read a few times, not once a round; a table of every pixel's r, zeroed for each
+    // frame, cost more than all of that (10 MB for a 1280×1024 view).
     let r = |x: usize, y: usize| {
-        let i = y * w + x;
-        let v = match store[i].get() {
-            0 => {
-                let v = r_of(x, y);
-                store[i].set(v.to_bits() ^ unset);
-                v
-            }
-            b => f64::from_bits(b ^ unset),
-        };
+        let v = r_of(x, y);
         (!v.is_nan()).then_some(v)
     };
     // Spread of the background about its local mean (median absolute deviation), from
@@ -206,8 +194,20 @@ fn peel_with(
     let mut listed = vec![false; w * h];
     let test_rounds: [(PeelTest, usize); 2] = [(&quiet, 2 * layers), (&alone, 1)];
     for (test, rounds) in test_rounds {
+        // Each test reads only the first mask's background (r and the depth), not what the
+        // rounds peeled: a pixel it kept, it keeps in every later round. The kept lead the
+        // next round's boundary, so only the pixels behind them, newly exposed, are tested.
+        let mut known = 0;
         for _ in 0..rounds {
-            let (gone, kept): (Vec<_>, Vec<_>) = boundary.iter().partition(|&&(x, y)| test(x, y));
+            let (mut gone, mut kept) = (Vec::new(), Vec::new());
+            for (i, &(x, y)) in boundary.iter().enumerate() {
+                if i >= known && test(x, y) {
+                    gone.push((x, y));
+                } else {
+                    kept.push((x, y));
+                }
+            }
+            known = kept.len();
             if !peel_boundary(&mut out, &mut boundary, gone, kept, &mut listed) {
                 break;
             }
