@@ -172,8 +172,16 @@ impl<'a> Levels<'a> {
 
     fn of(&self, v: f32) -> u8 {
         let (lo, hi) = self.buckets[(v.to_bits() >> BUCKET_SHIFT) as usize];
-        if lo == hi {
-            return lo;
+        // Most buckets hold one answer or straddle one bound: that comparison without a
+        // branch (a quarter of a view's pixels fell in straddling buckets, half of them
+        // mispredicted), a search for the rest.
+        if hi <= lo + 1 {
+            let b = self
+                .bounds
+                .get(lo as usize)
+                .copied()
+                .unwrap_or(f32::INFINITY);
+            return lo + u8::from((hi > lo) & (b <= v));
         }
         let (lo, hi) = (lo as usize, hi as usize);
         (lo + self.bounds[lo..hi].partition_point(|&b| b <= v)) as u8
