@@ -51,16 +51,27 @@ pub fn triangulate(
     calib: &Calibration,
     colour: &Plane<[u8; 3]>,
 ) -> PointCloud {
-    assert_eq!((disp.width, disp.height), (colour.width, colour.height));
+    triangulate_every(disp, calib, &|x, y| *colour.get(x, y), 1)
+}
+
+/// Triangulates the valid pixels of every `step`-th row and column of a left-based
+/// disparity map (`step` 1: every one), each coloured by `colour(x, y)`.
+pub fn triangulate_every(
+    disp: &DisparityMap,
+    calib: &Calibration,
+    colour: &dyn Fn(usize, usize) -> [u8; 3],
+    step: usize,
+) -> PointCloud {
+    let step = step.max(1);
     let mut points = Vec::new();
-    for y in 0..disp.height {
-        for (x, &d) in disp.row(y).iter().enumerate() {
+    for y in (0..disp.height).step_by(step) {
+        for (x, &d) in disp.row(y).iter().enumerate().step_by(step) {
             if let Some([px, py, pz]) = triangulate_pixel(x as f64, y as f64, d as f64, calib) {
                 points.push(Point3 {
                     x: px,
                     y: py,
                     z: pz,
-                    rgb: *colour.get(x, y),
+                    rgb: colour(x, y),
                     col: x as u32,
                     row: y as u32,
                 });
@@ -128,5 +139,34 @@ mod tests {
         assert_eq!(cloud.points.len(), 1);
         assert_eq!(cloud.points[0].rgb, [1, 2, 3]);
         assert_eq!(cloud.unit, LengthUnit::Mm);
+    }
+
+    #[test]
+    fn a_stepped_cloud_is_the_whole_one_on_every_nth_row_and_column() {
+        let (w, h) = (23, 17);
+        let data = (0..w * h)
+            .map(|i| {
+                if i % 7 == 3 {
+                    INVALID_DISPARITY
+                } else {
+                    15.0 + (i % 5) as f32
+                }
+            })
+            .collect();
+        let disp = Plane::from_vec(w, h, data).unwrap();
+        let colour = |x: usize, y: usize| [x as u8, y as u8, 0];
+        let whole = triangulate_every(&disp, &calib(), &colour, 1);
+        for step in [1, 2, 3, 5] {
+            let part = triangulate_every(&disp, &calib(), &colour, step);
+            let want: Vec<&Point3> = whole
+                .points
+                .iter()
+                .filter(|p| p.col as usize % step == 0 && p.row as usize % step == 0)
+                .collect();
+            assert_eq!(part.points.iter().collect::<Vec<_>>(), want, "step {step}");
+            assert!(!part.points.is_empty());
+        }
+        // Step 0 is taken as 1.
+        assert_eq!(triangulate_every(&disp, &calib(), &colour, 0), whole);
     }
 }

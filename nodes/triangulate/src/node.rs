@@ -23,6 +23,16 @@ pub struct TriangulateParams {
     /// fits every frame from scratch, as `reconstruct` does.
     #[serde(default = "yes")]
     pub track_substrate: bool,
+    /// Pixels between the cloud's points along rows and columns: 1 (the default) sends
+    /// every valid pixel of the final map, N every N-th row and column, 0 an empty cloud
+    /// (the live graph's choice: its controller reads the cells, and a whole cloud is about
+    /// 3 MB a 1280×1024 frame to work out and send).
+    #[serde(default = "one")]
+    pub cloud_step: usize,
+}
+
+fn one() -> usize {
+    1
 }
 
 fn synthetic() -> Geometry {
@@ -188,8 +198,13 @@ impl Task for Triangulate {
             }
             _ => (i.disparity.paste(), Vec::new(), None),
         };
-        let rgb = match &i.colour {
-            Some(c) if c.size() == (w, h) => c.to_rgb(),
+        // Colours only for the points sent: grey from the left view without a colour
+        // image.
+        let colour: Box<dyn Fn(usize, usize) -> [u8; 3]> = match &i.colour {
+            Some(c) if c.size() == (w, h) => {
+                let rgb = c.to_rgb();
+                Box::new(move |x, y| *rgb.get(x, y))
+            }
             Some(c) => {
                 return Err(NodeError::Failed(format!(
                     "the colour image is {}×{} but the frames are {w}×{h}",
@@ -197,11 +212,14 @@ impl Task for Triangulate {
                     c.size().1
                 )));
             }
-            None => schemas::msg::grey_to_rgb(left),
+            None => Box::new(|x, y| [*left.get(x, y); 3]),
         };
-        let cloud = crate::triangulate(&map, &calib, &rgb);
+        let cloud = match self.params.cloud_step {
+            0 => Cloud::default(),
+            step => Cloud::from_points(&crate::triangulate_every(&map, &calib, &colour, step)),
+        };
         Ok(TriangulateOut {
-            cloud: Cloud::from_points(&cloud),
+            cloud,
             targets: Targets {
                 frame: stamp.sequence,
                 capture_ns: stamp.capture_ns,
