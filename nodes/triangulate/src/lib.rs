@@ -161,7 +161,9 @@ mod tests {
             let want: Vec<&Point3> = whole
                 .points
                 .iter()
-                .filter(|p| p.col as usize % step == 0 && p.row as usize % step == 0)
+                .filter(|p| {
+                    (p.col as usize).is_multiple_of(step) && (p.row as usize).is_multiple_of(step)
+                })
                 .collect();
             assert_eq!(part.points.iter().collect::<Vec<_>>(), want, "step {step}");
             assert!(!part.points.is_empty());
