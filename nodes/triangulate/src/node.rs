@@ -45,9 +45,18 @@ fn yes() -> bool {
 
 impl Params for TriangulateParams {
     fn check(&self) -> Result<(), String> {
+        if self.cloud_step > MAX_CLOUD_STEP {
+            return Err(format!(
+                "cloud_step = {} is more than {MAX_CLOUD_STEP}: give 0 (no cloud), 1 (every valid pixel) or every how many rows and columns a point is taken",
+                self.cloud_step
+            ));
+        }
         self.calibration.check()
     }
 }
+
+/// The largest `cloud_step`: a point every 64 rows and columns is a sketch already.
+const MAX_CLOUD_STEP: usize = 64;
 
 runtime::ports! {
     /// What the triangulate node reads.
