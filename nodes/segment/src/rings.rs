@@ -25,9 +25,15 @@ struct Component {
 /// (the raster-first pixel of its largest piece, so that an absorbed arc does not become
 /// the contour).
 pub fn absorb_rings(labels: &mut Plane<u32>, n: u32) -> (u32, Vec<[u32; 2]>) {
-    // Per label, in one pass: its area, its raster-first pixel, and each of its rows' first
-    // and last pixel (pixels come row by row, so the ends span the hull as all would), not
-    // every pixel (a list of a 1280×1024 view's cell pixels took 3 MB and most of the time).
+    let comps = components(labels, n);
+    let into = hosts(&comps, |b, hull| reaches(labels, b as u32, hull));
+    renumber(labels, &comps, &into)
+}
+
+/// Per label `0..=n` of `labels`, in one pass: its area, its raster-first pixel and the
+/// convex hull of each of its rows' first and last pixel (pixels come row by row, so the
+/// ends span the hull as all would), not a list of every pixel (3 MB a 1280×1024 view).
+fn components(labels: &Plane<u32>, n: u32) -> Vec<Option<Component>> {
     struct Scan {
         area: u64,
         ends: Vec<Point<i64>>,
@@ -50,50 +56,66 @@ pub fn absorb_rings(labels: &mut Plane<u32>, n: u32) -> (u32, Vec<[u32; 2]>) {
             }
         }
     }
-    let comps: Vec<Option<Component>> = scans
+    scans
         .into_iter()
         .map(|s| {
             let s = s?;
             let first = s.ends[0];
-            let hull: Vec<[f64; 2]> = imageproc::geometry::convex_hull(s.ends)
-                .iter()
-                .map(|q| [q.x as f64, q.y as f64])
-                .collect();
-            let hull_area = polygon_area(&hull);
-            Some(Component {
-                area: s.area,
-                first: [first.x as u32, first.y as u32],
-                hull,
-                hull_area,
-            })
+            Some(Component::new(
+                s.area,
+                [first.x as u32, first.y as u32],
+                s.ends,
+            ))
         })
-        .collect();
-    // Whether a pixel of label `b` lies inside `hull`: only the hull's box can hold one.
-    let reaches = |b: usize, hull: &[[f64; 2]]| {
-        let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
-        for q in hull {
-            for k in 0..2 {
-                lo[k] = lo[k].min(q[k]);
-                hi[k] = hi[k].max(q[k]);
-            }
+        .collect()
+}
+
+impl Component {
+    fn new(area: u64, first: [u32; 2], ends: Vec<Point<i64>>) -> Self {
+        let hull: Vec<[f64; 2]> = imageproc::geometry::convex_hull(ends)
+            .iter()
+            .map(|q| [q.x as f64, q.y as f64])
+            .collect();
+        let hull_area = polygon_area(&hull);
+        Self {
+            area,
+            first,
+            hull,
+            hull_area,
         }
-        let (x0, x1) = (
-            lo[0].max(0.0) as usize,
-            (hi[0] as usize).min(labels.width - 1),
-        );
-        let (y0, y1) = (
-            lo[1].max(0.0) as usize,
-            (hi[1] as usize).min(labels.height - 1),
-        );
-        (y0..=y1).any(|y| {
-            labels.row(y)[x0..=x1]
-                .iter()
-                .enumerate()
-                .any(|(i, &l)| l == b as u32 && inside(hull, [(x0 + i) as f64, y as f64]))
-        })
-    };
-    // Each arc joins the largest qualifying object its hull reaches into.
-    let mut into: Vec<u32> = (0..=n).collect();
+    }
+}
+
+/// Whether a pixel of label `b` lies strictly inside `hull`: only the hull's box can hold
+/// one.
+fn reaches(labels: &Plane<u32>, b: u32, hull: &[[f64; 2]]) -> bool {
+    let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+    for q in hull {
+        for k in 0..2 {
+            lo[k] = lo[k].min(q[k]);
+            hi[k] = hi[k].max(q[k]);
+        }
+    }
+    let (x0, x1) = (
+        lo[0].max(0.0) as usize,
+        (hi[0] as usize).min(labels.width - 1),
+    );
+    let (y0, y1) = (
+        lo[1].max(0.0) as usize,
+        (hi[1] as usize).min(labels.height - 1),
+    );
+    (y0..=y1).any(|y| {
+        labels.row(y)[x0..=x1]
+            .iter()
+            .enumerate()
+            .any(|(i, &l)| l == b && inside(hull, [(x0 + i) as f64, y as f64]))
+    })
+}
+
+/// Per label, the label it joins: each arc the largest qualifying object its hull reaches
+/// into (`reaches(b, hull)`), every other label itself.
+fn hosts(comps: &[Option<Component>], reaches: impl Fn(usize, &[[f64; 2]]) -> bool) -> Vec<u32> {
+    let mut into: Vec<u32> = (0..comps.len() as u32).collect();
     for (a, ca) in comps.iter().enumerate() {
         let Some(ca) = ca else { continue };
         // The hull of pixel centres misses half a pixel all round.
@@ -117,16 +139,26 @@ pub fn absorb_rings(labels: &mut Plane<u32>, n: u32) -> (u32, Vec<[u32; 2]>) {
             into[a] = h;
         }
     }
-    // Renumber the survivors in order.
-    let mut new_id = vec![0u32; n as usize + 1];
+    into
+}
+
+/// Relabels every label as the one it joins (`into`) and numbers the survivors `1..=m` in
+/// their old order; returns `m` and, per new id, where its boundary trace starts.
+fn renumber(
+    labels: &mut Plane<u32>,
+    comps: &[Option<Component>],
+    into: &[u32],
+) -> (u32, Vec<[u32; 2]>) {
+    let n = comps.len() - 1;
+    let mut new_id = vec![0u32; n + 1];
     let mut starts = vec![[0, 0]];
-    for l in 1..=n as usize {
+    for l in 1..=n {
         if into[l] == l as u32 && comps[l].is_some() {
             new_id[l] = starts.len() as u32;
             starts.push(comps[l].as_ref().map_or([0, 0], |c| c.first));
         }
     }
-    for l in 1..=n as usize {
+    for l in 1..=n {
         if into[l] != l as u32 {
             new_id[l] = new_id[into[l] as usize];
         }
@@ -232,7 +264,7 @@ mod tests {
         });
     }
 
-    /// The first [`absorb_rings`]: every pixel of every label listed.
+    /// The first [`absorb_rings`]'s scan and host search: every pixel of every label listed.
     fn absorb_rings_reference(labels: &mut Plane<u32>, n: u32) -> (u32, Vec<[u32; 2]>) {
         let mut pts: Vec<Vec<Point<i64>>> = vec![Vec::new(); n as usize + 1];
         for y in 0..labels.height {
@@ -250,63 +282,19 @@ mod tests {
                     .chunk_by(|a, b| a.y == b.y)
                     .flat_map(|row| [row[0], row[row.len() - 1]])
                     .collect();
-                let hull: Vec<[f64; 2]> = imageproc::geometry::convex_hull(ends)
-                    .iter()
-                    .map(|q| [q.x as f64, q.y as f64])
-                    .collect();
-                let hull_area = polygon_area(&hull);
-                Some(Component {
-                    area: p.len() as u64,
-                    first: [first.x as u32, first.y as u32],
-                    hull,
-                    hull_area,
-                })
+                Some(Component::new(
+                    p.len() as u64,
+                    [first.x as u32, first.y as u32],
+                    ends,
+                ))
             })
             .collect();
-        let mut into: Vec<u32> = (0..=n).collect();
-        for (a, ca) in comps.iter().enumerate() {
-            let Some(ca) = ca else { continue };
-            let solidity = ca.area as f64 / (ca.hull_area + 0.5 * perimeter(&ca.hull) + 1.0);
-            if solidity > ARC_SOLIDITY || ca.hull.len() < 3 {
-                continue;
-            }
-            let host = comps
+        let into = hosts(&comps, |b, hull| {
+            pts[b]
                 .iter()
-                .enumerate()
-                .filter(|(b, cb)| {
-                    *b != a
-                        && cb
-                            .as_ref()
-                            .is_some_and(|cb| cb.area >= ARC_AREA_RATIO * ca.area)
-                })
-                .filter(|(b, _)| {
-                    pts[*b]
-                        .iter()
-                        .any(|p| inside(&ca.hull, [p.x as f64, p.y as f64]))
-                })
-                .max_by_key(|(_, cb)| cb.as_ref().map_or(0, |c| c.area))
-                .map(|(b, _)| b as u32);
-            if let Some(h) = host {
-                into[a] = h;
-            }
-        }
-        let mut new_id = vec![0u32; n as usize + 1];
-        let mut starts = vec![[0, 0]];
-        for l in 1..=n as usize {
-            if into[l] == l as u32 && comps[l].is_some() {
-                new_id[l] = starts.len() as u32;
-                starts.push(comps[l].as_ref().map_or([0, 0], |c| c.first));
-            }
-        }
-        for l in 1..=n as usize {
-            if into[l] != l as u32 {
-                new_id[l] = new_id[into[l] as usize];
-            }
-        }
-        for v in labels.data.iter_mut() {
-            *v = new_id[*v as usize];
-        }
-        (starts.len() as u32 - 1, starts)
+                .any(|p| inside(hull, [p.x as f64, p.y as f64]))
+        });
+        renumber(labels, &comps, &into)
     }
 
     #[test]
