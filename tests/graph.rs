@@ -263,6 +263,41 @@ fn graph_of_processes_equals_the_in_process_pipeline_bit_for_bit() {
 }
 
 #[test]
+fn a_source_with_frames_in_flight_lets_in_only_what_the_graph_has_finished() {
+    // The small graph with its source paced far beyond what the graph takes (200 frames/s)
+    // and one frame in flight at a time: the frames it cannot let in are dropped at the
+    // source, and every frame it lets in is finished (none waits in a queue).
+    let text = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/graph/small.toml"),
+    )
+    .unwrap();
+    let capture = "params = { width = 320, height = 240, cells = 3, seed = 5, drift = 2.0 }";
+    assert!(text.contains(capture), "the small graph's capture changed");
+    let text = text.replace(
+        capture,
+        "params = { width = 320, height = 240, cells = 3, seed = 5, drift = 2.0, fps = 200 }\nin_flight = { after = \"manipulator-bridge/state\", frames = 1 }",
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("in-flight.toml");
+    std::fs::write(&file, text).unwrap();
+    let frames = 60;
+    let out = finish(
+        start_run(&file, frames, &format!("inflight{}", std::process::id())),
+        Duration::from_secs(120),
+    );
+    let summary = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{summary}");
+    let (sent, _) = node_frames_in(&summary, "capture");
+    let (bridged, _) = node_frames_in(&summary, "manipulator-bridge");
+    assert!(
+        sent >= 2 && sent < frames,
+        "{sent} frames let in: {summary}"
+    );
+    assert_eq!(bridged, sent, "{summary}");
+    assert_eq!(frames_done(&summary, frames), sent, "{summary}");
+}
+
+#[test]
 fn bad_launch_files_are_refused_with_file_and_line() {
     let dir = tempfile::tempdir().unwrap();
     let f = dir.path().join("bad.toml");

@@ -6,6 +6,7 @@
 //! kind = "capture"                       # a built-in kind, or exec = "path/to/binary"
 //! params = { source = "synthetic", width = 1280, height = 1024 }
 //! restart = { policy = "on-failure", max = 3, backoff_ms = 500, heartbeat_ms = 5000 }
+//! in_flight = { after = "manipulator-bridge/state", frames = 2 }  # a source's frames in flight
 //!
 //! [[node]]
 //! id = "segment"
@@ -157,7 +158,25 @@ struct NodeDecl {
     restart: Option<Spanned<Restart>>,
     #[serde(default)]
     ports: Option<Spanned<PortsDecl>>,
+    #[serde(default)]
+    in_flight: Option<Spanned<InFlight>>,
 }
+
+/// A source's limit on the frames in flight: it lets a frame in only while fewer than
+/// `frames` of those it sent have yet to come out of `after` (usually the graph's last
+/// output). Frames then wait in no queue: a paced source drops the frames it cannot let in,
+/// as a camera's frames are dropped at the entrance; an unpaced one waits.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct InFlight {
+    /// The output whose frames count as done, `NODE/OUTPUT`.
+    pub after: String,
+    /// Most frames sent and not yet done.
+    pub frames: u64,
+}
+
+/// The most frames a source may keep in flight.
+const MAX_IN_FLIGHT: u64 = 64;
 
 #[derive(Clone, Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -273,6 +292,9 @@ pub struct NodeSpec {
     /// Takes every other node's log lines on its stdin (`NODE<TAB>LEVEL<TAB>LINE`).
     #[serde(default)]
     pub logs: bool,
+    /// A source's limit on its frames in flight.
+    #[serde(default)]
+    pub in_flight: Option<InFlight>,
 }
 
 impl NodeSpec {
@@ -320,7 +342,29 @@ impl Graph {
                 }
             }
         }
+        // A source counting this output's frames as done reads only the newest: it never
+        // holds the writer back.
+        if self.in_flight_readers(id, port).next().is_some() {
+            cfg.get_or_insert(EdgeConfig {
+                depth: 1,
+                overflow: Overflow::DropOldest,
+            });
+        }
         cfg.unwrap_or_else(|| self.writer_config(id))
+    }
+
+    /// The sources that count output `port` of node `id` as where their frames are done.
+    pub fn in_flight_readers<'a>(
+        &'a self,
+        id: &'a str,
+        port: &'a str,
+    ) -> impl Iterator<Item = &'a NodeSpec> + 'a {
+        self.nodes.iter().filter(move |n| {
+            n.in_flight
+                .as_ref()
+                .and_then(|f| f.after.split_once('/'))
+                .is_some_and(|(a, b)| a == id && b == port)
+        })
     }
 
     /// Queue settings for an unread output of node `id`: blocking with its inputs' deepest
@@ -464,6 +508,7 @@ impl Graph {
             restart: Restart::default(),
             tap: true,
             logs: false,
+            in_flight: None,
         });
         Ok(())
     }
@@ -830,6 +875,41 @@ impl LaunchFile {
                     ),
                 );
             }
+            if let Some(f) = &n.in_flight {
+                let (at, f) = (f.span().start, f.get_ref());
+                if inputs.iter().any(|i| !i.feedback) {
+                    err(
+                        &mut errs,
+                        at,
+                        format!(
+                            "node '{id}': in_flight is for sources (nodes that read no frames); give it to the node whose frames enter the graph"
+                        ),
+                    );
+                }
+                if !(1..=MAX_IN_FLIGHT).contains(&f.frames) {
+                    err(
+                        &mut errs,
+                        at,
+                        format!(
+                            "node '{id}': in_flight.frames = {} is out of range; give 1 to {MAX_IN_FLIGHT}",
+                            f.frames
+                        ),
+                    );
+                }
+                if f.after
+                    .split_once('/')
+                    .is_none_or(|(a, b)| a.is_empty() || b.is_empty())
+                {
+                    err(
+                        &mut errs,
+                        at,
+                        format!(
+                            "node '{id}': in_flight.after = \"{}\" is not NODE/OUTPUT; name the output whose frames count as done",
+                            f.after
+                        ),
+                    );
+                }
+            }
             nodes.push((
                 NodeSpec {
                     id,
@@ -844,9 +924,32 @@ impl LaunchFile {
                     restart: n.restart.as_ref().map(|r| *r.get_ref()).unwrap_or_default(),
                     tap: false,
                     logs: false,
+                    in_flight: n.in_flight.as_ref().map(|f| f.get_ref().clone()),
                 },
                 wanted,
             ));
+        }
+        // A source's in_flight names an existing output.
+        for n in &self.decl.node {
+            let Some(f) = &n.get_ref().in_flight else {
+                continue;
+            };
+            let Some((src, out)) = f.get_ref().after.split_once('/') else {
+                continue;
+            };
+            let exists = nodes
+                .iter()
+                .any(|(p, _)| p.id == src && p.outputs.iter().any(|(o, _)| o == out));
+            if !src.is_empty() && !out.is_empty() && !exists {
+                err(
+                    &mut errs,
+                    f.span().start,
+                    format!(
+                        "node '{}': in_flight.after = \"{src}/{out}\" is no node's output; name the output whose frames count as done",
+                        n.get_ref().id.get_ref()
+                    ),
+                );
+            }
         }
         // Every input names an existing output of the right message type.
         for (node, wanted) in &nodes {
@@ -1248,6 +1351,68 @@ inputs = { frame = "b/frame" }
             .replace_with_sources(&["zz".into()], "replay", &params)
             .unwrap_err();
         assert!(e.contains("no node 'zz'") && e.contains("a, b, c"), "{e}");
+    }
+
+    #[test]
+    fn a_sources_frames_in_flight_are_read_and_checked() {
+        let text = |f: &str| {
+            format!(
+                "[[node]]\nid = \"a\"\nkind = \"source\"\n{f}\n\n[[node]]\nid = \"b\"\nkind = \"filter\"\ninputs = {{ frame = \"a/frame\" }}\n"
+            )
+        };
+        let g = check(&text("in_flight = { after = \"b/frame\", frames = 2 }")).unwrap();
+        let want = InFlight {
+            after: "b/frame".into(),
+            frames: 2,
+        };
+        assert_eq!(g.node("a").unwrap().in_flight, Some(want));
+        // The source reads the output it waits on as newest-only: the writer never waits
+        // for it.
+        assert_eq!(
+            g.edge_config("b", "frame"),
+            EdgeConfig {
+                depth: 1,
+                overflow: Overflow::DropOldest
+            }
+        );
+        assert_eq!(g.in_flight_readers("b", "frame").count(), 1);
+        assert_eq!(check(&text("")).unwrap().node("a").unwrap().in_flight, None);
+        for (bad, says) in [
+            (
+                "in_flight = { after = \"b/frame\", frames = 0 }",
+                "frames = 0 is out of range",
+            ),
+            (
+                "in_flight = { after = \"b/frame\", frames = 65 }",
+                "frames = 65 is out of range",
+            ),
+            (
+                "in_flight = { after = \"b\", frames = 1 }",
+                "is not NODE/OUTPUT",
+            ),
+            (
+                "in_flight = { after = \"c/frame\", frames = 1 }",
+                "is no node's output",
+            ),
+            (
+                "in_flight = { after = \"b/cloud\", frames = 1 }",
+                "is no node's output",
+            ),
+            (
+                "in_flight = { after = \"b/frame\", frames = 1, wait = 3 }",
+                "unknown field",
+            ),
+        ] {
+            let e = check(&text(bad)).unwrap_err().to_string();
+            assert!(e.contains(says) && e.contains("g.toml:4"), "{bad}: {e}");
+        }
+        // Only a source lets frames in.
+        let e = check(
+            "[[node]]\nid = \"a\"\nkind = \"source\"\n\n[[node]]\nid = \"b\"\nkind = \"filter\"\ninputs = { frame = \"a/frame\" }\nin_flight = { after = \"b/frame\", frames = 1 }\n",
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("in_flight is for sources"), "{e}");
     }
 
     #[test]

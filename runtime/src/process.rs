@@ -51,6 +51,89 @@ impl Outputs for ShmOutputs<'_> {
     }
 }
 
+/// The reader name of a source's in-flight count ([`crate::launch::InFlight`]).
+const IN_FLIGHT_PORT: &str = "in-flight";
+
+/// Without a frame coming out for this long, the frames a source counts as in flight are
+/// taken as lost (a node restarted, say) and let go, so that the source cannot stall.
+const IN_FLIGHT_PATIENCE: Duration = Duration::from_secs(2);
+
+/// A source's count of its frames in flight: those it sent that have not come out of the
+/// output its `in_flight` names.
+struct InFlightGate {
+    done: EdgeSubscriber,
+    limit: u64,
+    /// Frames sent and not seen done, oldest first.
+    out: std::collections::VecDeque<u64>,
+    /// When a frame last came out (or the count began).
+    progress: Instant,
+}
+
+impl InFlightGate {
+    fn new(
+        transport: &Transport,
+        graph: &Graph,
+        instance: &str,
+        id: &str,
+        f: &crate::launch::InFlight,
+    ) -> Result<Self, String> {
+        let (node, output) = f
+            .after
+            .split_once('/')
+            .ok_or_else(|| format!("in_flight.after = \"{}\" is not NODE/OUTPUT", f.after))?;
+        let done = transport
+            .reader(
+                &Graph::edge_name(instance, node, output),
+                &graph.edge_config(node, output),
+                Some(&reader_name(id, IN_FLIGHT_PORT)),
+            )
+            .map_err(|e| e.to_string())?;
+        Ok(Self {
+            done,
+            limit: f.frames,
+            out: std::collections::VecDeque::new(),
+            progress: Instant::now(),
+        })
+    }
+
+    /// Whether there is room for one more frame now (`None`: the node was asked to stop).
+    fn open(&mut self) -> Result<Option<bool>, String> {
+        while let Some(m) = self.done.receive().map_err(|e| e.to_string())? {
+            // A frame done carries every older one still counted: those were lost.
+            let seq = m.user_header().sequence;
+            while self.out.front().is_some_and(|&s| s <= seq) {
+                self.out.pop_front();
+            }
+            self.progress = Instant::now();
+        }
+        if self.progress.elapsed() > IN_FLIGHT_PATIENCE {
+            self.out.clear();
+            self.progress = Instant::now();
+        }
+        Ok(Some((self.out.len() as u64) < self.limit))
+    }
+
+    /// Waits until there is room for one more frame (`None`: the node was asked to stop).
+    fn wait(&mut self, transport: &Transport) -> Result<Option<bool>, String> {
+        loop {
+            if self.open()? == Some(true) {
+                return Ok(Some(true));
+            }
+            if !transport.sleep(Duration::from_millis(1)) {
+                return Ok(None);
+            }
+        }
+    }
+
+    /// Frame `seq` was sent.
+    fn sent(&mut self, seq: u64) {
+        if self.out.is_empty() {
+            self.progress = Instant::now();
+        }
+        self.out.push_back(seq);
+    }
+}
+
 /// The name under which node `id` reads its input `port`.
 fn reader_name(id: &str, port: &str) -> String {
     format!("{id}.{port}")
@@ -255,6 +338,11 @@ pub fn run_node(
                 .flat_map(|n| n.inputs.iter().map(move |i| (n, i)))
                 .filter(|(_, i)| i.node == id && i.output == *port)
                 .map(|(n, i)| reader_name(&n.id, &i.port))
+                .chain(
+                    graph
+                        .in_flight_readers(id, port)
+                        .map(|n| reader_name(&n.id, IN_FLIGHT_PORT)),
+                )
                 .collect()
         })
         .collect();
@@ -290,6 +378,10 @@ pub fn run_node(
         let first = first_frame_from_env()?;
         let mut seq = first;
         let mut stopped = false;
+        let mut in_flight = match &spec.in_flight {
+            Some(f) => Some(InFlightGate::new(&transport, graph, instance, id, f)?),
+            None => None,
+        };
         while frames.is_none_or(|n| seq < n) {
             // Also the place where a stop request is noticed between frames.
             let wait = period.map_or(Duration::ZERO, |p| {
@@ -300,6 +392,26 @@ pub fn run_node(
             }) {
                 stopped = true;
                 break;
+            }
+            // Too many frames in flight: a paced source lets this one go (a camera's frame
+            // is dropped at the entrance), an unpaced one waits for room.
+            if let Some(gate) = &mut in_flight {
+                let open = if period.is_some() {
+                    gate.open()?
+                } else {
+                    gate.wait(&transport)?
+                };
+                match open {
+                    Some(true) => {}
+                    Some(false) => {
+                        seq += 1;
+                        continue;
+                    }
+                    None => {
+                        stopped = true;
+                        break;
+                    }
+                }
             }
             feed(node)?;
             tally.claim(seq, id, spec, out.sent, feedback.iter().map(|(_, s)| s));
@@ -321,6 +433,9 @@ pub fn run_node(
                 seq,
             );
             tally.report(id, spec, out.sent, feedback.iter().map(|(_, s)| s));
+            if let Some(gate) = &mut in_flight {
+                gate.sent(seq);
+            }
             seq += 1;
         }
         if !stopped {

@@ -157,6 +157,7 @@ mod tests {
             restart: Default::default(),
             tap: false,
             logs: false,
+            in_flight: None,
         }
     }
 
