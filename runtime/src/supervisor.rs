@@ -641,6 +641,19 @@ pub fn print_summary(
     for (edge, lost) in &rows {
         crate::outln!("{:<width$} {:>8} {:>14}", edge, lost.dropped, lost.missing);
     }
+    // Frames a source did not let in, its frames in flight being at their limit: they count
+    // as never arrived on the edges above, but no edge lost them.
+    for n in &graph.nodes {
+        if let (Some(f), Some(s), Some(total)) = (&n.in_flight, stats.get(&n.id), frames) {
+            crate::outln!(
+                "{} let {} of {total} frames in ({} at most in flight, until out of {})",
+                n.id,
+                s.frames_in,
+                f.frames,
+                f.after
+            );
+        }
+    }
     // The graph's own ends: nodes no other node reads, taps (recorder, viewer) and
     // feedback inputs aside.
     let tap = |id: &str| graph.node(id).is_some_and(|n| n.tap);
