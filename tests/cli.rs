@@ -1215,7 +1215,7 @@ fn a_closed_stdout_ends_a_command_without_a_panic() {
     }
 }
 
-/// `run --compare` runs the graph in one process, then as processes, and says what share
+/// `run --compare` runs the graph as processes, then in one process, and says what share
 /// of the in-process rate the processes reach, from the two summaries' own rates.
 #[test]
 fn run_compare_gives_the_processes_rate_as_a_share_of_the_in_process_one() {

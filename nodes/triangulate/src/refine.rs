@@ -302,8 +302,9 @@ pub(crate) fn weighted_plane(points: impl Iterator<Item = ([f64; 3], f64)>) -> O
 /// images hold too little texture there to fix the plane to `max_std` px.
 ///
 /// A `prior` (the last frame's plane, in a live graph) replaces the search where this
-/// frame's best whole disparity agrees with it to a pixel: the plane then takes two or three
-/// biweight steps instead of the tiled search and eight steps.
+/// frame's best whole disparity agrees with it to a pixel: the plane then takes only the
+/// biweight's steps (five on the default graph) instead of the tiled search, four Huber
+/// steps and the biweight's.
 ///
 /// Every iteration samples the right image at whole pixels only (the plane rounded per
 /// pixel) and linearises the rest with the mean gradient of both views: interpolating noisy
@@ -377,8 +378,8 @@ pub fn fit_disparity_plane(
     // than Gauss–Newton's reach from one integer: start from the plane through the integer
     // starts of a 3×3 grid of tiles when they fix one.
     // The previous frame's plane, where this frame's integer start agrees with it, starts
-    // at the minimum's doorstep: the biweight's steps alone finish it (the frame's own
-    // search would end within the steps' tolerance, 1e-4 px, of the same plane).
+    // at the minimum's doorstep: the biweight's steps alone finish it (both ways stop once
+    // a step is below 1e-4 px, near the same plane).
     let tracked = prior.filter(|q| (q.at(centre[0], centre[1]) - d_start as f64).abs() <= 1.0);
     let mut p = match tracked {
         Some(q) => [q.at(centre[0], centre[1]), q.dx * s, q.dy * s],
