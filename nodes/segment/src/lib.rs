@@ -23,7 +23,7 @@ mod rings;
 mod trace;
 mod variance;
 
-pub use boxsum::{BoxSums, WrappingBoxSums};
+pub use boxsum::{BoxSums, Summable};
 pub use label::{Components, Connectivity, NEIGHBOURS, components_where, label, label_where};
 pub use morph::{close, dilate, fill_broken_outlines, fill_holes, open, remove_small};
 pub use otsu::{histogram, otsu_threshold};

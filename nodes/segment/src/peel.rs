@@ -4,7 +4,7 @@
 //! [`peel_edges`] takes back that skirt: mask pixels on the outside of the mask that look
 //! like the smooth background around them are removed, layer by layer.
 
-use crate::{BoxSums, WrappingBoxSums};
+use crate::BoxSums;
 use schemas::{Mask, Plane};
 
 /// Whether a boundary pixel `(x, y)` goes to the background.
@@ -79,13 +79,12 @@ fn peel_with(
         return out;
     }
     let is_bg = |x: usize, y: usize| *mask.get(x, y) == 0;
-    // The background's count and grey-level sum in every window: one table holding both
-    // (count in the high 32 bits, sum in the low: exact while the whole frame's sum of
-    // grey levels fits 32 bits, and a window's sums are differences of the table's, each
-    // field non-negative), half the memory and one pass; two tables for larger frames.
+    // The background's count and grey-level sum in every window ([`Table`]): both in one
+    // table where their fields fit (count in the high bits, sum in the low; a window's sums
+    // are differences of the table's, each field non-negative), two tables otherwise.
     let sums = match table {
         Table::Wrapped(bits) => Sums::Wrapped(
-            WrappingBoxSums::from_rows(w, h, |y, row| {
+            BoxSums::<u32>::from_rows(w, h, |y, row| {
                 for ((v, &m), &g) in row.iter_mut().zip(mask.row(y)).zip(img.row(y)) {
                     *v = if m == 0 { 1 << bits | g as u32 } else { 0 };
                 }
@@ -111,7 +110,7 @@ fn peel_with(
     let background = |x: usize, y: usize, r: usize| -> (u64, u64) {
         match &sums {
             Sums::Wrapped(t, bits) => {
-                let v = t.around(x, y, r);
+                let v = t.around(x, y, r).0;
                 ((v >> bits) as u64, (v & ((1 << bits) - 1)) as u64)
             }
             Sums::Packed(t) => {
@@ -240,7 +239,7 @@ fn peel_with(
 
 /// The background's window sums: both in one table, or apart.
 enum Sums {
-    Wrapped(WrappingBoxSums, u32),
+    Wrapped(BoxSums<u32>, u32),
     Packed(BoxSums),
     Apart(BoxSums, BoxSums),
 }
