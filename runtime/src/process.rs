@@ -96,8 +96,8 @@ impl InFlightGate {
         })
     }
 
-    /// Whether there is room for one more frame now (`None`: the node was asked to stop).
-    fn open(&mut self) -> Result<Option<bool>, String> {
+    /// Whether there is room for one more frame now.
+    fn open(&mut self) -> Result<bool, String> {
         while let Some(m) = self.done.receive().map_err(|e| e.to_string())? {
             // A frame done carries every older one still counted: those were lost.
             let seq = m.user_header().sequence;
@@ -110,19 +110,18 @@ impl InFlightGate {
             self.out.clear();
             self.progress = Instant::now();
         }
-        Ok(Some((self.out.len() as u64) < self.limit))
+        Ok((self.out.len() as u64) < self.limit)
     }
 
-    /// Waits until there is room for one more frame (`None`: the node was asked to stop).
-    fn wait(&mut self, transport: &Transport) -> Result<Option<bool>, String> {
-        loop {
-            if self.open()? == Some(true) {
-                return Ok(Some(true));
-            }
+    /// Waits until there is room for one more frame; false when the node was asked to stop
+    /// first.
+    fn wait(&mut self, transport: &Transport) -> Result<bool, String> {
+        while !self.open()? {
             if !transport.sleep(Duration::from_millis(1)) {
-                return Ok(None);
+                return Ok(false);
             }
         }
+        Ok(true)
     }
 
     /// Frame `seq` was sent.
@@ -396,21 +395,13 @@ pub fn run_node(
             // Too many frames in flight: a paced source lets this one go (a camera's frame
             // is dropped at the entrance), an unpaced one waits for room.
             if let Some(gate) = &mut in_flight {
-                let open = if period.is_some() {
-                    gate.open()?
-                } else {
-                    gate.wait(&transport)?
-                };
-                match open {
-                    Some(true) => {}
-                    Some(false) => {
-                        seq += 1;
-                        continue;
-                    }
-                    None => {
-                        stopped = true;
-                        break;
-                    }
+                if period.is_none() && !gate.wait(&transport)? {
+                    stopped = true;
+                    break;
+                }
+                if !gate.open()? {
+                    seq += 1;
+                    continue;
                 }
             }
             feed(node)?;
