@@ -207,25 +207,27 @@ impl Task for Triangulate {
             }
             _ => (i.disparity.paste(), Vec::new(), None),
         };
-        // Colours only for the points sent: grey from the left view without a colour
-        // image.
-        let colour: Box<dyn Fn(usize, usize) -> [u8; 3]> = match &i.colour {
-            Some(c) if c.size() == (w, h) => {
-                let rgb = c.to_rgb();
-                Box::new(move |x, y| *rgb.get(x, y))
-            }
-            Some(c) => {
-                return Err(NodeError::Failed(format!(
-                    "the colour image is {}×{} but the frames are {w}×{h}",
-                    c.size().0,
-                    c.size().1
-                )));
-            }
-            None => Box::new(|x, y| [*left.get(x, y); 3]),
-        };
+        if let Some(c) = &i.colour
+            && c.size() != (w, h)
+        {
+            return Err(NodeError::Failed(format!(
+                "the colour image is {}×{} but the frames are {w}×{h}",
+                c.size().0,
+                c.size().1
+            )));
+        }
+        // The colour image in RGB only when a cloud is sent; without one, the left view's
+        // grey.
         let cloud = match self.params.cloud_step {
             0 => Cloud::default(),
-            step => Cloud::from_points(&crate::triangulate_every(&map, &calib, &colour, step)),
+            step => {
+                let rgb = i.colour.as_ref().map(Image::to_rgb);
+                let colour = |x: usize, y: usize| match &rgb {
+                    Some(p) => *p.get(x, y),
+                    None => [*left.get(x, y); 3],
+                };
+                Cloud::from_points(&crate::triangulate_every(&map, &calib, &colour, step))
+            }
         };
         Ok(TriangulateOut {
             cloud,
