@@ -7,6 +7,7 @@
 
 use crate::refine::{
     DisparityPlane, Ground, Parallax, PeakFit, TopModel, fit_disparity_plane, refine_top,
+    slide_rows,
 };
 use crate::substrate::{self, Base, RimFit};
 use rayon::prelude::*;
@@ -322,15 +323,10 @@ fn clear_background(left: &Mask, right: &Mask, range: DisparityRange, margin: us
             for (i, out) in chunk.chunks_mut(w).enumerate() {
                 let y = band * BAND_ROWS + i;
                 let (y0, y1) = (y.saturating_sub(margin), (y + margin + 1).min(h));
-                let (p0, p1) = window.unwrap_or((y0, y0));
-                for yy in p1.max(y0)..y1 {
-                    add(&mut cl, left, yy, true);
-                    add(&mut cr, right, yy, true);
-                }
-                for yy in p0..y0.min(p1) {
-                    add(&mut cl, left, yy, false);
-                    add(&mut cr, right, yy, false);
-                }
+                slide_rows(window, (y0, y1), |yy, enters| {
+                    add(&mut cl, left, yy, enters);
+                    add(&mut cr, right, yy, enters);
+                });
                 window = Some((y0, y1));
                 for (p, c) in [(&mut pl, &cl), (&mut pr, &cr)] {
                     // A running sum in a register (read back from the table, each add

@@ -86,13 +86,7 @@ fn band_pass(img: &Plane<u8>, r: usize) -> Plane<f32> {
             for (i, orow) in chunk.chunks_mut(w).enumerate() {
                 let y = band * BAND_ROWS + i;
                 let (y0, y1) = (y.saturating_sub(r), (y + r + 1).min(h));
-                match window {
-                    None => (y0..y1).for_each(|yy| add(&mut cols, yy, true)),
-                    Some((p0, p1)) => {
-                        (p1..y1).for_each(|yy| add(&mut cols, yy, true));
-                        (p0..y0).for_each(|yy| add(&mut cols, yy, false));
-                    }
-                }
+                slide_rows(window, (y0, y1), |yy, enters| add(&mut cols, yy, enters));
                 window = Some((y0, y1));
                 // A running sum in a register: read back from the table, each add waited
                 // on the store before it.
@@ -134,6 +128,23 @@ fn band_pass(img: &Plane<u8>, r: usize) -> Plane<f32> {
             }
         });
     Plane::from_vec(w, h, out).expect("size")
+}
+
+/// Moves a window of rows from `[p0, p1)` (`None`: no rows yet) to `[y0, y1)`, both edges
+/// moving down: `step(row, true)` for each row that enters, `step(row, false)` for each
+/// that leaves.
+pub(crate) fn slide_rows(
+    from: Option<(usize, usize)>,
+    (y0, y1): (usize, usize),
+    mut step: impl FnMut(usize, bool),
+) {
+    let (p0, p1) = from.unwrap_or((y0, y0));
+    for y in p1.max(y0)..y1 {
+        step(y, true);
+    }
+    for y in p0..y0.min(p1) {
+        step(y, false);
+    }
 }
 
 /// Huber weight of a residual for scale `k`.
