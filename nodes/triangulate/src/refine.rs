@@ -399,12 +399,13 @@ pub fn fit_disparity_plane(
             .unwrap_or([d_start as f64, 0.0, 0.0]),
     };
     // Each pixel's place in the plane's coordinates, worked out once for every iteration.
-    let uv = |ps: &[[usize; 2]]| -> Vec<[f64; 2]> {
-        ps.par_iter()
-            .map(|&[x, y]| [(x as f64 - centre[0]) / s, (y as f64 - centre[1]) / s])
-            .collect()
-    };
-    let pixels: Vec<([usize; 2], [f64; 2])> = pixels.iter().copied().zip(uv(&pixels)).collect();
+    let pixels: Vec<([usize; 2], [f64; 2])> = pixels
+        .par_iter()
+        .map(|&[x, y]| {
+            let uv = [(x as f64 - centre[0]) / s, (y as f64 - centre[1]) / s];
+            ([x, y], uv)
+        })
+        .collect();
     let term = |p: &[f64; 3], &([x, y], [u, v]): &([usize; 2], [f64; 2])| {
         plane_term(&hl, &hr, p, x, y, u, v)
     };
