@@ -264,9 +264,11 @@ fn graph_of_processes_equals_the_in_process_pipeline_bit_for_bit() {
 
 #[test]
 fn a_source_with_frames_in_flight_lets_in_only_what_the_graph_has_finished() {
-    // The small graph with its source paced far beyond what the graph takes (200 frames/s)
-    // and one frame in flight at a time: the frames it cannot let in are dropped at the
-    // source, and every frame it lets in is finished (none waits in a queue).
+    // The small graph with its source paced far beyond what the graph takes (100 frames/s
+    // for 3 s: long enough for several frames even on a loaded machine, where the first
+    // takes a second) and one frame in flight at a time: the frames it cannot let in are
+    // dropped at the source, and every frame it lets in is finished (none waits in a
+    // queue).
     let text = std::fs::read_to_string(
         Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/graph/small.toml"),
     )
@@ -275,12 +277,12 @@ fn a_source_with_frames_in_flight_lets_in_only_what_the_graph_has_finished() {
     assert!(text.contains(capture), "the small graph's capture changed");
     let text = text.replace(
         capture,
-        "params = { width = 320, height = 240, cells = 3, seed = 5, drift = 2.0, fps = 200 }\nin_flight = { after = \"manipulator-bridge/state\", frames = 1 }",
+        "params = { width = 320, height = 240, cells = 3, seed = 5, drift = 2.0, fps = 100 }\nin_flight = { after = \"manipulator-bridge/state\", frames = 1 }",
     );
     let dir = tempfile::tempdir().unwrap();
     let file = dir.path().join("in-flight.toml");
     std::fs::write(&file, text).unwrap();
-    let frames = 60;
+    let frames = 300;
     let out = finish(
         start_run(&file, frames, &format!("inflight{}", std::process::id())),
         Duration::from_secs(120),
