@@ -103,6 +103,11 @@ pub struct OutputOpts {
     /// characters, e.g. 'rectify/*' '*/disparity').
     #[arg(long, num_args = 1.., requires = "record")]
     pub edges: Vec<String>,
+    /// Record the edges that match PATTERN at a reduced rate, the first frame at or after
+    /// every Nth frame number (repeatable; e.g. 'rectify/frame=10' keeps the images of
+    /// about one frame in ten while the cells and targets keep every frame).
+    #[arg(long, value_name = "PATTERN=N", value_parser = parse_every, requires = "record")]
+    pub every: Vec<(String, u64)>,
     /// Replace the file given to --record or to --viewer save if it exists.
     #[arg(long)]
     pub overwrite: bool,
@@ -133,7 +138,27 @@ impl OutputOpts {
                     toml::Value::try_from(c).map_err(|e| e.to_string())?,
                 );
             }
+            let every: std::collections::BTreeMap<String, u64> =
+                self.every.iter().cloned().collect();
+            if every.len() != self.every.len() {
+                return Err("--every gives one pattern twice: give each pattern once".into());
+            }
+            params.insert(
+                "every".into(),
+                toml::Value::Table(
+                    every
+                        .iter()
+                        .map(|(k, &n)| (k.clone(), toml::Value::Integer(n as i64)))
+                        .collect(),
+                ),
+            );
             graph.add_tap(RECORDER_ID, RECORDER_KIND, &self.edges, params)?;
+            let recorded: Vec<String> = graph
+                .input_edges(RECORDER_ID)
+                .into_iter()
+                .map(|(e, _)| e)
+                .collect();
+            recorder::node::edge_rates(&every, &recorded).map_err(|e| format!("--every: {e}"))?;
         }
         if !self.viewer.is_empty() {
             check_viewer_words(&self.viewer)?;
@@ -152,6 +177,29 @@ impl OutputOpts {
         }
         Ok(())
     }
+}
+
+/// Most frames `--every` may skip between two recorded ones.
+const EVERY_MAX: u64 = 1_000_000;
+
+/// Parses `--every PATTERN=N`.
+fn parse_every(s: &str) -> Result<(String, u64), String> {
+    let (pattern, n) = s
+        .rsplit_once('=')
+        .ok_or_else(|| format!("'{s}' is not PATTERN=N (e.g. 'rectify/frame=10')"))?;
+    if pattern.is_empty() || !pattern.contains('/') {
+        return Err(format!(
+            "'{pattern}' is not an edge pattern NODE/OUTPUT (e.g. 'rectify/frame=10')"
+        ));
+    }
+    let n: u64 = n
+        .trim()
+        .parse()
+        .map_err(|_| format!("'{n}' is not a whole number of frames (1 to {EVERY_MAX})"))?;
+    if !(1..=EVERY_MAX).contains(&n) {
+        return Err(format!("every {n} frames: give 1 to {EVERY_MAX}"));
+    }
+    Ok((pattern.to_string(), n))
 }
 
 /// Turns nodes `replace` of `graph` into sources that send their outputs recorded in

@@ -944,6 +944,61 @@ fn recorded(
         .collect()
 }
 
+/// `--every`: images and labels recorded for one frame in three, the same frames on both
+/// edges and the same bytes as a full recording of the same run would hold; the cells of
+/// every frame.
+#[test]
+fn edges_recorded_every_third_frame_keep_the_same_frames_and_the_rest_keep_all() {
+    let file = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/graph/small.toml");
+    let dir = tempfile::tempdir().unwrap();
+    let (thin, full) = (dir.path().join("thin.mcap"), dir.path().join("full.mcap"));
+    let id = std::process::id();
+    for (path, every) in [(&thin, true), (&full, false)] {
+        let mut args = vec![
+            "run".to_string(),
+            file.to_str().unwrap().into(),
+            "--frames".into(),
+            "10".into(),
+            "--record".into(),
+            path.to_str().unwrap().into(),
+            "--edges".into(),
+            "capture/frame".into(),
+            "segment/*".into(),
+            "--instance".into(),
+            format!("every{id}{every}"),
+        ];
+        if every {
+            args.extend(
+                ["--every", "capture/frame=3", "--every", "segment/labels=3"].map(String::from),
+            );
+        }
+        let args: Vec<&str> = args.iter().map(|a| a.as_str()).collect();
+        let out = run(&args);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    let (thin, full) = (recorded(&thin), recorded(&full));
+    let frames = |m: &std::collections::BTreeMap<(String, u64), _>, edge: &str| -> Vec<u64> {
+        m.keys()
+            .filter(|(e, _)| e == edge)
+            .map(|(_, s)| *s)
+            .collect()
+    };
+    // The small graph loses no frame: every third frame number from the first.
+    assert_eq!(frames(&thin, "capture/frame"), [0, 3, 6, 9]);
+    assert_eq!(frames(&thin, "segment/labels"), [0, 3, 6, 9]);
+    assert_eq!(frames(&thin, "segment/cells"), (0..10).collect::<Vec<_>>());
+    assert_eq!(frames(&full, "capture/frame"), (0..10).collect::<Vec<_>>());
+    for (key, (h, p)) in &thin {
+        let (h2, p2) = &full[key];
+        assert_eq!(h.sequence, h2.sequence, "{key:?}");
+        assert!(p == p2, "{key:?}: payloads differ");
+    }
+}
+
 #[test]
 fn a_replayed_recording_reproduces_every_downstream_edge_bit_for_bit() {
     let file = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/graph/small.toml");

@@ -33,6 +33,97 @@ pub struct RecorderParams {
     /// The rectified cameras' geometry and image size, recorded as their CameraInfo.
     #[serde(default)]
     pub cameras: Option<Cameras>,
+    /// Edges recorded at a reduced rate: `NODE/OUTPUT` pattern (`*` for any characters) →
+    /// N, keeping about one frame in N ([`Thinning`]); the other edges keep every frame.
+    #[serde(default)]
+    pub every: std::collections::BTreeMap<String, u64>,
+}
+
+/// The frames kept by the edges recorded at one reduced rate: the first frame at or after
+/// every Nth frame number. Every edge of the rate keeps the same frames (a frame's first
+/// message to arrive decides for all), so a kept frame has its images and maps together,
+/// and frames the graph never let in shift the choice instead of leaving a gap.
+#[derive(Debug)]
+pub struct Thinning {
+    n: u64,
+    due: Option<u64>,
+    kept: std::collections::VecDeque<u64>,
+}
+
+/// How many recent kept frame numbers a [`Thinning`] remembers: a frame's messages reach
+/// the recorder within a few frames of each other.
+const THINNING_MEMORY: usize = 64;
+
+impl Thinning {
+    /// Keeps about one frame in `n` (`n` ≥ 1).
+    pub fn new(n: u64) -> Self {
+        Self {
+            n: n.max(1),
+            due: None,
+            kept: Default::default(),
+        }
+    }
+
+    /// Whether the message of frame `sequence` is recorded.
+    pub fn keep(&mut self, sequence: u64) -> bool {
+        if self.kept.contains(&sequence) {
+            return true;
+        }
+        if self.due.is_some_and(|d| sequence < d) {
+            return false;
+        }
+        self.due = Some(sequence.saturating_add(self.n));
+        if self.kept.len() == THINNING_MEMORY {
+            self.kept.pop_front();
+        }
+        self.kept.push_back(sequence);
+        true
+    }
+}
+
+/// Per recorded edge, the index of its rate in `rates` (`None`: every frame), from the
+/// `every` patterns; an error names a pattern that matches no recorded edge or an edge two
+/// patterns give different rates.
+pub fn edge_rates(
+    every: &std::collections::BTreeMap<String, u64>,
+    edges: &[String],
+) -> Result<(Vec<Option<usize>>, Vec<u64>), String> {
+    let mut rates: Vec<u64> = Vec::new();
+    let mut of_edge = vec![None; edges.len()];
+    for (pattern, &n) in every {
+        if n == 0 {
+            return Err(format!(
+                "recording '{pattern}' every 0 frames: give N of 1 or more"
+            ));
+        }
+        let mut matched = false;
+        for (k, e) in edges.iter().enumerate() {
+            if !runtime::launch::glob_match(pattern, e) {
+                continue;
+            }
+            matched = true;
+            let slot = rates.iter().position(|&r| r == n).unwrap_or_else(|| {
+                rates.push(n);
+                rates.len() - 1
+            });
+            match of_edge[k] {
+                Some(old) if rates[old] != n => {
+                    return Err(format!(
+                        "edge '{e}' is recorded every {} and every {n} frames by two patterns: give it one rate",
+                        rates[old]
+                    ));
+                }
+                _ => of_edge[k] = Some(slot),
+            }
+        }
+        if !matched {
+            return Err(format!(
+                "'{pattern}' (recorded every {n} frames) matches no recorded edge; the recorded edges: {}",
+                edges.join(", ")
+            ));
+        }
+    }
+    Ok((of_edge, rates))
 }
 
 /// What the recorder writes as the cameras' CameraInfo.
@@ -72,6 +163,9 @@ pub fn run_recorder(
         .ok_or_else(|| format!("no node '{id}' in {}", graph.file.display()))?;
     let p: RecorderParams = runtime::registry::from_table(&spec.params)?;
     let edges = graph.input_edges(id);
+    let names: Vec<String> = edges.iter().map(|(e, _)| e.clone()).collect();
+    let (rate_of, rates) = edge_rates(&p.every, &names)?;
+    let mut thinning: Vec<Thinning> = rates.iter().map(|&n| Thinning::new(n)).collect();
     let mut writer = RecordingWriter::create(&p.path, p.overwrite).map_err(|e| e.to_string())?;
     if !graph.text.is_empty() {
         writer
@@ -102,6 +196,11 @@ pub fn run_recorder(
     });
     let tapped =
         runtime::process::run_tap(graph, instance, id, frames, |input, header, payload| {
+            if let Some(r) = rate_of[input]
+                && !thinning[r].keep(header.sequence)
+            {
+                return Ok(());
+            }
             let t = Taken {
                 input,
                 header: *header,
@@ -322,4 +421,61 @@ pub fn check_channels(
             have.join(", ")
         }
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn thinning_keeps_the_first_frame_at_or_after_every_nth() {
+        let mut t = Thinning::new(3);
+        let kept: Vec<u64> = (0..10).filter(|&s| t.keep(s)).collect();
+        assert_eq!(kept, [0, 3, 6, 9]);
+        // Frames the graph never let in shift the choice instead of leaving a gap.
+        let mut t = Thinning::new(3);
+        let kept: Vec<u64> = [1, 2, 5, 7, 8, 11, 12]
+            .into_iter()
+            .filter(|&s| t.keep(s))
+            .collect();
+        assert_eq!(kept, [1, 5, 8, 11]);
+        // Every edge of the rate follows the first message of a frame to arrive.
+        let mut t = Thinning::new(3);
+        assert!(t.keep(4));
+        assert!(!t.keep(5));
+        assert!(t.keep(4), "a second edge's message of a kept frame");
+        assert!(t.keep(7));
+        assert!(!t.keep(6), "a late message of a frame not kept");
+        let mut t = Thinning::new(1);
+        assert!((0..5).all(|s| t.keep(s)));
+    }
+
+    #[test]
+    fn edge_rates_match_patterns_and_refuse_conflicts_and_misses() {
+        let edges: Vec<String> = ["rectify/frame", "segment/labels", "segment/cells"]
+            .map(String::from)
+            .into();
+        let every = |pairs: &[(&str, u64)]| -> std::collections::BTreeMap<String, u64> {
+            pairs.iter().map(|(p, n)| (p.to_string(), *n)).collect()
+        };
+        let (of, rates) =
+            edge_rates(&every(&[("rectify/*", 10), ("*/labels", 10)]), &edges).unwrap();
+        assert_eq!(of, [Some(0), Some(0), None]);
+        assert_eq!(rates, [10]);
+        let (of, rates) = edge_rates(
+            &every(&[("rectify/frame", 10), ("segment/labels", 5)]),
+            &edges,
+        )
+        .unwrap();
+        assert_eq!(
+            of.iter().map(|o| o.map(|k| rates[k])).collect::<Vec<_>>(),
+            [Some(10), Some(5), None]
+        );
+        let e = edge_rates(&every(&[("segment/*", 10), ("*/cells", 5)]), &edges).unwrap_err();
+        assert!(e.contains("segment/cells") && e.contains("one rate"), "{e}");
+        let e = edge_rates(&every(&[("match/*", 2)]), &edges).unwrap_err();
+        assert!(e.contains("matches no recorded edge"), "{e}");
+        let e = edge_rates(&every(&[("segment/cells", 0)]), &edges).unwrap_err();
+        assert!(e.contains("every 0"), "{e}");
+    }
 }
