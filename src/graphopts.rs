@@ -104,8 +104,9 @@ pub struct OutputOpts {
     #[arg(long, num_args = 1.., requires = "record")]
     pub edges: Vec<String>,
     /// Record the edges that match PATTERN at a reduced rate, the first frame at or after
-    /// every Nth frame number (repeatable; e.g. 'rectify/frame=10' keeps the images of
-    /// about one frame in ten while the cells and targets keep every frame).
+    /// every Nth frame number, which counts the camera's frames (repeatable; e.g.
+    /// 'rectify/frame=10' keeps the images of one camera frame in ten while the cells and
+    /// targets keep every frame).
     #[arg(long, value_name = "PATTERN=N", value_parser = parse_every, requires = "record")]
     pub every: Vec<(String, u64)>,
     /// Replace the file given to --record or to --viewer save if it exists.
