@@ -318,7 +318,15 @@ impl EdgePublisher {
             edge_sequence: self.sent.get(),
             ..header
         };
-        let mut sample = sample.write_from_fn(|_| 0u8);
+        // SAFETY: the payload is bytes in iceoryx2's shared-memory segment, a mapping of a
+        // file whose every byte has a value (zero when the kernel made the page, else what
+        // an earlier sample wrote), and a u8 has no invalid values; so no uninitialised
+        // byte can be read. Every message encoder writes the whole payload before it is
+        // sent (schemas' round-trip test writes each message over loans of 0x00, 0xA5 and
+        // 0xFF and compares), so a reader of messages sees no stale byte either (the hop
+        // benchmark's writer touches a byte a page: its reader reads nothing else).
+        // Clearing the loan first cost 1.4 % of the default graph's CPU.
+        let mut sample = unsafe { sample.assume_init() };
         fill(sample.payload_mut());
         if stamp {
             sample.user_header_mut().capture_ns = crate::edge::now_ns();

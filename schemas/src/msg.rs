@@ -783,6 +783,13 @@ mod tests {
         assert_eq!(MessageKind::from_u32(e.header.kind), Some(M::KIND));
         let bytes = e.to_vec();
         assert_eq!(bytes.len(), e.len);
+        // The transport hands the encoder a loan it has not cleared: every byte must be
+        // written, whatever the loan held before.
+        for old in [0x00u8, 0xA5, 0xFF] {
+            let mut loan = vec![old; e.len];
+            e.write(&mut loan);
+            assert_eq!(loan, bytes, "bytes left unwritten over {old:#x}");
+        }
         let back = M::decode(&e.header, &bytes).unwrap();
         assert_eq!(&back, m);
     }
