@@ -433,6 +433,7 @@ pub fn fit_disparity_plane(
     } else {
         pixels.clone()
     };
+    let (mut last_step, mut extrapolated) = (None::<[f64; 3]>, false);
     for it in 1..=80 {
         let (jtj, jte, used) = ordered_sum(
             if redescend { &pixels } else { &coarse },
@@ -474,16 +475,36 @@ pub fn fit_disparity_plane(
         for i in 0..3 {
             p[i] += step[i];
         }
+        let done = step.amax() < 1e-4;
+        // The steps shrink geometrically (each about a sixth of the last: the Jacobian is
+        // linearised at whole-pixel shifts), so the second step of a phase tells where
+        // they lead: adding the rest of the series there saves two of its five passes.
+        let step = [step[0], step[1], step[2]];
+        if let Some(last) = last_step.take()
+            && !done
+        {
+            let ratio = dot3(&step, &last) / dot3(&last, &last);
+            if (0.0..AITKEN_MAX_RATIO).contains(&ratio) {
+                for i in 0..3 {
+                    p[i] += step[i] * ratio / (1.0 - ratio);
+                }
+                extrapolated = true;
+            }
+        } else if !extrapolated {
+            last_step = Some(step);
+        }
         if p[0] < range.min as f64 - 2.0 || p[0] > range.max as f64 + 2.0 {
             return None;
         }
-        let done = step.amax() < 1e-4;
         if it % 10 == 0 || done {
             k_huber = 1.5 * scale_at(&p);
         }
         solved = Some((jtj, k_huber / 1.5));
         if done && redescend {
             break;
+        }
+        if done && !redescend {
+            (last_step, extrapolated) = (None, false);
         }
         redescend |= done;
     }
@@ -501,6 +522,14 @@ pub fn fit_disparity_plane(
         std,
         pixels: pixels.len() as u64,
     })
+}
+
+/// Largest ratio of two successive plane steps that [`fit_disparity_plane`] extrapolates
+/// (a series that shrinks slower is left to run).
+const AITKEN_MAX_RATIO: f64 = 0.5;
+
+fn dot3(a: &[f64; 3], b: &[f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
 /// One background pixel's residual under plane `p` (`d = p₀ + p₁·u + p₂·v` at the pixel's
