@@ -828,6 +828,15 @@ const LM_MIN_GAIN: f64 = 1e-4;
 /// the heights matrix kept its figures (95.0 % within 5 %).
 const LM_MIN_DROP: f64 = 1e-5;
 
+/// Steps a top fit that has already moved tries at one point before it stops (each try a
+/// pass over its pixels, with ten times the last one's damping). Near their minimum most
+/// fits' steps are rejected over and over (the model's gradient is not the view's exact
+/// slope): two tries instead of eight took the top fits of the default graph's frame from
+/// 378 to 265 passes (the example's CPU 8.15–8.19 → 7.51–7.83 s for 80 node steps); the
+/// heights matrix kept its figures (95.0 % within 5 %, two more cells flagged, none
+/// unflagged).
+const LM_TRIES_ONCE_MOVED: usize = 2;
+
 /// Smallest height (px) a pixel's ray may meet a dome at: outside its foot `Q` is negative.
 const DOME_FLOOR: f64 = 1e-3;
 
@@ -1028,6 +1037,7 @@ fn fit_top<const N: usize>(
             / t.len().max(1) as f64
     };
     let mut lambda = 1e-3;
+    let mut moved = false;
     let mut terms = terms_at(&p);
     let mut scale = 0.0;
     let mut done = false;
@@ -1040,7 +1050,7 @@ fn fit_top<const N: usize>(
         let c_now = cost(&terms, h);
         let (jtj, jte) = normal_equations(&terms, h);
         let mut accepted = false;
-        for _ in 0..8 {
+        for tries in 0..8 {
             let mut damped = jtj.clone();
             for i in 0..N {
                 damped[(i, i)] *= 1.0 + lambda;
@@ -1077,6 +1087,10 @@ fn fit_top<const N: usize>(
                 lambda = (lambda * 0.3).max(1e-7);
                 accepted = true;
                 done = small;
+                moved = true;
+                break;
+            }
+            if moved && tries + 1 >= LM_TRIES_ONCE_MOVED {
                 break;
             }
             lambda *= 10.0;
