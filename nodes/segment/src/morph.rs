@@ -99,103 +99,138 @@ pub fn fill_broken_outlines(mask: &Mask, radius: u8) -> Mask {
 /// its border. A square bridges a gap between the ends of an arc as wide as itself, where a
 /// disc's rounded edge leaves the gap's outer corners open.
 ///
-/// Separable running counts: the dilation over the image grown by `radius` on every side
-/// (outside it the mask is background), then the erosion of that, back on the image; the
-/// same pixels as imageproc's distance-transform closing of a padded copy (the test below),
-/// in a fifth of the time on a mostly empty 1280×1024 frame.
+/// Separable passes over rows of bits (64 pixels a word), each window an OR or AND of
+/// doubling shifts: the dilation over the image grown by `radius` on every side (outside it
+/// the mask is background), then the erosion of that, back on the image; the same pixels as
+/// imageproc's distance-transform closing of a padded copy (the test below). On a
+/// 1280×1024 view, 1.7–1.9 ms with running counts of bytes before.
 fn close_square(mask: &Mask, radius: u8) -> Mask {
     let r = radius as usize;
     let (w, h) = (mask.width, mask.height);
-    let (pw, ph) = (w + 2 * r, h + 2 * r);
     let span = 2 * r + 1;
-    // Along rows: padded column i (x = i − r) is set where the mask has a pixel in x ± r,
-    // that is in [i − 2r, i]: a difference of the row's prefix counts (kept in a register
-    // as they are made; the differences then run as vector loops).
-    let mut across = vec![0u8; h * pw];
-    let mut prefix = vec![0u32; pw + 1];
-    for (row, out) in mask
-        .data
-        .chunks_exact(w.max(1))
-        .zip(across.chunks_exact_mut(pw))
-    {
-        running_counts(row, &mut prefix);
-        let head = (span - 1).min(pw);
-        for (o, &p) in out[..head].iter_mut().zip(&prefix[1..]) {
-            *o = u8::from(p > 0);
-        }
-        for ((o, &p), &q) in out[head..]
-            .iter_mut()
-            .zip(&prefix[head + 1..])
-            .zip(&prefix[head + 1 - span.min(head + 1)..])
-        {
-            *o = u8::from(p > q);
+    // Rows of bits, 64 pixels a word. Bit k of a row stands for x = k − o, o a whole number
+    // of words of at least 3r, so that every window read below lies inside the row and
+    // the image packs word by word; rows t stand for y = t − 2r likewise.
+    let o = (3 * r).next_multiple_of(64);
+    let bits = o + w + 3 * r;
+    let nw = bits.div_ceil(64);
+    let rows = h + 4 * r;
+    let mut grid = vec![0u64; rows * nw];
+    for (y, row) in mask.data.chunks_exact(w.max(1)).enumerate().take(h) {
+        let out = &mut grid[(y + 2 * r) * nw + o / 64..][..w.div_ceil(64)];
+        for (word, chunk) in out.iter_mut().zip(row.chunks(64)) {
+            *word = chunk
+                .iter()
+                .enumerate()
+                .fold(0, |acc, (i, &v)| acc | (u64::from(v != 0) << i));
         }
     }
-    // Down columns: padded row j (y = j − r) is set where a row within y ± r is.
-    let mut dilated = vec![0u8; ph * pw];
-    let mut counts = vec![0u32; pw];
-    for j in 0..ph {
-        if j < h {
-            for (c, &a) in counts.iter_mut().zip(&across[j * pw..(j + 1) * pw]) {
-                *c += u32::from(a);
-            }
-        }
-        if j >= span && j - span < h {
-            let k = j - span;
-            for (c, &a) in counts.iter_mut().zip(&across[k * pw..(k + 1) * pw]) {
-                *c -= u32::from(a);
-            }
-        }
-        for (d, &c) in dilated[j * pw..(j + 1) * pw].iter_mut().zip(&counts) {
-            *d = u8::from(c > 0);
-        }
+    let mut tmp = vec![0u64; nw];
+    // Along rows: bit k becomes the OR of bits [k, k + 2r], the dilation of x = k − 2r.
+    for row in grid.chunks_exact_mut(nw) {
+        forward_bits(row, span, false, &mut tmp);
     }
-    // The erosion: image pixel (x, y) stays where all of padded [x, x + 2r] × [y, y + 2r]
-    // is set. Along rows first (a difference of prefix counts again), then down columns.
-    let mut full = vec![0u8; ph * w];
-    for (row, out) in dilated
-        .chunks_exact(pw)
-        .zip(full.chunks_exact_mut(w.max(1)))
-    {
-        running_counts(row, &mut prefix);
-        for ((o, &p), &q) in out.iter_mut().zip(&prefix[span..]).zip(&prefix[..w]) {
-            *o = u8::from(p - q == span as u32);
-        }
-    }
+    // Down columns: row t becomes the OR of rows [t, t + 2r]; then, for the erosion, the
+    // AND of rows [t, t + 2r] of that (row y of the result is image row y).
+    forward_rows(&mut grid, nw, rows, span, false);
+    forward_rows(&mut grid, nw, rows, span, true);
+    // Along rows again, the erosion: bit k the AND of bits [k, k + 2r]; image pixel x is
+    // bit x + o − 2r (the two windows of 2r + 1 centred on x, each shifted by r), moved to
+    // bit x to be unpacked a byte of bits at a time.
     let mut data = vec![0u8; w * h];
-    let mut counts = vec![0usize; w];
-    for j in 0..span - 1 {
-        for (c, &f) in counts.iter_mut().zip(&full[j * w..(j + 1) * w]) {
-            *c += f as usize;
-        }
-    }
-    for y in 0..h {
-        let add = y + span - 1;
-        for (c, &f) in counts.iter_mut().zip(&full[add * w..(add + 1) * w]) {
-            *c += f as usize;
-        }
-        for (d, &c) in data[y * w..(y + 1) * w].iter_mut().zip(&counts) {
-            *d = if c == span { 255 } else { 0 };
-        }
-        for (c, &f) in counts.iter_mut().zip(&full[y * w..(y + 1) * w]) {
-            *c -= f as usize;
+    let mut at_x = vec![0u64; nw];
+    for (y, out) in data.chunks_exact_mut(w.max(1)).enumerate().take(h) {
+        let row = &mut grid[y * nw..][..nw];
+        forward_bits(row, span, true, &mut tmp);
+        shift_down(row, o - 2 * r, &mut at_x);
+        for (bytes, b) in out
+            .chunks_mut(8)
+            .zip(at_x.iter().flat_map(|w| w.to_le_bytes()))
+        {
+            bytes.copy_from_slice(&SPREAD[b as usize].to_le_bytes()[..bytes.len()]);
         }
     }
     Plane::from_vec(w, h, data).expect("size")
 }
 
-/// `prefix[k]` = the number of non-zero values among `row[..k]`, for every `k` up to
-/// `prefix.len() − 1` (past the row's end the count stays).
-fn running_counts(row: &[u8], prefix: &mut [u32]) {
-    let mut acc = 0u32;
-    prefix[0] = 0;
-    let n = row.len().min(prefix.len() - 1);
-    let (inside, past) = prefix[1..].split_at_mut(n);
-    for (p, &v) in inside.iter_mut().zip(row) {
-        acc += u32::from(v != 0);
-        *p = acc;
+/// Each byte of bits spread to eight bytes of 0 or 255 (the lowest bit first).
+const SPREAD: [u64; 256] = {
+    let mut t = [0u64; 256];
+    let mut b = 0;
+    while b < 256 {
+        let mut i = 0;
+        while i < 8 {
+            if b >> i & 1 == 1 {
+                t[b] |= 0xFF << (8 * i);
+            }
+            i += 1;
+        }
+        b += 1;
     }
-    past.fill(acc);
+    t
+};
+
+/// `out` bit `b` = `row` bit `b + s` (bits past the row's end count as 0).
+fn shift_down(row: &[u64], s: usize, out: &mut [u64]) {
+    let (q, m) = (s / 64, s % 64);
+    for (j, o) in out.iter_mut().enumerate() {
+        let a = row.get(j + q).copied().unwrap_or(0);
+        let b = row.get(j + q + 1).copied().unwrap_or(0);
+        *o = if m == 0 {
+            a
+        } else {
+            (a >> m) | (b << (64 - m))
+        };
+    }
+}
+
+/// Bit `b` of `row` (64 to a word, the lowest first) becomes the OR (`and`: the AND) of
+/// bits `[b, b + len)`, bits past the row's end counting as 0: by doubling windows.
+fn forward_bits(row: &mut [u64], len: usize, and: bool, tmp: &mut [u64]) {
+    let mut step = |row: &mut [u64], s: usize| {
+        shift_down(row, s, tmp);
+        for (v, &t) in row.iter_mut().zip(tmp.iter()) {
+            *v = if and { *v & t } else { *v | t };
+        }
+    };
+    let mut k = 1;
+    while 2 * k <= len {
+        step(row, k);
+        k *= 2;
+    }
+    if len > k {
+        step(row, len - k);
+    }
+}
+
+/// Row `t` of `grid` (`rows` rows of `nw` words) becomes the OR (`and`: the AND) of rows
+/// `[t, t + len)`, rows past the last counting as 0: by doubling windows, in place (a row
+/// reads only rows below it, not yet changed in that pass).
+fn forward_rows(grid: &mut [u64], nw: usize, rows: usize, len: usize, and: bool) {
+    let mut pass = |k: usize| {
+        for t in 0..rows {
+            let (head, tail) = grid.split_at_mut((t + 1) * nw);
+            let row = &mut head[t * nw..];
+            match (t + k < rows, and) {
+                (true, _) => {
+                    let below = &tail[(k - 1) * nw..][..nw];
+                    for (v, &b) in row.iter_mut().zip(below) {
+                        *v = if and { *v & b } else { *v | b };
+                    }
+                }
+                (false, true) => row.fill(0),
+                (false, false) => {}
+            }
+        }
+    };
+    let mut k = 1;
+    while 2 * k <= len {
+        pass(k);
+        k *= 2;
+    }
+    if len > k {
+        pass(len - k);
+    }
 }
 
 /// Drops 8-connected blobs of fewer than `min_area` pixels.
@@ -471,18 +506,26 @@ mod tests {
     use crate::testutil::mask;
 
     #[test]
-    fn the_running_count_closing_matches_imageproc() {
+    fn the_bitwise_closing_matches_imageproc() {
         use rand::{Rng, SeedableRng};
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
         let mut changed = 0;
         for case in 0..300 {
-            let (w, h) = (rng.random_range(1..60), rng.random_range(1..60));
+            // Rows of one to several words, windows shifted by whole words too.
+            let (w, h) = match case % 3 {
+                0 => (rng.random_range(1..60), rng.random_range(1..60)),
+                1 => (rng.random_range(60..200), rng.random_range(1..40)),
+                _ => (rng.random_range(1..140), rng.random_range(1..30)),
+            };
             let density = [0.02, 0.1, 0.3, 0.6, 0.95][case % 5];
             let data = (0..w * h)
                 .map(|_| if rng.random_bool(density) { 255 } else { 0 })
                 .collect();
             let m = Plane::from_vec(w, h, data).unwrap();
-            let radius = rng.random_range(0..7u8);
+            let radius = match case % 3 {
+                2 => rng.random_range(7..80u8),
+                _ => rng.random_range(0..7u8),
+            };
             let fast = close_square(&m, radius);
             assert_eq!(
                 fast,
