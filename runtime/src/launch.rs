@@ -175,6 +175,15 @@ pub struct InFlight {
     pub frames: u64,
 }
 
+impl InFlight {
+    /// `after` as its node and output; `None` unless it is `NODE/OUTPUT` with both named.
+    pub fn output(&self) -> Option<(&str, &str)> {
+        self.after
+            .split_once('/')
+            .filter(|(node, output)| !node.is_empty() && !output.is_empty())
+    }
+}
+
 /// The most frames a source may keep in flight.
 const MAX_IN_FLIGHT: u64 = 64;
 
@@ -362,7 +371,7 @@ impl Graph {
         self.nodes.iter().filter(move |n| {
             n.in_flight
                 .as_ref()
-                .and_then(|f| f.after.split_once('/'))
+                .and_then(InFlight::output)
                 .is_some_and(|(a, b)| a == id && b == port)
         })
     }
@@ -896,10 +905,7 @@ impl LaunchFile {
                         ),
                     );
                 }
-                if f.after
-                    .split_once('/')
-                    .is_none_or(|(a, b)| a.is_empty() || b.is_empty())
-                {
+                if f.output().is_none() {
                     err(
                         &mut errs,
                         at,
@@ -934,13 +940,13 @@ impl LaunchFile {
             let Some(f) = &n.get_ref().in_flight else {
                 continue;
             };
-            let Some((src, out)) = f.get_ref().after.split_once('/') else {
+            let Some((src, out)) = f.get_ref().output() else {
                 continue;
             };
             let exists = nodes
                 .iter()
                 .any(|(p, _)| p.id == src && p.outputs.iter().any(|(o, _)| o == out));
-            if !src.is_empty() && !out.is_empty() && !exists {
+            if !exists {
                 err(
                     &mut errs,
                     f.span().start,

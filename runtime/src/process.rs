@@ -78,8 +78,7 @@ impl InFlightGate {
         f: &crate::launch::InFlight,
     ) -> Result<Self, String> {
         let (node, output) = f
-            .after
-            .split_once('/')
+            .output()
             .ok_or_else(|| format!("in_flight.after = \"{}\" is not NODE/OUTPUT", f.after))?;
         let done = transport
             .reader(
@@ -395,13 +394,14 @@ pub fn run_node(
             // Too many frames in flight: a paced source lets this one go (a camera's frame
             // is dropped at the entrance), an unpaced one waits for room.
             if let Some(gate) = &mut in_flight {
-                if period.is_none() && !gate.wait(&transport)? {
+                if period.is_some() {
+                    if !gate.open()? {
+                        seq += 1;
+                        continue;
+                    }
+                } else if !gate.wait(&transport)? {
                     stopped = true;
                     break;
-                }
-                if !gate.open()? {
-                    seq += 1;
-                    continue;
                 }
             }
             feed(node)?;

@@ -126,7 +126,7 @@ fn close_square(mask: &Mask, radius: u8) -> Mask {
         }
     }
     let mut tmp = vec![0u64; nw];
-    // Along rows: bit k becomes the OR of bits [k, k + 2r], the dilation of x = k − 2r.
+    // Along rows: bit k becomes the OR of bits [k, k + 2r], the dilation of x = k + r − o.
     for row in grid.chunks_exact_mut(nw) {
         forward_bits(row, span, false, &mut tmp);
     }

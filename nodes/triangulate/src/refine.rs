@@ -324,7 +324,7 @@ pub(crate) fn weighted_plane(points: impl Iterator<Item = ([f64; 3], f64)>) -> O
 ///
 /// A `prior` (the last frame's plane, in a live graph) replaces the search where this
 /// frame's best whole disparity agrees with it to a pixel: the plane then takes only the
-/// biweight's steps (five on the default graph) instead of the tiled search, four Huber
+/// biweight's steps (three on the default graph) instead of the tiled search, the Huber
 /// steps and the biweight's.
 ///
 /// Every iteration samples the right image at whole pixels only (the plane rounded per
