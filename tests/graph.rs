@@ -1486,11 +1486,17 @@ fn the_default_graph_measures_the_cells_of_reconstruct_cells_bit_for_bit() {
             assert_eq!(got.as_array().unwrap(), want, "frame {frame}");
             assert_eq!(plane, report["substrate_plane"]);
         } else {
-            // The graph tracks the substrate: the second frame's plane starts from the
-            // first's and ends within the steps' tolerance of the frame's own search.
-            assert!(t.substrate.is_some());
-            assert_close(&got, &report["cells"], 1e-4, &format!("frame {frame}"));
-            assert_close(&plane, &report["substrate_plane"], 1e-4, "plane");
+            // The graph tracks the substrate: the second frame's plane is fitted on every
+            // second row from the first's and combined with it, so it ends within its
+            // formal error of the frame's own whole fit, and the cells move by as little.
+            let tracked = t.substrate.expect("a tracked plane");
+            let own: schemas::DisparityPlane =
+                serde_json::from_value(report["substrate_plane"].clone()).unwrap();
+            for [x, y] in [[0.0, 0.0], [639.0, 0.0], [0.0, 479.0], [639.0, 479.0]] {
+                let off = (tracked.at(x, y) - own.at(x, y)).abs();
+                assert!(off <= 2.0 * own.std, "plane at ({x}, {y}): {off} px off");
+            }
+            assert_close(&got, &report["cells"], 1e-3, &format!("frame {frame}"));
         }
         // The final map is valid only on the cells and their 8 px rings: nowhere farther
         // than 8 px (and the matcher's window) from a segmented pixel.

@@ -6,8 +6,8 @@
 //! the rest ([`compose`], [`cell_heights`], [`measure`]).
 
 use crate::refine::{
-    DisparityPlane, Ground, Parallax, PeakFit, TopModel, fit_disparity_plane, refine_top,
-    slide_rows,
+    DisparityPlane, Ground, Parallax, PeakFit, PlaneTrack, TopModel, refine_top, slide_rows,
+    track_disparity_plane,
 };
 use crate::substrate::{self, Base, RimFit};
 use rayon::prelude::*;
@@ -234,8 +234,9 @@ pub fn compose(
 /// The substrate's disparity plane over the background clear of every cell (in both views'
 /// masks) when the background has the texture to fix one, and per pair the substrate under
 /// the left cell ([`substrate::bases`]: the plane or the rims, cross-checked; the ring
-/// median, doubted, without either) and its refined top. `prior`: the last frame's plane,
-/// where one is tracked ([`fit_disparity_plane`]).
+/// median, doubted, without either) and its refined top. `prior`: the plane tracked up to
+/// the last frame, where one is ([`track_disparity_plane`]); the plane comes back as the
+/// track to pass with the next frame.
 #[allow(clippy::too_many_arguments)]
 pub fn cell_heights(
     (left, right): (&Plane<u8>, &Plane<u8>),
@@ -246,14 +247,11 @@ pub fn cell_heights(
     range: DisparityRange,
     margin: u8,
     calib: &Calibration,
-    prior: Option<&DisparityPlane>,
-) -> (
-    Option<DisparityPlane>,
-    Vec<Option<Base>>,
-    Vec<Option<PeakFit>>,
-) {
+    prior: Option<&PlaneTrack>,
+) -> (Option<PlaneTrack>, Vec<Option<Base>>, Vec<Option<PeakFit>>) {
     let usable = clear_background(left_mask, right_mask, range, margin as usize);
-    let plane = fit_disparity_plane(left, right, &usable, range, SUBSTRATE_MAX_STD, prior);
+    let track = track_disparity_plane(left, right, &usable, range, SUBSTRATE_MAX_STD, prior);
+    let plane = track.as_ref().map(|t| t.plane);
     let paired: Vec<&Cell> = pairs.iter().map(|&(i, _)| &cells[i]).collect();
     let rims: Vec<Option<RimFit>> = paired
         .iter()
@@ -288,7 +286,7 @@ pub fn cell_heights(
             })
         })
         .collect();
-    (plane, bases, tops)
+    (track, bases, tops)
 }
 
 /// 255 at the left pixels whose `margin` square is clear of the left cells and whose every

@@ -339,11 +339,34 @@ pub fn fit_disparity_plane(
     max_std: f64,
     prior: Option<&DisparityPlane>,
 ) -> Option<DisparityPlane> {
+    fit_plane(left, right, usable, range, max_std, prior, 1).map(|f| f.plane)
+}
+
+/// A plane fitted by [`fit_plane`], with what its pixels say about it.
+struct FittedPlane {
+    plane: DisparityPlane,
+    /// The information matrix (inverse covariance) of `(a, b, c)` in `d = a + b·x + c·y`.
+    info: nalgebra::Matrix3<f64>,
+    /// Whether the fit started from its prior.
+    tracked: bool,
+}
+
+/// [`fit_disparity_plane`] on the usable pixels of every `row_step`-th row only. With
+/// `row_step > 1` it is a tracking step: `None` unless the prior holds this frame.
+fn fit_plane(
+    left: &Plane<u8>,
+    right: &Plane<u8>,
+    usable: &Mask,
+    range: DisparityRange,
+    max_std: f64,
+    prior: Option<&DisparityPlane>,
+    row_step: usize,
+) -> Option<FittedPlane> {
     let (w, h) = (left.width, left.height);
     let (hl, hr) = rayon::join(|| band_pass(left, 4), || band_pass(right, 4));
     // The usable pixels off the frame's first and last column, row by row.
     let inner = |y: usize| match usable.row(y) {
-        r if w >= 3 => &r[1..w - 1],
+        r if w >= 3 && y.is_multiple_of(row_step) => &r[1..w - 1],
         r => &r[..0],
     };
     let counts: Vec<usize> = (0..h)
@@ -357,7 +380,7 @@ pub fn fit_disparity_plane(
     // A few hundred thousand pixels fix a plane to a few thousandths of a pixel; more only
     // cost time: every `every`-th usable pixel in row order (by rows in parallel, each row
     // starting from the count of usable pixels above it).
-    let every = count.div_ceil(PLANE_MAX_PIXELS);
+    let every = count.div_ceil(PLANE_MAX_PIXELS / row_step);
     let firsts: Vec<usize> = counts
         .iter()
         .scan(0, |above, &c| {
@@ -402,6 +425,9 @@ pub fn fit_disparity_plane(
     // at the minimum's doorstep: the biweight's steps alone finish it (both ways stop once
     // a step is below 1e-4 px, near the same plane).
     let tracked = prior.filter(|q| (q.at(centre[0], centre[1]) - d_start as f64).abs() <= 1.0);
+    if row_step > 1 && tracked.is_none() {
+        return None;
+    }
     let mut p = match tracked {
         Some(q) => [q.at(centre[0], centre[1]), q.dx * s, q.dy * s],
         None => tiled_start(&hl, &hr, &sample, range, (w, h))
@@ -444,6 +470,7 @@ pub fn fit_disparity_plane(
         pixels.clone()
     };
     let (mut last_step, mut extrapolated) = (None::<[f64; 3]>, false);
+    let mut last_raw = None::<[f64; 3]>;
     for it in 1..=80 {
         let (jtj, jte, used) = ordered_sum(
             if redescend { &pixels } else { &coarse },
@@ -485,7 +512,13 @@ pub fn fit_disparity_plane(
         for i in 0..3 {
             p[i] += step[i];
         }
-        let done = step.amax() < 1e-4;
+        // Whole-pixel sampling makes the cost piecewise: near its minimum a plane can swing
+        // between two roundings for ever, its slopes' steps a few 1e-4 each way. A step
+        // that turns back under 1e-3 px ends the phase there.
+        let step3 = [step[0], step[1], step[2]];
+        let turned = last_raw.is_some_and(|q| dot3(&step3, &q) < 0.0) && step.amax() < 1e-3;
+        last_raw = Some(step3);
+        let done = step.amax() < 1e-4 || turned;
         // The steps shrink geometrically (each about a sixth of the last: the Jacobian is
         // linearised at whole-pixel shifts), so the second step of a phase tells where
         // they lead: adding the rest of the series there saves two of its five passes.
@@ -514,23 +547,136 @@ pub fn fit_disparity_plane(
             break;
         }
         if done && !redescend {
-            (last_step, extrapolated) = (None, false);
+            (last_step, extrapolated, last_raw) = (None, false, None);
         }
         redescend |= done;
     }
     let (info, sigma) = solved?;
-    let cov = info.try_inverse()?;
+    let cov = info.clone().try_inverse()?;
     let std = sigma * cov[(0, 0)].max(0.0).sqrt();
     if std.is_nan() || std > max_std {
         return None;
     }
-    Some(DisparityPlane {
-        d0: p[0],
-        dx: p[1] / s,
-        dy: p[2] / s,
-        centre,
-        std,
-        pixels: pixels.len() as u64,
+    // (d at the centre, dx·s, dy·s) = T·(a, b, c): the information of (a, b, c) is TᵀIT.
+    let t = nalgebra::Matrix3::new(1.0, centre[0], centre[1], 0.0, s, 0.0, 0.0, 0.0, s);
+    let own = nalgebra::Matrix3::from_fn(|r, c| info[(r, c)]) / (sigma * sigma);
+    Some(FittedPlane {
+        plane: DisparityPlane {
+            d0: p[0],
+            dx: p[1] / s,
+            dy: p[2] / s,
+            centre,
+            std,
+            pixels: pixels.len() as u64,
+        },
+        info: t.transpose() * own * t,
+        tracked: tracked.is_some(),
+    })
+}
+
+/// Rows a tracking step fits on: every second (half the pixels of a whole fit).
+const TRACK_ROW_STEP: usize = 2;
+
+/// Share of its information a tracked plane keeps from one frame to the next: a steady
+/// substrate is then known as well as from one frame's every row (half the pixels, twice
+/// over), and a drifting one is followed a frame behind.
+const TRACK_KEEP: f64 = 0.5;
+
+/// Largest χ² (3 degrees of freedom) of a tracking step against the tracked plane (their
+/// formal covariances added) before the plane is fitted again from scratch. Formal errors
+/// are below the real ones (neighbouring residuals correlate), so the bound is well above
+/// χ²₃'s 99.9 % point (16.3).
+const TRACK_MAX_CHI2: f64 = 50.0;
+
+/// The background plane followed from frame to frame in a live graph: the plane and what
+/// the frames so far say about it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PlaneTrack {
+    /// The plane as of the last frame.
+    pub plane: DisparityPlane,
+    /// The information matrix of `(a, b, c)` in `d = a + b·x + c·y`.
+    info: nalgebra::Matrix3<f64>,
+}
+
+impl PlaneTrack {
+    /// `(a, b, c)` of `d = a + b·x + c·y`.
+    fn abc(&self) -> nalgebra::Vector3<f64> {
+        let p = &self.plane;
+        nalgebra::Vector3::new(p.d0 - p.dx * p.centre[0] - p.dy * p.centre[1], p.dx, p.dy)
+    }
+}
+
+/// The background plane of this frame, following `track` (the last frame's) when there is
+/// one: a fit on every fourth row, started from the tracked plane and combined with it
+/// (its information kept at [`TRACK_KEEP`] a frame). A frame where the tracked plane does
+/// not hold — its integer start a pixel off, or the step's estimate off by more than its
+/// errors allow — is fitted from scratch on every row, as is the first
+/// ([`fit_disparity_plane`]).
+pub fn track_disparity_plane(
+    left: &Plane<u8>,
+    right: &Plane<u8>,
+    usable: &Mask,
+    range: DisparityRange,
+    max_std: f64,
+    track: Option<&PlaneTrack>,
+) -> Option<PlaneTrack> {
+    let cold = || {
+        fit_plane(left, right, usable, range, max_std, None, 1).map(|f| PlaneTrack {
+            plane: f.plane,
+            info: f.info,
+        })
+    };
+    let Some(track) = track else { return cold() };
+    let Some(step) = fit_plane(
+        left,
+        right,
+        usable,
+        range,
+        max_std,
+        Some(&track.plane),
+        TRACK_ROW_STEP,
+    )
+    .filter(|f| f.tracked) else {
+        return cold();
+    };
+    let new = PlaneTrack {
+        plane: step.plane,
+        info: step.info,
+    };
+    let (p0, p1) = (track.abc(), new.abc());
+    let (Some(c0), Some(c1)) = (track.info.try_inverse(), new.info.try_inverse()) else {
+        return cold();
+    };
+    let diff = p1 - p0;
+    let chi2 = (c0 + c1)
+        .try_inverse()
+        .map(|m| diff.dot(&(m * diff)))
+        .unwrap_or(f64::INFINITY);
+    // A NaN χ² (a singular covariance) fails too.
+    if chi2.is_nan() || chi2 > TRACK_MAX_CHI2 {
+        return cold();
+    }
+    let kept = track.info * TRACK_KEEP;
+    let info = kept + new.info;
+    let cov = info.try_inverse()?;
+    let abc = cov * (kept * p0 + new.info * p1);
+    let centre = new.plane.centre;
+    // The level's error at the centre: (1, x, y)·cov·(1, x, y)ᵀ.
+    let j = nalgebra::Vector3::new(1.0, centre[0], centre[1]);
+    let std = j.dot(&(cov * j)).max(0.0).sqrt();
+    if std.is_nan() || std > max_std {
+        return cold();
+    }
+    Some(PlaneTrack {
+        plane: DisparityPlane {
+            d0: abc[0] + abc[1] * centre[0] + abc[2] * centre[1],
+            dx: abc[1],
+            dy: abc[2],
+            centre,
+            std,
+            pixels: new.plane.pixels,
+        },
+        info,
     })
 }
 
@@ -1474,6 +1620,77 @@ mod tests {
         assert_eq!(
             fit_disparity_plane(&l2, &r2, &usable, range, 0.05, Some(&off)),
             Some(own)
+        );
+    }
+
+    #[test]
+    fn a_tracked_plane_holds_a_still_substrate_follows_a_drift_and_starts_again_on_a_jump() {
+        let t = texture(3, 2.0);
+        let usable = Plane::filled(320, 240, 255u8);
+        let range = DisparityRange::new(-3, 6);
+        let truth = |d0: f64| move |x: f64, y: f64| d0 + 0.002 * (x - 160.0) - 0.0015 * (y - 120.0);
+        let corners = [(0.0, 0.0), (319.0, 0.0), (0.0, 239.0), (319.0, 239.0)];
+        let off = |p: &DisparityPlane, d0: f64| {
+            corners
+                .iter()
+                .map(|&(x, y)| (p.at(x, y) - truth(d0)(x, y)).abs())
+                .fold(0.0, f64::max)
+        };
+        let cold = |l: &Plane<u8>, r: &Plane<u8>| {
+            fit_disparity_plane(l, r, &usable, range, 0.05, None).expect("a plane")
+        };
+        // A still substrate, fresh noise every frame: the first frame is fitted whole, the
+        // rest tracked on every second row, as close to the truth as a whole fit.
+        let mut track: Option<PlaneTrack> = None;
+        let (mut tracked_off, mut own_off) = (0.0f64, 0.0f64);
+        for k in 0..12 {
+            let (l, r) = pair(320, 240, &t, &truth(1.37), 1.5, 10 + k);
+            let next = track_disparity_plane(&l, &r, &usable, range, 0.05, track.as_ref())
+                .expect("a plane");
+            let own = cold(&l, &r);
+            if k == 0 {
+                assert_eq!(next.plane, own, "the first frame is a whole fit");
+            } else {
+                assert!(next.plane.pixels < own.pixels, "frame {k} was fitted whole");
+                assert!(
+                    next.plane.std < 1.2 * own.std,
+                    "{} vs {}",
+                    next.plane.std,
+                    own.std
+                );
+                tracked_off = tracked_off.max(off(&next.plane, 1.37));
+                own_off = own_off.max(off(&own, 1.37));
+            }
+            track = Some(next);
+        }
+        // No further off than fitting every frame whole.
+        assert!(
+            tracked_off <= own_off,
+            "tracked {tracked_off} px off, whole fits {own_off}"
+        );
+        // The focus moves by half a pixel: that frame is fitted from scratch.
+        let (l, r) = pair(320, 240, &t, &truth(1.87), 1.5, 40);
+        let jumped =
+            track_disparity_plane(&l, &r, &usable, range, 0.05, track.as_ref()).expect("a plane");
+        assert_eq!(jumped.plane, cold(&l, &r));
+        // A slow drift, 0.01 px a frame, is followed about a frame behind: no further off
+        // than whole fits of the same frames by more than that frame.
+        let mut track = Some(jumped);
+        let (mut tracked_off, mut own_off) = (0.0f64, 0.0f64);
+        for k in 1..=15 {
+            let d0 = 1.87 + 0.01 * k as f64;
+            let (l, r) = pair(320, 240, &t, &truth(d0), 1.5, 40 + k);
+            let next = track_disparity_plane(&l, &r, &usable, range, 0.05, track.as_ref())
+                .expect("a plane");
+            let own = cold(&l, &r);
+            assert!(next.plane.pixels < own.pixels, "frame {k} was fitted whole");
+            tracked_off = tracked_off.max(off(&next.plane, d0));
+            own_off = own_off.max(off(&own, d0));
+            track = Some(next);
+        }
+        assert!(
+            tracked_off <= own_off + 0.01,
+            "drifting: tracked {tracked_off} px off, whole fits {own_off}"
         );
     }
 
