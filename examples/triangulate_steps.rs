@@ -50,8 +50,9 @@ fn main() {
         let stamp = msgs[0].as_ref().expect("the frame").stamp();
         (stamp, TriangulateIn::decode(&msgs).expect("the inputs"))
     };
-    let params: TriangulateParams =
-        toml::from_str("calibration = \"synthetic\"").expect("the default parameters");
+    // The default launch file's parameters: no point cloud.
+    let params: TriangulateParams = toml::from_str("calibration = \"synthetic\"\ncloud_step = 0")
+        .expect("the default parameters");
     let (mut cold, mut tracked) = (Vec::new(), Vec::new());
     for _ in 0..runs {
         let mut node = Triangulate::new(params.clone()).expect("the node");
