@@ -249,14 +249,22 @@ pub fn cell_heights(
     calib: &Calibration,
     prior: Option<&PlaneTrack>,
 ) -> (Option<PlaneTrack>, Vec<Option<Base>>, Vec<Option<PeakFit>>) {
-    let usable = clear_background(left_mask, right_mask, range, margin as usize);
-    let track = track_disparity_plane(left, right, &usable, range, SUBSTRATE_MAX_STD, prior);
-    let plane = track.as_ref().map(|t| t.plane);
     let paired: Vec<&Cell> = pairs.iter().map(|&(i, _)| &cells[i]).collect();
-    let rims: Vec<Option<RimFit>> = paired
-        .iter()
-        .map(|c| substrate::rim_disparity(left, right, labels, c, range))
-        .collect();
+    // The background plane and the cells' rims are independent: side by side (each rim
+    // its own fit, to the same values in any order).
+    let (track, rims): (_, Vec<Option<RimFit>>) = rayon::join(
+        || {
+            let usable = clear_background(left_mask, right_mask, range, margin as usize);
+            track_disparity_plane(left, right, &usable, range, SUBSTRATE_MAX_STD, prior)
+        },
+        || {
+            paired
+                .par_iter()
+                .map(|c| substrate::rim_disparity(left, right, labels, c, range))
+                .collect()
+        },
+    );
+    let plane = track.as_ref().map(|t| t.plane);
     let mut bases = substrate::bases(&paired, plane.as_ref(), &rims);
     for (base, cell) in bases.iter_mut().zip(&paired) {
         if base.is_none() {
