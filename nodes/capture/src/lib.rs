@@ -168,7 +168,10 @@ impl Source for Capture {
         let fps = p.fps();
         let device = match p {
             CaptureParams::Synthetic(s) => {
-                Device::Synthetic(Box::new(synthetic::SyntheticCapture::new(&s)))
+                let mut c = synthetic::SyntheticCapture::new(&s);
+                // Before the camera's clock starts, as a camera's start-up would.
+                c.render_loop();
+                Device::Synthetic(Box::new(c))
             }
             CaptureParams::Files(f) => Device::Files(files::FileCapture::new(f)?),
             #[cfg(feature = "v4l")]
