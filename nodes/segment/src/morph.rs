@@ -17,15 +17,20 @@ pub fn fill_holes(mask: &Mask) -> Mask {
     with_runs(mask, &bg, |l| !outside[l as usize])
 }
 
-/// `mask` at 255 wherever it is non-zero, and on every run of `parts` whose component
-/// `keep` picks.
-fn with_runs(mask: &Mask, parts: &Components, keep: impl Fn(u32) -> bool) -> Mask {
+/// `mask` at 255 wherever it is non-zero, 0 elsewhere.
+fn binary(mask: &Mask) -> Mask {
     let data = mask
         .data
         .iter()
         .map(|&m| if m != 0 { 255 } else { 0 })
         .collect();
-    let mut out = Plane::from_vec(mask.width, mask.height, data).expect("same size");
+    Plane::from_vec(mask.width, mask.height, data).expect("same size")
+}
+
+/// `mask` at 255 wherever it is non-zero, and on every run of `parts` whose component
+/// `keep` picks.
+fn with_runs(mask: &Mask, parts: &Components, keep: impl Fn(u32) -> bool) -> Mask {
+    let mut out = binary(mask);
     for &(y, x0, x1, l) in &parts.runs {
         if keep(l) {
             out.row_mut(y)[x0..x1].fill(255);
@@ -139,12 +144,7 @@ fn fill_broken_outlines_in(mask: &Mask, radius: u8, regions: &[[usize; 4]]) -> M
     if !any_added {
         return mask.clone();
     }
-    let data = mask
-        .data
-        .iter()
-        .map(|&m| if m != 0 { 255 } else { 0 })
-        .collect();
-    let mut out = Plane::from_vec(mask.width, mask.height, data).expect("same size");
+    let mut out = binary(mask);
     for (y, x0, x1) in kept {
         out.row_mut(y)[x0..x1].fill(255);
     }
@@ -506,26 +506,33 @@ mod tests {
         Plane::from_vec(w, h, data).expect("same size")
     }
 
-    #[test]
-    fn broken_outlines_region_by_region_match_the_whole_frame() {
-        let mut seed = 29u64;
-        let mut rnd = move || {
+    /// A small deterministic generator of test cases.
+    fn lcg(mut seed: u64) -> impl FnMut() -> usize {
+        move || {
             seed = seed
                 .wrapping_mul(6364136223846793005)
                 .wrapping_add(1442695040888963407);
             (seed >> 33) as usize
-        };
-        let ring = |mask: &mut Mask, cx: f64, cy: f64, r: f64, gap: f64, turn: f64| {
-            for y in 0..mask.height {
-                for x in 0..mask.width {
-                    let (dx, dy) = (x as f64 - cx, y as f64 - cy);
-                    let a = (dy.atan2(dx) - turn).rem_euclid(std::f64::consts::TAU);
-                    if (dx.hypot(dy) - r).abs() < 0.8 && a > gap {
-                        *mask.get_mut(x, y) = 255;
-                    }
+        }
+    }
+
+    /// Draws a ring of radius `r` about `(cx, cy)` into `mask`, open over the `gap` radians
+    /// from `turn`: an outline to mend.
+    fn ring(mask: &mut Mask, (cx, cy): (f64, f64), r: f64, gap: f64, turn: f64) {
+        for y in 0..mask.height {
+            for x in 0..mask.width {
+                let (dx, dy) = (x as f64 - cx, y as f64 - cy);
+                let a = (dy.atan2(dx) - turn).rem_euclid(std::f64::consts::TAU);
+                if (dx.hypot(dy) - r).abs() < 0.8 && a > gap {
+                    *mask.get_mut(x, y) = 255;
                 }
             }
-        };
+        }
+    }
+
+    #[test]
+    fn broken_outlines_region_by_region_match_the_whole_frame() {
+        let mut rnd = lcg(29);
         let mut regions_seen = 0;
         for case in 0..60 {
             let (w, h) = (120 + rnd() % 120, 90 + rnd() % 90);
@@ -535,9 +542,9 @@ mod tests {
             for _ in 0..3 + rnd() % 8 {
                 let (cx, cy) = ((rnd() % w) as f64, (rnd() % h) as f64);
                 let (r, gap) = (3.0 + (rnd() % 8) as f64, 0.3 + (rnd() % 5) as f64 * 0.2);
-                ring(&mut mask, cx, cy, r, gap, (rnd() % 628) as f64 / 100.0);
+                ring(&mut mask, (cx, cy), r, gap, (rnd() % 628) as f64 / 100.0);
                 if case % 3 == 0 {
-                    ring(&mut mask, cx, cy, r + 9.0, 0.5, 1.0);
+                    ring(&mut mask, (cx, cy), r + 9.0, 0.5, 1.0);
                 }
             }
             for _ in 0..rnd() % 12 {
@@ -570,13 +577,7 @@ mod tests {
 
     #[test]
     fn run_based_filling_and_removal_match_the_label_images() {
-        let mut seed = 11u64;
-        let mut rnd = move || {
-            seed = seed
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (seed >> 33) as usize
-        };
+        let mut rnd = lcg(11);
         let (mut filled, mut removed, mut outlined) = (0, 0, 0);
         for case in 0..200 {
             let (w, h) = match case % 2 {
@@ -603,20 +604,12 @@ mod tests {
             if case % 2 == 1 {
                 mask.data
                     .iter_mut()
-                    .for_each(|v| *v = u8::from(rnd() % 40 == 0) * 255);
+                    .for_each(|v| *v = u8::from(rnd().is_multiple_of(40)) * 255);
                 for _ in 0..2 + rnd() % 4 {
                     let (cx, cy) = ((rnd() % w) as f64, (rnd() % h) as f64);
                     let (r, gap) = (3.0 + (rnd() % 6) as f64, 0.3 + (rnd() % 5) as f64 * 0.2);
                     let turn = (rnd() % 628) as f64 / 100.0;
-                    for y in 0..h {
-                        for x in 0..w {
-                            let (dx, dy) = (x as f64 - cx, y as f64 - cy);
-                            let a = (dy.atan2(dx) - turn).rem_euclid(std::f64::consts::TAU);
-                            if (dx.hypot(dy) - r).abs() < 0.8 && a > gap {
-                                *mask.get_mut(x, y) = 255;
-                            }
-                        }
-                    }
+                    ring(&mut mask, (cx, cy), r, gap, turn);
                 }
             }
             let a = fill_holes(&mask);

@@ -607,7 +607,7 @@ impl PlaneTrack {
 }
 
 /// The background plane of this frame, following `track` (the last frame's) when there is
-/// one: a fit on every fourth row, started from the tracked plane and combined with it
+/// one: a fit on every second row, started from the tracked plane and combined with it
 /// (its information kept at [`TRACK_KEEP`] a frame). A frame where the tracked plane does
 /// not hold — its integer start a pixel off, or the step's estimate off by more than its
 /// errors allow — is fitted from scratch on every row, as is the first
