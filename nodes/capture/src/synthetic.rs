@@ -146,6 +146,10 @@ impl SyntheticCapture {
     }
 }
 
+/// The longest [`SyntheticCapture::render_loop`] renders ahead (the graph's readers wait
+/// 30 s for a writer to appear: `runtime::transport::WRITER_WAIT`).
+pub const LOOP_RENDER_BUDGET: std::time::Duration = std::time::Duration::from_secs(10);
+
 /// The pipette a manipulator state describes in a scene whose substrate lies at depth `z0`
 /// (the state's third coordinate is `−Z`, µm).
 pub fn pipette_at(m: &ManipulatorState, z0: f64) -> Pipette {
@@ -165,12 +169,18 @@ impl SyntheticCapture {
         self.manipulated = Some(pipette_at(m, self.scene.optics.working_distance()));
     }
 
-    /// Renders every frame of the loop (with `repeat`) that is not rendered yet, so that
+    /// Renders the frames of the loop (with `repeat`) that are not rendered yet, so that
     /// none is rendered while the camera runs: at 30 frames/s the loop's 30 renders at
     /// 1280×1024 (about 50 ms of a core each) otherwise took the graph's CPU during its
-    /// first seconds, and a short run let few frames in.
+    /// first seconds, and a short run let few frames in. For [`LOOP_RENDER_BUDGET`] at
+    /// most, since the graph's readers wait only so long for the camera to appear; the
+    /// rest are rendered when first asked for.
     pub fn render_loop(&mut self) {
+        let start = std::time::Instant::now();
         for k in 0..self.played.len() {
+            if start.elapsed() > LOOP_RENDER_BUDGET {
+                break;
+            }
             if self.played[k].is_none() {
                 self.played[k] = Some(self.render(k as u64));
             }

@@ -423,7 +423,7 @@ fn fit_plane(
     // starts of a 3×3 grid of tiles when they fix one.
     // The previous frame's plane, where this frame's integer start agrees with it, starts
     // at the minimum's doorstep: the biweight's steps alone finish it (both ways stop once
-    // a step is below 1e-4 px, near the same plane).
+    // a step is below 1e-4 px or turns back below 1e-3, near the same plane).
     let tracked = prior.filter(|q| (q.at(centre[0], centre[1]) - d_start as f64).abs() <= 1.0);
     if row_step > 1 && tracked.is_none() {
         return None;
@@ -513,8 +513,9 @@ fn fit_plane(
             p[i] += step[i];
         }
         // Whole-pixel sampling makes the cost piecewise: near its minimum a plane can swing
-        // between two roundings for ever, its slopes' steps a few 1e-4 each way. A step
-        // that turns back under 1e-3 px ends the phase there.
+        // between two roundings for ever, its slopes' steps a few 1e-4 each way (seen for
+        // all 80 iterations, the biweight phase never reached). A step that turns back
+        // under 1e-3 px ends the phase there.
         let step3 = [step[0], step[1], step[2]];
         let turned = last_raw.is_some_and(|q| dot3(&step3, &q) < 0.0) && step.amax() < 1e-3;
         last_raw = Some(step3);
@@ -532,6 +533,9 @@ fn fit_plane(
                     p[i] += step[i] * ratio / (1.0 - ratio);
                 }
                 extrapolated = true;
+                // The step after a jump points back by nature: not a swing between
+                // roundings.
+                last_raw = None;
             }
         } else if !extrapolated {
             last_step = Some(step);
@@ -582,11 +586,18 @@ const TRACK_ROW_STEP: usize = 2;
 /// over), and a drifting one is followed a frame behind.
 const TRACK_KEEP: f64 = 0.5;
 
-/// Largest χ² (3 degrees of freedom) of a tracking step against the tracked plane (their
-/// formal covariances added) before the plane is fitted again from scratch. Formal errors
-/// are below the real ones (neighbouring residuals correlate), so the bound is well above
-/// χ²₃'s 99.9 % point (16.3).
+/// Largest χ² (3 degrees of freedom) of a tracking step against the tracked plane (the
+/// step's formal covariance plus the track's as carried into this frame, its information
+/// at [`TRACK_KEEP`]) before the plane is fitted again from scratch. Formal errors are below
+/// the real ones (neighbouring residuals correlate), so the bound is well above χ²₃'s
+/// 99.9 % point (16.3).
 const TRACK_MAX_CHI2: f64 = 50.0;
+
+/// Tracked frames after which the plane is fitted whole from scratch again: a track only
+/// ever checks itself against steps started from it, and its formal error assumes the
+/// frames' noise independent (a still scene, or a looped one, repeats it), so once a
+/// second at 30 frames/s it starts afresh.
+const TRACK_REFIT_AFTER: u32 = 30;
 
 /// The background plane followed from frame to frame in a live graph: the plane and what
 /// the frames so far say about it.
@@ -596,6 +607,8 @@ pub struct PlaneTrack {
     pub plane: DisparityPlane,
     /// The information matrix of `(a, b, c)` in `d = a + b·x + c·y`.
     info: nalgebra::Matrix3<f64>,
+    /// Frames tracked since the last whole fit.
+    age: u32,
 }
 
 impl PlaneTrack {
@@ -611,7 +624,8 @@ impl PlaneTrack {
 /// (its information kept at [`TRACK_KEEP`] a frame). A frame where the tracked plane does
 /// not hold — its integer start a pixel off, or the step's estimate off by more than its
 /// errors allow — is fitted from scratch on every row, as is the first
-/// ([`fit_disparity_plane`]).
+/// ([`fit_disparity_plane`]) and every [`TRACK_REFIT_AFTER`]-th tracked one. The combined
+/// formal error takes the frames' noise as independent.
 pub fn track_disparity_plane(
     left: &Plane<u8>,
     right: &Plane<u8>,
@@ -624,9 +638,12 @@ pub fn track_disparity_plane(
         fit_plane(left, right, usable, range, max_std, None, 1).map(|f| PlaneTrack {
             plane: f.plane,
             info: f.info,
+            age: 0,
         })
     };
-    let Some(track) = track else { return cold() };
+    let Some(track) = track.filter(|t| t.age < TRACK_REFIT_AFTER) else {
+        return cold();
+    };
     let Some(step) = fit_plane(
         left,
         right,
@@ -642,9 +659,12 @@ pub fn track_disparity_plane(
     let new = PlaneTrack {
         plane: step.plane,
         info: step.info,
+        age: 0,
     };
     let (p0, p1) = (track.abc(), new.abc());
-    let (Some(c0), Some(c1)) = (track.info.try_inverse(), new.info.try_inverse()) else {
+    // The track as carried into this frame: its information at TRACK_KEEP.
+    let kept = track.info * TRACK_KEEP;
+    let (Some(c0), Some(c1)) = (kept.try_inverse(), new.info.try_inverse()) else {
         return cold();
     };
     let diff = p1 - p0;
@@ -656,9 +676,10 @@ pub fn track_disparity_plane(
     if chi2.is_nan() || chi2 > TRACK_MAX_CHI2 {
         return cold();
     }
-    let kept = track.info * TRACK_KEEP;
     let info = kept + new.info;
-    let cov = info.try_inverse()?;
+    let Some(cov) = info.try_inverse() else {
+        return cold();
+    };
     let abc = cov * (kept * p0 + new.info * p1);
     let centre = new.plane.centre;
     // The level's error at the centre: (1, x, y)·cov·(1, x, y)ᵀ.
@@ -677,6 +698,7 @@ pub fn track_disparity_plane(
             pixels: new.plane.pixels,
         },
         info,
+        age: track.age + 1,
     })
 }
 
@@ -1668,6 +1690,14 @@ mod tests {
             tracked_off <= own_off,
             "tracked {tracked_off} px off, whole fits {own_off}"
         );
+        // A track that has run long enough starts afresh with a whole fit.
+        let old = PlaneTrack {
+            age: TRACK_REFIT_AFTER,
+            ..track.clone().expect("a track")
+        };
+        let (l, r) = pair(320, 240, &t, &truth(1.37), 1.5, 30);
+        let refit = track_disparity_plane(&l, &r, &usable, range, 0.05, Some(&old));
+        assert_eq!(refit.map(|p| (p.plane, p.age)), Some((cold(&l, &r), 0)));
         // The focus moves by half a pixel: that frame is fitted from scratch.
         let (l, r) = pair(320, 240, &t, &truth(1.87), 1.5, 40);
         let jumped =
