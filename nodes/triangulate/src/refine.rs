@@ -347,8 +347,6 @@ struct FittedPlane {
     plane: DisparityPlane,
     /// The information matrix (inverse covariance) of `(a, b, c)` in `d = a + b·x + c·y`.
     info: nalgebra::Matrix3<f64>,
-    /// Whether the fit started from its prior.
-    tracked: bool,
 }
 
 /// [`fit_disparity_plane`] on the usable pixels of every `row_step`-th row only. With
@@ -574,7 +572,6 @@ fn fit_plane(
             pixels: pixels.len() as u64,
         },
         info: t.transpose() * own * t,
-        tracked: tracked.is_some(),
     })
 }
 
@@ -611,12 +608,9 @@ pub struct PlaneTrack {
     age: u32,
 }
 
-impl PlaneTrack {
-    /// `(a, b, c)` of `d = a + b·x + c·y`.
-    fn abc(&self) -> nalgebra::Vector3<f64> {
-        let p = &self.plane;
-        nalgebra::Vector3::new(p.d0 - p.dx * p.centre[0] - p.dy * p.centre[1], p.dx, p.dy)
-    }
+/// `(a, b, c)` of a plane written as `d = a + b·x + c·y`.
+fn abc(p: &DisparityPlane) -> nalgebra::Vector3<f64> {
+    nalgebra::Vector3::new(p.d0 - p.dx * p.centre[0] - p.dy * p.centre[1], p.dx, p.dy)
 }
 
 /// The background plane of this frame, following `track` (the last frame's) when there is
@@ -644,6 +638,7 @@ pub fn track_disparity_plane(
     let Some(track) = track.filter(|t| t.age < TRACK_REFIT_AFTER) else {
         return cold();
     };
+    // A tracking step: `None` unless the tracked plane holds this frame.
     let Some(step) = fit_plane(
         left,
         right,
@@ -652,19 +647,13 @@ pub fn track_disparity_plane(
         max_std,
         Some(&track.plane),
         TRACK_ROW_STEP,
-    )
-    .filter(|f| f.tracked) else {
+    ) else {
         return cold();
     };
-    let new = PlaneTrack {
-        plane: step.plane,
-        info: step.info,
-        age: 0,
-    };
-    let (p0, p1) = (track.abc(), new.abc());
+    let (p0, p1) = (abc(&track.plane), abc(&step.plane));
     // The track as carried into this frame: its information at TRACK_KEEP.
     let kept = track.info * TRACK_KEEP;
-    let (Some(c0), Some(c1)) = (kept.try_inverse(), new.info.try_inverse()) else {
+    let (Some(c0), Some(c1)) = (kept.try_inverse(), step.info.try_inverse()) else {
         return cold();
     };
     let diff = p1 - p0;
@@ -676,12 +665,12 @@ pub fn track_disparity_plane(
     if chi2.is_nan() || chi2 > TRACK_MAX_CHI2 {
         return cold();
     }
-    let info = kept + new.info;
+    let info = kept + step.info;
     let Some(cov) = info.try_inverse() else {
         return cold();
     };
-    let abc = cov * (kept * p0 + new.info * p1);
-    let centre = new.plane.centre;
+    let abc = cov * (kept * p0 + step.info * p1);
+    let centre = step.plane.centre;
     // The level's error at the centre: (1, x, y)·cov·(1, x, y)ᵀ.
     let j = nalgebra::Vector3::new(1.0, centre[0], centre[1]);
     let std = j.dot(&(cov * j)).max(0.0).sqrt();
@@ -695,7 +684,7 @@ pub fn track_disparity_plane(
             dy: abc[2],
             centre,
             std,
-            pixels: new.plane.pixels,
+            pixels: step.plane.pixels,
         },
         info,
         age: track.age + 1,
