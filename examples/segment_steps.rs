@@ -4,8 +4,7 @@
 //! `cargo run --release --example segment_steps [RUNS]`
 use segment::{
     Connectivity, SegmentParams, absorb_rings, close, describe_cells_from, fill_broken_outlines,
-    fill_holes, histogram, label, local_variance, normalise, open, otsu_threshold, peel_edges,
-    remove_small,
+    fill_holes, histogram, label, open, otsu_threshold, peel_edges, remove_small, variance_levels,
 };
 use std::time::Instant;
 
@@ -39,11 +38,8 @@ fn main() {
     for _ in 0..runs {
         let whole = Instant::now();
         let t = Instant::now();
-        let var = local_variance(&img, p.variance_radius);
-        add("local variance", t);
-        let t = Instant::now();
-        let (variance, _) = normalise(&var, p.scale);
-        add("levels 0-255", t);
+        let (variance, _) = variance_levels(&img, p.variance_radius, p.scale);
+        add("variance levels 0-255", t);
         let t = Instant::now();
         let threshold = otsu_threshold(&histogram(&variance)).unwrap_or(255);
         let data = variance

@@ -30,7 +30,7 @@ pub use otsu::{histogram, otsu_threshold};
 pub use peel::peel_edges;
 pub use rings::absorb_rings;
 pub use trace::{DIRECTIONS, chain_length, search_start, trace_boundary};
-pub use variance::{VarianceScale, local_variance, normalise};
+pub use variance::{VarianceScale, local_variance, normalise, variance_levels};
 
 use schemas::{BoundingBox, Cell, Mask, Plane};
 use serde::{Deserialize, Serialize};
@@ -114,8 +114,7 @@ fn floor_level(std: f32, max: f32, scale: VarianceScale) -> u16 {
 
 /// Segments the cells of a grey image.
 pub fn segment(img: &Plane<u8>, p: &SegmentParams) -> Segmentation {
-    let var = local_variance(img, p.variance_radius);
-    let (variance, variance_max) = normalise(&var, p.scale);
+    let (variance, variance_max) = variance_levels(img, p.variance_radius, p.scale);
     let histogram = histogram(&variance);
     let otsu = otsu_threshold(&histogram);
     let floor = floor_level(p.min_std, variance_max, p.scale);
