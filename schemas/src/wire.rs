@@ -249,8 +249,9 @@ pub struct WireError {
     pub reason: String,
 }
 
-/// A pixel type that travels as little-endian bytes.
-pub trait WirePixel: Copy + Default {
+/// A pixel type that travels as little-endian bytes (plain data: on a little-endian machine
+/// a plane's bytes are its wire bytes).
+pub trait WirePixel: Copy + Default + bytemuck::Pod {
     /// Its format.
     const FORMAT: PixelFormat;
     /// Writes one pixel.
@@ -305,9 +306,13 @@ pub fn write_planes<T: WirePixel>(planes: &[&crate::Plane<T>], out: &mut [u8]) {
     let mut rest = out;
     for p in planes {
         let (this, next) = rest.split_at_mut(p.data.len() * bpp);
-        // Whole chunks, no index arithmetic: the loop compiles to straight copies.
-        for (o, &v) in this.chunks_exact_mut(bpp).zip(&p.data) {
-            v.put(o);
+        if cfg!(target_endian = "little") {
+            // One copy: pixel by pixel, a 1280×1024 label plane took milliseconds.
+            this.copy_from_slice(bytemuck::cast_slice(&p.data));
+        } else {
+            for (o, &v) in this.chunks_exact_mut(bpp).zip(&p.data) {
+                v.put(o);
+            }
         }
         rest = next;
     }
@@ -341,6 +346,8 @@ pub fn read_planes<T: WirePixel>(
         .chunks_exact((w * h * bpp).max(1))
         .take(header.images as usize)
         .map(|c| {
+            // Converted pixel by pixel into a new plane: as fast as a zeroed plane and one
+            // copy of the bytes (measured in the triangulate node).
             let data = c.chunks_exact(bpp).map(T::get).collect();
             crate::Plane::from_vec(w, h, data).expect("size")
         })
