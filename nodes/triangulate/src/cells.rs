@@ -6,8 +6,8 @@
 //! the rest ([`compose`], [`cell_heights`], [`measure`]).
 
 use crate::refine::{
-    DisparityPlane, Ground, Parallax, PeakFit, PlaneTrack, TopModel, refine_top, slide_rows,
-    track_disparity_plane,
+    BandPassed, DisparityPlane, Ground, Parallax, PeakFit, PlaneTrack, TopModel, refine_top,
+    slide_rows, track_disparity_plane,
 };
 use crate::substrate::{self, Base, RimFit};
 use rayon::prelude::*;
@@ -237,6 +237,7 @@ pub fn compose(
 /// median, doubted, without either) and its refined top. `prior`: the plane tracked up to
 /// the last frame, where one is ([`track_disparity_plane`]); the plane comes back as the
 /// track to pass with the next frame.
+/// `views`: the pair band-passed for the plane ([`BandPassed::of`]).
 #[allow(clippy::too_many_arguments)]
 pub fn cell_heights(
     (left, right): (&Plane<u8>, &Plane<u8>),
@@ -248,6 +249,7 @@ pub fn cell_heights(
     margin: u8,
     calib: &Calibration,
     prior: Option<&PlaneTrack>,
+    views: &BandPassed,
 ) -> (Option<PlaneTrack>, Vec<Option<Base>>, Vec<Option<PeakFit>>) {
     let paired: Vec<&Cell> = pairs.iter().map(|&(i, _)| &cells[i]).collect();
     // The background plane and the cells' rims are independent: side by side (each rim
@@ -255,7 +257,7 @@ pub fn cell_heights(
     let (track, rims): (_, Vec<Option<RimFit>>) = rayon::join(
         || {
             let usable = clear_background(left_mask, right_mask, range, margin as usize);
-            track_disparity_plane(left, right, &usable, range, SUBSTRATE_MAX_STD, prior)
+            track_disparity_plane(views, &usable, range, SUBSTRATE_MAX_STD, prior)
         },
         || {
             paired

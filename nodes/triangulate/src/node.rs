@@ -3,7 +3,7 @@
 
 use crate::calibration::Geometry;
 use crate::cells::{Background, cell_heights, compose, lone_cells, mask_of, measure};
-use crate::refine::PlaneTrack;
+use crate::refine::{BandPassed, PlaneTrack};
 use runtime::node::{NodeError, Params, Stamp, Task};
 use schemas::{
     Calibration, CellLists, Cloud, Disparity, DisparityRange, DisparityTiles, Image, Labels,
@@ -158,14 +158,22 @@ impl Task for Triangulate {
         let calib = self.calibration(w, h)?;
         let (map, cells, substrate) = match (&i.labels, &i.cells, &i.checked) {
             (Some(labels), Some(lists), Some(checked)) => {
-                let left_mask = mask_of(&labels.left);
-                let right_mask = mask_of(&labels.right);
-                let c = compose(
-                    (&labels.left, &left_mask),
-                    (&lists.left, &lists.right),
-                    &i.disparity,
-                    checked,
-                )?;
+                // The plane's band-passed views beside the serial composition of the crops.
+                let (composed, views) = rayon::join(
+                    || {
+                        let left_mask = mask_of(&labels.left);
+                        let right_mask = mask_of(&labels.right);
+                        compose(
+                            (&labels.left, &left_mask),
+                            (&lists.left, &lists.right),
+                            &i.disparity,
+                            checked,
+                        )
+                        .map(|c| (left_mask, right_mask, c))
+                    },
+                    || BandPassed::of(left, right),
+                );
+                let (left_mask, right_mask, c) = composed?;
                 let range = i.disparity.range;
                 let prior = match &self.plane {
                     Some((size, r, p)) if *size == (w, h) && *r == range => Some(p),
@@ -181,6 +189,7 @@ impl Task for Triangulate {
                     i.disparity.margin,
                     &calib,
                     prior.filter(|_| self.params.track_substrate),
+                    &views,
                 );
                 let substrate = track.as_ref().map(|t| t.plane);
                 self.plane = track.map(|p| ((w, h), range, p));

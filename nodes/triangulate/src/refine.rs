@@ -339,7 +339,24 @@ pub fn fit_disparity_plane(
     max_std: f64,
     prior: Option<&DisparityPlane>,
 ) -> Option<DisparityPlane> {
-    fit_plane(left, right, usable, range, max_std, prior, 1).map(|f| f.plane)
+    let views = BandPassed::of(left, right);
+    fit_plane(&views, usable, range, max_std, prior, 1).map(|f| f.plane)
+}
+
+/// Both views band-passed for the substrate plane's photometric fit (a `[1 4 6 4 1]/16`
+/// binomial minus the 9×9 box mean): made once a frame, before the plane is needed, so that
+/// the node can make them beside its other work.
+pub struct BandPassed {
+    left: Plane<f32>,
+    right: Plane<f32>,
+}
+
+impl BandPassed {
+    /// The band-passed views of a rectified pair.
+    pub fn of(left: &Plane<u8>, right: &Plane<u8>) -> Self {
+        let (left, right) = rayon::join(|| band_pass(left, 4), || band_pass(right, 4));
+        Self { left, right }
+    }
 }
 
 /// A plane fitted by [`fit_plane`], with what its pixels say about it.
@@ -352,16 +369,15 @@ struct FittedPlane {
 /// [`fit_disparity_plane`] on the usable pixels of every `row_step`-th row only. With
 /// `row_step > 1` it is a tracking step: `None` unless the prior holds this frame.
 fn fit_plane(
-    left: &Plane<u8>,
-    right: &Plane<u8>,
+    views: &BandPassed,
     usable: &Mask,
     range: DisparityRange,
     max_std: f64,
     prior: Option<&DisparityPlane>,
     row_step: usize,
 ) -> Option<FittedPlane> {
-    let (w, h) = (left.width, left.height);
-    let (hl, hr) = rayon::join(|| band_pass(left, 4), || band_pass(right, 4));
+    let (hl, hr) = (&views.left, &views.right);
+    let (w, h) = (hl.width, hl.height);
     // The usable pixels off the frame's first and last column, row by row.
     let inner = |y: usize| match usable.row(y) {
         r if w >= 3 && y.is_multiple_of(row_step) => &r[1..w - 1],
@@ -621,15 +637,14 @@ fn abc(p: &DisparityPlane) -> nalgebra::Vector3<f64> {
 /// ([`fit_disparity_plane`]) and every [`TRACK_REFIT_AFTER`]-th tracked one. The combined
 /// formal error takes the frames' noise as independent.
 pub fn track_disparity_plane(
-    left: &Plane<u8>,
-    right: &Plane<u8>,
+    views: &BandPassed,
     usable: &Mask,
     range: DisparityRange,
     max_std: f64,
     track: Option<&PlaneTrack>,
 ) -> Option<PlaneTrack> {
     let cold = || {
-        fit_plane(left, right, usable, range, max_std, None, 1).map(|f| PlaneTrack {
+        fit_plane(views, usable, range, max_std, None, 1).map(|f| PlaneTrack {
             plane: f.plane,
             info: f.info,
             age: 0,
@@ -640,8 +655,7 @@ pub fn track_disparity_plane(
     };
     // A tracking step: `None` unless the tracked plane holds this frame.
     let Some(step) = fit_plane(
-        left,
-        right,
+        views,
         usable,
         range,
         max_std,
@@ -1656,8 +1670,14 @@ mod tests {
         let (mut tracked_off, mut own_off) = (0.0f64, 0.0f64);
         for k in 0..12 {
             let (l, r) = pair(320, 240, &t, &truth(1.37), 1.5, 10 + k);
-            let next = track_disparity_plane(&l, &r, &usable, range, 0.05, track.as_ref())
-                .expect("a plane");
+            let next = track_disparity_plane(
+                &BandPassed::of(&l, &r),
+                &usable,
+                range,
+                0.05,
+                track.as_ref(),
+            )
+            .expect("a plane");
             let own = cold(&l, &r);
             if k == 0 {
                 assert_eq!(next.plane, own, "the first frame is a whole fit");
@@ -1685,12 +1705,19 @@ mod tests {
             ..track.clone().expect("a track")
         };
         let (l, r) = pair(320, 240, &t, &truth(1.37), 1.5, 30);
-        let refit = track_disparity_plane(&l, &r, &usable, range, 0.05, Some(&old));
+        let refit =
+            track_disparity_plane(&BandPassed::of(&l, &r), &usable, range, 0.05, Some(&old));
         assert_eq!(refit.map(|p| (p.plane, p.age)), Some((cold(&l, &r), 0)));
         // The focus moves by half a pixel: that frame is fitted from scratch.
         let (l, r) = pair(320, 240, &t, &truth(1.87), 1.5, 40);
-        let jumped =
-            track_disparity_plane(&l, &r, &usable, range, 0.05, track.as_ref()).expect("a plane");
+        let jumped = track_disparity_plane(
+            &BandPassed::of(&l, &r),
+            &usable,
+            range,
+            0.05,
+            track.as_ref(),
+        )
+        .expect("a plane");
         assert_eq!(jumped.plane, cold(&l, &r));
         // A slow drift, 0.01 px a frame, is followed about a frame behind: no further off
         // than whole fits of the same frames by more than that frame.
@@ -1699,8 +1726,14 @@ mod tests {
         for k in 1..=15 {
             let d0 = 1.87 + 0.01 * k as f64;
             let (l, r) = pair(320, 240, &t, &truth(d0), 1.5, 40 + k);
-            let next = track_disparity_plane(&l, &r, &usable, range, 0.05, track.as_ref())
-                .expect("a plane");
+            let next = track_disparity_plane(
+                &BandPassed::of(&l, &r),
+                &usable,
+                range,
+                0.05,
+                track.as_ref(),
+            )
+            .expect("a plane");
             let own = cold(&l, &r);
             assert!(next.plane.pixels < own.pixels, "frame {k} was fitted whole");
             tracked_off = tracked_off.max(off(&next.plane, d0));
