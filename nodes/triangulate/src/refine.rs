@@ -421,7 +421,7 @@ fn fit_plane(
     // A sparse sample is plenty for one integer.
     let sparse = pixels.len().div_ceil(PLANE_MAX_PIXELS / 8);
     let sample: Vec<[usize; 2]> = pixels.iter().step_by(sparse).copied().collect();
-    let (d_start, dip) = integer_start(&hl, &hr, &sample, range)?;
+    let (d_start, dip) = integer_start(hl, hr, &sample, range)?;
     // Too little texture for the cost to single out a disparity: no plane, whatever its
     // formal error (gradients of pure noise look like information to Gauss–Newton).
     if range.max > range.min && dip < PLANE_MIN_DIP {
@@ -444,7 +444,7 @@ fn fit_plane(
     }
     let mut p = match tracked {
         Some(q) => [q.at(centre[0], centre[1]), q.dx * s, q.dy * s],
-        None => tiled_start(&hl, &hr, &sample, range, (w, h))
+        None => tiled_start(hl, hr, &sample, range, (w, h))
             .map(|[d0, dx, dy]| [d0 + dx * centre[0] + dy * centre[1], dx * s, dy * s])
             .unwrap_or([d_start as f64, 0.0, 0.0]),
     };
@@ -457,7 +457,7 @@ fn fit_plane(
         })
         .collect();
     let term = |p: &[f64; 3], &([x, y], [u, v]): &([usize; 2], [f64; 2])| {
-        plane_term(&hl, &hr, p, x, y, u, v)
+        plane_term(hl, hr, p, x, y, u, v)
     };
     // The robust scale from a sparse sample of the residuals.
     let scale_at = |p: &[f64; 3]| {
