@@ -619,8 +619,11 @@ pub fn measure(
     calib: &Calibration,
 ) -> Vec<Cell3> {
     let z_of = |d: f64| calib.baseline * calib.focal_px / (d + calib.cx_right - calib.cx);
-    let mut out = Vec::new();
-    for (k, &(i, j)) in pairs.iter().enumerate() {
+    // Each cell on its own: in parallel, in the pairs' order.
+    pairs
+        .par_iter()
+        .enumerate()
+        .filter_map(|(k, &(i, j))| {
         let cell = &left_cells[i];
         let b = cell.bbox;
         let mut inside = Vec::new();
@@ -636,11 +639,11 @@ pub fn measure(
                 }
             }
         }
-        let Some(base) = &bases[k] else { continue };
+        let Some(base) = &bases[k] else { return None };
         let d_sub = base.d;
         let matched = percentile(inside.iter().map(|p| p.2).collect(), 0.98);
         let Some(d_top) = tops[k].map(|t| t.peak).or(matched) else {
-            continue;
+            return None;
         };
         let raised = background
             .filter(|_| base.source == SubstrateSource::Plane)
@@ -746,7 +749,7 @@ pub fn measure(
                 )),
                 _ => None,
             });
-        out.push(Cell3 {
+        Some(Cell3 {
             id: cell.id,
             right_id: right_cells[j].id,
             area_px: cell.area,
@@ -766,9 +769,9 @@ pub fn measure(
                 trusted: doubt.is_none(),
                 doubt,
             },
-        });
-    }
-    out
+        })
+        })
+        .collect()
 }
 
 /// The textured background a cell stands on, for [`measure`].
