@@ -639,12 +639,10 @@ pub fn measure(
                 }
             }
         }
-        let Some(base) = &bases[k] else { return None };
+        let base = bases[k].as_ref()?;
         let d_sub = base.d;
         let matched = percentile(inside.iter().map(|p| p.2).collect(), 0.98);
-        let Some(d_top) = tops[k].map(|t| t.peak).or(matched) else {
-            return None;
-        };
+        let d_top = tops[k].map(|t| t.peak).or(matched)?;
         let raised = background
             .filter(|_| base.source == SubstrateSource::Plane)
             .and_then(|bg| raised_region(labels, cell, (disparity, disparity_raw), bg));
