@@ -182,7 +182,8 @@ pub fn variance_levels(img: &Plane<u8>, radius: usize, scale: VarianceScale) -> 
     // The numerators of the whole windows, row by row from column sums that slide down and
     // their prefix sums along the row (wrapping: each window's sums are exact differences).
     let (iw, ih) = (w - 2 * r, h - 2 * r);
-    let mut num = vec![0u32; iw * ih];
+    // Filled row by row as made (a zeroed table first cost a pass of its own).
+    let mut num: Vec<u32> = Vec::with_capacity(iw * ih);
     let (mut c1, mut c2) = (vec![0u32; w], vec![0u32; w]);
     let (mut s1, mut s2) = (vec![0u32; iw], vec![0u32; iw]);
     let n32 = n as u32;
@@ -220,14 +221,8 @@ pub fn variance_levels(img: &Plane<u8>, radius: usize, scale: VarianceScale) -> 
                 *b += v2;
             }
         }
-        let out = &mut num[(y - r) * iw..][..iw];
-        let mut row_most = 0u32;
-        for ((o, &a), &b) in out.iter_mut().zip(&s1).zip(&s2) {
-            let v = n32 * b - a * a;
-            *o = v;
-            row_most = row_most.max(v);
-        }
-        most = most.max(row_most);
+        num.extend(s1.iter().zip(&s2).map(|(&a, &b)| n32 * b - a * a));
+        most = num[(y - r) * iw..].iter().copied().fold(most, u32::max);
     }
     let nn = (n * n) as f64;
     let value = |v: u32| (v as f64 / nn) as f32;
