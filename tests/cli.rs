@@ -1260,6 +1260,15 @@ fn run_compare_gives_the_processes_rate_as_a_share_of_the_in_process_one() {
         .parse()
         .unwrap();
     assert!(alone > 0.0 && procs > 0.0, "{text}");
+    // The rate the graph sustained from its first output to its last, past the start-up.
+    let sustained: f64 = text
+        .lines()
+        .find(|l| l.contains("frame(s) of 3 in"))
+        .and_then(|l| l.split("; sustained ").nth(1))
+        .and_then(|r| r.split(' ').next())
+        .and_then(|r| r.parse().ok())
+        .unwrap_or_else(|| panic!("no sustained rate: {text}"));
+    assert!(sustained.is_finite() && sustained > 0.0, "{text}");
     // All three printed to two decimals.
     assert!(
         (share - procs / alone).abs() <= 0.01,

@@ -191,6 +191,8 @@ struct Tally {
     latencies: Vec<f64>,
     last_frame: Option<u64>,
     reported: Instant,
+    /// When the first and the last step ended (ns since the Unix epoch).
+    ends: Option<(u64, u64)>,
 }
 
 impl Tally {
@@ -199,6 +201,7 @@ impl Tally {
             times: Vec::new(),
             latencies: Vec::new(),
             last_frame: None,
+            ends: None,
             // The first step reports at once.
             reported: Instant::now()
                 .checked_sub(PROGRESS_PERIOD)
@@ -224,6 +227,8 @@ impl Tally {
     }
 
     fn step(&mut self, ms: f64, latency_ms: f64, frame: u64) {
+        let now = crate::edge::now_ns();
+        self.ends = Some((self.ends.map_or(now, |e| e.0), now));
         self.times.push(ms);
         self.latencies.push(latency_ms);
         self.last_frame = Some(frame);
@@ -251,6 +256,8 @@ impl Tally {
             cpu_ms: crate::stats::process_cpu_ms(),
             latency_p50_ms: percentile(&mut latencies, 0.5),
             latency_p99_ms: percentile(&mut latencies, 0.99),
+            first_step_end_ns: self.ends.map(|e| e.0),
+            last_step_end_ns: self.ends.map(|e| e.1),
         }
     }
 
@@ -632,6 +639,8 @@ pub fn run_tap(
         cpu_ms: crate::stats::process_cpu_ms(),
         latency_p50_ms: 0.0,
         latency_p99_ms: 0.0,
+        first_step_end_ns: None,
+        last_step_end_ns: None,
     };
     wait_loop::<String>(&refs, Duration::from_millis(500), |wake, _| {
         if wake == Wake::Stop {

@@ -36,6 +36,23 @@ pub struct NodeStats {
     /// 99th-percentile time from capture to the end of this node's step, ms.
     #[serde(default)]
     pub latency_p99_ms: f64,
+    /// When its first step ended, ns since the Unix epoch (the run's sustained rate is
+    /// measured from there, past the start-up).
+    #[serde(default)]
+    pub first_step_end_ns: Option<u64>,
+    /// When its last step ended, ns since the Unix epoch.
+    #[serde(default)]
+    pub last_step_end_ns: Option<u64>,
+}
+
+impl NodeStats {
+    /// Frames a second between the end of its first step and of its last: the rate it
+    /// sustained, without the run's start-up and end (`None` under two steps).
+    pub fn sustained_rate(&self) -> Option<f64> {
+        let (a, b) = (self.first_step_end_ns?, self.last_step_end_ns?);
+        (self.frames_in >= 2 && b > a)
+            .then(|| (self.frames_in - 1) as f64 / ((b - a) as f64 * 1e-9))
+    }
 }
 
 /// The mean of `v` (0 when empty).
@@ -117,6 +134,11 @@ pub fn merge(runs: &[NodeStats]) -> Option<NodeStats> {
         m.frames_in += r.frames_in;
         m.frames_out += r.frames_out;
         m.last_frame = m.last_frame.max(r.last_frame);
+        m.first_step_end_ns = match (m.first_step_end_ns, r.first_step_end_ns) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        };
+        m.last_step_end_ns = m.last_step_end_ns.max(r.last_step_end_ns);
         for (i, ri) in r.inputs.iter().enumerate() {
             match m.inputs.get_mut(i) {
                 Some(mi) => {
@@ -176,6 +198,8 @@ mod tests {
             cpu_ms: frames as f64 * mean,
             latency_p50_ms: mean,
             latency_p99_ms: p99,
+            first_step_end_ns: None,
+            last_step_end_ns: None,
         }
     }
 
@@ -205,6 +229,37 @@ mod tests {
             Some(NodeStats { runs: 1, ..a })
         );
         assert_eq!(merge(&[]), None);
+    }
+
+    #[test]
+    fn the_sustained_rate_runs_from_the_first_step_to_the_last_over_every_process() {
+        let s = 1_000_000_000u64;
+        // 11 steps, the first ending at 5 s, the last at 7 s: 10 frames in 2 s.
+        let mut a = run(11, 10.0, 12.0, (0, 0, Some(0), Some(10)));
+        (a.first_step_end_ns, a.last_step_end_ns) = (Some(5 * s), Some(7 * s));
+        assert_eq!(a.sustained_rate(), Some(5.0));
+        // A restart: 9 more steps from 8 s to 9.5 s; 19 frames between 5 s and 9.5 s.
+        let mut b = run(9, 10.0, 12.0, (0, 0, Some(12), Some(20)));
+        (b.first_step_end_ns, b.last_step_end_ns) = (Some(8 * s), Some(9 * s + s / 2));
+        let m = merge(&[a.clone(), b]).unwrap();
+        assert_eq!(
+            (m.first_step_end_ns, m.last_step_end_ns),
+            (Some(5 * s), Some(9 * s + s / 2))
+        );
+        assert_eq!(m.sustained_rate(), Some(19.0 / 4.5));
+        // One step, or none: no rate.
+        let one = NodeStats {
+            frames_in: 1,
+            last_step_end_ns: Some(5 * s),
+            ..a.clone()
+        };
+        assert_eq!(one.sustained_rate(), None);
+        let none = NodeStats {
+            first_step_end_ns: None,
+            last_step_end_ns: None,
+            ..a
+        };
+        assert_eq!(none.sustained_rate(), None);
     }
 
     #[test]
