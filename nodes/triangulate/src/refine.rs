@@ -1664,20 +1664,17 @@ mod tests {
         let cold = |l: &Plane<u8>, r: &Plane<u8>| {
             fit_disparity_plane(l, r, &usable, range, 0.05, None).expect("a plane")
         };
+        // One frame of the track.
+        let step = |l: &Plane<u8>, r: &Plane<u8>, track: Option<&PlaneTrack>| {
+            track_disparity_plane(&BandPassed::of(l, r), &usable, range, 0.05, track)
+        };
         // A still substrate, fresh noise every frame: the first frame is fitted whole, the
         // rest tracked on every second row, as close to the truth as a whole fit.
         let mut track: Option<PlaneTrack> = None;
         let (mut tracked_off, mut own_off) = (0.0f64, 0.0f64);
         for k in 0..12 {
             let (l, r) = pair(320, 240, &t, &truth(1.37), 1.5, 10 + k);
-            let next = track_disparity_plane(
-                &BandPassed::of(&l, &r),
-                &usable,
-                range,
-                0.05,
-                track.as_ref(),
-            )
-            .expect("a plane");
+            let next = step(&l, &r, track.as_ref()).expect("a plane");
             let own = cold(&l, &r);
             if k == 0 {
                 assert_eq!(next.plane, own, "the first frame is a whole fit");
@@ -1705,19 +1702,11 @@ mod tests {
             ..track.clone().expect("a track")
         };
         let (l, r) = pair(320, 240, &t, &truth(1.37), 1.5, 30);
-        let refit =
-            track_disparity_plane(&BandPassed::of(&l, &r), &usable, range, 0.05, Some(&old));
+        let refit = step(&l, &r, Some(&old));
         assert_eq!(refit.map(|p| (p.plane, p.age)), Some((cold(&l, &r), 0)));
         // The focus moves by half a pixel: that frame is fitted from scratch.
         let (l, r) = pair(320, 240, &t, &truth(1.87), 1.5, 40);
-        let jumped = track_disparity_plane(
-            &BandPassed::of(&l, &r),
-            &usable,
-            range,
-            0.05,
-            track.as_ref(),
-        )
-        .expect("a plane");
+        let jumped = step(&l, &r, track.as_ref()).expect("a plane");
         assert_eq!(jumped.plane, cold(&l, &r));
         // A slow drift, 0.01 px a frame, is followed about a frame behind: no further off
         // than whole fits of the same frames by more than that frame.
@@ -1726,14 +1715,7 @@ mod tests {
         for k in 1..=15 {
             let d0 = 1.87 + 0.01 * k as f64;
             let (l, r) = pair(320, 240, &t, &truth(d0), 1.5, 40 + k);
-            let next = track_disparity_plane(
-                &BandPassed::of(&l, &r),
-                &usable,
-                range,
-                0.05,
-                track.as_ref(),
-            )
-            .expect("a plane");
+            let next = step(&l, &r, track.as_ref()).expect("a plane");
             let own = cold(&l, &r);
             assert!(next.plane.pixels < own.pixels, "frame {k} was fitted whole");
             tracked_off = tracked_off.max(off(&next.plane, d0));
