@@ -1,6 +1,7 @@
 //! The validate node: the left- and right-based tiles in; both checked against each other
 //! tile by tile (the LR consistency check) out, the left tiles with the paper's figures.
 
+use rayon::prelude::*;
 use runtime::node::{NodeError, Params, Stamp, Task};
 use schemas::{DisparityTile, DisparityTiles, Side};
 use serde::{Deserialize, Serialize};
@@ -101,9 +102,12 @@ impl Task for Validate {
                 "the left and right tiles differ in layout; both must come from one match".into(),
             ));
         }
+        // The tiles side by side: one after another, each check's own parallel loops woke
+        // the other thread for every tile (over half the node's CPU went to kernel context
+        // switches).
         let mut checked: Vec<Option<crate::Checked>> = l
             .tiles
-            .iter()
+            .par_iter()
             .zip(&r.tiles)
             .map(|(a, b)| {
                 (!a.map.is_empty()).then(|| crate::lr_check(&a.map, &b.map, self.params.tolerance))
