@@ -573,20 +573,17 @@ impl DisparityTiles {
         }
     }
 
-    /// The same tiles with other maps (`f` maps each tile to its new map), keeping the
-    /// layout: what validation and post-processing do tile by tile.
-    pub fn map_tiles(
-        &self,
-        side: Side,
-        mut f: impl FnMut(&DisparityTile) -> DisparityTile,
-    ) -> Self {
+    /// The same frame, range and margin with `tiles` based on `side` in place of these (one
+    /// for each, in order): what validation and post-processing make tile by tile.
+    pub fn with_tiles(&self, side: Side, tiles: Vec<DisparityTile>) -> Self {
+        debug_assert_eq!(tiles.len(), self.tiles.len(), "one tile for each");
         Self {
             width: self.width,
             height: self.height,
             side,
             range: self.range,
             margin: self.margin,
-            tiles: self.tiles.iter().map(&mut f).collect(),
+            tiles,
         }
     }
 

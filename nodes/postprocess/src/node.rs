@@ -70,21 +70,16 @@ impl Task for Postprocess {
         // The tiles side by side: one after another, each step's own parallel loops woke
         // the other thread for every tile (over half the node's CPU went to kernel context
         // switches).
-        let mut maps: Vec<Option<_>> = d
+        let tiles = d
             .tiles
             .par_iter()
-            .map(|t| (!t.map.is_empty()).then(|| postprocess(&t.map, &self.params)))
+            .map(|t| match t.map.is_empty() {
+                true => t.clone(),
+                false => t.with_map(postprocess(&t.map, &self.params)),
+            })
             .collect();
-        let mut k = 0;
         Ok(Tiles {
-            disparity: d.map_tiles(Side::Left, |t| {
-                let m = maps[k].take();
-                k += 1;
-                match m {
-                    Some(m) => t.with_map(m),
-                    None => t.clone(),
-                }
-            }),
+            disparity: d.with_tiles(Side::Left, tiles),
         })
     }
 }

@@ -137,10 +137,11 @@ pub fn normalise(var: &Plane<f32>, scale: VarianceScale) -> (Plane<u8>, f32) {
 
 /// [`normalise`] of [`local_variance`], to the same bits, without the variance plane: the
 /// windows that lie whole in the image keep only their numerators `n·ΣI² − (ΣI)²` as 32-bit
-/// integers (exact while `n²·255² < 2³²`, windows up to 15×15; wider ones take the two
-/// steps), which map to levels through integer bounds; the clipped windows of the border
-/// take the two steps on strips. Two-thirds of a view's segmentation went to the two steps,
-/// in 64-bit products (not vectorised on AVX2) and a division per pixel.
+/// integers (exact, and below 2³¹ as the level table's keys need, while `n²·255² < 2³¹`:
+/// windows up to 13×13; wider ones take the two steps), which map to levels through integer
+/// bounds; the clipped windows of the border take the two steps on strips. The two steps
+/// were over a third of a view's segmentation, in 64-bit products (not vectorised on AVX2)
+/// and a division per pixel.
 pub fn variance_levels(img: &Plane<u8>, radius: usize, scale: VarianceScale) -> (Plane<u8>, f32) {
     let (w, h) = (img.width, img.height);
     let span = 2 * radius + 1;
@@ -163,7 +164,8 @@ pub fn variance_levels(img: &Plane<u8>, radius: usize, scale: VarianceScale) -> 
     let bottom = strip(0, h - 2 * r, w, 2 * r);
     let left = strip(0, 0, 2 * r, h);
     let right = strip(w - 2 * r, 0, 2 * r, h);
-    // (row, first column, the strip's values for that row's border pixels)
+    // A row's clipped windows: the whole row at the top and bottom, else its first and
+    // last `r` pixels.
     let border = |y: usize| -> [&[f32]; 2] {
         if y < r {
             [top.row(y), &[]]
@@ -179,8 +181,7 @@ pub fn variance_levels(img: &Plane<u8>, radius: usize, scale: VarianceScale) -> 
             largest = part.iter().copied().fold(largest, f32::max);
         }
     }
-    // The numerators of the whole windows, row by row from column sums that slide down and
-    // their prefix sums along the row (wrapping: each window's sums are exact differences).
+    // The numerators of the whole windows, row by row from column sums that slide down.
     let (iw, ih) = (w - 2 * r, h - 2 * r);
     // Filled row by row as made (a zeroed table first cost a pass of its own).
     let mut num: Vec<u32> = Vec::with_capacity(iw * ih);
@@ -448,17 +449,22 @@ mod tests {
         assert_eq!(g.data, vec![0, 128, 187, 255]);
     }
 
+    /// A linear congruential generator's successive states from `seed`: test values.
+    fn lcg(mut x: u64) -> impl FnMut() -> u64 {
+        move || {
+            x = x
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            x
+        }
+    }
+
     /// The table's levels are the binary search's, for every scale, on values drawn across
     /// the whole range and on the bounds themselves and their neighbours.
     #[test]
     fn table_levels_match_the_search() {
-        let mut x = 12345u64;
-        let mut next = || {
-            x = x
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (x >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut bits = lcg(12345);
+        let mut next = || (bits() >> 11) as f64 / (1u64 << 53) as f64;
         for scale in [
             VarianceScale::StdDev,
             VarianceScale::Variance,
@@ -520,13 +526,8 @@ mod tests {
     /// steps, on flat images, at every scale, radius and size (thin images included).
     #[test]
     fn variance_levels_equal_normalised_variance() {
-        let mut x = 99u64;
-        let mut next = || {
-            x = x
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (x >> 33) as u32
-        };
+        let mut bits = lcg(99);
+        let mut next = || (bits() >> 33) as u32;
         let mut images = Vec::new();
         for (w, h) in [
             (1, 1),

@@ -619,11 +619,7 @@ pub fn measure(
     calib: &Calibration,
 ) -> Vec<Cell3> {
     let z_of = |d: f64| calib.baseline * calib.focal_px / (d + calib.cx_right - calib.cx);
-    // Each cell on its own: in parallel, in the pairs' order.
-    pairs
-        .par_iter()
-        .enumerate()
-        .filter_map(|(k, &(i, j))| {
+    let one = |k: usize, i: usize, j: usize| -> Option<Cell3> {
         let cell = &left_cells[i];
         let b = cell.bbox;
         let mut inside = Vec::new();
@@ -768,7 +764,12 @@ pub fn measure(
                 doubt,
             },
         })
-        })
+    };
+    // Each cell on its own: in parallel, in the pairs' order.
+    pairs
+        .par_iter()
+        .enumerate()
+        .filter_map(|(k, &(i, j))| one(k, i, j))
         .collect()
 }
 

@@ -60,11 +60,6 @@ runtime::ports! {
     }
 }
 
-/// Moves a checked map out (no copy).
-fn take(m: &mut schemas::DisparityMap) -> schemas::DisparityMap {
-    std::mem::replace(m, schemas::Plane::filled(0, 0, 0.0))
-}
-
 /// Checks each frame's pair of maps.
 #[derive(Debug)]
 pub struct Validate {
@@ -105,35 +100,27 @@ impl Task for Validate {
         // The tiles side by side: one after another, each check's own parallel loops woke
         // the other thread for every tile (over half the node's CPU went to kernel context
         // switches).
-        let mut checked: Vec<Option<crate::Checked>> = l
+        let (left, right): (Vec<_>, Vec<_>) = l
             .tiles
             .par_iter()
             .zip(&r.tiles)
             .map(|(a, b)| {
-                (!a.map.is_empty()).then(|| crate::lr_check(&a.map, &b.map, self.params.tolerance))
+                if a.map.is_empty() {
+                    return (a.clone(), b.clone());
+                }
+                let c = crate::lr_check(&a.map, &b.map, self.params.tolerance);
+                (
+                    DisparityTile {
+                        figures: Some(c.figures),
+                        ..a.with_map(c.left)
+                    },
+                    b.with_map(c.right),
+                )
             })
-            .collect();
-        let mut k = 0;
-        let left = l.map_tiles(Side::Left, |t| {
-            let c = checked[k].as_mut();
-            k += 1;
-            match c {
-                Some(c) => DisparityTile {
-                    figures: Some(c.figures),
-                    ..t.with_map(take(&mut c.left))
-                },
-                None => t.clone(),
-            }
-        });
-        let mut k = 0;
-        let right = r.map_tiles(Side::Right, |t| {
-            let c = checked[k].as_mut();
-            k += 1;
-            match c {
-                Some(c) => t.with_map(take(&mut c.right)),
-                None => t.clone(),
-            }
-        });
-        Ok(ValidateOut { left, right })
+            .unzip();
+        Ok(ValidateOut {
+            left: l.with_tiles(Side::Left, left),
+            right: r.with_tiles(Side::Right, right),
+        })
     }
 }
