@@ -18,6 +18,7 @@
 
 pub mod calibration;
 pub mod cells;
+mod lanes;
 pub mod node;
 pub mod refine;
 pub mod substrate;

@@ -18,6 +18,8 @@ pub use schemas::DisparityPlane;
 use schemas::{Calibration, DisparityRange, Mask, Plane};
 use serde::Serialize;
 
+use crate::lanes::{Lanes, Real, WIDTH};
+
 /// Value and x-gradient of a row at fractional `x` (linear interpolation of the samples and
 /// of their central differences); `None` outside `[1, len − 2]`.
 pub(crate) fn sample(row: &[f32], x: f64) -> Option<(f64, f64)> {
@@ -838,9 +840,10 @@ pub enum TopModel {
 
 /// The first `N − 2` monomials of `(u, v)` up to fourth order, in the order the coefficients
 /// are kept; the last two slots (gain and offset) are zero.
-fn monomials<const N: usize>(u: f64, v: f64) -> [f64; N] {
+#[inline(always)]
+fn monomials<const N: usize, T: Real>(u: T, v: T) -> [T; N] {
     let all = [
-        1.0,
+        T::splat(1.0),
         u,
         v,
         u * u,
@@ -856,7 +859,7 @@ fn monomials<const N: usize>(u: f64, v: f64) -> [f64; N] {
         u * v * v * v,
         v * v * v * v,
     ];
-    let mut f = [0.0; N];
+    let mut f = [T::splat(0.0); N];
     // N − 2 terms: a length fixed at compile time copies inline (a run-time one called
     // memcpy at every step of every pixel's ray: triangulate took 80–85 ms a frame with it,
     // 66–70 without).
@@ -865,43 +868,45 @@ fn monomials<const N: usize>(u: f64, v: f64) -> [f64; N] {
 }
 
 /// The derivatives along `u` and along `v` of [`monomials`].
-fn monomial_gradients<const N: usize>(u: f64, v: f64) -> ([f64; N], [f64; N]) {
+#[inline(always)]
+fn monomial_gradients<const N: usize, T: Real>(u: T, v: T) -> ([T; N], [T; N]) {
+    let c = T::splat;
     let (u2, v2, uv) = (u * u, v * v, u * v);
     let du = [
-        0.0,
-        1.0,
-        0.0,
-        2.0 * u,
+        c(0.0),
+        c(1.0),
+        c(0.0),
+        c(2.0) * u,
         v,
-        0.0,
-        3.0 * u2,
-        2.0 * uv,
+        c(0.0),
+        c(3.0) * u2,
+        c(2.0) * uv,
         v2,
-        0.0,
-        4.0 * u2 * u,
-        3.0 * u2 * v,
-        2.0 * u * v2,
+        c(0.0),
+        c(4.0) * u2 * u,
+        c(3.0) * u2 * v,
+        c(2.0) * u * v2,
         v2 * v,
-        0.0,
+        c(0.0),
     ];
     let dv = [
-        0.0,
-        0.0,
-        1.0,
-        0.0,
+        c(0.0),
+        c(0.0),
+        c(1.0),
+        c(0.0),
         u,
-        2.0 * v,
-        0.0,
+        c(2.0) * v,
+        c(0.0),
         u2,
-        2.0 * uv,
-        3.0 * v2,
-        0.0,
+        c(2.0) * uv,
+        c(3.0) * v2,
+        c(0.0),
         u2 * u,
-        2.0 * u2 * v,
-        3.0 * u * v2,
-        4.0 * v2 * v,
+        c(2.0) * u2 * v,
+        c(3.0) * u * v2,
+        c(4.0) * v2 * v,
     ];
-    let (mut fu, mut fv) = ([0.0; N], [0.0; N]);
+    let (mut fu, mut fv) = ([c(0.0); N], [c(0.0); N]);
     fu[..N - 2].copy_from_slice(&du[..N - 2]);
     fv[..N - 2].copy_from_slice(&dv[..N - 2]);
     (fu, fv)
@@ -1024,6 +1029,61 @@ const LM_TRIES_ONCE_MOVED: usize = 2;
 /// Smallest height (px) a pixel's ray may meet a dome at: outside its foot `Q` is negative.
 const DOME_FLOOR: f64 = 1e-3;
 
+/// A top fit's basis at `(u, v)`: the monomials, or with a footprint's quadratic form
+/// `[A, B, C]` (in the patch's units) the terms 1, u, v and −(A·u² + B·u·v + C·v²): the
+/// curvature's shape is the outline's, only its size is free.
+#[inline(always)]
+fn top_basis<const N: usize, T: Real>(u: T, v: T, form: Option<[f64; 3]>) -> [T; N] {
+    match form {
+        Some([a, b, c]) => {
+            let s = T::splat;
+            let mut f = [s(0.0); N];
+            f[..4].copy_from_slice(&[s(1.0), u, v, -(s(a) * u * u + s(b) * u * v + s(c) * v * v)]);
+            f
+        }
+        None => monomials::<N, T>(u, v),
+    }
+}
+
+/// The derivatives along `u` and along `v` of [`top_basis`].
+#[inline(always)]
+fn top_basis_gradients<const N: usize, T: Real>(
+    u: T,
+    v: T,
+    form: Option<[f64; 3]>,
+) -> ([T; N], [T; N]) {
+    match form {
+        Some([a, b, c]) => {
+            let s = T::splat;
+            let (mut fu, mut fv) = ([s(0.0); N], [s(0.0); N]);
+            fu[..4].copy_from_slice(&[s(0.0), s(1.0), s(0.0), -(s(2.0 * a) * u + s(b) * v)]);
+            fv[..4].copy_from_slice(&[s(0.0), s(0.0), s(1.0), -(s(b) * u + s(2.0 * c) * v)]);
+            (fu, fv)
+        }
+        None => monomial_gradients::<N, T>(u, v),
+    }
+}
+
+/// Where the ray of pixel `(x, y)` stands on the ground at height `t` (px of disparity above
+/// the base), and how fast that place moves with `t`; `ray`: the substrate's total disparity
+/// (positive) and the left principal point, `None` to look straight down.
+#[inline(always)]
+fn ray_foot<T: Real>(x: T, y: T, t: T, ray: Option<(f64, [f64; 2])>) -> ([T; 2], [T; 2]) {
+    match ray {
+        Some((total, [cx, cy])) => {
+            let (total, cx, cy) = (T::splat(total), T::splat(cx), T::splat(cy));
+            let s = t / (total + t);
+            // (total + t)² as `powi(2)` computes it: one product.
+            let ds = total / ((total + t) * (total + t));
+            (
+                [x - (x - cx) * s, y - (y - cy) * s],
+                [-(x - cx) * ds, -(y - cy) * ds],
+            )
+        }
+        None => ([x, y], [T::splat(0.0); 2]),
+    }
+}
+
 /// [`refine_top`] with `N` parameters: the polynomial's `N − 2` terms, then a gain and an
 /// offset between the views.
 fn fit_top<const N: usize>(
@@ -1051,27 +1111,7 @@ fn fit_top<const N: usize>(
     // With a footprint, the terms are 1, u, v and the footprint's own quadratic form (in
     // the patch's units): the curvature's shape is the outline's, only its size is free.
     let form = footprint.map(|[a, b, c]| [a, b, c].map(|x| x * radius * radius));
-    let mono = |u: f64, v: f64| -> [f64; N] {
-        match form {
-            Some([a, b, c]) => {
-                let mut f = [0.0; N];
-                f[..4].copy_from_slice(&[1.0, u, v, -(a * u * u + b * u * v + c * v * v)]);
-                f
-            }
-            None => monomials::<N>(u, v),
-        }
-    };
-    let grads = |u: f64, v: f64| -> ([f64; N], [f64; N]) {
-        match form {
-            Some([a, b, c]) => {
-                let (mut fu, mut fv) = ([0.0; N], [0.0; N]);
-                fu[..4].copy_from_slice(&[0.0, 1.0, 0.0, -(2.0 * a * u + b * v)]);
-                fv[..4].copy_from_slice(&[0.0, 0.0, 1.0, -(b * u + 2.0 * c * v)]);
-                (fu, fv)
-            }
-            None => monomial_gradients::<N>(u, v),
-        }
-    };
+    let mono = |u: f64, v: f64| -> [f64; N] { top_basis(u, v, form) };
     let basis = |x: f64, y: f64| {
         let (u, v) = uv(x, y);
         mono(u, v)
@@ -1079,71 +1119,108 @@ fn fit_top<const N: usize>(
     let value = |p: &[f64; N], f: &[f64; N]| -> f64 { (0..k).map(|i| p[i] * f[i]).sum() };
     // Where pixel `q`'s ray stands on the ground at height `t` (px of disparity above the
     // base), and how fast that place moves with `t`.
+    let ray = base
+        .and_then(|g| g.parallax.map(|p| (g.d + p.offset, p.centre)))
+        .filter(|&(total, _)| total > 0.0);
     let foot = |q: &[usize; 2], t: f64| -> ([f64; 2], [f64; 2]) {
-        let (x, y) = (q[0] as f64, q[1] as f64);
-        match base.and_then(|g| g.parallax.map(|p| (g.d + p.offset, p.centre))) {
-            Some((total, [cx, cy])) if total > 0.0 => {
-                let s = t / (total + t);
-                let ds = total / (total + t).powi(2);
-                (
-                    [x - (x - cx) * s, y - (y - cy) * s],
-                    [-(x - cx) * ds, -(y - cy) * ds],
-                )
-            }
-            _ => ([x, y], [0.0, 0.0]),
-        }
+        ray_foot(q[0] as f64, q[1] as f64, t, ray)
     };
     // Pixel `q`'s disparity on the surface `p`, the basis where it meets it and ∂d/∂Q there.
     // Each pixel's height on the surface at the last evaluation: the fit's steps are small,
     // so Newton started there converges in one or two steps instead of four to eight (the
     // top fits, mostly this solve, were about two thirds of the triangulate node's time).
     let warm: Vec<std::cell::Cell<f64>> = vec![std::cell::Cell::new(f64::NAN); pixels.len()];
-    let hit = |i: usize, q: &[usize; 2], p: &[f64; N]| -> ([f64; N], f64, f64) {
+    // Rays followed `WIDTH` at a time (`hits`), interleaved step by step: one ray's
+    // Newton solve is a long chain of dependent adds and a division, and one ray at a time
+    // the core waited on it (the top fits, mostly this solve, were about half of the
+    // triangulate node's time). Each lane takes exactly the scalar steps in the scalar
+    // order, so the values are the same to the bit.
+    let hits = |i0: usize, p: &[f64; N], out: &mut [([f64; N], f64, f64); WIDTH]| -> usize {
+        let n = (pixels.len() - i0).min(WIDTH);
         let Some(g) = base else {
-            let f = basis(q[0] as f64, q[1] as f64);
-            return (f, value(p, &f), 1.0);
+            for (o, q) in out.iter_mut().zip(&pixels[i0..i0 + n]) {
+                let f = basis(q[0] as f64, q[1] as f64);
+                *o = (f, value(p, &f), 1.0);
+            }
+            return n;
         };
         // Newton on t² − Q(foot(t)) = 0 from the last height, at first from the height
         // straight above (the ray's last meeting with the dome from above is the surface the
         // camera sees; a warm start near a grazing flank may settle on the other meeting).
         // The loop's first step sets the basis: only a cold start needs it beforehand.
-        let mut f = [0.0; N];
-        let mut t = match warm[i].get() {
-            w if w.is_finite() => w,
-            _ => {
-                f = basis(q[0] as f64, q[1] as f64);
-                value(p, &f).max(DOME_FLOOR * DOME_FLOOR).sqrt()
-            }
-        };
-        let mut slope = 2.0 * t;
+        let mut f = [[0.0; N]; WIDTH];
+        let mut t = [0.0; WIDTH];
+        let mut active = [false; WIDTH];
+        let (mut x, mut y) = ([0.0; WIDTH], [0.0; WIDTH]);
+        for l in 0..n {
+            let q = &pixels[i0 + l];
+            (x[l], y[l]) = (q[0] as f64, q[1] as f64);
+            t[l] = match warm[i0 + l].get() {
+                w if w.is_finite() => w,
+                _ => value(p, &basis(x[l], y[l]))
+                    .max(DOME_FLOOR * DOME_FLOOR)
+                    .sqrt(),
+            };
+            active[l] = true;
+        }
+        let (x, y) = (Lanes(x), Lanes(y));
+        let mut slope = t.map(|t| 2.0 * t);
+        // Q where each lane's ray last stood.
+        let mut q_at = [0.0; WIDTH];
+        let c = Lanes::splat;
         for _ in 0..8 {
-            let ([x, y], [dx, dy]) = foot(q, t);
-            let (u, v) = uv(x, y);
-            f = mono(u, v);
-            let (fu, fv) = grads(u, v);
-            let along = (value(p, &fu) * dx + value(p, &fv) * dy) / radius;
-            slope = 2.0 * t - along;
-            let residual = t * t - value(p, &f);
-            if slope <= 2.0 * DOME_FLOOR {
+            if !active.contains(&true) {
                 break;
             }
-            let next = (t - residual / slope).max(DOME_FLOOR);
-            let done = (next - t).abs() < 1e-7;
-            t = next;
-            if done {
-                break;
+            // Every lane steps; only the active ones keep the step.
+            let tl = Lanes(t);
+            let ([fx, fy], [dx, dy]) = ray_foot(x, y, tl, ray);
+            let (u, v) = (
+                (fx - c(centre[0])) / c(radius),
+                (fy - c(centre[1])) / c(radius),
+            );
+            let fl: [Lanes; N] = top_basis(u, v, form);
+            let (fu, fv): ([Lanes; N], [Lanes; N]) = top_basis_gradients(u, v, form);
+            // The three sums in `value`'s order (`sum` starts from −0.0).
+            let (mut gu, mut gv, mut q) = (c(-0.0), c(-0.0), c(-0.0));
+            for i in 0..k {
+                gu = gu + c(p[i]) * fu[i];
+                gv = gv + c(p[i]) * fv[i];
+                q = q + c(p[i]) * fl[i];
+            }
+            let along = (gu * dx + gv * dy) / c(radius);
+            let sl = c(2.0) * tl - along;
+            let residual = tl * tl - q;
+            for l in 0..WIDTH {
+                if !active[l] {
+                    continue;
+                }
+                for (fi, li) in f[l].iter_mut().zip(&fl) {
+                    *fi = li.0[l];
+                }
+                (slope[l], q_at[l]) = (sl.0[l], q.0[l]);
+                if slope[l] <= 2.0 * DOME_FLOOR {
+                    active[l] = false;
+                    continue;
+                }
+                let next = (t[l] - residual.0[l] / slope[l]).max(DOME_FLOOR);
+                active[l] = (next - t[l]).abs() >= 1e-7;
+                t[l] = next;
             }
         }
-        warm[i].set(t);
-        // Where the ray passes outside the dome (Q < 0) it meets the substrate, which the
-        // terms do not move: a derivative there (1/slope, huge) would swamp the normal
-        // equations with pixels the shape cannot explain.
-        let dq = if value(p, &f) <= DOME_FLOOR * DOME_FLOOR {
-            0.0
-        } else {
-            1.0 / slope.max(2.0 * DOME_FLOOR)
-        };
-        (f, g.d + t, dq)
+        for l in 0..n {
+            warm[i0 + l].set(t[l]);
+            // Where the ray passes outside the dome (Q < 0) it meets the substrate, which the
+            // terms do not move: a derivative there (1/slope, huge) would swamp the normal
+            // equations with pixels the shape cannot explain.
+            let dq = if q_at[l] <= DOME_FLOOR * DOME_FLOOR {
+                0.0
+            } else {
+                1.0 / slope[l].max(2.0 * DOME_FLOOR)
+            };
+            out[l] = (f[l], g.d + t[l], dq);
+        }
+        n
     };
     // Parameters: the shape terms, gain, offset; from the start fit or from least squares on
     // the matcher's disparities.
@@ -1190,20 +1267,25 @@ fn fit_top<const N: usize>(
     // were copied over and over.
     let terms_at = |p: &[f64; N]| -> Vec<(f64, [f64; N])> {
         let mut terms = Vec::with_capacity(pixels.len());
-        for (i, q) in pixels.iter().enumerate() {
-            let (f, d, dq) = hit(i, q, p);
-            let Some((rv, rg)) = sample(&rows[q[1]], q[0] as f64 - d) else {
-                continue;
-            };
-            let e = *left.get(q[0], q[1]) as f64 - (p[k] * rv + p[k + 1]);
-            let g = p[k] * rg * dq;
-            let mut j = [0.0; N];
-            for i in 0..k {
-                j[i] = g * f[i];
+        let mut out = [([0.0; N], 0.0, 0.0); WIDTH];
+        let mut i0 = 0;
+        while i0 < pixels.len() {
+            let n = hits(i0, p, &mut out);
+            for (q, &(f, d, dq)) in pixels[i0..i0 + n].iter().zip(&out) {
+                let Some((rv, rg)) = sample(&rows[q[1]], q[0] as f64 - d) else {
+                    continue;
+                };
+                let e = *left.get(q[0], q[1]) as f64 - (p[k] * rv + p[k + 1]);
+                let g = p[k] * rg * dq;
+                let mut j = [0.0; N];
+                for i in 0..k {
+                    j[i] = g * f[i];
+                }
+                j[k] = -rv;
+                j[k + 1] = -1.0;
+                terms.push((e, j));
             }
-            j[k] = -rv;
-            j[k + 1] = -1.0;
-            terms.push((e, j));
+            i0 += n;
         }
         terms
     };
