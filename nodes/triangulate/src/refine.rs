@@ -975,14 +975,16 @@ pub fn refine_top(
         TopModel::Quadratic => false,
         TopModel::Quartic => true,
     };
-    let (dome, p) = fit_top::<8>(left, right, pixels, init, base, None, None)?;
+    let (dome, p, rays) = fit_top::<8>(left, right, pixels, init, base, None, None)?;
     match quartic {
         false => Some(dome),
         // The quartic starts from the quadratic (a good fit it only refines: from the
         // matcher's map, clipped at the range's end on tall cells, it found a wrong
         // minimum 2 px low) and is read at the quadratic's apex: its own maximum rides its
         // noise's highest bump, 0.1–0.2 px up on a flat top. Where it does not converge,
-        // the quadratic stands.
+        // the quadratic stands. Its rays start where the quadratic's last met it (the same
+        // surface to begin with): from straight above, a third of the rays' steps were
+        // these first passes'.
         true => Some(
             fit_top::<17>(
                 left,
@@ -990,7 +992,7 @@ pub fn refine_top(
                 pixels,
                 init,
                 base,
-                Some((&p[..6], [p[6], p[7]], dome.at)),
+                Some((&p[..6], [p[6], p[7]], dome.at, &rays)),
                 None,
             )
             .map_or(dome, |q| q.0),
@@ -998,9 +1000,9 @@ pub fn refine_top(
     }
 }
 
-/// A fit to start from: its polynomial's terms, its gain and offset, and where to read
-/// the result.
-type Start<'a> = (&'a [f64], [f64; 2], [f64; 2]);
+/// A fit to start from: its polynomial's terms, its gain and offset, where to read the
+/// result, and each pixel's height on its surface (px above the base; NaN: unknown).
+type Start<'a> = (&'a [f64], [f64; 2], [f64; 2], &'a [f64]);
 
 /// Least share of the cost a top fit's next step must be predicted to gain. Stopping there
 /// instead of at the first rejected step changed the heights of 72 synthetic cells by a
@@ -1103,7 +1105,7 @@ fn fit_top<const N: usize>(
     base: Option<Ground>,
     start: Option<Start>,
     footprint: Option<[f64; 3]>,
-) -> Option<(PeakFit, [f64; N])> {
+) -> Option<(PeakFit, [f64; N], Vec<f64>)> {
     let k = N - 2;
     if pixels.len() < PEAK_MIN_PIXELS.max(3 * N) || pixels.len() != init.len() {
         return None;
@@ -1138,7 +1140,12 @@ fn fit_top<const N: usize>(
     // Each pixel's height on the surface at the last evaluation: the fit's steps are small,
     // so Newton started there converges in one or two steps instead of four to eight (the
     // top fits, mostly this solve, were about two thirds of the triangulate node's time).
-    let warm: Vec<std::cell::Cell<f64>> = vec![std::cell::Cell::new(f64::NAN); pixels.len()];
+    let warm: Vec<std::cell::Cell<f64>> = match start {
+        Some((.., rays)) if rays.len() == pixels.len() => {
+            rays.iter().map(|&t| std::cell::Cell::new(t)).collect()
+        }
+        _ => vec![std::cell::Cell::new(f64::NAN); pixels.len()],
+    };
     // Rays followed `WIDTH` at a time (`hits`), interleaved step by step: one ray's
     // Newton solve is a long chain of dependent adds and a division, and one ray at a time
     // the core waited on it (the top fits, mostly this solve, were about half of the
@@ -1235,7 +1242,7 @@ fn fit_top<const N: usize>(
     // the matcher's disparities.
     let mut p = [0.0; N];
     p[k] = 1.0;
-    if let Some((terms, [gain, offset], _)) = start {
+    if let Some((terms, [gain, offset], ..)) = start {
         p[..terms.len()].copy_from_slice(terms);
         (p[k], p[k + 1]) = (gain, offset);
     } else {
@@ -1405,7 +1412,11 @@ fn fit_top<const N: usize>(
         pixels: pixels.len(),
         std,
     };
-    Some((fit, p))
+    Some((
+        fit,
+        p,
+        warm.into_iter().map(std::cell::Cell::into_inner).collect(),
+    ))
 }
 
 /// Where the polynomial `poly` is largest over the patch (coordinates `uv`, the patch's
