@@ -74,6 +74,13 @@ impl<T: Summable> BoxSums<T> {
             .minus(self.t[y1 * w1 + x0])
     }
 
+    /// The table's rows `y0` and `y1`: the window `[x0, x1) × [y0, y1)` sums to
+    /// `b[x1] + a[x0] − a[x1] − b[x0]` (wrapping) for `(a, b)`, as [`BoxSums::rect`] adds.
+    pub fn rows(&self, y0: usize, y1: usize) -> (&[T], &[T]) {
+        let w1 = self.w1;
+        (&self.t[y0 * w1..][..w1], &self.t[y1 * w1..][..w1])
+    }
+
     /// Sum over the `(2r+1)²` window centred on `(x, y)`, clipped to the grid, and the
     /// number of grid cells it covers.
     pub fn around(&self, x: usize, y: usize, r: usize) -> (T, u64) {

@@ -142,11 +142,33 @@ fn peel_with(
     let mut dev: Vec<f64> = Vec::with_capacity(w.div_ceil(3) * h.div_ceil(3));
     for y in (0..h).step_by(3) {
         let row = mask.row(y);
-        for x in (0..w).step_by(3) {
-            if row[x] == 0 {
-                let v = r_of(x, y);
-                if !v.is_nan() {
-                    dev.push(v.abs());
+        match &sums {
+            // The usual table read a row at a time: `r_of`'s values, its window bounds
+            // worked out once a row (a third of the peel went on this sample).
+            Sums::Wrapped(t, bits) => {
+                let (y0, y1) = (y.saturating_sub(bg_radius), (y + bg_radius + 1).min(h));
+                let (a, b) = t.rows(y0, y1);
+                let grey = img.row(y);
+                for x in (0..w).step_by(3).filter(|&x| row[x] == 0) {
+                    let (x0, x1) = (x.saturating_sub(bg_radius), (x + bg_radius + 1).min(w));
+                    let v = b[x1]
+                        .wrapping_add(a[x0])
+                        .wrapping_sub(a[x1])
+                        .wrapping_sub(b[x0]);
+                    let (c, s) = ((v >> bits) as u64, (v & ((1 << bits) - 1)) as u64);
+                    if c > 0 {
+                        dev.push((grey[x] as f64 - s as f64 / c as f64).abs());
+                    }
+                }
+            }
+            _ => {
+                for x in (0..w).step_by(3) {
+                    if row[x] == 0 {
+                        let v = r_of(x, y);
+                        if !v.is_nan() {
+                            dev.push(v.abs());
+                        }
+                    }
                 }
             }
         }
@@ -182,10 +204,25 @@ fn peel_with(
     let quiet = |x: usize, y: usize| shallow(x, y) && quiet(x, y);
     let alone = |x: usize, y: usize| shallow(x, y) && alone(x, y);
     // The mask's pixels with a 4-neighbour in the background, in raster order.
+    // Row by row: a row's pixels and its neighbours' in straight loops (a pixel's four
+    // neighbours looked up one by one took an eighth of the peel).
     let mut boundary: Vec<(usize, usize)> = Vec::new();
+    let mut open = vec![false; w];
     for y in 0..h {
-        for (x, _) in mask.row(y).iter().enumerate().filter(|(_, m)| **m != 0) {
-            if neighbours4(x, y, w, h).any(|(u, v)| is_bg(u, v)) {
+        let row = mask.row(y);
+        open.fill(false);
+        for v in [y.checked_sub(1), (y + 1 < h).then_some(y + 1)]
+            .into_iter()
+            .flatten()
+        {
+            for (o, &m) in open.iter_mut().zip(mask.row(v)) {
+                *o |= m == 0;
+            }
+        }
+        for x in 0..w {
+            if row[x] != 0
+                && (open[x] || (x > 0 && row[x - 1] == 0) || (x + 1 < w && row[x + 1] == 0))
+            {
                 boundary.push((x, y));
             }
         }
