@@ -405,21 +405,28 @@ fn fit_plane(
             Some(first)
         })
         .collect();
-    let pixels: Vec<[usize; 2]> = (0..h)
-        .into_par_iter()
-        .flat_map_iter(|y| {
-            let mut seen = firsts[y];
-            inner(y)
-                .iter()
-                .enumerate()
-                .filter(|(_, v)| **v != 0)
-                .filter_map(move |(i, _)| {
-                    let keep = seen.is_multiple_of(every);
-                    seen += 1;
-                    keep.then_some([i + 1, y])
-                })
-        })
-        .collect();
+    // Each row's share is known (the multiples of `every` among its pixels' ranks), so the
+    // rows write straight into their part of the list (collected row lists were linked,
+    // then copied: the list took a third of a tracked frame's plane).
+    let kept = |y: usize| (firsts[y] + counts[y]).div_ceil(every) - firsts[y].div_ceil(every);
+    let mut pixels = vec![[0usize; 2]; (0..h).map(kept).sum()];
+    let mut parts: Vec<(usize, &mut [[usize; 2]])> = Vec::with_capacity(h);
+    let mut rest = &mut pixels[..];
+    for y in 0..h {
+        let (part, tail) = rest.split_at_mut(kept(y));
+        parts.push((y, part));
+        rest = tail;
+    }
+    parts.into_par_iter().for_each(|(y, part)| {
+        let mut seen = firsts[y];
+        let mut out = part.iter_mut();
+        for (i, _) in inner(y).iter().enumerate().filter(|(_, v)| **v != 0) {
+            if seen.is_multiple_of(every) {
+                *out.next().expect("counted") = [i + 1, y];
+            }
+            seen += 1;
+        }
+    });
     // A sparse sample is plenty for one integer.
     let sparse = pixels.len().div_ceil(PLANE_MAX_PIXELS / 8);
     let sample: Vec<[usize; 2]> = pixels.iter().step_by(sparse).copied().collect();
