@@ -418,13 +418,12 @@ fn fit_plane(
         rest = tail;
     }
     parts.into_par_iter().for_each(|(y, part)| {
-        let mut seen = firsts[y];
         let mut out = part.iter_mut();
-        for (i, _) in inner(y).iter().enumerate().filter(|(_, v)| **v != 0) {
+        let usable = inner(y).iter().enumerate().filter(|(_, v)| **v != 0);
+        for (seen, (i, _)) in (firsts[y]..).zip(usable) {
             if seen.is_multiple_of(every) {
                 *out.next().expect("counted") = [i + 1, y];
             }
-            seen += 1;
         }
     });
     // A sparse sample is plenty for one integer.
