@@ -68,7 +68,8 @@ pub struct RunArgs {
     #[arg(long, requires = "frames", conflicts_with_all = ["record", "viewer", "instance"])]
     pub in_process: bool,
     /// Run the nodes as processes, then the same nodes in one process (as --in-process),
-    /// and print the processes' frame rate as a share of the in-process one. Needs --frames.
+    /// and print the processes' frame rate as a share of the in-process one (capped at a
+    /// paced source's rate, which no graph fed by it can pass). Needs --frames.
     #[arg(long, requires = "frames", conflicts_with_all = ["in_process", "record", "viewer"])]
     pub compare: bool,
     /// How the processes are run.
@@ -190,18 +191,28 @@ pub fn run_cmd(a: RunArgs) -> Result<(), CliError> {
     a.out.apply(&mut graph)?;
     let rate = run_graph(&graph, a.frames, &a.supervision, &a.out)?;
     if let Some(g) = alone_graph {
-        let alone = run_in_process(&g, a.frames.unwrap_or(1))?;
+        let (alone, pace) = run_in_process(&g, a.frames.unwrap_or(1))?;
+        // A camera of `pace` frames/s caps both runs: one process faster than the camera
+        // could take no more frames from it than the processes can.
+        let yardstick = pace.map_or(alone, |p| alone.min(p));
+        let capped = match pace {
+            Some(p) if p < alone => {
+                format!(" unpaced, which the source's {p:.0} frames/s cap at {yardstick:.2}")
+            }
+            _ => String::new(),
+        };
         runtime::outln!(
-            "as processes {rate:.2} frames/s, in one process {alone:.2}: {:.2}× the in-process rate (the processes' sources keep their pace and their entrances drop what the graph cannot take; in one process every frame is taken in turn)",
-            rate / alone.max(1e-9)
+            "as processes {rate:.2} frames/s, in one process {alone:.2}{capped}: {:.2}× the in-process rate (the processes' sources keep their pace and their entrances drop what the graph cannot take; in one process every frame is taken in turn)",
+            rate / yardstick.max(1e-9)
         );
     }
     Ok(())
 }
 
 /// Runs `graph` in this process for `frames` frames and prints per node the mean and 99th
-/// percentile step time, then the frame rate and the CPU used.
-fn run_in_process(graph: &Graph, frames: u64) -> Result<f64, CliError> {
+/// percentile step time, then the frame rate and the CPU used. Returns the rate and the
+/// pace of the graph's paced sources (which this run ignores).
+fn run_in_process(graph: &Graph, frames: u64) -> Result<(f64, Option<f64>), CliError> {
     if frames == 0 {
         return Err(CliError::Other(
             "--frames 0 runs nothing: give at least 1".into(),
@@ -245,7 +256,7 @@ fn run_in_process(graph: &Graph, frames: u64) -> Result<f64, CliError> {
         "{done} frame(s) in one process in {wall:.2} s: {rate:.2} frames/s; CPU {:.0} % of one core",
         100.0 * cpu / (wall * 1e3).max(1e-9)
     );
-    Ok(rate)
+    Ok((rate, exec.pace()))
 }
 
 /// Where `bench-transport` runs the two ends of the edge.

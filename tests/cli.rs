@@ -1220,7 +1220,48 @@ fn a_closed_stdout_ends_a_command_without_a_panic() {
 #[test]
 fn run_compare_gives_the_processes_rate_as_a_share_of_the_in_process_one() {
     let small = data("graph/small.toml");
-    let out = run(&["run", s(&small), "--frames", "3", "--compare"]);
+    let (procs, alone, share, line) = compare_rates(&small);
+    assert!(!line.contains("cap at"), "{line}");
+    assert!(
+        (share - procs / alone).abs() <= 0.01,
+        "{line} from {procs} and {alone}"
+    );
+    // A camera of 4 frames/s caps what one process could take from it: the yardstick is
+    // the camera's rate, not the faster unpaced run.
+    let dir = tempfile::tempdir().unwrap();
+    let paced = dir.path().join("paced.toml");
+    let text = std::fs::read_to_string(&small).unwrap().replacen(
+        "drift = 2.0 }",
+        "drift = 2.0, fps = 4 }",
+        1,
+    );
+    std::fs::write(&paced, text).unwrap();
+    let (procs, alone, share, line) = compare_rates(&paced);
+    assert!(alone > 4.0, "{line}");
+    assert!(line.contains("cap at 4.00"), "{line}");
+    assert!(
+        (share - procs / 4.0).abs() <= 0.01,
+        "{line} from {procs} and the camera's 4"
+    );
+    for bad in [
+        vec!["run", s(&small), "--compare"],
+        vec![
+            "run",
+            s(&small),
+            "--compare",
+            "--in-process",
+            "--frames",
+            "2",
+        ],
+    ] {
+        assert_eq!(run(&bad).status.code(), Some(2), "{bad:?}");
+    }
+}
+
+/// `run FILE --frames 3 --compare`: the processes' rate, the in-process one, the share
+/// printed and its line.
+fn compare_rates(file: &Path) -> (f64, f64, f64, String) {
+    let out = run(&["run", s(file), "--frames", "3", "--compare"]);
     let text = String::from_utf8_lossy(&out.stdout);
     assert!(
         out.status.success(),
@@ -1269,24 +1310,7 @@ fn run_compare_gives_the_processes_rate_as_a_share_of_the_in_process_one() {
         .and_then(|r| r.parse().ok())
         .unwrap_or_else(|| panic!("no sustained rate: {text}"));
     assert!(sustained.is_finite() && sustained > 0.0, "{text}");
-    // All three printed to two decimals.
-    assert!(
-        (share - procs / alone).abs() <= 0.01,
-        "{line} from {procs} and {alone}"
-    );
-    for bad in [
-        vec!["run", s(&small), "--compare"],
-        vec![
-            "run",
-            s(&small),
-            "--compare",
-            "--in-process",
-            "--frames",
-            "2",
-        ],
-    ] {
-        assert_eq!(run(&bad).status.code(), Some(2), "{bad:?}");
-    }
+    (procs, alone, share, line.to_string())
 }
 
 /// `run --in-process` steps every node of the launch file in this process: each node

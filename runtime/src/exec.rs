@@ -127,6 +127,16 @@ impl InProcess {
         }
     }
 
+    /// The pace of the slowest paced source (frames/s), if any: the most a graph fed by it
+    /// can take, however fast its nodes are.
+    pub fn pace(&self) -> Option<f64> {
+        self.nodes
+            .iter()
+            .filter_map(|n| n.fps())
+            .filter(|f| *f > 0.0)
+            .min_by(f64::total_cmp)
+    }
+
     /// Runs the next frame; `None` once a source has no more.
     pub fn step(&mut self) -> Result<Option<Frame>, String> {
         let seq = self.seq;
