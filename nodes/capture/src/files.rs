@@ -74,6 +74,12 @@ pub fn expand(pattern: &str) -> Result<Vec<PathBuf>, String> {
 pub struct FileCapture {
     pairs: Vec<(PathBuf, PathBuf)>,
     repeat: bool,
+    /// Unpaced, the next pair is read while the graph works on this one (as a camera's
+    /// frame is ready when it is asked for): decoding two PNGs of 1280×1024 took 16 ms of
+    /// each frame's turn at the entrance, where the graph waited on it.
+    read_ahead: bool,
+    /// The pair being read ahead: its frame number and the reader.
+    ahead: Option<(u64, std::thread::JoinHandle<Result<StereoFrame, String>>)>,
 }
 
 impl FileCapture {
@@ -92,6 +98,8 @@ impl FileCapture {
         Ok(Self {
             pairs: l.into_iter().zip(r).collect(),
             repeat: p.repeat,
+            read_ahead: p.fps.is_none(),
+            ahead: None,
         })
     }
 }
@@ -103,24 +111,43 @@ impl FileCapture {
         if seq >= n && !self.repeat {
             return Ok(None);
         }
-        let (lp, rp) = &self.pairs[(seq % n) as usize];
-        let (l, r) = (
-            crate::image::load(lp, "left image")?.grey,
-            crate::image::load(rp, "right image")?.grey,
-        );
-        if (l.width, l.height) != (r.width, r.height) {
-            return Err(format!(
-                "'{}' is {}×{} but '{}' is {}×{}; a pair must have one size",
-                lp.display(),
-                l.width,
-                l.height,
-                rp.display(),
-                r.width,
-                r.height
-            ));
+        let frame = match self.ahead.take() {
+            Some((s, reader)) if s == seq => reader
+                .join()
+                .map_err(|_| "the reader of the next pair panicked".to_string())?,
+            // Another frame was read ahead (a paced source skips frames): it is let go.
+            _ => {
+                let (lp, rp) = &self.pairs[(seq % n) as usize];
+                read_pair(lp, rp)
+            }
+        }?;
+        let next = seq + 1;
+        if self.read_ahead && (next < n || self.repeat) {
+            let (lp, rp) = self.pairs[(next % n) as usize].clone();
+            self.ahead = Some((next, std::thread::spawn(move || read_pair(&lp, &rp))));
         }
-        Ok(Some(StereoFrame { left: l, right: r }))
+        Ok(Some(frame))
     }
+}
+
+/// Reads and checks one pair.
+fn read_pair(lp: &Path, rp: &Path) -> Result<StereoFrame, String> {
+    let (l, r) = (
+        crate::image::load(lp, "left image")?.grey,
+        crate::image::load(rp, "right image")?.grey,
+    );
+    if (l.width, l.height) != (r.width, r.height) {
+        return Err(format!(
+            "'{}' is {}×{} but '{}' is {}×{}; a pair must have one size",
+            lp.display(),
+            l.width,
+            l.height,
+            rp.display(),
+            r.width,
+            r.height
+        ));
+    }
+    Ok(StereoFrame { left: l, right: r })
 }
 
 #[cfg(test)]
@@ -148,14 +175,33 @@ mod tests {
             fps: None,
         };
         let mut cap = FileCapture::new(p(false)).unwrap();
+        assert!(cap.read_ahead, "unpaced, the next pair is read ahead");
         for i in 0..3u8 {
             let f = cap.frame(i as u64).unwrap().unwrap();
             assert_eq!((f.left.data[0], f.right.data[0]), (10 * i, 10 * i + 1));
         }
         assert!(cap.frame(3).unwrap().is_none(), "three pairs, then the end");
+        // Frames asked out of turn (a paced source skips some) are still their own pairs,
+        // read ahead or not.
+        for read_ahead in [true, false] {
+            let mut cap = FileCapture::new(p(true)).unwrap();
+            cap.read_ahead = read_ahead;
+            for i in [0u64, 2, 3, 5, 4, 4] {
+                let f = cap.frame(i).unwrap().unwrap();
+                let k = (i % 3) as u8;
+                assert_eq!((f.left.data[0], f.right.data[0]), (10 * k, 10 * k + 1));
+            }
+        }
         let mut looped = FileCapture::new(p(true)).unwrap();
         let f = looped.frame(4).unwrap().unwrap();
         assert_eq!(f.left.data[0], 10, "frame 4 of a 3-pair loop is pair 1");
+        // A pair that cannot be read is that frame's error, read ahead or not, and the
+        // frames before it arrive.
+        std::fs::write(dir.path().join("left_2.png"), "not a png").unwrap();
+        let mut cap = FileCapture::new(p(false)).unwrap();
+        assert!(cap.frame(0).unwrap().is_some() && cap.frame(1).unwrap().is_some());
+        let e = cap.frame(2).unwrap_err();
+        assert!(e.contains("left_2.png"), "{e}");
         let bad = FileParams {
             right: format!("{d}/nothing_*.png"),
             ..p(false)
