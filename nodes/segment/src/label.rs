@@ -50,30 +50,55 @@ pub struct Components {
     pub n: u32,
 }
 
+/// Pixels a step of [`row_runs`] tests together.
+const CHUNK: usize = 32;
+
+/// Calls `run(x0, x1)` for each run `[x0, x1)` of pixels of `row` where `on` holds, left to
+/// right. A chunk of [`CHUNK`] pixels all off (or all on, inside a run) is passed at once:
+/// its count of on-pixels takes no branch per pixel, where the test pixel by pixel took
+/// 5 % of the live graph's CPU over mostly empty masks.
+fn row_runs<T>(row: &[T], on: &impl Fn(&T) -> bool, mut run: impl FnMut(usize, usize)) {
+    let mut open: Option<usize> = None;
+    let mut pixel_by_pixel = |x0: usize, part: &[T], open: &mut Option<usize>| {
+        for (x, v) in (x0..).zip(part) {
+            match (on(v), *open) {
+                (true, None) => *open = Some(x),
+                (false, Some(s)) => {
+                    run(s, x);
+                    *open = None;
+                }
+                _ => {}
+            }
+        }
+    };
+    let mut chunks = row.chunks_exact(CHUNK);
+    let mut x0 = 0;
+    for part in &mut chunks {
+        let count = part.iter().fold(0usize, |a, v| a + usize::from(on(v)));
+        match (count, open) {
+            (0, None) | (CHUNK, Some(_)) => {}
+            _ => pixel_by_pixel(x0, part, &mut open),
+        }
+        x0 += CHUNK;
+    }
+    pixel_by_pixel(x0, chunks.remainder(), &mut open);
+    if let Some(s) = open {
+        run(s, row.len());
+    }
+}
+
 /// The components of the pixels where `on(value)` holds (see [`Components`]).
 pub fn components_where<T>(
     img: &Plane<T>,
     on: impl Fn(&T) -> bool,
     conn: Connectivity,
 ) -> Components {
-    let (w, h) = (img.width, img.height);
+    let h = img.height;
     let mut runs: Vec<Run> = Vec::new();
     let mut row_start = Vec::with_capacity(h + 1);
     for y in 0..h {
         row_start.push(runs.len());
-        let row = img.row(y);
-        let mut x = 0;
-        while x < w {
-            if on(&row[x]) {
-                let x0 = x;
-                while x < w && on(&row[x]) {
-                    x += 1;
-                }
-                runs.push(Run { y, x0, x1: x });
-            } else {
-                x += 1;
-            }
-        }
+        row_runs(img.row(y), &on, |x0, x1| runs.push(Run { y, x0, x1 }));
     }
     row_start.push(runs.len());
     let mut parent: Vec<u32> = (0..runs.len() as u32).collect();
@@ -158,6 +183,50 @@ mod tests {
         assert_eq!(n, 2);
         assert_eq!(l.row(0), &[1, 0, 1, 0, 2]);
         assert_eq!(l.row(2), &[1, 1, 1, 0, 2]);
+    }
+
+    #[test]
+    fn row_runs_are_the_pixel_by_pixel_runs() {
+        // Widths around the chunk, runs of every length, mostly-off and mostly-on rows.
+        let mut seed = 7u64;
+        let mut rnd = || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (seed >> 33) as usize
+        };
+        for w in [0, 1, 5, 31, 32, 33, 63, 64, 65, 100, 257, 1280] {
+            for density in [0, 1, 10, 50, 90, 99, 100] {
+                for _ in 0..20 {
+                    let mut row = vec![0u8; w];
+                    let mut x = 0;
+                    while x < w {
+                        let len = 1 + rnd() % 70;
+                        let v = u8::from(rnd() % 100 < density);
+                        for p in row.iter_mut().skip(x).take(len) {
+                            *p = v;
+                        }
+                        x += len;
+                    }
+                    let mut want = Vec::new();
+                    let mut x = 0;
+                    while x < w {
+                        if row[x] != 0 {
+                            let x0 = x;
+                            while x < w && row[x] != 0 {
+                                x += 1;
+                            }
+                            want.push((x0, x));
+                        } else {
+                            x += 1;
+                        }
+                    }
+                    let mut got = Vec::new();
+                    row_runs(&row, &|&v: &u8| v != 0, |a, b| got.push((a, b)));
+                    assert_eq!(got, want, "width {w}, density {density}: {row:?}");
+                }
+            }
+        }
     }
 
     #[test]
