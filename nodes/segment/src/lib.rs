@@ -172,10 +172,7 @@ pub fn describe_cells_from(labels: &Plane<u32>, n: u32, starts: Option<&[[u32; 2
     }
     let mut acc: Vec<Option<Acc>> = (0..=n).map(|_| None).collect();
     for y in 0..labels.height {
-        for (x, &l) in labels.row(y).iter().enumerate() {
-            if l == 0 {
-                continue;
-            }
+        label::for_each_labelled(labels.row(y), |x, l| {
             let (x, y) = (x as u32, y as u32);
             let a = acc[l as usize].get_or_insert(Acc {
                 area: 0,
@@ -195,7 +192,7 @@ pub fn describe_cells_from(labels: &Plane<u32>, n: u32, starts: Option<&[[u32; 2
             a.bbox.x0 = a.bbox.x0.min(x);
             a.bbox.x1 = a.bbox.x1.max(x);
             a.bbox.y1 = y;
-        }
+        });
     }
     acc.into_iter()
         .enumerate()

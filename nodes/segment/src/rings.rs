@@ -40,10 +40,7 @@ fn components(labels: &Plane<u32>, n: u32) -> Vec<Option<Component>> {
     }
     let mut scans: Vec<Option<Scan>> = (0..=n).map(|_| None).collect();
     for y in 0..labels.height {
-        for (x, &l) in labels.row(y).iter().enumerate() {
-            if l == 0 {
-                continue;
-            }
+        crate::label::for_each_labelled(labels.row(y), |x, l| {
             let p = Point::new(x as i64, y as i64);
             let s = scans[l as usize].get_or_insert_with(|| Scan {
                 area: 0,
@@ -54,7 +51,7 @@ fn components(labels: &Plane<u32>, n: u32) -> Vec<Option<Component>> {
                 Some(last) if last.y == p.y => *last = p,
                 _ => s.ends.extend([p, p]),
             }
-        }
+        });
     }
     scans
         .into_iter()
