@@ -21,16 +21,20 @@ use serde::Serialize;
 use crate::lanes::{Lanes, Real, WIDTH};
 
 /// Value and x-gradient of a row at fractional `x` (linear interpolation of the samples and
-/// of their central differences); `None` outside `[1, len − 2]`.
-pub(crate) fn sample(row: &[f32], x: f64) -> Option<(f64, f64)> {
+/// of their central differences, the differences taken in `f32`); `None` outside
+/// `[1, len − 2]`. A grey row is read as it is: its levels and their differences are exact
+/// in `f32`, so the values are those of the row converted first (the top fits converted
+/// every row they touched, all of it, for each fit).
+pub(crate) fn sample<T: Copy + Into<f32>>(row: &[T], x: f64) -> Option<(f64, f64)> {
     if !(x >= 1.0 && x <= (row.len() - 2) as f64) {
         return None;
     }
+    let at = |k: usize| -> f32 { row[k].into() };
     let i = (x.floor() as usize).min(row.len() - 3);
     let t = x - i as f64;
-    let v = row[i] as f64 * (1.0 - t) + row[i + 1] as f64 * t;
-    let g0 = 0.5 * (row[i + 1] - row[i - 1]) as f64;
-    let g1 = 0.5 * (row[i + 2] - row[i]) as f64;
+    let v = at(i) as f64 * (1.0 - t) + at(i + 1) as f64 * t;
+    let g0 = 0.5 * (at(i + 1) - at(i - 1)) as f64;
+    let g1 = 0.5 * (at(i + 2) - at(i)) as f64;
     Some((v, g0 * (1.0 - t) + g1 * t))
 }
 
@@ -1274,17 +1278,6 @@ fn fit_top<const N: usize>(
         let c0 = a.view((0, 0), (k, k)).lu().solve(&(-b.rows(0, k)))?;
         p[..k].copy_from_slice(c0.as_slice());
     }
-    let rows: Vec<Vec<f32>> = {
-        let conv = |img: &Plane<u8>, y: usize| img.row(y).iter().map(|&v| v as f32).collect();
-        let mut ys: Vec<usize> = pixels.iter().map(|p| p[1]).collect();
-        ys.sort_unstable();
-        ys.dedup();
-        let mut rows = vec![Vec::new(); left.height];
-        for y in ys {
-            rows[y] = conv(right, y);
-        }
-        rows
-    };
     // Sized for every pixel up front: grown by doubling, the terms (up to 144 bytes each)
     // were copied over and over.
     let terms_at = |p: &[f64; N]| -> Vec<(f64, [f64; N])> {
@@ -1294,7 +1287,7 @@ fn fit_top<const N: usize>(
         while i0 < pixels.len() {
             let n = hits(i0, p, &mut out);
             for (q, &(f, d, dq)) in pixels[i0..i0 + n].iter().zip(&out) {
-                let Some((rv, rg)) = sample(&rows[q[1]], q[0] as f64 - d) else {
+                let Some((rv, rg)) = sample(right.row(q[1]), q[0] as f64 - d) else {
                     continue;
                 };
                 let e = *left.get(q[0], q[1]) as f64 - (p[k] * rv + p[k + 1]);

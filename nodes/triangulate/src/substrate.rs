@@ -130,21 +130,12 @@ pub fn rim_disparity(
     if ncc < RIM_MIN_NCC {
         return None;
     }
-    let rows: Vec<Vec<f32>> = {
-        let mut rows = vec![Vec::new(); left.height];
-        for &[_, y] in &band {
-            if rows[y].is_empty() {
-                rows[y] = right.row(y).iter().map(|&v| v as f32).collect();
-            }
-        }
-        rows
-    };
     // d, gain, offset.
     let mut p = [best as f64, 1.0, 0.0];
     let terms = |p: &[f64; 3]| -> Vec<(f64, [f64; 3])> {
         band.iter()
             .filter_map(|&[x, y]| {
-                let (rv, rg) = sample(&rows[y], x as f64 - p[0])?;
+                let (rv, rg) = sample(right.row(y), x as f64 - p[0])?;
                 let e = *left.get(x, y) as f64 - (p[1] * rv + p[2]);
                 Some((e, [p[1] * rg, -rv, -1.0]))
             })
