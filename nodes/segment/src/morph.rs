@@ -384,9 +384,65 @@ pub fn close(mask: &Mask, radius: u8) -> Mask {
     disc_op(mask, radius, imageproc::morphology::close)
 }
 
-/// Dilates with a disc of `radius`.
+/// Dilates with a disc of `radius`: 255 where a mask pixel lies within `radius` (Euclidean),
+/// as imageproc's L2 dilation, row by row in bits: a row's bits widened by the disc's
+/// half-width at each row offset (`⌊√(r² − dy²)⌋`), the offsets ORed (imageproc's distance
+/// transform took a third of the triangulate node's tile composition).
 pub fn dilate(mask: &Mask, radius: u8) -> Mask {
-    disc_op(mask, radius, imageproc::morphology::dilate)
+    if radius == 0 {
+        return mask.clone();
+    }
+    let (w, h) = (mask.width, mask.height);
+    let r = radius as usize;
+    // Rows padded by `r` bits on the left, so that widening never reaches before bit 0.
+    let nw = (w + 2 * r).div_ceil(64) + 1;
+    let half: Vec<usize> = (0..=r).map(|dy| (r * r - dy * dy).isqrt()).collect();
+    let mut widths = half.clone();
+    widths.sort_unstable();
+    widths.dedup();
+    // Per row, per distinct half-width `hw`: bit `x` set where a mask pixel of the row lies
+    // within `hw` of `x`.
+    let (mut tmp, mut padded, mut f) = (vec![0u64; nw], vec![0u64; nw], vec![0u64; nw]);
+    let mut wide = vec![0u64; h * widths.len() * nw];
+    for y in 0..h {
+        padded.fill(0);
+        for (x, _) in mask.row(y).iter().enumerate().filter(|(_, v)| **v != 0) {
+            let b = x + r;
+            padded[b / 64] |= 1 << (b % 64);
+        }
+        for (k, &hw) in widths.iter().enumerate() {
+            f.copy_from_slice(&padded);
+            forward_bits(&mut f, 2 * hw + 1, false, &mut tmp);
+            let out = &mut wide[(y * widths.len() + k) * nw..][..nw];
+            shift_down(&f, r - hw, out);
+        }
+    }
+    let mut out = Plane::filled(w, h, 0u8);
+    let mut acc = vec![0u64; nw];
+    for y in 0..h {
+        acc.fill(0);
+        for (dy, &hw) in half.iter().enumerate() {
+            let k = widths.binary_search(&hw).expect("listed");
+            for v in [y.checked_sub(dy), (dy > 0).then_some(y + dy)]
+                .into_iter()
+                .flatten()
+                .filter(|&v| v < h)
+            {
+                for (a, &b) in acc
+                    .iter_mut()
+                    .zip(&wide[(v * widths.len() + k) * nw..][..nw])
+                {
+                    *a |= b;
+                }
+            }
+        }
+        for (x, o) in out.row_mut(y).iter_mut().enumerate() {
+            if acc[x / 64] >> (x % 64) & 1 != 0 {
+                *o = 255;
+            }
+        }
+    }
+    out
 }
 
 #[cfg(test)]
@@ -674,6 +730,31 @@ mod tests {
         Plane::from_vec(w, h, data).expect("size")
     }
     use crate::testutil::mask;
+
+    #[test]
+    fn the_bitwise_dilation_matches_imageproc() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        for case in 0..300 {
+            let (w, h) = match case % 3 {
+                0 => (rng.random_range(1..40), rng.random_range(1..40)),
+                1 => (rng.random_range(60..200), rng.random_range(1..30)),
+                _ => (rng.random_range(1..140), rng.random_range(1..20)),
+            };
+            let density = [0.005, 0.02, 0.1, 0.4, 0.9][case % 5];
+            let data = (0..w * h)
+                .map(|_| if rng.random_bool(density) { 255 } else { 0 })
+                .collect();
+            let m = Plane::from_vec(w, h, data).unwrap();
+            let radius = rng.random_range(0..12u8);
+            let want = disc_op(&m, radius, imageproc::morphology::dilate);
+            assert_eq!(
+                dilate(&m, radius).data,
+                want.data,
+                "{w}×{h}, radius {radius}"
+            );
+        }
+    }
 
     #[test]
     fn the_bitwise_closing_matches_imageproc() {
