@@ -187,6 +187,11 @@ pub fn variance_levels(img: &Plane<u8>, radius: usize, scale: VarianceScale) -> 
     let mut num: Vec<u32> = Vec::with_capacity(iw * ih);
     let (mut c1, mut c2) = (vec![0u32; w], vec![0u32; w]);
     let (mut s1, mut s2) = (vec![0u32; iw], vec![0u32; iw]);
+    let doublings = (usize::BITS - 1 - span.leading_zeros()) as usize;
+    let (mut q1, mut q2) = (
+        vec![vec![0u32; w]; doublings],
+        vec![vec![0u32; w]; doublings],
+    );
     let n32 = n as u32;
     let mut most = 0u32;
     for y in r..h - r {
@@ -209,19 +214,11 @@ pub fn variance_levels(img: &Plane<u8>, radius: usize, scale: VarianceScale) -> 
             add(y - r - 1, false);
         }
         // Each window's sums added up from its columns: independent per pixel, so they
-        // vectorise (a running prefix sum waits on itself pixel by pixel).
-        s1.fill(0);
-        s2.fill(0);
-        for k in 0..span {
-            for ((a, b), (&v1, &v2)) in s1
-                .iter_mut()
-                .zip(s2.iter_mut())
-                .zip(c1[k..].iter().zip(&c2[k..]))
-            {
-                *a += v1;
-                *b += v2;
-            }
-        }
+        // vectorise (a running prefix sum waits on itself pixel by pixel); from sums over
+        // 2, 4, … columns, each into a table of its own (one pass per doubling and per set
+        // bit of the window's width: 4 for 7 columns instead of 8).
+        window_sums(&c1, span, &mut s1, &mut q1);
+        window_sums(&c2, span, &mut s2, &mut q2);
         num.extend(s1.iter().zip(&s2).map(|(&a, &b)| n32 * b - a * a));
         most = num[(y - r) * iw..].iter().copied().fold(most, u32::max);
     }
@@ -271,6 +268,45 @@ pub fn variance_levels(img: &Plane<u8>, radius: usize, scale: VarianceScale) -> 
         }
     }
     (Plane::from_vec(w, h, data).expect("size"), max)
+}
+
+/// `out[x] = c[x] + … + c[x + span − 1]` for every `x` of `out` (`out.len() + span − 1 ≤
+/// c.len()`, the sums below 2³²): `parts[k]` gets the sums over `2^(k+1)` columns (one
+/// table per doubling, so that each pass reads one table and writes another and
+/// vectorises), and each set bit of `span` adds one of the tables at its offset. Integer
+/// sums: the same as adding the columns one by one.
+fn window_sums(c: &[u32], span: usize, out: &mut [u32], parts: &mut [Vec<u32>]) {
+    let n = out.len();
+    let mut width = 1;
+    for k in 0..parts.len() {
+        let (done, rest) = parts.split_at_mut(k);
+        let prev: &[u32] = if k == 0 { c } else { &done[k - 1] };
+        let next = &mut rest[0];
+        let len = prev.len() - width;
+        for ((o, &a), &b) in next[..len].iter_mut().zip(prev).zip(&prev[width..]) {
+            *o = a + b;
+        }
+        width *= 2;
+    }
+    let mut offset = 0;
+    let mut first = true;
+    for bit in (0..=parts.len()).rev() {
+        let width = 1 << bit;
+        if span & width == 0 {
+            continue;
+        }
+        let table: &[u32] = if bit == 0 { c } else { &parts[bit - 1] };
+        let add = &table[offset..offset + n];
+        if first {
+            out.copy_from_slice(add);
+            first = false;
+        } else {
+            for (o, &a) in out.iter_mut().zip(add) {
+                *o += a;
+            }
+        }
+        offset += width;
+    }
 }
 
 /// [`Levels`] over integer numerators (below 2³¹): the number of `limits` at or below a
@@ -389,6 +425,20 @@ impl<'a> Levels<'a> {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn window_sums_add_every_column_of_the_window() {
+        let c: Vec<u32> = (0..50u32).map(|i| i * 7919 % 1013).collect();
+        for span in 1..=17usize {
+            let n = c.len() + 1 - span;
+            let doublings = (usize::BITS - 1 - span.leading_zeros()) as usize;
+            let (mut out, mut parts) = (vec![0; n], vec![vec![0; c.len()]; doublings]);
+            super::window_sums(&c, span, &mut out, &mut parts);
+            for (x, &o) in out.iter().enumerate() {
+                assert_eq!(o, c[x..x + span].iter().sum::<u32>(), "span {span} at {x}");
+            }
+        }
+    }
+
     use super::*;
     use crate::BoxSums;
 
