@@ -1733,10 +1733,14 @@ fn chaos_run(frames: u64, kills: usize, seed: u64) -> Duration {
     let port = free_port();
     let dir = tempfile::tempdir().unwrap();
     let small = small_graph()
-        // Small frames, so that a thousand of them pass in a minute.
+        // Small frames from a camera of 100 frames/s: a thousand of them take ten seconds
+        // whatever the machine. Unpaced, the graph took 1000 frames in 3 s, faster than
+        // killed nodes came back under load: the capture ran out of frames while they
+        // restarted, the last few hundred were lost and no scene came for the test to see
+        // (a run that had ended, read as a stall).
         .replace(
             "width = 320, height = 240, cells = 3",
-            "width = 192, height = 128, cells = 2",
+            "width = 192, height = 128, cells = 2, fps = 100",
         )
         .replace("127.0.0.1:0", &format!("127.0.0.1:{port}"));
     let text = with_restart(
@@ -1753,7 +1757,7 @@ fn chaos_run(frames: u64, kills: usize, seed: u64) -> Duration {
         "manipulator-bridge",
     ];
     assert_eq!(text.matches("restart = {").count(), nodes.len());
-    assert!(text.contains("cells = 2") && text.contains(&format!(":{port}")));
+    assert!(text.contains("cells = 2, fps = 100") && text.contains(&format!(":{port}")));
     let file = dir.path().join("chaos.toml");
     std::fs::write(&file, &text).unwrap();
     let instance = format!("chaos{}-{seed}", std::process::id());
