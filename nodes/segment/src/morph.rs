@@ -387,7 +387,7 @@ pub fn close(mask: &Mask, radius: u8) -> Mask {
 /// Dilates with a disc of `radius`: 255 where a mask pixel lies within `radius` (Euclidean),
 /// as imageproc's L2 dilation, row by row in bits: a row's bits widened by the disc's
 /// half-width at each row offset (`⌊√(r² − dy²)⌋`), the offsets ORed (imageproc's distance
-/// transform took a third of the triangulate node's tile composition).
+/// transform took over 40 % of the triangulate node's tile composition).
 pub fn dilate(mask: &Mask, radius: u8) -> Mask {
     if radius == 0 {
         return mask.clone();
