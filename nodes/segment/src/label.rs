@@ -57,7 +57,7 @@ const CHUNK: usize = 32;
 /// right. A chunk of [`CHUNK`] pixels all off (or all on, inside a run) is passed at once:
 /// its count of on-pixels takes no branch per pixel, where the test pixel by pixel took
 /// 5 % of the live graph's CPU over mostly empty masks.
-fn row_runs<T>(row: &[T], on: &impl Fn(&T) -> bool, mut run: impl FnMut(usize, usize)) {
+pub(crate) fn row_runs<T>(row: &[T], on: &impl Fn(&T) -> bool, mut run: impl FnMut(usize, usize)) {
     let mut open: Option<usize> = None;
     let mut pixel_by_pixel = |x0: usize, part: &[T], open: &mut Option<usize>| {
         for (x, v) in (x0..).zip(part) {

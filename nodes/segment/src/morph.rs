@@ -731,6 +731,14 @@ mod tests {
     }
     use crate::testutil::mask;
 
+    /// A `w × h` mask, each pixel on (255) with probability `density`.
+    fn random_mask(rng: &mut impl rand::Rng, w: usize, h: usize, density: f64) -> Mask {
+        let data = (0..w * h)
+            .map(|_| if rng.random_bool(density) { 255 } else { 0 })
+            .collect();
+        Plane::from_vec(w, h, data).unwrap()
+    }
+
     #[test]
     fn the_bitwise_dilation_matches_imageproc() {
         use rand::{Rng, SeedableRng};
@@ -742,10 +750,7 @@ mod tests {
                 _ => (rng.random_range(1..140), rng.random_range(1..20)),
             };
             let density = [0.005, 0.02, 0.1, 0.4, 0.9][case % 5];
-            let data = (0..w * h)
-                .map(|_| if rng.random_bool(density) { 255 } else { 0 })
-                .collect();
-            let m = Plane::from_vec(w, h, data).unwrap();
+            let m = random_mask(&mut rng, w, h, density);
             let radius = rng.random_range(0..12u8);
             let want = disc_op(&m, radius, imageproc::morphology::dilate);
             assert_eq!(
@@ -769,10 +774,7 @@ mod tests {
                 _ => (rng.random_range(1..140), rng.random_range(1..30)),
             };
             let density = [0.02, 0.1, 0.3, 0.6, 0.95][case % 5];
-            let data = (0..w * h)
-                .map(|_| if rng.random_bool(density) { 255 } else { 0 })
-                .collect();
-            let m = Plane::from_vec(w, h, data).unwrap();
+            let m = random_mask(&mut rng, w, h, density);
             let radius = match case % 3 {
                 2 => rng.random_range(7..80u8),
                 _ => rng.random_range(0..7u8),

@@ -203,41 +203,26 @@ fn peel_with(
     let shallow = |x: usize, y: usize| everywhere || background(x, y, layers).0 > 0;
     let quiet = |x: usize, y: usize| shallow(x, y) && quiet(x, y);
     let alone = |x: usize, y: usize| shallow(x, y) && alone(x, y);
-    // The mask's pixels with a 4-neighbour in the background, in raster order.
-    // Row by row, a chunk of the row at a time: a chunk without mask pixels has none (most
-    // of a view), the others' pixels and their neighbours' in straight loops (a pixel's
-    // four neighbours looked up one by one took an eighth of the peel).
-    const CHUNK: usize = 32;
+    // The mask's pixels with a 4-neighbour in the background, in raster order, run by run
+    // ([`row_runs`](crate::label::row_runs) passes the empty stretches a chunk at a time): a
+    // run's ends are open to the side unless they touch the frame's edge, any of its pixels
+    // above or below background (a pixel's four neighbours looked up one by one took an
+    // eighth of the peel).
     let mut boundary: Vec<(usize, usize)> = Vec::new();
-    let mut open = [false; CHUNK];
     for y in 0..h {
-        let row = mask.row(y);
         let (up, down) = (
             y.checked_sub(1).map(|v| mask.row(v)),
             (y + 1 < h).then(|| mask.row(y + 1)),
         );
-        for x0 in (0..w).step_by(CHUNK) {
-            let x1 = (x0 + CHUNK).min(w);
-            if row[x0..x1].iter().fold(0, |a, &m| a | m) == 0 {
-                continue;
-            }
-            let open = &mut open[..x1 - x0];
-            open.fill(false);
-            for v in [up, down].into_iter().flatten() {
-                for (o, &m) in open.iter_mut().zip(&v[x0..x1]) {
-                    *o |= m == 0;
-                }
-            }
+        let open = |r: Option<&[u8]>, x: usize| r.is_some_and(|r| r[x] == 0);
+        crate::label::row_runs(mask.row(y), &|&m: &u8| m != 0, |x0, x1| {
             for x in x0..x1 {
-                if row[x] != 0
-                    && (open[x - x0]
-                        || (x > 0 && row[x - 1] == 0)
-                        || (x + 1 < w && row[x + 1] == 0))
-                {
+                let side = (x == x0 && x0 > 0) || (x + 1 == x1 && x1 < w);
+                if side || open(up, x) || open(down, x) {
                     boundary.push((x, y));
                 }
             }
-        }
+        });
     }
     let mut listed = vec![false; w * h];
     let test_rounds: [(PeelTest, usize); 2] = [(&quiet, 2 * layers), (&alone, 1)];
