@@ -111,8 +111,8 @@ impl StereoCalibration {
     }
 }
 
-/// Applies radial-tangential distortion to normalised coordinates.
-fn distort(d: &[f64], x: f64, y: f64) -> (f64, f64) {
+/// Applies radial-tangential distortion `k1 k2 p1 p2 [k3]` to normalised coordinates (OpenCV's model).
+pub fn distort(d: &[f64], x: f64, y: f64) -> (f64, f64) {
     let (k1, k2, p1, p2) = (d[0], d[1], d[2], d[3]);
     let k3 = d.get(4).copied().unwrap_or(0.0);
     let r2 = x * x + y * y;
