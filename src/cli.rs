@@ -27,6 +27,8 @@ enum Command {
     Synth(crate::synthcmd::SynthArgs),
     /// Fits the microscope's b·f_eff and disparity offset from pairs of a target at known stage heights.
     CalibrateDepth(crate::calibrate::CalibrateArgs),
+    /// Calibrates both cameras and their relative pose from chessboard pairs: the calibration file rectify, triangulate and reconstruct read.
+    CalibrateStereo(crate::calibstereo::CalibrateStereoArgs),
     /// Runs a launch file's graph, one process per node, and prints a summary at the end.
     Run(crate::run::RunArgs),
     /// Runs one node of a running graph as this process (started by `run`).
@@ -65,6 +67,7 @@ pub fn main() -> i32 {
         Command::Segment(a) => crate::segmentcmd::segment_cmd(a),
         Command::Synth(a) => crate::synthcmd::synth(a),
         Command::CalibrateDepth(a) => crate::calibrate::calibrate_depth(a),
+        Command::CalibrateStereo(a) => crate::calibstereo::calibrate_stereo_cmd(a),
         Command::Run(a) => crate::run::run_cmd(a),
         Command::Node(a) => crate::run::node_cmd(a),
         Command::Inspect(a) => crate::recording::inspect(a),

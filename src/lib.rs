@@ -15,6 +15,7 @@
 
 pub mod bench;
 pub mod calibrate;
+pub mod calibstereo;
 pub mod cli;
 pub mod error;
 pub mod fuzzing;

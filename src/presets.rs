@@ -34,12 +34,17 @@ pub struct Stereo {
     pub segment: Option<SegmentParams>,
     /// Triangulate (and measure the cells) with this geometry.
     pub geometry: Option<Geometry>,
+    /// Rectify the raw pair first with this calibration file's cameras (its `[stereo]`
+    /// table, or OpenCV's stereo YAML).
+    pub rectify: Option<String>,
 }
 
 /// The node ids of a [`Stereo`] graph.
 pub mod ids {
     /// The image pair.
     pub const PAIR: &str = "pair";
+    /// Rectification of a raw pair.
+    pub const RECTIFY: &str = "rectify";
     /// Segmentation.
     pub const SEGMENT: &str = "segment";
     /// Matching, both directions.
@@ -89,6 +94,7 @@ impl Stereo {
             post: Some(post_for(mode)),
             segment: None,
             geometry: None,
+            rectify: None,
         }
     }
 
@@ -105,20 +111,31 @@ impl Stereo {
                 frames: self.frames,
             }),
         )];
+        // A raw pair is rectified first; every later node reads the rectified views (and
+        // the points go grey: the colour view is not rectified).
+        let frame = if let Some(cal) = &self.rectify {
+            nodes.push(node(
+                RECTIFY,
+                "rectify",
+                &[("frame", "pair/frame")],
+                toml::Table::from_iter([(
+                    "calibration".to_string(),
+                    toml::Value::from(cal.as_str()),
+                )]),
+            ));
+            "rectify/frame"
+        } else {
+            "pair/frame"
+        };
         let mut matching = self.matching.clone();
         matching.region = if self.segment.is_some() {
             Region::Cells
         } else {
             Region::Frame
         };
-        let mut match_in = vec![("frame", "pair/frame")];
+        let mut match_in = vec![("frame", frame)];
         if let Some(s) = &self.segment {
-            nodes.push(node(
-                SEGMENT,
-                "segment",
-                &[("frame", "pair/frame")],
-                table(s),
-            ));
+            nodes.push(node(SEGMENT, "segment", &[("frame", frame)], table(s)));
             match_in.push(("cells", "segment/cells"));
         }
         nodes.push(node(MATCH, "match", &match_in, table(&matching)));
@@ -136,11 +153,10 @@ impl Stereo {
                 table(p),
             ));
             if let Some(g) = &self.geometry {
-                let mut inputs = vec![
-                    ("frame", "pair/frame"),
-                    ("disparity", "postprocess/disparity"),
-                    ("colour", "pair/colour"),
-                ];
+                let mut inputs = vec![("frame", frame), ("disparity", "postprocess/disparity")];
+                if self.rectify.is_none() {
+                    inputs.push(("colour", "pair/colour"));
+                }
                 if self.segment.is_some() {
                     inputs.extend([
                         ("checked", "validate/left"),

@@ -40,10 +40,25 @@ enum FillArg {
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum, PartialEq)]
-enum UnitArg {
+/// A length unit on the command line.
+pub enum UnitArg {
+    /// Micrometres (a microscope).
     Um,
+    /// Millimetres (a bench rig, a printed board).
     Mm,
+    /// Metres.
     M,
+}
+
+impl UnitArg {
+    /// The unit it names.
+    pub fn unit(self) -> LengthUnit {
+        match self {
+            UnitArg::Um => LengthUnit::Um,
+            UnitArg::Mm => LengthUnit::Mm,
+            UnitArg::M => LengthUnit::M,
+        }
+    }
 }
 
 /// How the candidate ranges of `--auto-range` are built from the radii.
@@ -181,9 +196,15 @@ pub struct ReconstructArgs {
     /// microscope: `um`). Required with `--baseline`: no unit is assumed.
     #[arg(long, value_enum, requires = "baseline")]
     unit: Option<UnitArg>,
-    /// Calibration file (TOML or JSON): baseline, focal_px or f_eff + pixel_pitch, cx, cy, unit.
+    /// Calibration file (TOML or JSON): baseline, focal_px or f_eff + pixel_pitch, cx, cy,
+    /// unit; with a `[stereo]` table (`calibrate-stereo` writes one) the pair is taken as
+    /// raw and rectified first.
     #[arg(long)]
     calibration: Option<PathBuf>,
+    /// The pair is already rectified: do not rectify it with the calibration's `[stereo]`
+    /// cameras.
+    #[arg(long, requires = "calibration")]
+    rectified: bool,
     /// Segment both views and match only the cells (plus `--cell-margin`); writes cells.json.
     #[arg(long)]
     cells: bool,
@@ -266,7 +287,18 @@ impl ReconstructArgs {
             post: Some(post),
             segment: self.cells.then(|| self.seg.params()),
             geometry: self.geometry(),
+            rectify: self.rectify_with()?,
         })
+    }
+
+    /// The calibration file to rectify the pair with: the given one when it holds the raw
+    /// cameras and `--rectified` is not given.
+    fn rectify_with(&self) -> Result<Option<String>, CliError> {
+        let Some(p) = self.calibration.as_ref().filter(|_| !self.rectified) else {
+            return Ok(None);
+        };
+        let file = triangulate::calibration::read_file(p).map_err(CliError::Other)?;
+        Ok(file.stereo.is_some().then(|| p.display().to_string()))
     }
 
     fn geometry(&self) -> Option<Geometry> {
@@ -280,11 +312,8 @@ impl ReconstructArgs {
                 cx: self.cx,
                 cy: self.cy,
                 cx_right: self.cx_right.or(self.cx),
-                unit: self.unit.map(|u| match u {
-                    UnitArg::Um => LengthUnit::Um,
-                    UnitArg::Mm => LengthUnit::Mm,
-                    UnitArg::M => LengthUnit::M,
-                }),
+                unit: self.unit.map(UnitArg::unit),
+                stereo: None,
             })),
             _ => None,
         }

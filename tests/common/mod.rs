@@ -57,7 +57,9 @@ pub fn cell_targets(
             cy: Some(c.cy),
             cx_right: Some(c.cx_right),
             unit: Some(c.unit),
+            stereo: None,
         })),
+        rectify: None,
     };
     let f = run_once(&preset).unwrap();
     let targets: Targets = f.decode(ids::TRIANGULATE, "targets").unwrap();

@@ -111,6 +111,124 @@ impl StereoCalibration {
     }
 }
 
+/// The raw cameras as a calibration file's `[stereo]` table holds them (matrices row by
+/// row): what `calibrate-stereo` writes and the rectifier reads.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StereoTable {
+    /// Image width the cameras were calibrated at (px).
+    pub width: usize,
+    /// Image height (px).
+    pub height: usize,
+    /// Left camera matrix.
+    pub k1: [f64; 9],
+    /// Left distortion `k1 k2 p1 p2 [k3]`.
+    pub d1: Vec<f64>,
+    /// Right camera matrix.
+    pub k2: [f64; 9],
+    /// Right distortion.
+    pub d2: Vec<f64>,
+    /// Rotation from the left camera's frame to the right's.
+    pub r: [f64; 9],
+    /// Translation from the left camera's frame to the right's, in the file's `unit`.
+    pub t: [f64; 3],
+    /// The calibration's reprojection error (px), for the record.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rms: Option<f64>,
+}
+
+impl From<&StereoCalibration> for StereoTable {
+    fn from(c: &StereoCalibration) -> Self {
+        let rows = |m: &Matrix3<f64>| -> [f64; 9] { std::array::from_fn(|i| m[(i / 3, i % 3)]) };
+        Self {
+            width: c.size.0,
+            height: c.size.1,
+            k1: rows(&c.k1),
+            d1: c.d1.clone(),
+            k2: rows(&c.k2),
+            d2: c.d2.clone(),
+            r: rows(&c.r),
+            t: [c.t.x, c.t.y, c.t.z],
+            rms: None,
+        }
+    }
+}
+
+impl StereoTable {
+    /// The calibration, checked: positive focal lengths, 4 or 5 distortion terms, a
+    /// rotation for `r`, a translation that is not zero.
+    pub fn calibration(&self) -> Result<StereoCalibration, String> {
+        let k = |m: &[f64; 9], name: &str| -> Result<Matrix3<f64>, String> {
+            let k = Matrix3::from_row_slice(m);
+            if !(k[(0, 0)] > 0.0 && k[(1, 1)] > 0.0 && k.iter().all(|v| v.is_finite()))
+                || k[(1, 0)] != 0.0
+                || k[(2, 0)] != 0.0
+                || k[(2, 1)] != 0.0
+                || k[(2, 2)] != 1.0
+            {
+                return Err(format!(
+                    "[stereo] {name} is not a camera matrix [fx, s, cx, 0, fy, cy, 0, 0, 1] with fx, fy > 0"
+                ));
+            }
+            Ok(k)
+        };
+        for (d, name) in [(&self.d1, "d1"), (&self.d2, "d2")] {
+            if !(4..=5).contains(&d.len()) || d.iter().any(|v| !v.is_finite()) {
+                return Err(format!(
+                    "[stereo] {name} has {} distortion terms; give k1 k2 p1 p2 [k3]",
+                    d.len()
+                ));
+            }
+        }
+        let r = Matrix3::from_row_slice(&self.r);
+        if (r * r.transpose() - Matrix3::identity()).norm() > 1e-6 || r.determinant() < 0.0 {
+            return Err("[stereo] r is not a rotation (r·rᵀ must be the identity)".into());
+        }
+        let t = Vector3::from_row_slice(&self.t);
+        if !(t.norm() > 0.0 && t.norm().is_finite()) {
+            return Err("[stereo] t must be the cameras' (non-zero) offset".into());
+        }
+        if self.width < 2 || self.height < 2 {
+            return Err("[stereo] width and height must be the calibrated image size".into());
+        }
+        Ok(StereoCalibration {
+            k1: k(&self.k1, "k1")?,
+            d1: self.d1.clone(),
+            k2: k(&self.k2, "k2")?,
+            d2: self.d2.clone(),
+            r,
+            t,
+            size: (self.width, self.height),
+        })
+    }
+}
+
+/// Reads the raw cameras from `path`: microstereo's calibration file (TOML with a
+/// `[stereo]` table) or OpenCV's stereo YAML (K1, D1, K2, D2, R, T).
+pub fn read_stereo(path: &str) -> Result<StereoCalibration, String> {
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| format!("cannot read calibration '{path}': {e}"))?;
+    if text.trim_start().starts_with("%YAML") || text.contains("!!opencv-matrix") {
+        return StereoCalibration::from_opencv_yaml(&text)
+            .map_err(|e| format!("calibration '{path}' (OpenCV YAML): {e}"));
+    }
+    #[derive(serde::Deserialize)]
+    struct OnlyStereo {
+        stereo: Option<StereoTable>,
+    }
+    let f: OnlyStereo = toml::from_str(&text).map_err(|e| {
+        format!("calibration '{path}' is neither microstereo's TOML nor OpenCV's YAML: {e}")
+    })?;
+    f.stereo
+        .ok_or_else(|| {
+            format!(
+                "calibration '{path}' has no [stereo] table (the raw cameras): it describes rectified images only; make one with `microstereo calibrate-stereo` or import OpenCV's with `microstereo calibration import`"
+            )
+        })?
+        .calibration()
+        .map_err(|e| format!("calibration '{path}': {e}"))
+}
+
 /// Applies radial-tangential distortion `k1 k2 p1 p2 [k3]` to normalised coordinates (OpenCV's model).
 pub fn distort(d: &[f64], x: f64, y: f64) -> (f64, f64) {
     let (k1, k2, p1, p2) = (d[0], d[1], d[2], d[3]);

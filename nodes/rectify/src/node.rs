@@ -1,7 +1,7 @@
 //! The rectify node: a stereo frame in, the rectified frame out (the same frame when no
 //! calibration is given: the input is already rectified).
 
-use crate::{Rectification, RemapLut, StereoCalibration};
+use crate::{Rectification, RemapLut, read_stereo};
 use runtime::node::{NodeError, Params, Stamp, Task};
 use schemas::StereoFrame;
 use serde::Deserialize;
@@ -10,7 +10,8 @@ use serde::Deserialize;
 #[derive(Clone, Debug, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RectifyParams {
-    /// OpenCV YAML with K1, D1, K2, D2, R, T (none: pass frames through).
+    /// The calibration file (its `[stereo]` table) or OpenCV YAML with K1, D1, K2, D2, R, T
+    /// (none: pass frames through).
     #[serde(default)]
     pub calibration: Option<String>,
     /// Or two ROS camera_info YAML files, left and right, that hold the rectification.
@@ -28,11 +29,7 @@ impl RectifyParams {
         };
         match (&self.calibration, &self.camera_info) {
             (None, None) => Ok(None),
-            (Some(path), None) => {
-                let cal = StereoCalibration::from_opencv_yaml(&read(path)?)
-                    .map_err(|e| format!("calibration '{path}': {e}"))?;
-                Ok(Some(Rectification::bouguet(&cal)))
-            }
+            (Some(path), None) => Ok(Some(Rectification::bouguet(&read_stereo(path)?))),
             (None, Some([l, r])) => Rectification::from_camera_info(&read(l)?, &read(r)?).map(Some),
             (Some(_), Some(_)) => Err("give calibration or camera_info, not both".into()),
         }

@@ -8,6 +8,13 @@
 //! cx = 639.5            # optional, default image centre
 //! cy = 511.5
 //! unit = "um"
+//!
+//! [stereo]              # optional: the raw cameras (`calibrate-stereo`), for the rectifier
+//! width = 640
+//! height = 480
+//! k1 = [533.4, 0.0, 342.5, 0.0, 533.4, 234.7, 0.0, 0.0, 1.0]
+//! d1 = [-0.28, 0.039, 0.0012, -0.00013, 0.119]
+//! # k2, d2, r (left → right rotation, row by row), t (left → right, in `unit`)
 //! ```
 
 use schemas::{Calibration, LengthUnit};
@@ -42,6 +49,9 @@ pub struct CalibrationFile {
     /// microscope's µm and a bench rig's mm differ a thousandfold).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub unit: Option<LengthUnit>,
+    /// The raw cameras, for rectifying raw pairs (`None`: the images come rectified).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stereo: Option<rectify::StereoTable>,
 }
 
 impl CalibrationFile {
@@ -72,7 +82,44 @@ impl CalibrationFile {
             unit,
         };
         check(&c, source)?;
+        self.cameras(source)?;
         Ok(c)
+    }
+
+    /// The file of a calibrated stereo pair: its raw cameras in `[stereo]` and the
+    /// geometry of its Bouguet rectification (baseline, focal length, principal points) for
+    /// triangulating the rectified views; lengths in `unit`.
+    pub fn from_stereo(
+        cal: &rectify::StereoCalibration,
+        unit: LengthUnit,
+        rms: Option<f64>,
+    ) -> Self {
+        let rect = rectify::Rectification::bouguet(cal);
+        Self {
+            baseline: rect.baseline,
+            focal_px: Some(rect.f),
+            f_eff: None,
+            pixel_pitch: None,
+            cx: Some(rect.c[0]),
+            cy: Some(rect.c[1]),
+            cx_right: Some(rect.cx_right),
+            unit: Some(unit),
+            stereo: Some(rectify::StereoTable {
+                rms,
+                ..rectify::StereoTable::from(cal)
+            }),
+        }
+    }
+
+    /// The raw cameras, checked (`None` without a `[stereo]` table).
+    pub fn cameras(&self, source: &str) -> Result<Option<rectify::StereoCalibration>, String> {
+        self.stereo
+            .as_ref()
+            .map(|t| {
+                t.calibration()
+                    .map_err(|e| format!("calibration {source}: {e}"))
+            })
+            .transpose()
     }
 
     /// The file form of a geometry (focal length as f_eff and `pitch`).
@@ -86,6 +133,7 @@ impl CalibrationFile {
             cy: Some(c.cy),
             cx_right: Some(c.cx_right),
             unit: Some(c.unit),
+            stereo: None,
         }
     }
 }
@@ -131,6 +179,13 @@ pub fn read_file(path: &Path) -> Result<CalibrationFile, String> {
             path.display()
         )
     })
+}
+
+/// Writes `f` as a TOML calibration file (atomically; the caller checks overwriting).
+pub fn write_file(path: &Path, f: &CalibrationFile, comment: &str) -> Result<(), String> {
+    let body = toml::to_string(f).map_err(|e| e.to_string())?;
+    let text = format!("# {comment}\n{body}");
+    formats::atomic::write_bytes(path, text.as_bytes()).map_err(|e| e.to_string())
 }
 
 /// Reads a calibration file for images of `w × h`.
