@@ -34,6 +34,10 @@ pub struct CalibrateArgs {
     /// stack's own files).
     #[arg(short, long)]
     pub output: Option<PathBuf>,
+    /// Write the fit into this existing calibration file instead: its geometry is replaced
+    /// and its `[stereo]` cameras (from `calibrate-stereo`) kept, in µm.
+    #[arg(long, conflicts_with_all = ["output", "overwrite"])]
+    pub into: Option<PathBuf>,
     /// Replace the output file if it exists.
     #[arg(long)]
     pub overwrite: bool,
@@ -171,10 +175,17 @@ pub fn calibrate_depth(a: CalibrateArgs) -> Result<(), CliError> {
     }
     let stack = read_stack(&a.dir)?;
     let out = a
-        .output
+        .into
         .clone()
+        .or_else(|| a.output.clone())
         .unwrap_or_else(|| a.dir.join("calibration-fitted.toml"));
-    check_output(&out, &a.dir, &stack, a.overwrite)?;
+    // `--into` replaces the file it names, by request; it is read first, and checked
+    // against the stack like any output.
+    let into = match &a.into {
+        Some(p) => Some(triangulate::calibration::read_file(p).map_err(CliError::Other)?),
+        None => None,
+    };
+    check_output(&out, &a.dir, &stack, a.overwrite || into.is_some())?;
     let mut zs: Vec<f64> = stack.iter().map(|s| s.2).collect();
     zs.sort_by(|a, b| a.total_cmp(b));
     zs.dedup();
@@ -215,7 +226,32 @@ pub fn calibrate_depth(a: CalibrateArgs) -> Result<(), CliError> {
         cx_right: cx + fit.offset,
         unit: LengthUnit::Um,
     };
-    triangulate::calibration::write(&out, &cal, a.pixel_pitch.unwrap_or(1.0))?;
+    match into {
+        Some(old) => {
+            // The cameras' translation follows the file into µm.
+            let scale = old
+                .unit
+                .map_or(1.0, |u| u.metres() / LengthUnit::Um.metres());
+            let stereo = old.stereo.map(|mut t| {
+                t.t = t.t.map(|v| v * scale);
+                t
+            });
+            let file = triangulate::calibration::CalibrationFile {
+                stereo,
+                ..triangulate::calibration::CalibrationFile::from_calibration(
+                    &cal,
+                    a.pixel_pitch.unwrap_or(1.0),
+                )
+            };
+            triangulate::calibration::write_file(
+                &out,
+                &file,
+                &format!("Geometry fitted by microstereo calibrate-depth from the z-stack in '{}'; [stereo] kept.", a.dir.display()),
+            )
+            .map_err(CliError::Other)?;
+        }
+        None => triangulate::calibration::write(&out, &cal, a.pixel_pitch.unwrap_or(1.0))?,
+    }
     println!("{:>10} {:>12} {:>12}", "z (µm)", "d (px)", "resid (px)");
     for ((zi, di), ri) in z.iter().zip(&d).zip(&fit.residuals) {
         println!("{zi:>10.2} {di:>12.3} {ri:>12.4}");

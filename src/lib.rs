@@ -14,6 +14,7 @@
 //!   recordings (`inspect`, `replay`, `test-node`, `view`).
 
 pub mod bench;
+pub mod calibfile;
 pub mod calibrate;
 pub mod calibstereo;
 pub mod cli;

@@ -268,3 +268,213 @@ fn calibrate_stereo_reports_and_leaves_out_pairs_without_a_board() {
     ]);
     assert_clean_failure(&o, "--square");
 }
+
+/// The numbers of `key = [...]` in a calibration file's text.
+fn numbers(text: &str, key: &str) -> Vec<f64> {
+    let line = text
+        .lines()
+        .find(|l| l.starts_with(&format!("{key} = ")))
+        .unwrap();
+    line.split_once('=')
+        .unwrap()
+        .1
+        .trim()
+        .trim_matches(['[', ']'])
+        .split(',')
+        .map(|v| v.trim().parse().unwrap())
+        .collect()
+}
+
+#[test]
+fn calibrations_import_and_export_opencv_yaml_and_camera_info_unchanged() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = |n: &str| dir.path().join(n);
+    let fixture = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data/calibration/opencv_chessboard_stereo.yaml");
+    let ok = |o: Output| assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    ok(run(&[
+        "calibration",
+        "import",
+        "--opencv",
+        s(&fixture),
+        "--unit",
+        "mm",
+        "-o",
+        s(&p("a.toml")),
+    ]));
+    ok(run(&[
+        "calibration",
+        "export",
+        s(&p("a.toml")),
+        "--opencv",
+        s(&p("b.yaml")),
+        "--camera-info",
+        s(&p("l.yaml")),
+        s(&p("r.yaml")),
+    ]));
+    ok(run(&[
+        "calibration",
+        "import",
+        "--opencv",
+        s(&p("b.yaml")),
+        "--unit",
+        "mm",
+        "-o",
+        s(&p("b.toml")),
+    ]));
+    ok(run(&[
+        "calibration",
+        "import",
+        "--camera-info",
+        s(&p("l.yaml")),
+        s(&p("r.yaml")),
+        "--unit",
+        "mm",
+        "-o",
+        s(&p("c.toml")),
+    ]));
+    let text = |n: &str| std::fs::read_to_string(p(n)).unwrap();
+    for other in ["b.toml", "c.toml"] {
+        for key in ["k1", "d1", "k2", "d2", "r", "t"] {
+            let (x, y) = (numbers(&text("a.toml"), key), numbers(&text(other), key));
+            assert_eq!(x.len(), y.len());
+            for (u, v) in x.iter().zip(&y) {
+                assert!(
+                    (u - v).abs() < 1e-9 * u.abs().max(1.0),
+                    "{other} {key}: {u} vs {v}"
+                );
+            }
+        }
+    }
+    // The exported camera_info rectify exactly as the file's own cameras do.
+    let a = triangulate::calibration::read_file(&p("a.toml")).unwrap();
+    let ours = rectify::Rectification::bouguet(&a.cameras("a").unwrap().unwrap());
+    let theirs =
+        rectify::Rectification::from_camera_info(&text("l.yaml"), &text("r.yaml")).unwrap();
+    for (x, y) in [(10.0, 20.0), (320.0, 240.0), (600.0, 450.0)] {
+        for right in [false, true] {
+            let (u, v) = (ours.point(right, x, y), theirs.point(right, x, y));
+            assert!(
+                (u.0 - v.0).abs() < 1e-6 && (u.1 - v.1).abs() < 1e-6,
+                "{u:?} vs {v:?}"
+            );
+        }
+    }
+    // OpenCV's own result: the same cameras (only its rectification's scale differs).
+    let cv =
+        rectify::StereoCalibration::from_opencv_yaml(&std::fs::read_to_string(&fixture).unwrap())
+            .unwrap();
+    assert!((a.baseline - cv.t.norm()).abs() < 0.05 * cv.t.norm());
+    // Nothing to export, an input as the output, a file that is not a calibration.
+    let synthetic = p("geometry.toml");
+    std::fs::write(
+        &synthetic,
+        "baseline = 1200.0\nfocal_px = 4000.0\nunit = \"um\"\n",
+    )
+    .unwrap();
+    assert_clean_failure(
+        &run(&[
+            "calibration",
+            "export",
+            s(&synthetic),
+            "--opencv",
+            s(&p("x.yaml")),
+        ]),
+        "has no [stereo] table",
+    );
+    assert_clean_failure(
+        &run(&[
+            "calibration",
+            "import",
+            "--opencv",
+            s(&p("b.yaml")),
+            "--unit",
+            "mm",
+            "-o",
+            s(&p("b.yaml")),
+            "--overwrite",
+        ]),
+        "would be overwritten",
+    );
+    assert_clean_failure(
+        &run(&[
+            "calibration",
+            "import",
+            "--opencv",
+            s(&synthetic),
+            "--unit",
+            "mm",
+            "-o",
+            s(&p("y.toml")),
+        ]),
+        "no 'K1' matrix",
+    );
+}
+
+#[test]
+fn calibrate_depth_writes_into_a_calibration_file_and_keeps_its_cameras() {
+    let dir = tempfile::tempdir().unwrap();
+    let st = dir.path().join("stack");
+    let o = run(&[
+        "synth",
+        "-o",
+        s(&st),
+        "--stage-heights=-120,0,120",
+        "--f-eff",
+        "18000",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let fixture = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data/calibration/opencv_chessboard_stereo.yaml");
+    let file = dir.path().join("rig.toml");
+    assert!(
+        run(&[
+            "calibration",
+            "import",
+            "--opencv",
+            s(&fixture),
+            "--unit",
+            "mm",
+            "-o",
+            s(&file)
+        ])
+        .status
+        .success()
+    );
+    let before = triangulate::calibration::read_file(&file).unwrap();
+    let o = run(&[
+        "calibrate-depth",
+        s(&st),
+        "--baseline",
+        "1200",
+        "--pixel-pitch",
+        "5",
+        "--working-distance",
+        "3600",
+        "--into",
+        s(&file),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let after = triangulate::calibration::read_file(&file).unwrap();
+    let f_eff = after.f_eff.unwrap();
+    assert!((f_eff / 18000.0 - 1.0).abs() < 0.01, "f_eff {f_eff}");
+    assert_eq!(after.unit, Some(schemas::LengthUnit::Um));
+    let (b, a) = (before.stereo.unwrap(), after.stereo.unwrap());
+    assert_eq!((a.k1, a.d1.clone(), a.r), (b.k1, b.d1.clone(), b.r));
+    for (x, y) in a.t.iter().zip(&b.t) {
+        assert!((x - 1000.0 * y).abs() < 1e-9 * x.abs(), "{x} vs {y} mm");
+    }
+    // Never into the scene's own truth.
+    let truth = st.join("calibration.toml");
+    assert_clean_failure(
+        &run(&[
+            "calibrate-depth",
+            s(&st),
+            "--baseline",
+            "1200",
+            "--into",
+            s(&truth),
+        ]),
+        "would be overwritten",
+    );
+}

@@ -146,6 +146,15 @@ pub enum LengthUnit {
 }
 
 impl LengthUnit {
+    /// The unit in metres (to convert between units).
+    pub fn metres(&self) -> f64 {
+        match self {
+            LengthUnit::Um => 1e-6,
+            LengthUnit::Mm => 1e-3,
+            LengthUnit::M => 1.0,
+        }
+    }
+
     /// Short symbol for reports and file headers.
     pub fn symbol(&self) -> &'static str {
         match self {

@@ -365,11 +365,17 @@ impl Rectification {
                 d1,
                 k2,
                 d2,
-                r: r2 * r1.transpose(),
+                // Both rectified frames are parallel: R2·X_r = R1·X_l + (−b, 0, 0).
+                r: r2.transpose() * r1,
                 t: r2.transpose() * Vector3::new(-baseline, 0.0, 0.0),
                 size: s1,
             },
         })
+    }
+
+    /// The raw cameras this rectification is of.
+    pub fn calibration(&self) -> &StereoCalibration {
+        &self.calib
     }
 
     /// The image size the calibration is for.

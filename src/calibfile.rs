@@ -1,0 +1,228 @@
+//! `microstereo calibration import|export`: the calibration file to and from OpenCV's
+//! stereo YAML (`stereoCalibrate`'s K1, D1, K2, D2, R, T) and a pair of ROS
+//! `camera_info` files.
+//!
+//! Imported cameras are rectified the way microstereo rectifies (Bouguet, one focal
+//! length `min(fy1, fy2)`, the mean principal point, no scaling), so the file's top level
+//! is that rectification's geometry, not the P1/P2 another tool may have chosen; exports
+//! write the same rectification (R1, R2, P1, P2) for others to use.
+
+use crate::error::CliError;
+use crate::reconstruct::UnitArg;
+use clap::{Args, Subcommand};
+use nalgebra::Matrix3;
+use rectify::{Rectification, StereoCalibration};
+use std::path::{Path, PathBuf};
+use triangulate::calibration::{CalibrationFile, read_file, write_file};
+
+/// Arguments of `microstereo calibration`.
+#[derive(Args, Debug)]
+pub struct CalibrationArgs {
+    #[command(subcommand)]
+    command: CalibrationCommand,
+}
+
+#[derive(Subcommand, Debug)]
+enum CalibrationCommand {
+    /// Writes a calibration file from OpenCV's stereo YAML or two ROS camera_info files.
+    Import(ImportArgs),
+    /// Writes a calibration file's cameras as OpenCV's stereo YAML and/or two ROS camera_info files.
+    Export(ExportArgs),
+}
+
+/// Arguments of `calibration import`.
+#[derive(Args, Debug)]
+struct ImportArgs {
+    /// OpenCV FileStorage YAML with K1, D1, K2, D2, R, T, image_width, image_height.
+    #[arg(
+        long,
+        conflicts_with = "camera_info",
+        required_unless_present = "camera_info"
+    )]
+    opencv: Option<PathBuf>,
+    /// Left and right ROS camera_info YAML (camera_matrix, distortion_coefficients,
+    /// rectification_matrix, projection_matrix).
+    #[arg(long, num_args = 2, value_names = ["LEFT", "RIGHT"])]
+    camera_info: Option<Vec<PathBuf>>,
+    /// Unit of the file's translation T (OpenCV's is the board's square unit).
+    #[arg(long, value_enum)]
+    unit: UnitArg,
+    /// The calibration file to write.
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Replace the output if it exists.
+    #[arg(long)]
+    overwrite: bool,
+}
+
+/// Arguments of `calibration export`.
+#[derive(Args, Debug)]
+struct ExportArgs {
+    /// A calibration file with a `[stereo]` table (from `calibrate-stereo` or `import`).
+    file: PathBuf,
+    /// Write OpenCV's stereo YAML here.
+    #[arg(long, required_unless_present = "camera_info")]
+    opencv: Option<PathBuf>,
+    /// Write the left and right ROS camera_info here.
+    #[arg(long, num_args = 2, value_names = ["LEFT", "RIGHT"])]
+    camera_info: Option<Vec<PathBuf>>,
+    /// Replace outputs that exist.
+    #[arg(long)]
+    overwrite: bool,
+}
+
+/// Runs `calibration import|export`.
+pub fn calibration_cmd(a: CalibrationArgs) -> Result<(), CliError> {
+    match a.command {
+        CalibrationCommand::Import(a) => import(a),
+        CalibrationCommand::Export(a) => export(a),
+    }
+}
+
+fn read(p: &Path, what: &str) -> Result<String, CliError> {
+    std::fs::read_to_string(p)
+        .map_err(|e| CliError::Other(format!("{what} '{}' cannot be read: {e}", p.display())))
+}
+
+fn import(a: ImportArgs) -> Result<(), CliError> {
+    let mut inputs: Vec<&Path> = Vec::new();
+    let cal = if let Some(p) = &a.opencv {
+        inputs.push(p);
+        StereoCalibration::from_opencv_yaml(&read(p, "OpenCV calibration")?)
+            .map_err(|e| CliError::Other(format!("OpenCV calibration '{}': {e}", p.display())))?
+    } else {
+        let ci = a.camera_info.as_ref().expect("clap requires one");
+        inputs.extend(ci.iter().map(PathBuf::as_path));
+        Rectification::from_camera_info(
+            &read(&ci[0], "left camera_info")?,
+            &read(&ci[1], "right camera_info")?,
+        )
+        .map_err(CliError::Other)?
+        .calibration()
+        .clone()
+    };
+    crate::outputs::check(
+        &[a.output.clone()],
+        &inputs,
+        a.overwrite,
+        "give -o another file",
+    )?;
+    // Checked as any file is when read.
+    let table = rectify::StereoTable::from(&cal);
+    table.calibration().map_err(CliError::Other)?;
+    let file = CalibrationFile::from_stereo(&cal, a.unit.unit(), None);
+    let from = inputs
+        .iter()
+        .map(|p| p.display().to_string())
+        .collect::<Vec<_>>()
+        .join(" and ");
+    write_file(&a.output, &file, &format!("Imported by microstereo calibration import from {from}.\n# Top level: the rectified views' geometry (triangulate); [stereo]: the raw cameras (rectify).")).map_err(CliError::Other)?;
+    println!(
+        "baseline {:.4} {}, rectified focal {:.2} px; written to {}",
+        file.baseline,
+        a.unit.unit().symbol(),
+        file.focal_px.unwrap_or(f64::NAN),
+        a.output.display()
+    );
+    Ok(())
+}
+
+fn matrix(name: &str, rows: usize, cols: usize, v: &[f64]) -> String {
+    let data: Vec<String> = v.iter().map(|x| format!("{x:?}")).collect();
+    format!(
+        "{name}: !!opencv-matrix\n   rows: {rows}\n   cols: {cols}\n   dt: d\n   data: [ {} ]\n",
+        data.join(", ")
+    )
+}
+
+fn rows(m: &Matrix3<f64>) -> Vec<f64> {
+    (0..9).map(|i| m[(i / 3, i % 3)]).collect()
+}
+
+/// The projection matrices of the rectified views (the right one's fourth column `−f·b`).
+fn projections(rect: &Rectification) -> (Vec<f64>, Vec<f64>) {
+    let (f, [cx, cy]) = (rect.f, rect.c);
+    let p1 = vec![f, 0.0, cx, 0.0, 0.0, f, cy, 0.0, 0.0, 0.0, 1.0, 0.0];
+    let p2 = vec![
+        f,
+        0.0,
+        rect.cx_right,
+        -f * rect.baseline,
+        0.0,
+        f,
+        cy,
+        0.0,
+        0.0,
+        0.0,
+        1.0,
+        0.0,
+    ];
+    (p1, p2)
+}
+
+fn export(a: ExportArgs) -> Result<(), CliError> {
+    let file = read_file(&a.file).map_err(CliError::Other)?;
+    let source = format!("'{}'", a.file.display());
+    let cal = file.cameras(&source).map_err(CliError::Other)?.ok_or_else(|| {
+        CliError::Other(format!(
+            "calibration {source} has no [stereo] table (the raw cameras) to export; make one with calibrate-stereo or calibration import"
+        ))
+    })?;
+    let mut outs: Vec<PathBuf> = a.opencv.iter().cloned().collect();
+    outs.extend(a.camera_info.iter().flatten().cloned());
+    crate::outputs::check(
+        &outs,
+        &[a.file.as_path()],
+        a.overwrite,
+        "give other output paths",
+    )?;
+    let rect = Rectification::bouguet(&cal);
+    let (p1, p2) = projections(&rect);
+    if let Some(p) = &a.opencv {
+        let mut text = String::from("%YAML:1.0\n---\n");
+        text += &format!(
+            "image_width: {}\nimage_height: {}\n",
+            cal.size.0, cal.size.1
+        );
+        text += &matrix("K1", 3, 3, &rows(&cal.k1));
+        text += &matrix("D1", 1, cal.d1.len(), &cal.d1);
+        text += &matrix("K2", 3, 3, &rows(&cal.k2));
+        text += &matrix("D2", 1, cal.d2.len(), &cal.d2);
+        text += &matrix("R", 3, 3, &rows(&cal.r));
+        text += &matrix("T", 3, 1, cal.t.as_slice());
+        text += &matrix("R1", 3, 3, &rows(&rect.r1));
+        text += &matrix("R2", 3, 3, &rows(&rect.r2));
+        text += &matrix("P1", 3, 4, &p1);
+        text += &matrix("P2", 3, 4, &p2);
+        formats::atomic::write_bytes(p, text.as_bytes())
+            .map_err(|e| CliError::Other(e.to_string()))?;
+        println!("OpenCV stereo YAML written to {}", p.display());
+    }
+    if let Some(ci) = &a.camera_info {
+        let data = |v: &[f64]| {
+            v.iter()
+                .map(|x| format!("{x:?}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        };
+        for (path, (side, k, d, r, p)) in ci.iter().zip([
+            ("left", &cal.k1, &cal.d1, &rect.r1, &p1),
+            ("right", &cal.k2, &cal.d2, &rect.r2, &p2),
+        ]) {
+            let text = format!(
+                "image_width: {}\nimage_height: {}\ncamera_name: {side}\ncamera_matrix:\n  rows: 3\n  cols: 3\n  data: [{}]\ndistortion_model: plumb_bob\ndistortion_coefficients:\n  rows: 1\n  cols: {}\n  data: [{}]\nrectification_matrix:\n  rows: 3\n  cols: 3\n  data: [{}]\nprojection_matrix:\n  rows: 3\n  cols: 4\n  data: [{}]\n",
+                cal.size.0,
+                cal.size.1,
+                data(&rows(k)),
+                d.len(),
+                data(d),
+                data(&rows(r)),
+                data(p)
+            );
+            formats::atomic::write_bytes(path, text.as_bytes())
+                .map_err(|e| CliError::Other(e.to_string()))?;
+            println!("{side} camera_info written to {}", path.display());
+        }
+    }
+    Ok(())
+}
