@@ -102,7 +102,7 @@ fn import(a: ImportArgs) -> Result<(), CliError> {
         .clone()
     };
     crate::outputs::check(
-        &[a.output.clone()],
+        std::slice::from_ref(&a.output),
         &inputs,
         a.overwrite,
         "give -o another file",

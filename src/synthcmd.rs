@@ -65,6 +65,27 @@ pub struct SynthArgs {
     /// Add a pipette entering from the left at this height above the substrate, µm.
     #[arg(long)]
     pub pipette: Option<f64>,
+    /// Where the pipette's tip points, degrees from +x towards +y (0: in from the left).
+    #[arg(
+        long,
+        default_value_t = 0.0,
+        allow_hyphen_values = true,
+        requires = "pipette"
+    )]
+    pub pipette_azimuth: f64,
+    /// The tip's centre `X,Y` in µm from the image centre (default: 20 px in from the
+    /// border it comes through).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        allow_hyphen_values = true,
+        requires = "pipette"
+    )]
+    pub pipette_tip: Option<Vec<f64>>,
+    /// Numerical aperture for the pipette's defocus: blurred by its height from the focal
+    /// plane (blur circle radius NA·Δz; 0: always sharp).
+    #[arg(long, default_value_t = 0.0)]
+    pub aperture: f64,
     /// Instead of cells, a textured target at these stage heights, µm (a z-stack for
     /// `calibrate-depth`).
     #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
@@ -146,6 +167,24 @@ struct Truth<'a> {
     px_per_um_height: f64,
     disparity_range: [f64; 2],
     cells: &'a [synth::CellTruth],
+    /// The pipette, where there is one.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pipette: Option<PipetteTruth>,
+}
+
+/// The pipette in truth.json.
+#[derive(Serialize)]
+struct PipetteTruth {
+    /// Its shape and place.
+    spec: synth::Pipette,
+    /// The tip's front (the glass's farthest point along it), `[x, y, height]` µm.
+    front: [f64; 3],
+    /// The same in the camera frame `[X, Y, Z]` µm.
+    front_camera: [f64; 3],
+    /// The front in the left and the right view, px.
+    front_px: [[f64; 2]; 2],
+    /// Its defocus blur (Gaussian sigma, px).
+    defocus_px: f64,
 }
 
 fn other(msg: String) -> CliError {
@@ -198,6 +237,13 @@ fn write_scene(dir: &Path, scene: &Scene, prefix: &str) -> Result<synth::Rendere
         px_per_um_height: scene.optics.px_per_um_height(),
         disparity_range: [lo as f64, hi as f64],
         cells: &r.cells,
+        pipette: scene.pipette.map(|p| PipetteTruth {
+            spec: p,
+            front: p.front(),
+            front_camera: scene.camera_point(p.front()),
+            front_px: scene.project(p.front()),
+            defocus_px: scene.pipette_defocus_px(),
+        }),
     };
     let p = dir.join(format!("{prefix}truth.json"));
     io::atomic::write_bytes(
@@ -235,6 +281,8 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
         ("--cell-height", a.cell_height[1], 0.1, 1000.0),
         ("--noise", a.noise, 0.0, 100.0),
         ("--blur", a.blur, 0.0, 50.0),
+        ("--aperture", a.aperture, 0.0, 1.5),
+        ("--pipette-azimuth", a.pipette_azimuth, -360.0, 360.0),
         ("--drift", a.drift, 0.0, 100.0),
         ("--cells", a.cells as f64, 0.0, 10_000.0),
         ("--debris", a.debris as f64, 0.0, 100_000.0),
@@ -295,6 +343,7 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
     };
     look.noise = a.noise;
     look.blur = a.blur;
+    look.aperture = a.aperture;
     look.texture = texture;
     if let Some(t) = a.substrate_texture {
         look.substrate_texture = match t {
@@ -386,12 +435,31 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
     }
     if let Some(h) = a.pipette {
         let s = optics.um_per_px();
+        let az = a.pipette_azimuth.to_radians();
+        let tip = match &a.pipette_tip {
+            Some(t) if t.len() != 2 || t.iter().any(|v| !v.is_finite() || v.abs() > 1e6) => {
+                return Err(other(format!(
+                    "--pipette-tip {t:?}: give X,Y in µm from the image centre (two finite numbers)"
+                )));
+            }
+            Some(t) => [t[0], t[1]],
+            None if a.pipette_azimuth == 0.0 => [-0.5 * a.width as f64 * s + 20.0 * s, 0.0],
+            None => {
+                // 20 px in from the border the body leaves through.
+                let (c, n) = (-az.cos(), -az.sin());
+                let reach = (0.5 * a.width as f64 / c.abs().max(1e-9))
+                    .min(0.5 * a.height as f64 / n.abs().max(1e-9))
+                    - 20.0;
+                [c * reach * s, n * reach * s]
+            }
+        };
         scene.pipette = Some(Pipette {
-            tip: [-0.5 * a.width as f64 * s + 20.0 * s, 0.0],
+            tip,
             height: h,
             tip_radius: 1.5,
             taper: 0.08,
             elevation: 0.0,
+            azimuth: az,
         });
     }
     if scene.cells.len() < a.cells {

@@ -195,6 +195,7 @@ fn sequence_cells_drift_the_pipette_advances_and_cells_stay_measured() {
         tip_radius: 1.5,
         taper: 0.08,
         elevation: 0.0,
+        azimuth: 0.0,
     });
     let (drift, step) = (1.5, 40.0);
     let frames: Vec<_> = (0..3)

@@ -68,6 +68,7 @@ impl Condition {
                 tip_radius: 1.5,
                 taper: 0.08,
                 elevation: 0.0,
+                azimuth: 0.0,
             });
         }
         s

@@ -6,4 +6,5 @@
 
 pub mod board;
 pub mod calibrate;
-mod lm;
+pub mod lm;
+pub mod pipette;

@@ -1,4 +1,4 @@
-//! A small dense Levenberg–Marquardt for reprojection errors.
+//! A small dense Levenberg–Marquardt for reprojection errors and image-model fits.
 
 use nalgebra::{DMatrix, DVector};
 

@@ -128,6 +128,7 @@ impl SyntheticCapture {
             tip_radius: 1.5,
             taper: 0.08,
             elevation: 0.0,
+            azimuth: 0.0,
         });
         Self {
             scene,
@@ -159,13 +160,14 @@ pub fn pipette_at(m: &ManipulatorState, z0: f64) -> Pipette {
         tip_radius: 1.5,
         taper: 0.08,
         elevation: m.elevation_deg.to_radians(),
+        // The state names where the body goes; the renderer where the tip points.
+        azimuth: (m.azimuth_deg + 180.0).rem_euclid(360.0).to_radians(),
     }
 }
 
 impl SyntheticCapture {
     /// Draws the pipette where the manipulator says its tip is from now on.
     pub fn set_tip(&mut self, m: &ManipulatorState) {
-        // Drawn as coming from −x, the only direction the renderer knows.
         self.manipulated = Some(pipette_at(m, self.scene.optics.working_distance()));
     }
 

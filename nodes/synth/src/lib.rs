@@ -226,8 +226,9 @@ pub struct Debris {
     pub darkness: f64,
 }
 
-/// A pipette: a tapered glass tip pointing `+x`, its body rising toward `−x` at
-/// `elevation` (0: level with the substrate).
+/// A pipette: a tapered glass tip pointing along `azimuth` (0: `+x`), its body rising back
+/// from it at `elevation` (0: level with the substrate). The glass is a chain of spheres
+/// whose radius grows back from the tip's: `tip` is the centre of the first.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Pipette {
     /// Tip position `[x, y]`, µm.
@@ -241,6 +242,20 @@ pub struct Pipette {
     /// Angle of the body above the horizontal, radians.
     #[serde(default)]
     pub elevation: f64,
+    /// Where the tip points in the substrate's plane, radians from `+x` towards `+y`.
+    #[serde(default)]
+    pub azimuth: f64,
+}
+
+impl Pipette {
+    /// The tip's front: the glass's farthest point along the pipette, `[x, y, height]` µm.
+    pub fn front(&self) -> [f64; 3] {
+        [
+            self.tip[0] + self.tip_radius * self.azimuth.cos(),
+            self.tip[1] + self.tip_radius * self.azimuth.sin(),
+            self.height,
+        ]
+    }
 }
 
 /// Where cell texture comes from.
@@ -270,6 +285,9 @@ pub struct Look {
     pub noise: f64,
     /// Defocus blur (Gaussian sigma, px; 0 = sharp).
     pub blur: f64,
+    /// Numerical aperture that defocuses the pipette by its height from the focal plane
+    /// (blur circle radius `NA·Δz`; 0 = the pipette always sharp).
+    pub aperture: f64,
     /// Rays per pixel along each axis.
     pub supersample: usize,
     /// Cell texture source.
@@ -314,6 +332,7 @@ impl Default for Look {
             relief: 25.0,
             noise: 1.5,
             blur: 0.0,
+            aperture: 0.0,
             supersample: 2,
             texture: Texture::Noise,
             vignetting: 0.0,
@@ -524,7 +543,8 @@ impl Scene {
             c.centre[1] += vy * frame as f64;
         }
         if let Some(p) = &mut s.pipette {
-            p.tip[0] += pipette_step * frame as f64;
+            p.tip[0] += pipette_step * frame as f64 * p.azimuth.cos();
+            p.tip[1] += pipette_step * frame as f64 * p.azimuth.sin();
         }
         // Only the sensor noise is new: a substrate's and a cell's texture are theirs (until
         // December 2026 they were drawn anew for every frame, a flicker no camera shows).
@@ -769,6 +789,7 @@ impl Scene {
         v: f64,
         cal: &Calibration,
         candidates: &[usize],
+        with_pipette: bool,
     ) -> (Hit, f64) {
         let f = cal.focal_px;
         let (ox, cx) = if right {
@@ -815,19 +836,29 @@ impl Scene {
                 best = (Hit::Cell(k, [lx, ly, local]), s);
             }
         }
-        if let Some(p) = &self.pipette {
-            // A chain of spheres along the axis, radius growing back from the tip.
+        if let Some(p) = self.pipette.as_ref().filter(|_| with_pipette) {
+            // A chain of spheres along the axis, radius growing back from the tip. In the
+            // pipette's frame (x' where the tip points, y' across) the ray at height s is
+            // (pox + psx·(z0 − s), poy + psy·(z0 − s)).
+            let (ca, sa) = (p.azimuth.cos(), p.azimuth.sin());
+            let (pox, poy) = (ca * ox, -sa * ox);
+            let (psx, psy) = (ca * sx + sa * sy, -sa * sx + ca * sy);
+            let tip = [
+                ca * p.tip[0] + sa * p.tip[1],
+                -sa * p.tip[0] + ca * p.tip[1],
+            ];
             let step = 0.5 * p.tip_radius.max(0.5);
-            let len = 2.0 * (self.optics.width as f64 * self.optics.um_per_px());
+            let len =
+                2.0 * (self.optics.width.max(self.optics.height) as f64 * self.optics.um_per_px());
             let (ce, se) = (p.elevation.cos(), p.elevation.sin());
             let hmax = p.height + p.tip_radius + (p.taper + se) * len;
-            // Only spheres the ray can reach: where it passes the heights 0..hmax its x and
-            // y span these intervals, and a sphere at t reaches r(t) around its centre.
+            // Only spheres the ray can reach: where it passes the heights 0..hmax its x' and
+            // y' span these intervals, and a sphere at t reaches r(t) around its centre.
             let span = |a: f64, b: f64| (a.min(b), a.max(b));
-            let (xlo, xhi) = span(ox + sx * z0, ox + sx * (z0 - hmax));
-            let (ylo, yhi) = span(sy * z0, sy * (z0 - hmax));
-            let dy = (ylo - p.tip[1]).max(p.tip[1] - yhi).max(0.0);
-            let mut t_lo = ((p.tip[0] - xhi - p.tip_radius) / (ce + p.taper)).max(0.0);
+            let (xlo, xhi) = span(pox + psx * z0, pox + psx * (z0 - hmax));
+            let (ylo, yhi) = span(poy + psy * z0, poy + psy * (z0 - hmax));
+            let dy = (ylo - tip[1]).max(tip[1] - yhi).max(0.0);
+            let mut t_lo = ((tip[0] - xhi - p.tip_radius) / (ce + p.taper)).max(0.0);
             if dy > p.tip_radius {
                 t_lo = t_lo.max(if p.taper > 0.0 {
                     (dy - p.tip_radius) / p.taper
@@ -836,7 +867,7 @@ impl Scene {
                 });
             }
             let t_hi = if p.taper < ce {
-                ((p.tip[0] - xlo + p.tip_radius) / (ce - p.taper)).min(len)
+                ((tip[0] - xlo + p.tip_radius) / (ce - p.taper)).min(len)
             } else {
                 len
             };
@@ -845,11 +876,10 @@ impl Scene {
                 let t = k as f64 * step;
                 k += 1;
                 let r = p.tip_radius + p.taper * t;
-                let (ccx, ccy, ccs) = (p.tip[0] - t * ce, p.tip[1], p.height + t * se);
-                // Ray point at height s: (ox + sx(z0−s), sy(z0−s), s).
-                let (ax, ay) = (ox + sx * z0 - ccx, sy * z0 - ccy);
-                let qa = sx * sx + sy * sy + 1.0;
-                let qb = -2.0 * (ax * sx + ay * sy + ccs);
+                let (ccx, ccy, ccs) = (tip[0] - t * ce, tip[1], p.height + t * se);
+                let (ax, ay) = (pox + psx * z0 - ccx, poy + psy * z0 - ccy);
+                let qa = psx * psx + psy * psy + 1.0;
+                let qb = -2.0 * (ax * psx + ay * psy + ccs);
                 let qc = ax * ax + ay * ay + ccs * ccs - r * r;
                 let disc = qb * qb - 4.0 * qa * qc;
                 if disc >= 0.0 {
@@ -993,13 +1023,19 @@ impl Scene {
     ) -> Plane<f64> {
         let (w, h) = (self.optics.width, self.optics.height);
         let n = self.look.supersample.max(1);
-        let rows: Vec<Vec<f64>> = (0..h)
+        let defocus = self.pipette_defocus_px();
+        let rows: Vec<Vec<(f64, f64)>> = (0..h)
             .into_par_iter()
             .map(|v| {
                 let sub_row = |j: usize| v as f64 + (j as f64 + 0.5) / n as f64 - 0.5;
                 let touched = backdrop.map(|_| self.touched(right, v, cal));
                 if touched.as_ref().is_some_and(|t| !t.contains(&true)) {
-                    return backdrop.expect("with touched").row(v).to_vec();
+                    return backdrop
+                        .expect("with touched")
+                        .row(v)
+                        .iter()
+                        .map(|b| (*b, 0.0))
+                        .collect();
                 }
                 let on_row: Vec<Vec<usize>> =
                     (0..n).map(|j| self.cells_on_row(sub_row(j), cal)).collect();
@@ -1008,23 +1044,82 @@ impl Scene {
                         if let (Some(t), Some(b)) = (&touched, backdrop)
                             && !t[u]
                         {
-                            return *b.get(u, v);
+                            return (*b.get(u, v), 0.0);
                         }
-                        let mut acc = 0.0;
+                        let (mut acc, mut dark) = (0.0, 0.0);
                         for (j, candidates) in on_row.iter().enumerate() {
                             let sv = sub_row(j);
                             for i in 0..n {
                                 let su = u as f64 + (i as f64 + 0.5) / n as f64 - 0.5;
-                                let (hit, _) = self.cast(right, su, sv, cal, candidates);
-                                acc += self.shade(hit, su, sv, right, cal);
+                                let (hit, _) = self.cast(right, su, sv, cal, candidates, true);
+                                let lit = self.shade(hit, su, sv, right, cal);
+                                acc += lit;
+                                if defocus > 0.0 && matches!(hit, Hit::Pipette) {
+                                    // What the pipette hides, for its darkness alone.
+                                    let (behind, _) =
+                                        self.cast(right, su, sv, cal, candidates, false);
+                                    dark += self.shade(behind, su, sv, right, cal) - lit;
+                                }
                             }
                         }
-                        acc / (n * n) as f64
+                        (acc / (n * n) as f64, dark / (n * n) as f64)
                     })
-                    .collect()
+                    .collect::<Vec<(f64, f64)>>()
             })
             .collect();
-        Plane::from_vec(w, h, rows.concat()).expect("size")
+        let rows = rows.concat();
+        let view = Plane::from_vec(w, h, rows.iter().map(|p| p.0).collect()).expect("size");
+        if defocus == 0.0 {
+            return view;
+        }
+        // The pipette out of focus: its darkness spread by the defocus blur over what it
+        // would hide in focus.
+        let dark = Plane::from_vec(w, h, rows.iter().map(|p| p.1).collect()).expect("size");
+        let spread = gaussian_blur(&dark, defocus);
+        let data = view
+            .data
+            .iter()
+            .zip(&dark.data)
+            .zip(&spread.data)
+            .map(|((v, d), s)| v + d - s)
+            .collect();
+        Plane::from_vec(w, h, data).expect("size")
+    }
+
+    /// Where world point `[x, y, height]` (µm; height above the untilted substrate level)
+    /// shows in the left and the right view, px.
+    pub fn project(&self, p: [f64; 3]) -> [[f64; 2]; 2] {
+        let cal = self.optics.calibration();
+        let depth = self.z0() - p[2];
+        let at = |ox: f64, cx: f64| {
+            [
+                cx + cal.focal_px * (p[0] - ox) / depth,
+                cal.cy + cal.focal_px * p[1] / depth,
+            ]
+        };
+        [
+            at(-0.5 * self.optics.baseline, cal.cx),
+            at(0.5 * self.optics.baseline, cal.cx_right),
+        ]
+    }
+
+    /// The point `[X, Y, Z]` of the triangulation's camera frame (µm, origin midway between
+    /// the cameras, Z the depth) that world point `[x, y, height]` is.
+    pub fn camera_point(&self, p: [f64; 3]) -> [f64; 3] {
+        [p[0], p[1], self.z0() - p[2]]
+    }
+
+    /// Gaussian sigma (px) of the pipette's defocus blur: half the blur circle's radius
+    /// `NA·Δz` at its tip's height `Δz` from the focal plane (0 without a pipette or with
+    /// `look.aperture` 0).
+    pub fn pipette_defocus_px(&self) -> f64 {
+        match &self.pipette {
+            // The focal plane lies `stage` below the substrate (see `z0`).
+            Some(p) if self.look.aperture > 0.0 => {
+                0.5 * self.look.aperture * (p.height + self.stage).abs() / self.optics.um_per_px()
+            }
+            _ => 0.0,
+        }
     }
 
     /// Both views before sensor noise and rounding: the means the pixel values scatter
@@ -1153,17 +1248,30 @@ impl Scene {
             );
         }
         if let Some(p) = &self.pipette {
-            let len = 2.0 * (self.optics.width as f64 * self.optics.um_per_px());
+            let len =
+                2.0 * (self.optics.width.max(self.optics.height) as f64 * self.optics.um_per_px());
             let (ce, se) = (p.elevation.cos(), p.elevation.sin());
             let r = p.tip_radius + p.taper * len;
-            let reach = p.tip[0] + p.tip_radius + ((p.taper - ce) * len).max(0.0) + 2.0;
             let hmax = p.height + p.tip_radius + (p.taper + se.max(0.0)) * len + 1.0;
             let hmin = (p.height - r + se.min(0.0) * len - 1.0).min(0.0);
-            mark(
-                [f64::MIN / 4.0, reach],
-                [p.tip[1] - r - 2.0, p.tip[1] + r + 2.0],
-                [hmin, hmax],
-            );
+            if p.azimuth == 0.0 {
+                let reach = p.tip[0] + p.tip_radius + ((p.taper - ce) * len).max(0.0) + 2.0;
+                mark(
+                    [f64::MIN / 4.0, reach],
+                    [p.tip[1] - r - 2.0, p.tip[1] + r + 2.0],
+                    [hmin, hmax],
+                );
+            } else {
+                // The box round the body's whole length (its far end is off the image).
+                let (ca, sa) = (p.azimuth.cos(), p.azimuth.sin());
+                let back = [p.tip[0] - ca * ce * len, p.tip[1] - sa * ce * len];
+                let m = r + p.tip_radius + 2.0;
+                mark(
+                    [p.tip[0].min(back[0]) - m, p.tip[0].max(back[0]) + m],
+                    [p.tip[1].min(back[1]) - m, p.tip[1].max(back[1]) + m],
+                    [hmin, hmax],
+                );
+            }
         }
         mask
     }
@@ -1180,7 +1288,7 @@ impl Scene {
         for v in 0..h {
             let candidates = self.cells_on_row(v as f64, &cal);
             for u in 0..w {
-                let (hit, z) = self.cast(false, u as f64, v as f64, &cal, &candidates);
+                let (hit, z) = self.cast(false, u as f64, v as f64, &cal, &candidates, true);
                 *depth.get_mut(u, v) = z as f32;
                 *disparity.get_mut(u, v) = (self.optics.baseline * cal.focal_px / z - off) as f32;
                 *labels.get_mut(u, v) = match hit {
@@ -1449,8 +1557,8 @@ mod tests {
                     let row = scene.cells_on_row(sv, &cal);
                     (kept, rows) = (kept + row.len(), rows + all.len());
                     for u in 0..320 {
-                        let (a, za) = scene.cast(right, u as f64, sv, &cal, &row);
-                        let (b, zb) = scene.cast(right, u as f64, sv, &cal, &all);
+                        let (a, za) = scene.cast(right, u as f64, sv, &cal, &row, true);
+                        let (b, zb) = scene.cast(right, u as f64, sv, &cal, &all, true);
                         assert_eq!(za.to_bits(), zb.to_bits(), "seed {seed} ({u}, {sv})");
                         assert_eq!(format!("{a:?}"), format!("{b:?}"));
                         hits += matches!(a, Hit::Cell(..)) as usize;
@@ -1515,6 +1623,7 @@ mod tests {
                         tip_radius: 1.5,
                         taper: 0.08,
                         elevation: 0.1 * (seed as f64 - 1.0),
+                        azimuth: 0.0,
                     });
                 }
                 if seed == 2 {

@@ -51,7 +51,7 @@ pub struct CalibrationFile {
     pub unit: Option<LengthUnit>,
     /// The raw cameras, for rectifying raw pairs (`None`: the images come rectified).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub stereo: Option<rectify::StereoTable>,
+    pub stereo: Option<Box<rectify::StereoTable>>,
 }
 
 impl CalibrationFile {
@@ -104,10 +104,10 @@ impl CalibrationFile {
             cy: Some(rect.c[1]),
             cx_right: Some(rect.cx_right),
             unit: Some(unit),
-            stereo: Some(rectify::StereoTable {
+            stereo: Some(Box::new(rectify::StereoTable {
                 rms,
                 ..rectify::StereoTable::from(cal)
-            }),
+            })),
         }
     }
 
