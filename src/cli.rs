@@ -29,6 +29,8 @@ enum Command {
     CalibrateDepth(crate::calibrate::CalibrateArgs),
     /// Calibrates both cameras and their relative pose from chessboard pairs: the calibration file rectify, triangulate and reconstruct read.
     CalibrateStereo(crate::calibstereo::CalibrateStereoArgs),
+    /// Registers the manipulator to the cameras: moves it through stops, finds the tip at each, fits device = M·scene + offset.
+    CalibrateManipulator(crate::calibmanip::CalibrateManipulatorArgs),
     /// Imports a calibration file from OpenCV's stereo YAML or ROS camera_info, or exports one to them.
     Calibration(crate::calibfile::CalibrationArgs),
     /// Runs a launch file's graph, one process per node, and prints a summary at the end.
@@ -71,6 +73,7 @@ pub fn main() -> i32 {
         Command::CalibrateDepth(a) => crate::calibrate::calibrate_depth(a),
         Command::CalibrateStereo(a) => crate::calibstereo::calibrate_stereo_cmd(a),
         Command::Calibration(a) => crate::calibfile::calibration_cmd(a),
+        Command::CalibrateManipulator(a) => crate::calibmanip::calibrate_manipulator(a),
         Command::Run(a) => crate::run::run_cmd(a),
         Command::Node(a) => crate::run::node_cmd(a),
         Command::Inspect(a) => crate::recording::inspect(a),

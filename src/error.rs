@@ -20,6 +20,12 @@ pub enum CliError {
     Reported(i32),
 }
 
+impl From<&str> for CliError {
+    fn from(s: &str) -> Self {
+        CliError::Other(s.into())
+    }
+}
+
 impl From<String> for CliError {
     fn from(s: String) -> Self {
         CliError::Other(s)

@@ -15,6 +15,7 @@
 
 pub mod bench;
 pub mod calibfile;
+pub mod calibmanip;
 pub mod calibrate;
 pub mod calibstereo;
 pub mod cli;

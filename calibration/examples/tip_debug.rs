@@ -7,6 +7,7 @@ fn main() {
         .map(|s| s.parse().unwrap())
         .collect();
     let (az, height, aperture, seed, bright) = (a[0], a[1], a[2], a[3] as u64, a[4] > 0.0);
+    let elev = a.get(5).copied().unwrap_or(0.0).to_radians();
     let optics = Optics {
         width: 640,
         height: 480,

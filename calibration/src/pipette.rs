@@ -103,7 +103,7 @@ pub fn find_tip(img: &Plane<u8>) -> Result<Tip, NoTip> {
         .filter(|&&(x, y)| (t_end - 45.0..t_end - 30.0).contains(&along(x, y, c, a)))
         .map(|&(x, y)| ((x as f64 - c[0]) * -a[1] + (y as f64 - c[1]) * a[0]).abs())
         .fold(0.0, f64::max);
-    let reach = half.max(4.0) + 12.0;
+    let reach = half.max(4.0) + 20.0;
     // The axis again from the cross-sections' centres along the whole visible body (a
     // line through them, those off it by more than 3 MADs left out: where the glass
     // crosses a cell, its image's blur mixes with the cell's and pulls the centres aside).
@@ -167,8 +167,8 @@ pub fn find_tip(img: &Plane<u8>) -> Result<Tip, NoTip> {
         .fold(f64::MIN, f64::max);
     // The profile along the axis: the darkness summed across the glass, from 40 px behind
     // the core's end to where it stops falling past it (beyond, a cell the tip touches may
-    // darken the sections again), at most 25 px on.
-    let mut ts: Vec<f64> = (0..130).map(|k| t_end - 40.0 + 0.5 * k as f64).collect();
+    // darken the sections again) or has gone, at most 80 px on.
+    let mut ts: Vec<f64> = (0..240).map(|k| t_end - 40.0 + 0.5 * k as f64).collect();
     let mut profile: Vec<f64> = ts
         .iter()
         .map(|&t| section(&dark, origin, a, nrm, t, reach).0)
@@ -179,11 +179,21 @@ pub fn find_tip(img: &Plane<u8>) -> Result<Tip, NoTip> {
             .sum::<f64>()
     };
     let after = 80;
-    if let Some(stop) =
-        (after..profile.len() - 3).find(|&k| smooth(k + 1) > smooth(k) + 5.0 * MIN_DARK)
+    // A rise counts once the glass has thinned to under half its width 40 px back (before
+    // that, the sections' noise on a wide blurred body rises and falls too).
+    let back = profile[0];
+    if let Some(stop) = (after..profile.len() - 3)
+        .find(|&k| profile[k] < 0.5 * back && smooth(k + 1) > smooth(k) + 5.0 * MIN_DARK)
     {
         ts.truncate(stop + 1);
         profile.truncate(stop + 1);
+    }
+    // A blurred tip fades over a few blurs past the core's end: 10 px past where the
+    // glass has gone (under 3 % of its width 40 px back) is enough.
+    if let Some(gone) = (after..profile.len()).find(|&k| profile[k] < 0.03 * back) {
+        let end = (gone + 20).min(profile.len());
+        ts.truncate(end);
+        profile.truncate(end);
     }
     let fit = fit_profile(&ts, &profile, t_end)?;
     let front_t = fit.front;
@@ -401,8 +411,9 @@ fn fit_profile(ts: &[f64], profile: &[f64], t_end: f64) -> Result<ProfileFit, No
         r.extend(ts.iter().zip(profile).map(|(&t, &v)| blurred(t, p) - v));
     };
     let mut best: Option<(f64, Vec<f64>)> = None;
-    for blur in [0.7, 2.0] {
-        for shift in [-3.0, 0.0] {
+    // The core ends short of a blurred tip's front: starts up to 8 px past it.
+    for blur in [0.7, 2.0, 4.0] {
+        for shift in [-3.0, 0.0, 4.0, 8.0] {
             let mut p = vec![
                 t_end + shift,
                 1.5,
@@ -418,6 +429,12 @@ fn fit_profile(ts: &[f64], profile: &[f64], t_end: f64) -> Result<ProfileFit, No
         }
     }
     let (_, p) = best.expect("fits");
+    if std::env::var_os("TIP_DEBUG").is_some() {
+        for (t, v) in ts.iter().zip(profile) {
+            eprintln!("{t:.1} {v:.1} {:.1}", blurred(*t, &p));
+        }
+        eprintln!("{p:?} t_end {t_end}");
+    }
     if !(p[3] > 0.0 && p.iter().all(|v| v.is_finite())) {
         return Err(NoTip(
             "the pipette's profile does not fit a tapered tip".into(),

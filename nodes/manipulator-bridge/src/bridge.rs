@@ -14,12 +14,13 @@
 //! come on top.
 
 use crate::device::{Device, DeviceError};
-use crate::geom::{P3, axpy, dist, sub};
+use crate::geom::{P3, dist};
 use crate::plan::{
     Goal, NoPath, Plan, PlannerConfig, check_rest, injection_point, plan_approach, plan_goto,
     plan_retract,
 };
 use crate::protocol::{Command, Line, MAX_LINE, parse_command, read_line, shorten};
+use crate::registration::Registration;
 use crate::scene::Scene;
 use schemas::{ManipulatorState, PathPlan, Targets};
 use serde_json::{Value, json};
@@ -40,8 +41,8 @@ pub struct BridgeConfig {
     pub home: P3,
     /// Fastest tip speed the bridge commands, µm/s.
     pub max_speed: f64,
-    /// Device position = scene position + offset, µm.
-    pub offset: P3,
+    /// How the device's frame sits on the scene's (`device = M·scene + offset`).
+    pub registration: Registration,
     /// A scene older than this stops any move and refuses new ones.
     pub stale: Duration,
     /// How often the device is polled.
@@ -222,7 +223,9 @@ impl Bridge {
         };
         if let Some(d) = c.device.as_mut() {
             match d.state() {
-                Ok(s) => c.shared.lock().expect("shared").tip = sub(s.position, cfg.offset),
+                Ok(s) => {
+                    c.shared.lock().expect("shared").tip = cfg.registration.to_scene(s.position)
+                }
                 Err(e) => {
                     c.missing = e.0;
                     c.device = None;
@@ -468,7 +471,7 @@ impl Controller {
         loop {
             let s = d.state()?;
             if !s.moving {
-                return Ok(sub(s.position, self.cfg.offset));
+                return Ok(self.cfg.registration.to_scene(s.position));
             }
             if t0.elapsed() > Duration::from_secs(5) {
                 return Err(DeviceError(format!(
@@ -521,7 +524,7 @@ impl Controller {
             }
         } else {
             match self.device.as_mut().expect("device").state() {
-                Ok(s) => sub(s.position, self.cfg.offset),
+                Ok(s) => self.cfg.registration.to_scene(s.position),
                 Err(e) => return self.fail(e),
             }
         };
@@ -592,7 +595,7 @@ impl Controller {
             Ok(s) => s,
             Err(e) => return self.fail(e),
         };
-        let tip = sub(st.position, self.cfg.offset);
+        let tip = self.cfg.registration.to_scene(st.position);
         let t = self.t0.elapsed().as_secs_f64();
         {
             let mut sh = self.shared.lock().expect("shared");
@@ -656,12 +659,13 @@ impl Controller {
                 return;
             }
             let to = job.plan.waypoints[job.next];
-            let speed = job.speed;
+            // In device units: no scene direction moves faster than `speed`.
+            let speed = job.speed * self.cfg.registration.least_stretch();
             let r = self
                 .device
                 .as_mut()
                 .expect("device")
-                .start_move(axpy(to, 1.0, self.cfg.offset), speed);
+                .start_move(self.cfg.registration.to_device(to), speed);
             if let Err(e) = r {
                 return self.fail(e);
             }

@@ -17,5 +17,6 @@ pub mod mp285;
 pub mod node;
 pub mod plan;
 pub mod protocol;
+pub mod registration;
 pub mod scene;
 pub mod testing;

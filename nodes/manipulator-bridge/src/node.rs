@@ -2,9 +2,10 @@
 
 use crate::bridge::{Bridge, BridgeConfig};
 use crate::device::{Device, DeviceError, SimDevice, wall_clock};
-use crate::geom::{P3, axpy};
+use crate::geom::P3;
 use crate::mp285::Mp285;
 use crate::plan::{Entry, PipetteGeometry, PlannerConfig};
+use crate::registration::Registration;
 use crate::scene::Workspace;
 use runtime::node::{NodeError, Params, Stamp, Task};
 use schemas::{ManipulatorState, Targets};
@@ -28,9 +29,13 @@ pub struct BridgeParams {
     /// Where the tip starts (sim) and where `home` goes.
     #[serde(default = "default_home")]
     pub home: P3,
-    /// Device position = scene position + offset.
+    /// Device position = scene position + offset (the axes taken as the scene's).
     #[serde(default)]
     pub offset: P3,
+    /// The whole registration instead (`device = M·scene + offset`): the file
+    /// `calibrate-manipulator` writes, or a table `{ matrix = [9], offset = [3] }`.
+    #[serde(default)]
+    pub registration: Option<RegistrationParam>,
     /// Fastest tip speed the bridge commands, µm/s.
     #[serde(default = "default_max_speed")]
     pub max_speed: f64,
@@ -86,6 +91,16 @@ pub struct BridgeParams {
     /// never of height zero), µm; the tallest plausible cell by default.
     #[serde(default = "default_untrusted")]
     pub untrusted_height: f64,
+}
+
+/// Where a bridge's registration comes from.
+#[derive(Clone, Debug, Deserialize)]
+#[serde(untagged)]
+pub enum RegistrationParam {
+    /// A registration file's path.
+    File(String),
+    /// The registration itself.
+    Inline(Registration),
 }
 
 fn default_listen() -> String {
@@ -164,6 +179,7 @@ impl Params for BridgeParams {
         }
         let c = p.config();
         c.planner.check()?;
+        p.registration()?;
         if !p.offset.iter().all(|v| (-1e7..=1e7).contains(v)) {
             return Err(format!(
                 "offset {:?} must be finite, each axis within ±1e7 µm",
@@ -226,7 +242,7 @@ impl BridgeParams {
             },
             home: self.home,
             max_speed: self.max_speed,
-            offset: self.offset,
+            registration: self.registration().unwrap_or_default(),
             stale: Duration::from_millis(self.stale_ms),
             poll: Duration::from_millis(self.poll_ms),
             self_margin: self.self_margin,
@@ -236,12 +252,25 @@ impl BridgeParams {
         }
     }
 
+    /// The registration: the file or table given, or the offset alone.
+    pub fn registration(&self) -> Result<Registration, String> {
+        match &self.registration {
+            None => Ok(Registration::offset_only(self.offset)),
+            Some(_) if self.offset != [0.0; 3] => Err(
+                "give offset or registration, not both (a registration holds its own offset)"
+                    .into(),
+            ),
+            Some(RegistrationParam::File(p)) => Registration::read(p),
+            Some(RegistrationParam::Inline(r)) => r.check().map(|_| *r),
+        }
+    }
+
     /// Opens the configured device.
     pub fn open_device(&self) -> Result<Box<dyn Device>, DeviceError> {
         match self.device.as_str() {
             // The sim's own limit sits above the bridge's, as a real device's would.
             "sim" => Ok(Box::new(SimDevice::new(
-                axpy(self.home, 1.0, self.offset),
+                self.registration().unwrap_or_default().to_device(self.home),
                 self.max_speed * 2.0,
                 self.max_accel,
                 wall_clock(),

@@ -248,12 +248,14 @@ pub struct Pipette {
 }
 
 impl Pipette {
-    /// The tip's front: the glass's farthest point along the pipette, `[x, y, height]` µm.
+    /// The tip's front: the glass's farthest point along the pipette's axis (which points
+    /// down at `elevation` towards the tip), `[x, y, height]` µm.
     pub fn front(&self) -> [f64; 3] {
+        let (ce, se) = (self.elevation.cos(), self.elevation.sin());
         [
-            self.tip[0] + self.tip_radius * self.azimuth.cos(),
-            self.tip[1] + self.tip_radius * self.azimuth.sin(),
-            self.height,
+            self.tip[0] + self.tip_radius * ce * self.azimuth.cos(),
+            self.tip[1] + self.tip_radius * ce * self.azimuth.sin(),
+            self.height - self.tip_radius * se,
         ]
     }
 }
