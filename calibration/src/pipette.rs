@@ -429,12 +429,6 @@ fn fit_profile(ts: &[f64], profile: &[f64], t_end: f64) -> Result<ProfileFit, No
         }
     }
     let (_, p) = best.expect("fits");
-    if std::env::var_os("TIP_DEBUG").is_some() {
-        for (t, v) in ts.iter().zip(profile) {
-            eprintln!("{t:.1} {v:.1} {:.1}", blurred(*t, &p));
-        }
-        eprintln!("{p:?} t_end {t_end}");
-    }
     if !(p[3] > 0.0 && p.iter().all(|v| v.is_finite())) {
         return Err(NoTip(
             "the pipette's profile does not fit a tapered tip".into(),
