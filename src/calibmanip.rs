@@ -226,7 +226,8 @@ impl Fitted {
 /// Arguments of `microstereo calibrate-manipulator`.
 #[derive(Args, Debug)]
 pub struct CalibrateManipulatorArgs {
-    /// `sim` (a simulated manipulator seen by the synthetic microscope) or `mp285`.
+    /// `sim` (a simulated manipulator seen by the synthetic microscope), `mp285` or
+    /// `scientifica`.
     #[arg(long, default_value = "sim")]
     pub device: String,
     /// Serial port of an MP-285.
@@ -455,11 +456,11 @@ pub fn calibrate_manipulator(a: CalibrateManipulatorArgs) -> Result<(), CliError
                 optics,
             )
         }
-        "mp285" => {
+        d @ ("mp285" | "scientifica") => {
             let port = a
                 .port
                 .as_deref()
-                .ok_or("--device mp285 needs --port (its serial port)")?;
+                .ok_or(format!("--device {d} needs --port (its serial port)"))?;
             let cal = a
                 .calibration
                 .as_ref()
@@ -468,14 +469,26 @@ pub fn calibrate_manipulator(a: CalibrateManipulatorArgs) -> Result<(), CliError
                 .cameras
                 .clone()
                 .ok_or("a real device needs --cameras LEFT RIGHT")?;
-            let dev = manipulator_bridge::mp285::Mp285::open(port, Duration::from_secs(2))
-                .map_err(|e| CliError::Other(e.0))?;
+            let dev: Box<dyn Device> = if d == "mp285" {
+                Box::new(
+                    manipulator_bridge::mp285::Mp285::open(port, Duration::from_secs(2))
+                        .map_err(|e| CliError::Other(e.0))?,
+                )
+            } else {
+                Box::new(
+                    manipulator_bridge::scientifica::Scientifica::open(
+                        port,
+                        Duration::from_secs(2),
+                    )
+                    .map_err(|e| CliError::Other(e.0))?,
+                )
+            };
             let (grab, (w, h)) = cameras(&cams)?;
-            (Box::new(dev), grab, geometry_of(cal, w, h)?)
+            (dev, grab, geometry_of(cal, w, h)?)
         }
         d => {
             return Err(CliError::Other(format!(
-                "unknown --device '{d}'; devices: sim, mp285"
+                "unknown --device '{d}'; devices: sim, mp285, scientifica"
             )));
         }
     };

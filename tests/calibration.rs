@@ -496,27 +496,93 @@ fn calibrate_manipulator_registers_a_mounted_sim_and_the_bridge_reads_it() {
     )
     .unwrap();
     let r = params.registration().unwrap();
-    let truth = microstereo::calibmanip::mount(&[30.0, 1.1, -1.0, 0.9, 1200.0, -300.0, 5000.0]).unwrap();
+    let truth =
+        microstereo::calibmanip::mount(&[30.0, 1.1, -1.0, 0.9, 1200.0, -300.0, 5000.0]).unwrap();
     for (a, b) in r.matrix.iter().zip(&truth.matrix) {
-        assert!((a - b).abs() < 0.015, "{:?} vs {:?}", r.matrix, truth.matrix);
+        assert!(
+            (a - b).abs() < 0.015,
+            "{:?} vs {:?}",
+            r.matrix,
+            truth.matrix
+        );
     }
     // A pipette change: one stop re-registers the offset on the same axes.
     let re = dir.path().join("re.toml");
-    let mut args = vec!["calibrate-manipulator", "--offset-only", s(&reg), "-o", s(&re)];
+    let mut args = vec![
+        "calibrate-manipulator",
+        "--offset-only",
+        s(&reg),
+        "-o",
+        s(&re),
+    ];
     args.extend(mount);
     let o = run(&args);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let again = manipulator_bridge::registration::Registration::read(s(&re)).unwrap();
     assert_eq!(again.matrix, r.matrix);
-    let moved: f64 = (0..3).map(|k| (again.offset[k] - r.offset[k]).powi(2)).sum::<f64>().sqrt();
-    assert!(moved < 3.0, "the same pipette re-registered {moved:.2} µm away");
+    let moved: f64 = (0..3)
+        .map(|k| (again.offset[k] - r.offset[k]).powi(2))
+        .sum::<f64>()
+        .sqrt();
+    assert!(
+        moved < 3.0,
+        "the same pipette re-registered {moved:.2} µm away"
+    );
     // Bad input: one clear error each, nothing written over.
     let text = std::fs::read_to_string(&reg).unwrap();
-    assert_clean_failure(&run(&["calibrate-manipulator", "-o", s(&reg)]), "add --overwrite");
-    assert_clean_failure(&run(&["calibrate-manipulator", "--grid", "1x1x1", "-o", s(&dir.path().join("x.toml"))]), "--grid");
-    assert_clean_failure(&run(&["calibrate-manipulator", "--sim-mount", "30,1", "-o", s(&dir.path().join("x.toml"))]), "--sim-mount takes 7");
-    assert_clean_failure(&run(&["calibrate-manipulator", "--sim-mount", "0,1,0,1,0,0,0", "-o", s(&dir.path().join("x.toml"))]), "determinant");
-    assert_clean_failure(&run(&["calibrate-manipulator", "--device", "mp285", "-o", s(&dir.path().join("x.toml"))]), "--port");
-    assert_clean_failure(&run(&["calibrate-manipulator", "--offset-only", s(&dir.path().join("none.toml")), "-o", s(&dir.path().join("x.toml"))]), "cannot be read");
+    assert_clean_failure(
+        &run(&["calibrate-manipulator", "-o", s(&reg)]),
+        "add --overwrite",
+    );
+    assert_clean_failure(
+        &run(&[
+            "calibrate-manipulator",
+            "--grid",
+            "1x1x1",
+            "-o",
+            s(&dir.path().join("x.toml")),
+        ]),
+        "--grid",
+    );
+    assert_clean_failure(
+        &run(&[
+            "calibrate-manipulator",
+            "--sim-mount",
+            "30,1",
+            "-o",
+            s(&dir.path().join("x.toml")),
+        ]),
+        "--sim-mount takes 7",
+    );
+    assert_clean_failure(
+        &run(&[
+            "calibrate-manipulator",
+            "--sim-mount",
+            "0,1,0,1,0,0,0",
+            "-o",
+            s(&dir.path().join("x.toml")),
+        ]),
+        "determinant",
+    );
+    assert_clean_failure(
+        &run(&[
+            "calibrate-manipulator",
+            "--device",
+            "mp285",
+            "-o",
+            s(&dir.path().join("x.toml")),
+        ]),
+        "--port",
+    );
+    assert_clean_failure(
+        &run(&[
+            "calibrate-manipulator",
+            "--offset-only",
+            s(&dir.path().join("none.toml")),
+            "-o",
+            s(&dir.path().join("x.toml")),
+        ]),
+        "cannot be read",
+    );
     assert_eq!(std::fs::read_to_string(&reg).unwrap(), text);
 }

@@ -6,7 +6,8 @@
 //!   body keeps a clearance from every cell but its target.
 //! - [`geom`]: the exact distances the planner relies on.
 //! - [`device`]: the manipulator trait and the simulated manipulator; [`mp285`]: the
-//!   Sutter MP-285 serial driver and its emulator.
+//!   Sutter MP-285 serial driver and its emulator; [`scientifica`]: Scientifica's ASCII
+//!   protocol and its emulator; [`registration`]: the device's frame on the scene's.
 //! - [`protocol`], [`bridge`], [`node`]: the TCP commands and events, the controller that
 //!   executes them safely, and the graph node.
 
@@ -19,4 +20,5 @@ pub mod plan;
 pub mod protocol;
 pub mod registration;
 pub mod scene;
+pub mod scientifica;
 pub mod testing;

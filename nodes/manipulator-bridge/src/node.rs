@@ -7,6 +7,7 @@ use crate::mp285::Mp285;
 use crate::plan::{Entry, PipetteGeometry, PlannerConfig};
 use crate::registration::Registration;
 use crate::scene::Workspace;
+use crate::scientifica::Scientifica;
 use runtime::node::{NodeError, Params, Stamp, Task};
 use schemas::{ManipulatorState, Targets};
 use serde::Deserialize;
@@ -20,7 +21,7 @@ pub struct BridgeParams {
     /// Address to listen on for controllers.
     #[serde(default = "default_listen")]
     pub listen: String,
-    /// `sim`, `mp285` or `none`.
+    /// `sim`, `mp285`, `scientifica` or `none`.
     #[serde(default = "default_device")]
     pub device: String,
     /// Serial port of an MP-285.
@@ -169,13 +170,17 @@ impl Params for BridgeParams {
             .parse::<std::net::SocketAddr>()
             .map_err(|e| format!("listen '{}' is not an address: {e}", p.listen))?;
         match (p.device.as_str(), &p.port) {
-            ("sim" | "none", _) | ("mp285", Some(_)) => {}
-            ("mp285", None) => {
-                return Err(
-                    "device = \"mp285\" needs port = \"/dev/ttyUSB0\" (its serial port)".into(),
-                );
+            ("sim" | "none", _) | ("mp285" | "scientifica", Some(_)) => {}
+            (d @ ("mp285" | "scientifica"), None) => {
+                return Err(format!(
+                    "device = \"{d}\" needs port = \"/dev/ttyUSB0\" (its serial port)"
+                ));
             }
-            (d, _) => return Err(format!("unknown device '{d}'; devices: sim, mp285, none")),
+            (d, _) => {
+                return Err(format!(
+                    "unknown device '{d}'; devices: sim, mp285, scientifica, none"
+                ));
+            }
         }
         let c = p.config();
         c.planner.check()?;
@@ -285,6 +290,10 @@ impl BridgeParams {
                     );
                 }
                 Ok(Box::new(d))
+            }
+            "scientifica" => {
+                let port = self.port.as_deref().unwrap_or_default();
+                Ok(Box::new(Scientifica::open(port, Duration::from_secs(2))?))
             }
             _ => Err(DeviceError("device = \"none\" in the launch file".into())),
         }
