@@ -26,7 +26,7 @@ pub struct Optics {
     pub calibration: Calibration,
 }
 
-/// The tip's front in the scene frame `[X, Y, −Z]` µm (the bridge's), from one frame.
+/// The tip's front in the camera frame `[X, Y, Z]` µm (the bridge's), from one frame.
 pub fn tip_in_scene(frame: &StereoFrame, optics: &Optics) -> Result<P3, String> {
     let (l, r) = match &optics.rectify {
         Some((ll, rl)) => (ll.apply(&frame.left), rl.apply(&frame.right)),
@@ -47,7 +47,7 @@ pub fn tip_in_scene(frame: &StereoFrame, optics: &Optics) -> Result<P3, String> 
     let p = triangulate::triangulate_pixel(tl.front[0], y, d, c)
         .ok_or_else(|| format!("the tips' disparity {d:.2} px puts the tip behind the cameras"))?;
     let um = c.unit.metres() / 1e-6;
-    Ok([p[0] * um, p[1] * um, -p[2] * um])
+    Ok([p[0] * um, p[1] * um, p[2] * um])
 }
 
 /// One stop of a registration.
@@ -267,13 +267,13 @@ pub struct CalibrateManipulatorArgs {
         default_value = "30,1.1,-1,0.9,1200,-300,5000"
     )]
     pub sim_mount: Vec<f64>,
-    /// Where the simulated tip starts, scene `[X, Y, −Z]` µm (60 µm above the synthetic
+    /// Where the simulated tip starts, camera frame `[X, Y, Z]` µm (60 µm above the synthetic
     /// substrate by default).
     #[arg(
         long,
         value_delimiter = ',',
         allow_hyphen_values = true,
-        default_value = "-60,20,-3940"
+        default_value = "-60,20,3940"
     )]
     pub sim_start: Vec<f64>,
     /// Seed of the synthetic scene's cells.
@@ -591,7 +591,7 @@ pub fn calibrate_manipulator(a: CalibrateManipulatorArgs) -> Result<(), CliError
         })
         .collect();
     let text = format!(
-        "# Written by microstereo calibrate-manipulator: device = matrix · scene + offset (µm; matrix row by row;\n# scene = [X, Y, −Z] of the triangulation). The bridge reads it: registration = \"{}\".\nmatrix = {:?}\noffset = {:?}\nrms_um = {rms}\nstops = [\n  {}\n]\n",
+        "# Written by microstereo calibrate-manipulator: device = matrix · [X, Y, Z] + offset (µm; matrix row by row;\n# [X, Y, Z]: the triangulation's camera frame, Z the depth). The bridge reads it: registration = \"{}\".\nmatrix = {:?}\noffset = {:?}\nrms_um = {rms}\nstops = [\n  {}\n]\n",
         a.output.display(),
         registration.matrix,
         registration.offset,

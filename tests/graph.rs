@@ -1271,17 +1271,25 @@ fn the_sim_manipulator_approaches_a_cell_and_retracts_in_closed_loop() {
         }
     }
     assert!(states.len() > 60, "{} states", states.len());
-    let approach = states
+    // The state is in the camera frame; the planner's scenes have the third coordinate up.
+    use manipulator_bridge::geom::flip;
+    let mut approach = states
         .iter()
         .rev()
         .filter_map(|s| s.plan.clone())
         .find(|p| p.goal == "approach")
         .expect("an approach plan");
-    let retract = states.iter().rev().find_map(|s| s.plan.clone()).unwrap();
+    let mut retract = states.iter().rev().find_map(|s| s.plan.clone()).unwrap();
     assert_eq!(retract.goal, "retract");
+    approach.end = flip(approach.end);
+    retract.end = flip(retract.end);
     let samples: Vec<(u64, [f64; 3])> = states
         .iter()
-        .flat_map(|s| s.trajectory.iter().map(|t| (s.frame, [t[1], t[2], t[3]])))
+        .flat_map(|s| {
+            s.trajectory
+                .iter()
+                .map(|t| (s.frame, flip([t[1], t[2], t[3]])))
+        })
         .collect();
     assert!(samples.len() > 50, "{} samples", samples.len());
     // Arrival: the tip stood within 1 µm of the injection point.

@@ -40,7 +40,7 @@ fn after_calibrate_manipulator_an_approach_reaches_the_injection_point_within_2_
     let truth = mount(&[30.0, 1.1, -1.0, 0.9, 1200.0, -300.0, 5000.0]).unwrap();
     let mut micro = SimMicroscope::new(2, truth);
     let z0 = micro.scene.optics.working_distance();
-    let start: P3 = [-60.0, 20.0, -3940.0];
+    let start: P3 = [-60.0, 20.0, 3940.0];
     let sim = Arc::new(Mutex::new(SimDevice::new(
         truth.to_device(start),
         2000.0,
@@ -66,7 +66,7 @@ fn after_calibrate_manipulator_an_approach_reaches_the_injection_point_within_2_
         fit.rms, fit.registration.matrix
     );
     assert!(fit.refuse(3.0).is_none(), "{:?}", fit.refuse(3.0));
-    // Where the glass's front truly is with the device at `d`, scene frame.
+    // Where the glass's front truly is with the device at `d`, camera frame.
     let front = |micro: &SimMicroscope, d: P3| {
         let p = capture::synthetic::pipette_from(
             truth.to_scene(d),
@@ -75,7 +75,7 @@ fn after_calibrate_manipulator_an_approach_reaches_the_injection_point_within_2_
             z0,
         )
         .front();
-        [p[0], p[1], p[2] - z0]
+        [p[0], p[1], z0 - p[2]]
     };
 
     // The cells as the graph measures them (the bridge takes the pipette's own image for
@@ -177,7 +177,11 @@ fn after_calibrate_manipulator_an_approach_reaches_the_injection_point_within_2_
             manipulator_bridge::plan::leg_clearance(
                 &scene,
                 &cfg.planner,
-                (w[0], w[1]),
+                // The planner's frame: the third coordinate up.
+                (
+                    manipulator_bridge::geom::flip(w[0]),
+                    manipulator_bridge::geom::flip(w[1]),
+                ),
                 Some(target),
                 f64::INFINITY,
             )

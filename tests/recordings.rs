@@ -156,7 +156,10 @@ fn a_corrupt_chunk_is_reported() {
     let name_len = u32::from_le_bytes(d[chunk + 28..chunk + 32].try_into().unwrap()) as usize;
     let records = chunk + 32 + name_len + 8;
     let records_len = u64::from_le_bytes(d[records - 8..records].try_into().unwrap()) as usize;
-    d[records + records_len / 2] ^= 0x10;
+    // Two bytes of the compressed records: one flipped bit can land where the decoder
+    // never looks (the exact middle of the recording made in December 2026 did).
+    d[records + records_len / 3] ^= 0x10;
+    d[records + 2 * records_len / 3] ^= 0x10;
     let dir = tempfile::tempdir().unwrap();
     let bad = dir.path().join("bad.mcap");
     std::fs::write(&bad, &d).unwrap();

@@ -345,7 +345,7 @@ pub struct PathPlan {
     pub target: Option<u32>,
     /// The frame whose scene it was planned in.
     pub frame: u64,
-    /// Tip waypoints `[x, y, up]`, µm, the start first.
+    /// Tip waypoints `[X, Y, Z]` (camera frame), µm, the start first.
     pub waypoints: Vec<[f64; 3]>,
     /// Legs from this waypoint on run along the pipette axis (target exempt).
     pub axial_from: u32,
@@ -359,7 +359,8 @@ pub struct PathPlan {
 }
 
 /// What the manipulator bridge sends on `state` once per frame (JSON). Positions are in
-/// the scene frame: `[X, Y, −Z]` of the triangulation in µm, so the third grows upward.
+/// the camera frame of the triangulation, `[X, Y, Z]` in µm (X right and Y down in the left
+/// image, Z the depth from the cameras, origin midway between them), as every cell.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ManipulatorState {
     /// Frame number of the scene it answers.
@@ -370,7 +371,7 @@ pub struct ManipulatorState {
     pub device: String,
     /// `idle`, `moving`, `arrived`, `stopped`, `blocked` or `error`.
     pub status: String,
-    /// Tip position `[x, y, up]`, µm.
+    /// Tip position `[X, Y, Z]`, µm.
     pub tip: [f64; 3],
     /// Pipette elevation above the horizontal, degrees.
     pub elevation_deg: f64,
@@ -378,7 +379,7 @@ pub struct ManipulatorState {
     pub azimuth_deg: f64,
     /// Clearance the planner keeps, µm.
     pub clearance: f64,
-    /// Tip samples `[t, x, y, up]` since the previous message (t: seconds since the bridge
+    /// Tip samples `[t, X, Y, Z]` since the previous message (t: seconds since the bridge
     /// started), at the bridge's polling rate.
     pub trajectory: Vec<[f64; 4]>,
     /// The plan being executed or last executed.

@@ -152,18 +152,18 @@ impl SyntheticCapture {
 pub const LOOP_RENDER_BUDGET: std::time::Duration = std::time::Duration::from_secs(10);
 
 /// The pipette a manipulator state describes in a scene whose substrate lies at depth `z0`
-/// (the state's third coordinate is `−Z`, µm).
+/// (the state's positions are in the camera frame, its third coordinate the depth, µm).
 pub fn pipette_at(m: &ManipulatorState, z0: f64) -> Pipette {
     pipette_from(m.tip, m.elevation_deg, m.azimuth_deg, z0)
 }
 
-/// The pipette with its tip at scene point `tip` (`[X, Y, −Z]` µm), its body rising at
+/// The pipette with its tip at camera-frame point `tip` (`[X, Y, Z]` µm), its body rising at
 /// `elevation_deg` towards `azimuth_deg` (the bridge's convention), over a substrate at
 /// depth `z0`.
 pub fn pipette_from(tip: [f64; 3], elevation_deg: f64, azimuth_deg: f64, z0: f64) -> Pipette {
     Pipette {
         tip: [tip[0], tip[1]],
-        height: tip[2] + z0,
+        height: z0 - tip[2],
         tip_radius: 1.5,
         taper: 0.08,
         elevation: elevation_deg.to_radians(),
@@ -276,8 +276,8 @@ mod tests {
             capture_ns: 0,
             device: "sim".into(),
             status: "idle".into(),
-            // 20 µm above the substrate (at −working distance), in the frame's middle.
-            tip: [0.0, 0.0, 20.0 - looped.scene.optics.working_distance()],
+            // 20 µm above the substrate (at the working distance's depth), in the middle.
+            tip: [0.0, 0.0, looped.scene.optics.working_distance() - 20.0],
             elevation_deg: 20.0,
             azimuth_deg: 180.0,
             clearance: 10.0,

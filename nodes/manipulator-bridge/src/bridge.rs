@@ -14,7 +14,7 @@
 //! come on top.
 
 use crate::device::{Device, DeviceError};
-use crate::geom::{P3, dist};
+use crate::geom::{P3, dist, flip};
 use crate::plan::{
     Goal, NoPath, Plan, PlannerConfig, check_rest, injection_point, plan_approach, plan_goto,
     plan_retract,
@@ -37,11 +37,11 @@ use std::time::{Duration, Instant};
 pub struct BridgeConfig {
     /// The planner's settings (pipette, clearance, workspace, …).
     pub planner: PlannerConfig,
-    /// Where `home` goes, scene frame, µm.
+    /// Where `home` goes, planner frame (`[X, Y, up]`), µm.
     pub home: P3,
     /// Fastest tip speed the bridge commands, µm/s.
     pub max_speed: f64,
-    /// How the device's frame sits on the scene's (`device = M·scene + offset`).
+    /// How the device's frame sits on the camera frame (`device = M·[X, Y, Z] + offset`).
     pub registration: Registration,
     /// A scene older than this stops any move and refuses new ones.
     pub stale: Duration,
@@ -55,6 +55,18 @@ pub struct BridgeConfig {
     pub replan_tolerance: f64,
     /// Height of a cell whose measured height is not trusted, µm.
     pub untrusted_height: f64,
+}
+
+impl BridgeConfig {
+    /// The tip in the planner's frame when the device reads `device`.
+    pub fn tip_at(&self, device: P3) -> P3 {
+        flip(self.registration.to_scene(device))
+    }
+
+    /// Where the device goes to put the tip at `tip` (planner's frame).
+    pub fn device_for(&self, tip: P3) -> P3 {
+        self.registration.to_device(flip(tip))
+    }
 }
 
 /// A line to one controller or to all.
@@ -168,9 +180,9 @@ fn plan_view(p: &Plan) -> PathPlan {
             _ => None,
         },
         frame: p.frame,
-        waypoints: p.waypoints.clone(),
+        waypoints: p.waypoints.iter().map(|w| flip(*w)).collect(),
         axial_from: p.axial_from as u32,
-        end: p.end,
+        end: flip(p.end),
         length: p.length,
         min_clearance: p.min_clearance.is_finite().then_some(p.min_clearance),
     }
@@ -223,9 +235,7 @@ impl Bridge {
         };
         if let Some(d) = c.device.as_mut() {
             match d.state() {
-                Ok(s) => {
-                    c.shared.lock().expect("shared").tip = cfg.registration.to_scene(s.position)
-                }
+                Ok(s) => c.shared.lock().expect("shared").tip = cfg.tip_at(s.position),
                 Err(e) => {
                     c.missing = e.0;
                     c.device = None;
@@ -273,11 +283,14 @@ impl Bridge {
             capture_ns: t.capture_ns,
             device: sh.device.clone(),
             status: sh.status.clone(),
-            tip: sh.tip,
+            tip: flip(sh.tip),
             elevation_deg: cfg.pipette.elevation_deg,
             azimuth_deg: cfg.pipette.azimuth_deg,
             clearance: cfg.clearance,
-            trajectory: std::mem::take(&mut sh.trajectory),
+            trajectory: std::mem::take(&mut sh.trajectory)
+                .into_iter()
+                .map(|[t, x, y, up]| [t, x, y, -up])
+                .collect(),
             plan: sh.plan.clone(),
             ignored,
         };
@@ -440,7 +453,10 @@ impl Controller {
             return;
         }
         self.set_status("stopped");
-        self.broadcast(&event("stopped", json!({ "tip": tip, "dropped": dropped })));
+        self.broadcast(&event(
+            "stopped",
+            json!({ "tip": flip(tip), "dropped": dropped }),
+        ));
     }
 
     fn fail(&mut self, e: DeviceError) {
@@ -471,7 +487,7 @@ impl Controller {
         loop {
             let s = d.state()?;
             if !s.moving {
-                return Ok(self.cfg.registration.to_scene(s.position));
+                return Ok(self.cfg.tip_at(s.position));
             }
             if t0.elapsed() > Duration::from_secs(5) {
                 return Err(DeviceError(format!(
@@ -494,7 +510,8 @@ impl Controller {
                     .map(|c| c.id);
                 plan_retract(scene, cfg, tip, inside)
             }
-            Command::Goto { x, y, z, .. } => plan_goto(scene, cfg, tip, [x, y, z]),
+            // Commands are in the camera frame.
+            Command::Goto { x, y, z, .. } => plan_goto(scene, cfg, tip, flip([x, y, z])),
             Command::Home { .. } => plan_goto(scene, cfg, tip, self.cfg.home),
             Command::Stop => unreachable!("stop is not planned"),
         }
@@ -524,7 +541,7 @@ impl Controller {
             }
         } else {
             match self.device.as_mut().expect("device").state() {
-                Ok(s) => self.cfg.registration.to_scene(s.position),
+                Ok(s) => self.cfg.tip_at(s.position),
                 Err(e) => return self.fail(e),
             }
         };
@@ -595,7 +612,7 @@ impl Controller {
             Ok(s) => s,
             Err(e) => return self.fail(e),
         };
-        let tip = self.cfg.registration.to_scene(st.position);
+        let tip = self.cfg.tip_at(st.position);
         let t = self.t0.elapsed().as_secs_f64();
         {
             let mut sh = self.shared.lock().expect("shared");
@@ -654,7 +671,7 @@ impl Controller {
                 self.set_status("arrived");
                 self.broadcast(&event(
                     "arrived",
-                    json!({ "tip": tip, "end": plan.end, "error_um": err, "plan": plan_view(&plan) }),
+                    json!({ "tip": flip(tip), "end": flip(plan.end), "error_um": err, "plan": plan_view(&plan) }),
                 ));
                 return;
             }
@@ -665,7 +682,7 @@ impl Controller {
                 .device
                 .as_mut()
                 .expect("device")
-                .start_move(self.cfg.registration.to_device(to), speed);
+                .start_move(self.cfg.device_for(to), speed);
             if let Err(e) = r {
                 return self.fail(e);
             }
@@ -679,7 +696,7 @@ impl Controller {
                 dist(tip, w[k]) + w[k..].windows(2).map(|p| dist(p[0], p[1])).sum::<f64>();
             let line = event(
                 "progress",
-                json!({ "tip": tip, "leg": k, "remaining_um": remaining }),
+                json!({ "tip": flip(tip), "leg": k, "remaining_um": remaining }),
             );
             self.broadcast(&line);
         }
@@ -740,7 +757,7 @@ impl Controller {
             Goal::Goto => Command::Goto {
                 x: end[0],
                 y: end[1],
-                z: end[2],
+                z: -end[2],
                 speed: None,
             },
         };

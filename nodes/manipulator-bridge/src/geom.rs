@@ -8,6 +8,13 @@
 /// A point or vector `[x, y, up]` in µm.
 pub type P3 = [f64; 3];
 
+/// Between the planner's frame (`[X, Y, up]`, the third coordinate growing upward) and the
+/// camera frame every interface uses (`[X, Y, Z]` of the triangulation, Z the depth from
+/// the cameras): `[x, y, −z]`, its own inverse.
+pub fn flip(p: P3) -> P3 {
+    [p[0], p[1], -p[2]]
+}
+
 /// `a + s·b`.
 pub fn axpy(a: P3, s: f64, b: P3) -> P3 {
     [a[0] + s * b[0], a[1] + s * b[1], a[2] + s * b[2]]

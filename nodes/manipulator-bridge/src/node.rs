@@ -2,7 +2,7 @@
 
 use crate::bridge::{Bridge, BridgeConfig};
 use crate::device::{Device, DeviceError, SimDevice, wall_clock};
-use crate::geom::P3;
+use crate::geom::{P3, flip};
 use crate::mp285::Mp285;
 use crate::plan::{Entry, PipetteGeometry, PlannerConfig};
 use crate::registration::Registration;
@@ -13,8 +13,8 @@ use schemas::{ManipulatorState, Targets};
 use serde::Deserialize;
 use std::time::Duration;
 
-/// `params` of a manipulator-bridge node (positions in the scene frame: `[X, Y, −Z]` of
-/// the triangulation, µm).
+/// `params` of a manipulator-bridge node (positions in the camera frame: `[X, Y, Z]` of
+/// the triangulation, Z the depth from the cameras, µm).
 #[derive(Clone, Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct BridgeParams {
@@ -27,7 +27,7 @@ pub struct BridgeParams {
     /// Serial port of an MP-285.
     #[serde(default)]
     pub port: Option<String>,
-    /// Where the tip starts (sim) and where `home` goes.
+    /// Where the tip starts (sim) and where `home` goes, camera frame `[X, Y, Z]` µm.
     #[serde(default = "default_home")]
     pub home: P3,
     /// Device position = scene position + offset (the axes taken as the scene's).
@@ -76,7 +76,7 @@ pub struct BridgeParams {
     /// `top` or `side`.
     #[serde(default)]
     pub entry: Entry,
-    /// The box the tip may move in.
+    /// The box the tip may move in, camera frame `[X, Y, Z]` µm.
     #[serde(default = "default_workspace")]
     pub workspace: Workspace,
     /// Objects this close to the pipette's recent body are the pipette itself, µm.
@@ -111,7 +111,7 @@ fn default_device() -> String {
     "sim".into()
 }
 fn default_home() -> P3 {
-    [-300.0, 0.0, -3850.0]
+    [-300.0, 0.0, 3850.0]
 }
 fn default_max_speed() -> f64 {
     200.0
@@ -147,7 +147,15 @@ fn default_floor() -> f64 {
     PlannerConfig::default().floor_margin
 }
 fn default_workspace() -> Workspace {
-    PlannerConfig::default().workspace
+    flip_box(PlannerConfig::default().workspace)
+}
+
+/// A box between the planner's frame and the camera frame (its third bounds swap).
+fn flip_box(w: Workspace) -> Workspace {
+    Workspace {
+        min: [w.min[0], w.min[1], -w.max[2]],
+        max: [w.max[0], w.max[1], -w.min[2]],
+    }
 }
 fn default_self_margin() -> f64 {
     3.0
@@ -191,10 +199,10 @@ impl Params for BridgeParams {
                 p.offset
             ));
         }
-        if !c.planner.workspace.contains(p.home) {
+        if !p.workspace.contains(p.home) {
             return Err(format!(
                 "home {:?} is outside the workspace {:?} .. {:?}",
-                p.home, c.planner.workspace.min, c.planner.workspace.max
+                p.home, p.workspace.min, p.workspace.max
             ));
         }
         // Each above 0 and below what any manipulator has (µm, µm/s, µm/s²).
@@ -243,9 +251,9 @@ impl BridgeParams {
                 depth: self.depth,
                 floor_margin: self.floor_margin,
                 entry: self.entry,
-                workspace: self.workspace,
+                workspace: flip_box(self.workspace),
             },
-            home: self.home,
+            home: flip(self.home),
             max_speed: self.max_speed,
             registration: self.registration().unwrap_or_default(),
             stale: Duration::from_millis(self.stale_ms),

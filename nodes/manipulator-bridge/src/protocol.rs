@@ -5,7 +5,7 @@
 //! ```text
 //! {"cmd": "approach", "cell": 3}            into cell 3 of the latest frame
 //! {"cmd": "retract"}                        back out along the pipette axis
-//! {"cmd": "goto", "x": 0, "y": 0, "z": -3850} to a point (scene frame, µm)
+//! {"cmd": "goto", "x": 0, "y": 0, "z": 3850}  to a point (camera frame, µm: Z the depth)
 //! {"cmd": "home"}                           to the configured home
 //! {"cmd": "stop"}                           emergency stop: wins over everything queued
 //! ```
@@ -99,13 +99,13 @@ pub enum Command {
         #[serde(default)]
         speed: Option<f64>,
     },
-    /// To a point of the scene frame, µm.
+    /// To a point of the camera frame, µm.
     Goto {
         /// x.
         x: f64,
         /// y.
         y: f64,
-        /// Height (`−Z` of the triangulation).
+        /// Depth (the triangulation's Z: smaller is higher).
         z: f64,
         /// µm/s.
         #[serde(default)]

@@ -1,7 +1,7 @@
 //! The scene the planner works in: cells as obstacles, the substrate, the workspace.
 //!
-//! Coordinates are the triangulation's camera frame turned so that height grows upward:
-//! `[X, Y, −Z]` in µm (X right and Y down in the left image, origin midway between the
+//! The planner's coordinates are the triangulation's camera frame turned so that height
+//! grows upward: `[X, Y, −Z]` in µm (X right and Y down in the left image, origin midway between the
 //! cameras), so that a bigger third coordinate is farther from the substrate.
 //!
 //! A cell is the convex hull of its contour, extruded from below the substrate to the

@@ -60,7 +60,7 @@ fn config(stale_ms: u64) -> BridgeConfig {
 
 fn sim(cfg: &BridgeConfig) -> Result<Box<dyn Device>, DeviceError> {
     Ok(Box::new(SimDevice::new(
-        cfg.home,
+        cfg.device_for(cfg.home),
         1000.0,
         2000.0,
         wall_clock(),
@@ -128,7 +128,7 @@ fn an_emergency_stop_wins_over_queued_commands_and_halts_the_pipette() {
         c.next(&["plan"]);
         // Three more moves queued behind a stop in one write: the stop comes first.
         c.w.write_all(
-            b"{\"cmd\":\"home\"}\n{\"cmd\":\"goto\",\"x\":0,\"y\":200,\"z\":-3900}\n{\"cmd\":\"stop\"}\n",
+            b"{\"cmd\":\"home\"}\n{\"cmd\":\"goto\",\"x\":0,\"y\":200,\"z\":3900}\n{\"cmd\":\"stop\"}\n",
         )
         .unwrap();
         let ev = c.next(&["stopped", "arrived"]);
@@ -262,20 +262,20 @@ fn workspace_and_speed_limits_hold_in_the_bridge() {
     let mut c = Client::connect(&b);
     let t = targets(0);
     b.on_targets(&t).unwrap();
-    c.send(r#"{"cmd":"goto","x":5000,"y":0,"z":-3900}"#);
+    c.send(r#"{"cmd":"goto","x":5000,"y":0,"z":3900}"#);
     let ev = c.next(&["blocked", "plan"]);
     assert!(
         ev["reason"].as_str().unwrap().contains("out of reach"),
         "{ev}"
     );
     // 10 000 µm/s asked, the bridge's 100 given.
-    c.send(r#"{"cmd":"goto","x":-290,"y":0,"z":-3850,"speed":10000}"#);
+    c.send(r#"{"cmd":"goto","x":-290,"y":0,"z":3850,"speed":10000}"#);
     let ev = c.next(&["plan"]);
     assert_eq!(ev["speed"], 100.0, "{ev}");
     let ev = c.next(&["arrived"]);
     assert!(ev["error_um"].as_f64().unwrap() < 1e-9, "{ev}");
     // Into cell 2, which stands 20 µm high: refused at the goal.
-    c.send(r#"{"cmd":"goto","x":100,"y":50,"z":-3985}"#);
+    c.send(r#"{"cmd":"goto","x":100,"y":50,"z":3985}"#);
     let ev = c.next(&["blocked", "plan"]);
     assert_eq!(ev["cells"], serde_json::json!([2]), "{ev}");
 }
@@ -354,7 +354,7 @@ fn the_floor_follows_the_substrate_when_the_stage_moves() {
     let feed_one = |t: &Targets| b.on_targets(t).unwrap();
     feed_one(&targets(0));
     // 10 µm above the substrate, clear of the cells: a place the pipette may go.
-    let goto = r#"{"cmd":"goto","x":-200,"y":-200,"z":-3990}"#;
+    let goto = r#"{"cmd":"goto","x":-200,"y":-200,"z":3990}"#;
     c.send(goto);
     assert_eq!(c.next(&["blocked", "plan"])["event"], "plan");
     c.next(&["arrived"]);

@@ -338,8 +338,8 @@ pub const DISPARITY_TILES: MsgType = MsgType {
 };
 
 /// `microstereo_msgs/msg/ManipulatorState`: the pipette and its plan, once per frame.
-/// Positions are `[x, y, up]` in µm; `trajectory` is `t, x, y, up` interleaved and
-/// `plan_waypoints` `x, y, up`; `has_plan` false leaves the `plan_` fields empty, and a
+/// Positions are the camera frame's `[X, Y, Z]` in µm; `trajectory` is `t, X, Y, Z`
+/// interleaved and `plan_waypoints` `X, Y, Z`; `has_plan` false leaves the `plan_` fields empty, and a
 /// negative `plan_target` or `plan_min_clearance` means none.
 pub const MANIPULATOR_STATE: MsgType = MsgType {
     name: "microstereo_msgs/msg/ManipulatorState",

@@ -245,20 +245,15 @@ impl Sink {
             }
             MessageKind::ManipulatorState => {
                 let st = ManipulatorState::decode(h, payload).map_err(bad)?;
-                // The state's frame is [X, Y, −Z] in µm; the 3D view's is [X, Y, Z] in m.
-                let w = |p: [f64; 3]| {
-                    [
-                        (p[0] * 1e-6) as f32,
-                        (p[1] * 1e-6) as f32,
-                        (-p[2] * 1e-6) as f32,
-                    ]
-                };
+                // The state's frame is the 3D view's, [X, Y, Z]; in µm, the view's in m.
+                let w = |p: [f64; 3]| p.map(|v| (v * 1e-6) as f32);
                 let (e, a) = (st.elevation_deg.to_radians(), st.azimuth_deg.to_radians());
                 // 200 µm of the body, enough to see where it points.
                 let back = [
                     st.tip[0] + 200.0 * e.cos() * a.cos(),
                     st.tip[1] + 200.0 * e.cos() * a.sin(),
-                    st.tip[2] + 200.0 * e.sin(),
+                    // The body rises: towards the cameras, smaller Z.
+                    st.tip[2] - 200.0 * e.sin(),
                 ];
                 self.rec
                     .log(
