@@ -199,6 +199,32 @@ fn calibrate_stereo_reports_and_leaves_out_pairs_without_a_board() {
     assert!(err.contains("pair 99: left view: board not found"), "{err}");
     assert!(String::from_utf8_lossy(&o.stdout).contains("4 of 5 pairs used"));
     assert!(out.join("corners/99.png").exists());
+    // A pair that fits worse than the limit is left out and the rest refitted.
+    let o = run(&[
+        "calibrate-stereo",
+        s(&src),
+        "--inner",
+        "9x6",
+        "--square",
+        "25",
+        "--unit",
+        "mm",
+        "--max-pair-rms",
+        "0.05",
+        "-o",
+        s(&dir.path().join("strict")),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(
+        err.contains("fits badly (RMS") && err.contains("left out, refitting"),
+        "{err}"
+    );
+    assert!(
+        String::from_utf8_lossy(&o.stdout).contains("3 of 5 pairs used"),
+        "{}",
+        String::from_utf8_lossy(&o.stdout)
+    );
     // Too few usable pairs, a wrong board size, no pairs, a bad square: one clear error.
     std::fs::remove_file(src.join("left04.jpg")).unwrap();
     std::fs::remove_file(src.join("left03.jpg")).unwrap();
