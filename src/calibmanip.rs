@@ -394,10 +394,34 @@ pub fn calibrate_manipulator(a: CalibrateManipulatorArgs) -> Result<(), CliError
             a.span
         )));
     }
-    if !(a.max_rms > 0.0 && a.speed > 0.0 && a.speed.is_finite()) {
-        return Err(CliError::Other(
-            "--max-rms and --speed must be positive".into(),
-        ));
+    if !(a.max_rms > 0.0 && a.max_rms <= 1000.0) {
+        return Err(CliError::Other(format!(
+            "--max-rms {} must be in 0..1000 µm",
+            a.max_rms
+        )));
+    }
+    // Manipulators travel at most centimetres a second.
+    if !(a.speed > 0.0 && a.speed <= 1e5) {
+        return Err(CliError::Other(format!(
+            "--speed {} must be in 0..1e5 µm/s",
+            a.speed
+        )));
+    }
+    if a.sim_start.len() != 3 || a.sim_start.iter().any(|v| !v.is_finite() || v.abs() > 1e6) {
+        return Err(CliError::Other(format!(
+            "--sim-start {:?}: give X,Y,Z in µm (each within ±1e6)",
+            a.sim_start
+        )));
+    }
+    // The registration is written after minutes of moves: a folder that is not there is
+    // said before the first.
+    if let Some(parent) = a.output.parent().filter(|p| !p.as_os_str().is_empty())
+        && !parent.is_dir()
+    {
+        return Err(CliError::Other(format!(
+            "the output's folder '{}' does not exist: create it or give -o another file",
+            parent.display()
+        )));
     }
     let earlier = a
         .offset_only

@@ -116,17 +116,18 @@ struct PairResult {
 
 /// Runs `calibrate-stereo`.
 pub fn calibrate_stereo_cmd(a: CalibrateStereoArgs) -> Result<(), CliError> {
-    if !(a.square > 0.0 && a.square.is_finite()) {
+    // Boards from a micrometre stage target to a metre poster, in any unit.
+    if !(a.square > 0.0 && a.square <= 1e6) {
         return Err(CliError::Other(format!(
-            "--square {} must be a positive length",
+            "--square {} must be a positive length (at most 1e6 in its unit)",
             a.square
         )));
     }
     if let Some(m) = a.max_pair_rms
-        && !(m > 0.0 && m.is_finite())
+        && !(m > 0.0 && m <= 1000.0)
     {
         return Err(CliError::Other(format!(
-            "--max-pair-rms {m} must be a positive number of pixels"
+            "--max-pair-rms {m} must be a number of pixels in 0..1000"
         )));
     }
     let list = pairs(&a)?;
@@ -246,20 +247,14 @@ pub fn calibrate_stereo_cmd(a: CalibrateStereoArgs) -> Result<(), CliError> {
     let cal = stereo.calibration(size);
     let rect = rectify::Rectification::bouguet(&cal);
     // The rectification's own check: each board row's mean rectified row in both views.
-    let mut worst_row: f64 = 0.0;
-    for &i in &used {
-        let (lb, rb) = results[i].boards.as_ref().expect("used");
-        for b in 0..rows {
-            let mean = |v: &[[f64; 2]], right: bool| {
-                v[b * cols..(b + 1) * cols]
-                    .iter()
-                    .map(|p| rect.point(right, p[0], p[1]).1)
-                    .sum::<f64>()
-                    / cols as f64
-            };
-            worst_row = worst_row.max((mean(&lb.corners, false) - mean(&rb.corners, true)).abs());
-        }
-    }
+    let boards: Vec<camera_calibration::calibrate::PairView> = used
+        .iter()
+        .map(|&i| {
+            let (lb, rb) = results[i].boards.as_ref().expect("used");
+            (&lb.corners[..], &rb.corners[..])
+        })
+        .collect();
+    let worst_row = camera_calibration::calibrate::row_gap(&rect, &boards, cols);
     std::fs::create_dir_all(a.output.join("corners")).map_err(|e| {
         CliError::Other(format!(
             "cannot create '{}': {e}",

@@ -63,6 +63,26 @@ fn base(sub: &str, dir: &Path, stack: &Path) -> Option<(Vec<String>, Option<Path
             None,
         ),
         "bench-transport" => (vec![], None),
+        "calibrate-stereo" => (
+            vec![
+                s(data("tests/data/calibration/pairs")),
+                "--inner".into(),
+                "9x6".into(),
+                "--square".into(),
+                "25".into(),
+                "--unit".into(),
+                "mm".into(),
+                "-o".into(),
+                s(out.clone()),
+            ],
+            Some(out),
+        ),
+        // Its own arguments are its subcommands'.
+        "calibration" => (vec![], None),
+        "calibrate-manipulator" => (
+            vec!["-o".into(), s(dir.join("registration.toml"))],
+            Some(dir.join("registration.toml")),
+        ),
         "inspect" => (vec![bundled], None),
         "replay" => (vec![bundled, "--frames".into(), "1".into()], None),
         "test-node" => (vec![bundled, "segment".into()], None),

@@ -32,6 +32,24 @@ fn assert_clean_failure(out: &Output, needle: &str) {
     assert!(err.contains(needle), "expected '{needle}' in: {err}");
 }
 
+/// `calibrate-stereo SRC --inner INNER --square SQUARE --unit mm -o OUT`, then `extra`.
+fn calibrate(src: &Path, inner: &str, square: &str, out: &Path, extra: &[&str]) -> Output {
+    let mut args = vec![
+        "calibrate-stereo",
+        s(src),
+        "--inner",
+        inner,
+        "--square",
+        square,
+        "--unit",
+        "mm",
+        "-o",
+        s(out),
+    ];
+    args.extend(extra);
+    run(&args)
+}
+
 /// OpenCV's figures on the same pairs (scripts/stereo_calibration_fixture.py).
 const OPENCV_RMS: f64 = 0.215;
 const OPENCV_BASELINE: f64 = 83.176;
@@ -182,38 +200,20 @@ fn calibrate_stereo_reports_and_leaves_out_pairs_without_a_board() {
         .unwrap();
     std::fs::copy(src.join("left99.png"), src.join("right99.png")).unwrap();
     let out = dir.path().join("cal");
-    let o = run(&[
-        "calibrate-stereo",
-        s(&src),
-        "--inner",
-        "9x6",
-        "--square",
-        "25",
-        "--unit",
-        "mm",
-        "-o",
-        s(&out),
-    ]);
+    let o = calibrate(&src, "9x6", "25", &out, &[]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("pair 99: left view: board not found"), "{err}");
     assert!(String::from_utf8_lossy(&o.stdout).contains("4 of 5 pairs used"));
     assert!(out.join("corners/99.png").exists());
     // A pair that fits worse than the limit is left out and the rest refitted.
-    let o = run(&[
-        "calibrate-stereo",
-        s(&src),
-        "--inner",
+    let o = calibrate(
+        &src,
         "9x6",
-        "--square",
         "25",
-        "--unit",
-        "mm",
-        "--max-pair-rms",
-        "0.05",
-        "-o",
-        s(&dir.path().join("strict")),
-    ]);
+        &dir.path().join("strict"),
+        &["--max-pair-rms", "0.05"],
+    );
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{err}");
     assert!(
@@ -228,70 +228,15 @@ fn calibrate_stereo_reports_and_leaves_out_pairs_without_a_board() {
     // Too few usable pairs, a wrong board size, no pairs, a bad square: one clear error.
     std::fs::remove_file(src.join("left04.jpg")).unwrap();
     std::fs::remove_file(src.join("left03.jpg")).unwrap();
-    let o = run(&[
-        "calibrate-stereo",
-        s(&src),
-        "--inner",
-        "9x6",
-        "--square",
-        "25",
-        "--unit",
-        "mm",
-        "-o",
-        s(&dir.path().join("c2")),
-    ]);
+    let o = calibrate(&src, "9x6", "25", &dir.path().join("c2"), &[]);
     assert_clean_failure(&o, "2 usable pairs of 3");
-    let o = run(&[
-        "calibrate-stereo",
-        s(&src),
-        "--inner",
-        "7x5",
-        "--square",
-        "25",
-        "--unit",
-        "mm",
-        "-o",
-        s(&dir.path().join("c3")),
-    ]);
+    let o = calibrate(&src, "7x5", "25", &dir.path().join("c3"), &[]);
     assert_clean_failure(&o, "usable pairs");
-    let o = run(&[
-        "calibrate-stereo",
-        s(dir.path()),
-        "--inner",
-        "9x6",
-        "--square",
-        "25",
-        "--unit",
-        "mm",
-        "-o",
-        s(&dir.path().join("c4")),
-    ]);
+    let o = calibrate(dir.path(), "9x6", "25", &dir.path().join("c4"), &[]);
     assert_clean_failure(&o, "no image pairs in");
-    let o = run(&[
-        "calibrate-stereo",
-        s(&src),
-        "--inner",
-        "9",
-        "--square",
-        "25",
-        "--unit",
-        "mm",
-        "-o",
-        s(&dir.path().join("c5")),
-    ]);
+    let o = calibrate(&src, "9", "25", &dir.path().join("c5"), &[]);
     assert_clean_failure(&o, "COLSxROWS");
-    let o = run(&[
-        "calibrate-stereo",
-        s(&src),
-        "--inner",
-        "9x6",
-        "--square",
-        "-2",
-        "--unit",
-        "mm",
-        "-o",
-        s(&dir.path().join("c6")),
-    ]);
+    let o = calibrate(&src, "9x6", "-2", &dir.path().join("c6"), &[]);
     assert_clean_failure(&o, "--square");
 }
 

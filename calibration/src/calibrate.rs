@@ -15,6 +15,9 @@ pub type Intrinsics = [f64; 9];
 /// One view's board corners in pixels, in the board's order.
 pub type Corners = Vec<[f64; 2]>;
 
+/// Both views' corners of one board, borrowed.
+pub type PairView<'a> = (&'a [[f64; 2]], &'a [[f64; 2]]);
+
 /// A board's pose in a camera: rotation vector, then translation.
 pub type Pose = [f64; 6];
 
@@ -305,6 +308,26 @@ pub fn calibrate_stereo(
         rms: rms_of(cost, 2 * n * object.len()),
         pair_rms,
     })
+}
+
+/// How well `rect` puts a board's rows on image rows: the largest difference, over every
+/// row of `cols` corners of every pair of views, between the row's mean rectified image
+/// row in the left view and in the right.
+pub fn row_gap(rect: &rectify::Rectification, pairs: &[PairView], cols: usize) -> f64 {
+    let mut worst: f64 = 0.0;
+    for (l, r) in pairs {
+        for b in 0..l.len() / cols {
+            let mean = |v: &[[f64; 2]], right: bool| {
+                v[b * cols..(b + 1) * cols]
+                    .iter()
+                    .map(|p| rect.point(right, p[0], p[1]).1)
+                    .sum::<f64>()
+                    / cols as f64
+            };
+            worst = worst.max((mean(l, false) - mean(r, true)).abs());
+        }
+    }
+    worst
 }
 
 /// The inverse of a pose.

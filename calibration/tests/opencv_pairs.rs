@@ -3,7 +3,7 @@
 //! (scripts/stereo_calibration_fixture.py: RMS 0.215 px, baseline 83.18 mm).
 
 use camera_calibration::board::{Board, find_board};
-use camera_calibration::calibrate::{Corners, calibrate_stereo};
+use camera_calibration::calibrate::{Corners, calibrate_stereo, row_gap};
 use rectify::Rectification;
 use schemas::Plane;
 use std::path::PathBuf;
@@ -45,45 +45,38 @@ fn opencv_corners() -> Vec<(u64, Corners, Corners)> {
 const OPENCV_RMS: f64 = 0.215;
 const OPENCV_BASELINE: f64 = 83.176;
 
-/// The largest difference between a board row's mean rectified row in the left and the
-/// right view, over every row of every pair.
-fn worst_row(rect: &Rectification, pairs: &[(Corners, Corners)]) -> f64 {
-    let mut worst: f64 = 0.0;
-    for (l, r) in pairs {
-        for b in 0..6 {
-            let mean = |v: &[[f64; 2]], right: bool| {
-                v[9 * b..9 * b + 9]
-                    .iter()
-                    .map(|p| rect.point(right, p[0], p[1]).1)
-                    .sum::<f64>()
-                    / 9.0
-            };
-            worst = worst.max((mean(l, false) - mean(r, true)).abs());
-        }
-    }
-    worst
+/// Calibrates the pairs and checks the baseline against OpenCV's and the rectified board
+/// rows (within 0.5 px); the fit.
+fn calibrate_and_check(
+    l: &[Corners],
+    r: &[Corners],
+    what: &str,
+) -> camera_calibration::calibrate::Stereo {
+    let s = calibrate_stereo(l, r, &object(), (640, 480)).unwrap();
+    let baseline = s.t.norm();
+    eprintln!(
+        "{what}: RMS {:.4} px (OpenCV {OPENCV_RMS}), baseline {baseline:.3} mm (OpenCV {OPENCV_BASELINE}), per pair {:?}",
+        s.rms, s.pair_rms
+    );
+    assert!(
+        (baseline / OPENCV_BASELINE - 1.0).abs() <= 0.005,
+        "baseline {baseline}"
+    );
+    let rect = Rectification::bouguet(&s.calibration((640, 480)));
+    let both: Vec<camera_calibration::calibrate::PairView> =
+        l.iter().zip(r).map(|(a, b)| (&a[..], &b[..])).collect();
+    let worst = row_gap(&rect, &both, 9);
+    eprintln!("worst board row difference after rectification {worst:.3} px");
+    assert!(worst <= 0.5, "{worst}");
+    s
 }
 
 #[test]
 fn on_opencvs_corners_the_rig_matches_opencvs() {
     let pairs = opencv_corners();
     let (l, r): (Vec<_>, Vec<_>) = pairs.iter().map(|p| (p.1.clone(), p.2.clone())).unzip();
-    let s = calibrate_stereo(&l, &r, &object(), (640, 480)).unwrap();
-    let baseline = s.t.norm();
-    eprintln!(
-        "our RMS {:.4} px (OpenCV {OPENCV_RMS}), baseline {baseline:.3} mm (OpenCV {OPENCV_BASELINE})",
-        s.rms
-    );
+    let s = calibrate_and_check(&l, &r, "on OpenCV's corners");
     assert!((s.rms / OPENCV_RMS - 1.0).abs() <= 0.1, "rms {}", s.rms);
-    assert!(
-        (baseline / OPENCV_BASELINE - 1.0).abs() <= 0.005,
-        "baseline {baseline}"
-    );
-    let rect = Rectification::bouguet(&s.calibration((640, 480)));
-    let both: Vec<_> = l.into_iter().zip(r).collect();
-    let worst = worst_row(&rect, &both);
-    eprintln!("worst board row difference after rectification {worst:.3} px");
-    assert!(worst <= 0.5, "{worst}");
 }
 
 fn grey(path: &std::path::Path) -> Plane<u8> {
@@ -138,19 +131,6 @@ fn our_corners_are_opencvs_and_calibrate_the_same_rig() {
         .iter()
         .map(|(l, r): &(Board, Board)| (l.corners.clone(), r.corners.clone()))
         .unzip();
-    let s = calibrate_stereo(&l, &r, &object(), (640, 480)).unwrap();
-    let baseline = s.t.norm();
-    eprintln!(
-        "on our corners: RMS {:.4} px, baseline {baseline:.3} mm, per pair {:?}",
-        s.rms, s.pair_rms
-    );
-    assert!(
-        (baseline / OPENCV_BASELINE - 1.0).abs() <= 0.005,
-        "baseline {baseline}"
-    );
-    let rect = Rectification::bouguet(&s.calibration((640, 480)));
-    let both: Vec<_> = l.into_iter().zip(r).collect();
-    let worst = worst_row(&rect, &both);
-    eprintln!("worst board row difference after rectification {worst:.3} px");
-    assert!(worst <= 0.5, "{worst}");
+    let s = calibrate_and_check(&l, &r, "on our corners");
+    assert!((s.rms / OPENCV_RMS - 1.0).abs() <= 0.1, "rms {}", s.rms);
 }
