@@ -13,9 +13,10 @@ use std::path::PathBuf;
 /// Arguments of `microstereo bench`.
 #[derive(Args, Debug)]
 pub struct BenchArgs {
-    /// Directory with the cones pair (im2.png, im6.png).
-    #[arg(long, default_value = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/cones"))]
-    cones: PathBuf,
+    /// Directory with the cones pair (im2.png, im6.png); default: the pair built into this
+    /// program (tests/data/cones).
+    #[arg(long)]
+    cones: Option<PathBuf>,
     /// Runs per measurement (the median is reported), 1..=1000.
     #[arg(long, default_value_t = 5, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=1000))]
     repeat: usize,
@@ -57,21 +58,37 @@ fn median(mut v: Vec<f64>) -> f64 {
     v[v.len() / 2]
 }
 
+/// The Middlebury cones pair (tests/data/cones, see its README), built in.
+const CONES_LEFT: &[u8] = include_bytes!("../tests/data/cones/im2.png");
+/// The right view of the built-in cones pair.
+const CONES_RIGHT: &[u8] = include_bytes!("../tests/data/cones/im6.png");
+
 /// Runs `microstereo bench`.
 pub fn bench(a: BenchArgs) -> Result<(), CliError> {
     let mut outputs: Vec<PathBuf> = a.json.iter().cloned().collect();
     if let Some(d) = &a.write_pairs {
         outputs.extend(crate::outputs::in_dir(d, PAIR_NAMES));
     }
-    let (l, r) = (a.cones.join("im2.png"), a.cones.join("im6.png"));
-    crate::outputs::check(&outputs, &[&l, &r], a.overwrite, "choose other names")?;
     let tmp = std::env::temp_dir().join(format!("microstereo-bench-{}", std::process::id()));
+    let cones = match &a.cones {
+        Some(c) => c.clone(),
+        None => {
+            // The pair built in, so that an installed program needs no checkout.
+            let d = tmp.join("cones");
+            std::fs::create_dir_all(&d)
+                .map_err(|e| CliError::Other(format!("cannot create '{}': {e}", d.display())))?;
+            for (name, bytes) in [("im2.png", CONES_LEFT), ("im6.png", CONES_RIGHT)] {
+                std::fs::write(d.join(name), bytes).map_err(|e| {
+                    CliError::Other(format!("cannot write '{}': {e}", d.join(name).display()))
+                })?;
+            }
+            d
+        }
+    };
+    let (l, r) = (cones.join("im2.png"), cones.join("im6.png"));
+    crate::outputs::check(&outputs, &[&l, &r], a.overwrite, "choose other names")?;
     let dir = a.write_pairs.clone().unwrap_or_else(|| tmp.clone());
-    let mut pairs = vec![(
-        "cones".to_string(),
-        a.cones.join("im2.png"),
-        a.cones.join("im6.png"),
-    )];
+    let mut pairs = vec![("cones".to_string(), l.clone(), r.clone())];
     if !a.cones_only {
         let s = synth::layers::standard_scene(1280, 1024, 4, 14, 7);
         std::fs::create_dir_all(&dir)

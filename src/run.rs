@@ -10,14 +10,40 @@ use std::path::{Path, PathBuf};
 /// Reads and validates a launch file against the built-in kinds; every problem becomes one
 /// error.
 pub fn load(path: &Path) -> Result<Graph, CliError> {
-    LaunchFile::read(path)
-        .and_then(|f| f.validate(&crate::registry::builtin()))
-        .map_err(|e| {
-            CliError::Other(format!(
-                "{e}\n({} problem(s) in the launch file)",
-                e.0.len()
-            ))
-        })
+    load_with(Some(path), &[])
+}
+
+/// The default graph, built into this program (`run` without a launch file).
+pub const DEFAULT_LAUNCH: &str = include_str!("../launch.toml");
+
+/// Reads and checks a launch file (`None`: the built-in default graph) with `overrides`
+/// (`NODE.PARAM=VALUE`) applied first.
+pub fn load_with(path: Option<&Path>, overrides: &[String]) -> Result<Graph, CliError> {
+    let errors = |e: runtime::launch::LaunchErrors| {
+        CliError::Other(format!(
+            "{e}\n({} problem(s) in the launch file)",
+            e.0.len()
+        ))
+    };
+    let (name, text) = match path {
+        Some(p) => (
+            p.to_path_buf(),
+            std::fs::read_to_string(p).map_err(|e| {
+                CliError::Other(format!("{}: cannot read the launch file: {e}", p.display()))
+            })?,
+        ),
+        None => (
+            PathBuf::from("launch.toml (built in)"),
+            DEFAULT_LAUNCH.to_string(),
+        ),
+    };
+    let text = if overrides.is_empty() {
+        text
+    } else {
+        runtime::launch::with_overrides(&name, &text, overrides).map_err(CliError::Other)?
+    };
+    let file = LaunchFile::parse(&name, &text).map_err(errors)?;
+    file.validate(&crate::registry::builtin()).map_err(errors)
 }
 
 /// Arguments of `microstereo node` (as the supervisor starts it).
@@ -55,9 +81,12 @@ pub fn node_cmd(a: NodeArgs) -> Result<(), CliError> {
 /// Arguments of `microstereo run`.
 #[derive(Args, Debug)]
 pub struct RunArgs {
-    /// The launch file.
-    #[arg(default_value = concat!(env!("CARGO_MANIFEST_DIR"), "/launch.toml"))]
-    pub launch: PathBuf,
+    /// The launch file (default: the default graph, built into this program).
+    pub launch: Option<PathBuf>,
+    /// Overrides a node's parameter, checked as the file is: `NODE.PARAM=VALUE`
+    /// (repeatable), e.g. `--set manipulator-bridge.listen=127.0.0.1:7879`.
+    #[arg(long = "set", value_name = "NODE.PARAM=VALUE")]
+    pub set: Vec<String>,
     /// Stop after this many frames (run until Ctrl-C without it).
     #[arg(long)]
     pub frames: Option<u64>,
@@ -183,7 +212,7 @@ fn unfinished_recordings(path: &std::path::Path) -> Vec<String> {
 pub fn run_cmd(a: RunArgs) -> Result<(), CliError> {
     crate::graphopts::check_record_target(&a.out)?;
     crate::graphopts::check_viewer_target(&a.out)?;
-    let mut graph = load(&a.launch)?;
+    let mut graph = load_with(a.launch.as_deref(), &a.set)?;
     if a.in_process {
         return run_in_process(&graph, a.frames.unwrap_or(1)).map(|_| ());
     }

@@ -1948,3 +1948,59 @@ fn twenty_random_kills_across_the_graph_lose_no_frame_unaccounted() {
         chaos_run(1000, 20, seed);
     }
 }
+
+/// Issue 22's overrides: `run` without a launch file runs the default graph built into the
+/// program, from a directory with nothing in it; `--set` changes a node's parameter (here
+/// the bridge's port, so that two default graphs run side by side, each its own instance);
+/// a bad override is one clear error before anything starts.
+#[test]
+fn the_built_in_graph_runs_anywhere_and_set_overrides_its_parameters() {
+    let _heavy = heavy();
+    let empty = tempfile::tempdir().unwrap();
+    let (p1, p2) = (free_port(), free_port());
+    let start = |instance: &str, port: u16| {
+        std::process::Command::new(bin())
+            .current_dir(empty.path())
+            .args(["run", "--frames", "3", "--instance", instance])
+            .args([
+                "--set",
+                &format!("manipulator-bridge.listen=127.0.0.1:{port}"),
+            ])
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap()
+    };
+    let (a, b) = (
+        start(&format!("set-a-{p1}"), p1),
+        start(&format!("set-b-{p2}"), p2),
+    );
+    for child in [a, b] {
+        let out = child.wait_with_output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success(), "{err}");
+        assert!(!err.contains("already in use"), "{err}");
+    }
+    assert_eq!(
+        std::fs::read_dir(empty.path()).unwrap().count(),
+        0,
+        "nothing written"
+    );
+    let bad = |set: &str, needle: &str| {
+        let out = std::process::Command::new(bin())
+            .current_dir(empty.path())
+            .args(["run", "--frames", "1", "--set", set])
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{set}: {err}");
+        assert!(
+            err.contains(needle) && !err.contains("panicked"),
+            "{set}: {err}"
+        );
+    };
+    bad("nope.listen=1", "no node 'nope'");
+    bad("manipulator-bridge.max_speed=-5", "max_speed");
+    bad("manipulator-bridge.no_such_param=1", "no_such_param");
+    bad("manipulator-bridge", "give NODE.PARAM=VALUE");
+}

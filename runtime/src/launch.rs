@@ -591,6 +591,75 @@ fn line_of(text: &str, offset: usize) -> usize {
         + 1
 }
 
+/// Launch-file text with parameters overridden, as `run --set` does: each of `overrides`
+/// is `NODE.PARAM=VALUE` (`PARAM` may be a dotted path into a table, `VALUE` any TOML
+/// value, or else taken as a string). The result (comments dropped, the overrides named in
+/// its first lines) is parsed and checked as any launch file, and is what a recording
+/// stores, so that a replay runs what ran.
+pub fn with_overrides(path: &Path, text: &str, overrides: &[String]) -> Result<String, String> {
+    let mut doc: toml::Table =
+        toml::from_str(text).map_err(|e| format!("{}: {}", path.display(), e.message()))?;
+    for spec in overrides {
+        let bad = |why: &str| {
+            format!(
+                "--set '{spec}': {why}; give NODE.PARAM=VALUE, e.g. manipulator-bridge.listen=127.0.0.1:7879"
+            )
+        };
+        let (lhs, value) = spec.split_once('=').ok_or_else(|| bad("no '='"))?;
+        let (node, param) = lhs
+            .split_once('.')
+            .ok_or_else(|| bad("no '.' between the node and its parameter"))?;
+        let keys: Vec<&str> = param.split('.').collect();
+        if node.is_empty() || keys.iter().any(|k| k.is_empty()) {
+            return Err(bad("an empty name"));
+        }
+        let value = toml::from_str::<toml::Table>(&format!("v = {value}"))
+            .ok()
+            .and_then(|mut t| t.remove("v"))
+            .unwrap_or_else(|| toml::Value::String(value.to_string()));
+        let nodes = doc
+            .get_mut("node")
+            .and_then(|n| n.as_array_mut())
+            .ok_or_else(|| bad("the launch file has no [[node]]"))?;
+        let ids: Vec<String> = nodes
+            .iter()
+            .filter_map(|n| n.get("id").and_then(|i| i.as_str()).map(String::from))
+            .collect();
+        let Some(decl) = nodes
+            .iter_mut()
+            .find(|n| n.get("id").and_then(|i| i.as_str()) == Some(node))
+        else {
+            return Err(format!(
+                "--set '{spec}': no node '{node}' in {}; its nodes: {}",
+                path.display(),
+                ids.join(", ")
+            ));
+        };
+        let decl = decl
+            .as_table_mut()
+            .ok_or_else(|| bad("the node is not a table"))?;
+        let mut table = decl
+            .entry("params")
+            .or_insert_with(|| toml::Value::Table(toml::Table::new()))
+            .as_table_mut()
+            .ok_or_else(|| bad("the node's params are not a table"))?;
+        for k in &keys[..keys.len() - 1] {
+            table = table
+                .entry(k.to_string())
+                .or_insert_with(|| toml::Value::Table(toml::Table::new()))
+                .as_table_mut()
+                .ok_or_else(|| bad(&format!("'{k}' of node '{node}' is not a table")))?;
+        }
+        table.insert(keys[keys.len() - 1].to_string(), value);
+    }
+    let body = toml::to_string(&doc).map_err(|e| e.to_string())?;
+    Ok(format!(
+        "# {} with run --set {}\n{body}",
+        path.display(),
+        overrides.join(" --set ")
+    ))
+}
+
 impl LaunchFile {
     /// Reads and parses `path`.
     pub fn read(path: &Path) -> Result<Self, LaunchErrors> {
