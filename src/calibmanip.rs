@@ -444,14 +444,10 @@ pub fn calibrate_manipulator(a: CalibrateManipulatorArgs) -> Result<(), CliError
         let file = triangulate::calibration::read_file(p).map_err(CliError::Other)?;
         let source = format!("'{}'", p.display());
         let calibration = file.resolve(w, h, &source).map_err(CliError::Other)?;
-        let rectify = file.cameras(&source).map_err(CliError::Other)?.map(|cal| {
-            let rect = rectify::Rectification::bouguet(&cal);
-            let (w, h) = rect.size();
-            (
-                RemapLut::new(&rect, false, w, h),
-                RemapLut::new(&rect, true, w, h),
-            )
-        });
+        let rectify = file
+            .cameras(&source)
+            .map_err(CliError::Other)?
+            .map(|cal| rectify::Rectification::bouguet(&cal).luts());
         Ok(Optics {
             rectify,
             calibration,

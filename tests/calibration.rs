@@ -2,34 +2,19 @@
 //! (tests/data/calibration/pairs), and the calibration file it writes read by the
 //! rectifier (in the graph) and by `reconstruct` on a raw pair.
 
+mod common;
+
 use camera_calibration::board::find_board;
+use common::{assert_clean_failure, run, s};
 use matcher::{Mode, node::Region};
 use microstereo::presets::{Stereo, ids};
 use microstereo::reconstruct::run_once;
 use schemas::{DisparityRange, StereoFrame};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
-
-fn run(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_microstereo"))
-        .args(args)
-        .output()
-        .expect("binary runs")
-}
+use std::process::Output;
 
 fn pairs() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/data/calibration/pairs")
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
-
-fn assert_clean_failure(out: &Output, needle: &str) {
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(out.status.code(), Some(2), "stderr: {err}");
-    assert!(!err.contains("panicked"), "panic: {err}");
-    assert!(err.contains(needle), "expected '{needle}' in: {err}");
 }
 
 /// `calibrate-stereo SRC --inner INNER --square SQUARE --unit mm -o OUT`, then `extra`.

@@ -298,16 +298,11 @@ pub fn apply(h: &Matrix3<f64>, p: [f64; 2]) -> [f64; 2] {
     [q.x / q.z, q.y / q.z]
 }
 
-/// Bilinear sample of `img` at `(x, y)` (clamped to the image).
+/// Bilinear sample of `img` at `(x, y)`, clamped to the image.
 fn sample(img: &Plane<u8>, x: f64, y: f64) -> f64 {
     let x = x.clamp(0.0, (img.width - 1) as f64);
     let y = y.clamp(0.0, (img.height - 1) as f64);
-    let (x0, y0) = (x.floor() as usize, y.floor() as usize);
-    let (x1, y1) = ((x0 + 1).min(img.width - 1), (y0 + 1).min(img.height - 1));
-    let (fx, fy) = (x - x0 as f64, y - y0 as f64);
-    let g = |x: usize, y: usize| img.data[y * img.width + x] as f64;
-    (g(x0, y0) * (1.0 - fx) + g(x1, y0) * fx) * (1.0 - fy)
-        + (g(x0, y1) * (1.0 - fx) + g(x1, y1) * fx) * fy
+    crate::bilinear(img, x, y).expect("clamped into the image")
 }
 
 /// OpenCV's `cornerSubPix`: moves `start` to the point `q` that minimises

@@ -8,3 +8,20 @@ pub mod board;
 pub mod calibrate;
 pub mod lm;
 pub mod pipette;
+
+use schemas::Plane;
+
+/// Bilinear sample of `p` at `(x, y)`; `None` outside the pixel centres' span.
+pub(crate) fn bilinear<T: Copy + Into<f64>>(p: &Plane<T>, x: f64, y: f64) -> Option<f64> {
+    if !(x >= 0.0 && y >= 0.0 && x <= (p.width - 1) as f64 && y <= (p.height - 1) as f64) {
+        return None;
+    }
+    let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+    let (x1, y1) = ((x0 + 1).min(p.width - 1), (y0 + 1).min(p.height - 1));
+    let (fx, fy) = (x - x0 as f64, y - y0 as f64);
+    let g = |x: usize, y: usize| (*p.get(x, y)).into();
+    Some(
+        (g(x0, y0) * (1.0 - fx) + g(x1, y0) * fx) * (1.0 - fy)
+            + (g(x0, y1) * (1.0 - fx) + g(x1, y1) * fx) * fy,
+    )
+}

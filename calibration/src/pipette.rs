@@ -10,8 +10,10 @@
 //! of a cone ending in a round cap, blurred by a Gaussian, fitted to that profile, puts the
 //! front where the glass ends, whatever the blur.
 
+use crate::bilinear;
 use crate::lm::minimise;
 use schemas::Plane;
+use segment::{Connectivity, components_where};
 
 /// A pipette tip found in one view.
 #[derive(Clone, Debug, PartialEq)]
@@ -264,50 +266,29 @@ fn darkness(img: &Plane<u8>) -> Plane<f64> {
     Plane::from_vec(w, h, data).expect("size")
 }
 
-/// The pixels of the pipette: of the regions darker than `threshold`, the largest that
-/// reaches the image's border and is at least three times as long as it is wide.
+/// The pixels of the pipette: of the regions darker than `threshold` (8-connected, by the
+/// segmentation's labelling), the largest that reaches the image's border and is at least
+/// three times as long as it is wide.
 fn pipette_region(dark: &Plane<f64>, threshold: f64) -> Result<Vec<(usize, usize)>, NoTip> {
     let (w, h) = (dark.width, dark.height);
-    let mut seen = vec![false; w * h];
-    let mut best: Option<Vec<(usize, usize)>> = None;
-    for start in 0..w * h {
-        if seen[start] || dark.data[start] < threshold {
-            continue;
-        }
-        let mut region = Vec::new();
-        let mut stack = vec![start];
-        seen[start] = true;
-        let mut border = false;
-        while let Some(i) = stack.pop() {
-            let (x, y) = (i % w, i / w);
-            region.push((x, y));
-            border |= x == 0 || y == 0 || x == w - 1 || y == h - 1;
-            for dy in -1i64..=1 {
-                for dx in -1i64..=1 {
-                    let (nx, ny) = (x as i64 + dx, y as i64 + dy);
-                    if nx < 0 || ny < 0 || nx >= w as i64 || ny >= h as i64 {
-                        continue;
-                    }
-                    let j = ny as usize * w + nx as usize;
-                    if !seen[j] && dark.data[j] >= threshold {
-                        seen[j] = true;
-                        stack.push(j);
-                    }
-                }
-            }
-        }
-        if !border || region.len() < 30 || !elongated(&region) {
-            continue;
-        }
-        if best.as_ref().is_none_or(|b| region.len() > b.len()) {
-            best = Some(region);
-        }
+    let c = components_where(dark, |d| *d >= threshold, Connectivity::Eight);
+    let mut regions: Vec<Vec<(usize, usize)>> = vec![Vec::new(); c.n as usize];
+    for &(y, x0, x1, l) in &c.runs {
+        regions[l as usize - 1].extend((x0..x1).map(|x| (x, y)));
     }
-    best.ok_or_else(|| {
-        NoTip(format!(
-            "no pipette in view: no long dark region (at least {threshold:.0} grey levels below the background) enters from the image's border"
-        ))
-    })
+    let border = |r: &[(usize, usize)]| {
+        r.iter()
+            .any(|&(x, y)| x == 0 || y == 0 || x == w - 1 || y == h - 1)
+    };
+    regions
+        .into_iter()
+        .filter(|r| r.len() >= 30 && border(r) && elongated(r))
+        .reduce(|best, r| if r.len() > best.len() { r } else { best })
+        .ok_or_else(|| {
+            NoTip(format!(
+                "no pipette in view: no long dark region (at least {threshold:.0} grey levels below the background) enters from the image's border"
+            ))
+        })
 }
 
 /// Whether a region is at least three times as long as it is wide (second moments).
@@ -329,18 +310,6 @@ fn elongated(region: &[(usize, usize)]) -> bool {
     l1 >= 9.0 * l2.max(1e-9)
 }
 
-/// Bilinear sample, 0 outside.
-fn sample(p: &Plane<f64>, x: f64, y: f64) -> f64 {
-    if !(x >= 0.0 && y >= 0.0 && x <= (p.width - 1) as f64 && y <= (p.height - 1) as f64) {
-        return 0.0;
-    }
-    let (x0, y0) = (x.floor() as usize, y.floor() as usize);
-    let (x1, y1) = ((x0 + 1).min(p.width - 1), (y0 + 1).min(p.height - 1));
-    let (fx, fy) = (x - x0 as f64, y - y0 as f64);
-    (p.get(x0, y0) * (1.0 - fx) + p.get(x1, y0) * fx) * (1.0 - fy)
-        + (p.get(x0, y1) * (1.0 - fx) + p.get(x1, y1) * fx) * fy
-}
-
 /// The darkness summed across the axis at `t` (over `±reach`, in half-pixel steps), and
 /// where across the axis its centre lies.
 fn section(
@@ -355,7 +324,9 @@ fn section(
     let (mut mass, mut moment) = (0.0, 0.0);
     for k in -steps..=steps {
         let s = 0.5 * k as f64;
-        let d = sample(dark, o[0] + t * a[0] + s * n[0], o[1] + t * a[1] + s * n[1]).max(0.0);
+        let d = bilinear(dark, o[0] + t * a[0] + s * n[0], o[1] + t * a[1] + s * n[1])
+            .unwrap_or(0.0)
+            .max(0.0);
         mass += 0.5 * d;
         moment += 0.5 * d * s;
     }

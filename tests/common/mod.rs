@@ -7,7 +7,33 @@ use microstereo::reconstruct::run_once;
 use postprocess::PostParams;
 use schemas::{Calibration, Cell3, DisparityRange, Labels, Mask, Plane, Targets};
 use segment::SegmentParams;
+use std::path::Path;
+use std::process::{Command, Output};
 use triangulate::calibration::{CalibrationFile, Geometry};
+
+/// The `microstereo` binary run with `args`, to its end.
+#[allow(dead_code)]
+pub fn run(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_microstereo"))
+        .args(args)
+        .output()
+        .expect("binary runs")
+}
+
+/// A path as a command-line argument.
+#[allow(dead_code)]
+pub fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+/// One clear error line, exit code 2, no panic.
+#[allow(dead_code)]
+pub fn assert_clean_failure(out: &Output, needle: &str) {
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "stderr: {err}");
+    assert!(!err.contains("panicked"), "panic: {err}");
+    assert!(err.contains(needle), "expected '{needle}' in: {err}");
+}
 
 /// The method's cell graph (image pair → segment → match the cells' crops → validate →
 /// post-process → triangulate) on a rendered pair: the cells in 3D and the left mask.

@@ -373,6 +373,15 @@ impl Rectification {
         })
     }
 
+    /// The resampling tables of both views, left and right, at the calibrated size.
+    pub fn luts(&self) -> (RemapLut, RemapLut) {
+        let (w, h) = self.size();
+        (
+            RemapLut::new(self, false, w, h),
+            RemapLut::new(self, true, w, h),
+        )
+    }
+
     /// The raw cameras this rectification is of.
     pub fn calibration(&self) -> &StereoCalibration {
         &self.calib

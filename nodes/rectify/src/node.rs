@@ -65,12 +65,8 @@ impl Task for Rectify {
 
     fn new(p: RectifyParams) -> Result<Self, NodeError> {
         let luts = p.rectification()?.map(|rect| {
-            let (w, h) = rect.size();
-            (
-                RemapLut::new(&rect, false, w, h),
-                RemapLut::new(&rect, true, w, h),
-                (w, h),
-            )
+            let (l, r) = rect.luts();
+            (l, r, rect.size())
         });
         Ok(Self { luts })
     }

@@ -1026,27 +1026,30 @@ impl Scene {
         let (w, h) = (self.optics.width, self.optics.height);
         let n = self.look.supersample.max(1);
         let defocus = self.pipette_defocus_px();
-        let rows: Vec<Vec<(f64, f64)>> = (0..h)
+        // Per row its values and, only with a defocused pipette, what the pipette darkens.
+        let rows: Vec<(Vec<f64>, Vec<f64>)> = (0..h)
             .into_par_iter()
             .map(|v| {
                 let sub_row = |j: usize| v as f64 + (j as f64 + 0.5) / n as f64 - 0.5;
                 let touched = backdrop.map(|_| self.touched(right, v, cal));
+                let mut dark_row = Vec::new();
                 if touched.as_ref().is_some_and(|t| !t.contains(&true)) {
-                    return backdrop
-                        .expect("with touched")
-                        .row(v)
-                        .iter()
-                        .map(|b| (*b, 0.0))
-                        .collect();
+                    if defocus > 0.0 {
+                        dark_row = vec![0.0; w];
+                    }
+                    return (backdrop.expect("with touched").row(v).to_vec(), dark_row);
                 }
                 let on_row: Vec<Vec<usize>> =
                     (0..n).map(|j| self.cells_on_row(sub_row(j), cal)).collect();
-                (0..w)
+                let row = (0..w)
                     .map(|u| {
                         if let (Some(t), Some(b)) = (&touched, backdrop)
                             && !t[u]
                         {
-                            return (*b.get(u, v), 0.0);
+                            if defocus > 0.0 {
+                                dark_row.push(0.0);
+                            }
+                            return *b.get(u, v);
                         }
                         let (mut acc, mut dark) = (0.0, 0.0);
                         for (j, candidates) in on_row.iter().enumerate() {
@@ -1064,19 +1067,23 @@ impl Scene {
                                 }
                             }
                         }
-                        (acc / (n * n) as f64, dark / (n * n) as f64)
+                        if defocus > 0.0 {
+                            dark_row.push(dark / (n * n) as f64);
+                        }
+                        acc / (n * n) as f64
                     })
-                    .collect::<Vec<(f64, f64)>>()
+                    .collect();
+                (row, dark_row)
             })
             .collect();
-        let rows = rows.concat();
-        let view = Plane::from_vec(w, h, rows.iter().map(|p| p.0).collect()).expect("size");
+        let (values, darks): (Vec<Vec<f64>>, Vec<Vec<f64>>) = rows.into_iter().unzip();
+        let view = Plane::from_vec(w, h, values.concat()).expect("size");
         if defocus == 0.0 {
             return view;
         }
         // The pipette out of focus: its darkness spread by the defocus blur over what it
         // would hide in focus.
-        let dark = Plane::from_vec(w, h, rows.iter().map(|p| p.1).collect()).expect("size");
+        let dark = Plane::from_vec(w, h, darks.concat()).expect("size");
         let spread = gaussian_blur(&dark, defocus);
         let data = view
             .data
@@ -1256,24 +1263,15 @@ impl Scene {
             let r = p.tip_radius + p.taper * len;
             let hmax = p.height + p.tip_radius + (p.taper + se.max(0.0)) * len + 1.0;
             let hmin = (p.height - r + se.min(0.0) * len - 1.0).min(0.0);
-            if p.azimuth == 0.0 {
-                let reach = p.tip[0] + p.tip_radius + ((p.taper - ce) * len).max(0.0) + 2.0;
-                mark(
-                    [f64::MIN / 4.0, reach],
-                    [p.tip[1] - r - 2.0, p.tip[1] + r + 2.0],
-                    [hmin, hmax],
-                );
-            } else {
-                // The box round the body's whole length (its far end is off the image).
-                let (ca, sa) = (p.azimuth.cos(), p.azimuth.sin());
-                let back = [p.tip[0] - ca * ce * len, p.tip[1] - sa * ce * len];
-                let m = r + p.tip_radius + 2.0;
-                mark(
-                    [p.tip[0].min(back[0]) - m, p.tip[0].max(back[0]) + m],
-                    [p.tip[1].min(back[1]) - m, p.tip[1].max(back[1]) + m],
-                    [hmin, hmax],
-                );
-            }
+            // The box round the body's whole length (its far end is off the image).
+            let (ca, sa) = (p.azimuth.cos(), p.azimuth.sin());
+            let back = [p.tip[0] - ca * ce * len, p.tip[1] - sa * ce * len];
+            let m = r + p.tip_radius + 2.0;
+            mark(
+                [p.tip[0].min(back[0]) - m, p.tip[0].max(back[0]) + m],
+                [p.tip[1].min(back[1]) - m, p.tip[1].max(back[1]) + m],
+                [hmin, hmax],
+            );
         }
         mask
     }
