@@ -35,6 +35,10 @@ enum Command {
     Calibration(crate::calibfile::CalibrationArgs),
     /// Runs a launch file's graph, one process per node, and prints a summary at the end.
     Run(crate::run::RunArgs),
+    /// Shows a running graph live: per node state, restarts, step times, CPU; per edge rate, drops, latency.
+    Top(crate::top::TopArgs),
+    /// Lists a running graph's edges, measures an edge's rate (hz) or prints its messages' headers (echo).
+    Topic(crate::top::TopicArgs),
     /// Runs one node of a running graph as this process (started by `run`).
     #[command(hide = true)]
     Node(crate::run::NodeArgs),
@@ -76,6 +80,8 @@ pub fn main() -> i32 {
         Command::CalibrateManipulator(a) => crate::calibmanip::calibrate_manipulator(a),
         Command::Run(a) => crate::run::run_cmd(a),
         Command::Node(a) => crate::run::node_cmd(a),
+        Command::Top(a) => crate::top::top(a),
+        Command::Topic(a) => crate::top::topic(a),
         Command::Inspect(a) => crate::recording::inspect(a),
         Command::Replay(a) => crate::recording::replay(a),
         Command::TestNode(a) => crate::recording::test_node_cmd(a),

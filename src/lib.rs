@@ -11,7 +11,8 @@
 //! - [`reconstruct`], [`bench`], [`segmentcmd`], [`synthcmd`], [`calibrate`]: one-shot
 //!   commands;
 //! - [`run`], [`graphopts`], [`recording`]: the process graph, its taps and replays, and
-//!   recordings (`inspect`, `replay`, `test-node`, `view`).
+//!   recordings (`inspect`, `replay`, `test-node`, `view`); [`top`]: a running graph seen
+//!   live (`top`, `topic`).
 
 pub mod bench;
 pub mod calibfile;
@@ -30,3 +31,4 @@ pub mod registry;
 pub mod run;
 pub mod segmentcmd;
 pub mod synthcmd;
+pub mod top;

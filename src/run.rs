@@ -119,6 +119,10 @@ pub struct Supervision {
     /// graphs running side by side do not share edges; readers outside the graph use it.
     #[arg(long)]
     pub instance: Option<String>,
+    /// No progress line while it runs (one is shown when stderr is a terminal: frames,
+    /// frames/s, drops, restarts); `microstereo top` shows a running graph in full.
+    #[arg(long, short)]
+    pub quiet: bool,
 }
 
 /// Runs `graph` as processes and prints the summary; returns the frame rate.
@@ -149,6 +153,7 @@ pub fn run_graph(
             frames,
             grace: s.grace,
             instance: s.instance.clone(),
+            progress: !s.quiet,
         },
     )?;
     let rate = runtime::supervisor::print_summary(graph, &report.stats, report.wall, frames);

@@ -83,6 +83,12 @@ fn base(sub: &str, dir: &Path, stack: &Path) -> Option<(Vec<String>, Option<Path
             vec!["-o".into(), s(dir.join("registration.toml"))],
             Some(dir.join("registration.toml")),
         ),
+        "top" => (
+            vec!["--once".into(), "--instance".into(), "walk-none".into()],
+            None,
+        ),
+        // Its own arguments are its subcommands'.
+        "topic" => (vec![], None),
         "inspect" => (vec![bundled], None),
         "replay" => (vec![bundled, "--frames".into(), "1".into()], None),
         "test-node" => (vec![bundled, "segment".into()], None),

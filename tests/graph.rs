@@ -2004,3 +2004,183 @@ fn the_built_in_graph_runs_anywhere_and_set_overrides_its_parameters() {
     bad("manipulator-bridge.no_such_param=1", "no_such_param");
     bad("manipulator-bridge", "give NODE.PARAM=VALUE");
 }
+
+/// The number after `key` in `text` (the first word after it that reads as one).
+fn number_after(text: &str, key: &str) -> f64 {
+    let at = text
+        .find(key)
+        .unwrap_or_else(|| panic!("'{key}' not in:\n{text}"));
+    text[at + key.len()..]
+        .split_whitespace()
+        .find_map(|w| w.parse::<f64>().ok())
+        .unwrap_or_else(|| panic!("no number after '{key}' in:\n{text}"))
+}
+
+#[test]
+fn top_and_topic_measure_a_running_graph_at_the_rate_its_summary_reports() {
+    let _heavy = heavy();
+    let instance = format!("live-{}", std::process::id());
+    let graph = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/graph/small.toml");
+    let run = Command::new(bin())
+        .args(["run", graph.to_str().unwrap(), "--frames", "260"])
+        .args(["--set", "capture.fps=20", "--instance", &instance])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let tool = |args: &[&str]| {
+        let out = Command::new(bin())
+            .args(args)
+            .args(["--instance", &instance])
+            .output()
+            .unwrap();
+        let text = String::from_utf8_lossy(&out.stdout).into_owned();
+        assert!(
+            out.status.success(),
+            "{args:?}: {text}{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        text
+    };
+    // Past the start: the figures are over the window, not since the start.
+    std::thread::sleep(Duration::from_secs(3));
+    let top = tool(&["top", "--once", "--interval", "2"]);
+    let list = tool(&["topic", "list"]);
+    let hz = tool(&[
+        "topic",
+        "hz",
+        "capture/frame",
+        "--window",
+        "2",
+        "--count",
+        "2",
+    ]);
+    let echo = tool(&["topic", "echo", "triangulate/targets", "--count", "3"]);
+    let out = run.wait_with_output().unwrap();
+    let summary = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let sustained = number_after(&summary, "sustained");
+    assert!(sustained > 10.0, "{summary}");
+    let near = |what: &str, r: f64| {
+        assert!(
+            (r / sustained - 1.0).abs() <= 0.1,
+            "{what}: {r:.2} against the summary's {sustained:.2} frames/s\n{top}\n{hz}"
+        )
+    };
+    // top: the capture node's frames/s and an edge's messages/s.
+    let capture_row = top.lines().find(|l| l.starts_with("capture ")).unwrap();
+    // node, kind, state, restarts, frames, frames/s, …
+    let columns: Vec<&str> = capture_row.split_whitespace().collect();
+    assert_eq!(columns[2], "running", "{top}");
+    near("top capture", columns[5].parse().unwrap());
+    let edge_row = top
+        .lines()
+        .find(|l| l.starts_with("capture/frame → segment.frame"))
+        .unwrap();
+    near("top edge", number_after(edge_row, "segment.frame"));
+    assert!(top.contains(&instance), "{top}");
+    // hz: every report.
+    let reports: Vec<&str> = hz.lines().collect();
+    assert_eq!(reports.len(), 2, "{hz}");
+    for r in reports {
+        near("topic hz", number_after(r, "capture/frame:"));
+    }
+    // list: every edge with its message and readers.
+    assert!(
+        list.lines().any(|l| l.starts_with("capture/frame")
+            && l.contains("stereo-frame")
+            && l.contains("segment.frame, match.frame, triangulate.frame")),
+        "{list}"
+    );
+    // echo: three headers in frame order, then the summary.
+    let frames: Vec<u64> = echo
+        .lines()
+        .filter(|l| l.starts_with("frame "))
+        .map(|l| number_after(l, "frame") as u64)
+        .collect();
+    assert_eq!(frames.len(), 3, "{echo}");
+    assert!(frames.windows(2).all(|w| w[1] == w[0] + 1), "{echo}");
+    assert!(echo.contains("targets"), "{echo}");
+    assert!(echo.contains("3 message(s) in"), "{echo}");
+    // A run that is not there: one clear error.
+    let none = Command::new(bin())
+        .args(["top", "--once", "--instance", "no-such-run"])
+        .output()
+        .unwrap();
+    assert_eq!(none.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&none.stderr);
+    assert!(
+        err.contains("no graph is running as instance 'no-such-run'"),
+        "{err}"
+    );
+}
+
+/// A pseudo-terminal pair: (the side a terminal program reads, the side it writes to).
+fn pty() -> (std::fs::File, std::fs::File) {
+    use std::os::fd::FromRawFd;
+    let (mut master, mut slave) = (0, 0);
+    // SAFETY: openpty writes the two descriptors it opens into the integers given; the
+    // name, termios and window-size arguments may be null.
+    let rc = unsafe {
+        libc::openpty(
+            &mut master,
+            &mut slave,
+            std::ptr::null_mut(),
+            std::ptr::null(),
+            std::ptr::null(),
+        )
+    };
+    assert_eq!(rc, 0, "openpty");
+    // SAFETY: both descriptors were just opened by openpty and are owned by nobody else.
+    unsafe {
+        (
+            std::fs::File::from_raw_fd(master),
+            std::fs::File::from_raw_fd(slave),
+        )
+    }
+}
+
+#[test]
+fn run_shows_a_progress_line_on_a_terminal_and_quiet_turns_it_off() {
+    let _heavy = heavy();
+    let graph = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/graph/small.toml");
+    let on_terminal = |quiet: bool| {
+        let (mut master, slave) = pty();
+        let mut cmd = Command::new(bin());
+        cmd.args(["run", graph.to_str().unwrap(), "--frames", "40"])
+            .args(["--set", "capture.fps=20"])
+            .stdout(Stdio::piped())
+            .stderr(Stdio::from(slave));
+        if quiet {
+            cmd.arg("--quiet");
+        }
+        let child = cmd.spawn().unwrap();
+        // The parent's copy of the terminal's writing side went into the command; reading
+        // ends (EIO) once the child's copies close.
+        let reader = std::thread::spawn(move || {
+            let mut all = Vec::new();
+            let _ = std::io::Read::read_to_end(&mut master, &mut all);
+            String::from_utf8_lossy(&all).into_owned()
+        });
+        let out = child.wait_with_output().unwrap();
+        drop(cmd);
+        assert!(out.status.success());
+        let terminal = reader.join().unwrap();
+        (terminal, String::from_utf8_lossy(&out.stdout).into_owned())
+    };
+    let (terminal, stdout) = on_terminal(false);
+    assert!(terminal.contains(" frame(s) of 40 · "), "{terminal:?}");
+    assert!(
+        terminal.contains(" frames/s · 0 dropped · 0 restart(s)"),
+        "{terminal:?}"
+    );
+    // The summary goes to stdout as before, without the line.
+    assert!(stdout.contains("40 frame(s) of 40 in"), "{stdout}");
+    assert!(!stdout.contains(" · "), "{stdout}");
+    let (terminal, _) = on_terminal(true);
+    assert!(!terminal.contains("frame(s)"), "{terminal:?}");
+}

@@ -398,6 +398,23 @@ impl Graph {
         self.nodes.iter().find(|n| n.id == id)
     }
 
+    /// The graph's own ends: nodes no other node reads, taps (recorder, viewer) and
+    /// feedback inputs aside. A frame is through the graph once every end has taken it.
+    pub fn ends(&self) -> Vec<&NodeSpec> {
+        let own = |n: &&NodeSpec| !n.tap;
+        self.nodes
+            .iter()
+            .filter(own)
+            .filter(|n| {
+                !self
+                    .nodes
+                    .iter()
+                    .filter(own)
+                    .any(|m| m.inputs.iter().any(|i| i.node == n.id && !i.feedback))
+            })
+            .collect()
+    }
+
     /// Whether some node of the graph reads an output of node `id` (feedback inputs do
     /// not count: they take the newest message and lose nothing when a writer leaves).
     pub fn is_read(&self, id: &str) -> bool {

@@ -10,7 +10,8 @@
 //! - [`exec`]: the in-process executor (one pipeline: `reconstruct`, `bench` and the tests
 //!   run the graph's own node values);
 //! - [`transport`] and [`process`]: iceoryx2 edges and one node as a process;
-//! - [`supervisor`]: the graph as processes, restarts, stop and summary; [`restarts`]: how
+//! - [`supervisor`]: the graph as processes, restarts, stop and summary; [`status`]: what a
+//!   running graph is doing now (for `top`, `topic` and the progress line); [`restarts`]: how
 //!   the nodes downstream of a restarted one get over the frames it lost;
 //! - [`harness`]: a node fed recorded inputs, its outputs compared with the recording;
 //! - [`hop`]: the transport benchmark.
@@ -36,6 +37,7 @@ pub mod process;
 pub mod registry;
 pub mod restarts;
 pub mod stats;
+pub mod status;
 pub mod supervisor;
 pub mod transport;
 

@@ -174,6 +174,8 @@ fn input_stats<'a>(
                 first,
                 last,
                 end: s.end(),
+                received: s.received(),
+                age_ms_sum: s.age_ms_sum(),
             }
         })
         .collect()

@@ -105,6 +105,13 @@ pub struct InputStats {
     /// The stream's last frame number, once its writer said the stream had ended.
     #[serde(default)]
     pub end: Option<u64>,
+    /// Messages received (frames; markers aside).
+    #[serde(default)]
+    pub received: u64,
+    /// The received frames' ages summed, ms: capture to receipt (a window's mean latency
+    /// at this edge is the growth of this over the growth of `received`).
+    #[serde(default)]
+    pub age_ms_sum: f64,
 }
 
 /// One node's figures over every process that ran it (a restarted node's, in the order
@@ -147,6 +154,8 @@ pub fn merge(runs: &[NodeStats]) -> Option<NodeStats> {
                         _ => 0,
                     };
                     mi.dropped += ri.dropped;
+                    mi.received += ri.received;
+                    mi.age_ms_sum += ri.age_ms_sum;
                     mi.missing += ri.missing + between;
                     mi.first = mi.first.or(ri.first);
                     mi.last = ri.last.or(mi.last);
@@ -191,6 +200,8 @@ mod tests {
                 first: input.2,
                 last: input.3,
                 end: None,
+                received: frames,
+                age_ms_sum: frames as f64 * mean,
             }],
             latency_ms: mean,
             last_frame: input.3,
@@ -223,6 +234,8 @@ mod tests {
             (i.dropped, i.missing, i.first, i.last),
             (1, 4, Some(0), Some(23))
         );
+        // Receipts and their ages add up (a window's edge latency is their growth's ratio).
+        assert_eq!((i.received, i.age_ms_sum), (21, 60.0 + 300.0));
         // One process: as it reported.
         assert_eq!(
             merge(std::slice::from_ref(&a)),

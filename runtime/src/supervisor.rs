@@ -9,6 +9,7 @@
 use crate::launch::{Graph, RestartPolicy, Runner};
 use crate::process::NodeArgs;
 use crate::stats::{NodeStats, STATS_PREFIX};
+use crate::status::{GraphStatus, NodeState};
 use std::collections::HashMap;
 use std::ffi::OsString;
 use std::path::PathBuf;
@@ -27,6 +28,8 @@ pub struct RunOptions {
     pub grace: f64,
     /// Names the run's shared memory (default: `run` and the supervisor's pid).
     pub instance: Option<String>,
+    /// Show a one-line progress status on stderr while it runs (only on a terminal).
+    pub progress: bool,
 }
 
 /// What a run did: each node's statistics and how long it took.
@@ -60,7 +63,7 @@ impl InstanceLock {
     fn take(instance: &str) -> Result<Self, String> {
         use std::io::{Read, Seek, Write};
         use std::os::fd::AsRawFd;
-        let path = std::env::temp_dir().join(format!("microstereo-{instance}.lock"));
+        let path = crate::status::lock_path(instance);
         let mut f = std::fs::OpenOptions::new()
             .read(true)
             .write(true)
@@ -260,7 +263,7 @@ fn forward_logs(
                         if let Some(t) = &tap {
                             let _ = t.send(format!("{id}\tINFO\t{l}"));
                         }
-                        crate::outln!("[{id}] {l}")
+                        above_progress(|| crate::outln!("[{id}] {l}"))
                     }
                 }
             }
@@ -274,7 +277,7 @@ fn forward_logs(
                 if let Some(t) = &tap {
                     let _ = t.send(format!("{id}\tWARN\t{l}"));
                 }
-                eprintln!("[{id}] {l}");
+                above_progress(|| eprintln!("[{id}] {l}"));
             }
         });
     }
@@ -321,6 +324,8 @@ async fn supervise(
     use tokio::signal::unix::{SignalKind, signal};
     let stats: StatsSink = Default::default();
     let start = Instant::now();
+    let states: States = Default::default();
+    let monitor = Monitor::start(graph, instance, a, stats.clone(), states.clone());
     let tap: LogTap = graph.nodes.iter().find(|n| n.logs).map(|_| {
         let (tx, rx) = tokio::sync::mpsc::unbounded_channel();
         *VIEWER_LOGS.lock().expect("logs") = Some(rx);
@@ -329,6 +334,7 @@ async fn supervise(
     let mut children = Vec::new();
     for n in &graph.nodes {
         let mut proc = spawn(graph, a, file, instance, &n.id, 0, None)?;
+        set_state(&states, &n.id, NodeState::Starting, 0, proc.id());
         let reports = forward_logs(&n.id, 0, n.logs, &mut proc, &stats, &tap);
         children.push(Child {
             id: n.id.clone(),
@@ -438,13 +444,16 @@ async fn supervise(
                 .is_some_and(|h| h.stats.frames_in > 0);
             let exponent = if progressed { 0 } else { c.streak };
             let wait = Duration::from_millis(spec.restart.backoff_ms << exponent.min(10));
-            eprintln!(
-                "[{}] exited ({why}); restart {} of {} in {:?}",
-                c.id,
-                c.restarts + 1,
-                spec.restart.max,
-                wait
-            );
+            above_progress(|| {
+                eprintln!(
+                    "[{}] exited ({why}); restart {} of {} in {:?}",
+                    c.id,
+                    c.restarts + 1,
+                    spec.restart.max,
+                    wait
+                )
+            });
+            set_state(&states, &c.id, NodeState::Restarting, c.restarts + 1, None);
             if failed {
                 // A node that died holds its places on its edges (a full queue of a dead
                 // reader blocks a lossless writer): free them at once, so that its writers
@@ -473,6 +482,13 @@ async fn supervise(
                 .flatten()
                 .map(|l| l + 1);
             let mut proc = spawn(graph, a, file, instance, &c.id, generation, first_frame)?;
+            set_state(
+                &states,
+                &c.id,
+                NodeState::Starting,
+                c.restarts + 1,
+                proc.id(),
+            );
             let reports = forward_logs(
                 &c.id,
                 c.restarts as usize + 1,
@@ -489,15 +505,24 @@ async fn supervise(
                 hung: None,
                 reports,
             });
-        } else if failed && !stopping {
-            failure = Some(format!("node '{}' failed ({why})", c.id));
-            stopping = true;
-            terminate(&children);
+        } else {
+            let state = if failed && !stopping {
+                NodeState::Failed
+            } else {
+                NodeState::Exited
+            };
+            set_state(&states, &c.id, state, c.restarts, None);
+            if failed && !stopping {
+                failure = Some(format!("node '{}' failed ({why})", c.id));
+                stopping = true;
+                terminate(&children);
+            }
         }
     }
     // Give the log forwarders a moment to flush the last lines.
     tokio::time::sleep(Duration::from_millis(50)).await;
     let wall = start.elapsed();
+    monitor.stop();
     let stats = stats
         .lock()
         .expect("stats")
@@ -508,6 +533,148 @@ async fn supervise(
         })
         .collect();
     Ok((stats, wall, failure))
+}
+
+/// Per node id: what its processes are doing, its restarts and its process now.
+type States = std::sync::Arc<std::sync::Mutex<HashMap<String, (NodeState, u32, Option<u32>)>>>;
+
+fn set_state(states: &States, id: &str, state: NodeState, restarts: u32, pid: Option<u32>) {
+    if let Ok(mut s) = states.lock() {
+        s.insert(id.into(), (state, restarts, pid));
+    }
+}
+
+/// The progress line while one is shown: log lines are printed above it.
+static PROGRESS: std::sync::Mutex<Option<indicatif::ProgressBar>> = std::sync::Mutex::new(None);
+
+/// Runs `print` with the progress line (if any) out of the way.
+fn above_progress(print: impl FnOnce()) {
+    let bar = PROGRESS.lock().ok().and_then(|b| b.clone());
+    match bar {
+        Some(b) => b.suspend(print),
+        None => print(),
+    }
+}
+
+/// The thread that publishes the run's status ([`crate::status`]) every
+/// [`STATUS_PERIOD`](crate::status::STATUS_PERIOD) and keeps the progress line.
+struct Monitor {
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl Monitor {
+    fn start(
+        graph: &Graph,
+        instance: &str,
+        o: &RunOptions,
+        stats: StatsSink,
+        states: States,
+    ) -> Self {
+        let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let base = GraphStatus::of(graph, instance, o.frames, crate::edge::now_ns());
+        let (flag, instance, progress) = (stop.clone(), instance.to_string(), o.progress);
+        let thread = std::thread::spawn(move || {
+            use std::io::IsTerminal;
+            // The status is a view: a run whose status cannot be published still runs.
+            let mut publisher = match crate::status::StatusPublisher::new(&instance) {
+                Ok(p) => Some(p),
+                Err(e) => {
+                    above_progress(|| eprintln!("warning: the run's status is not published: {e}"));
+                    None
+                }
+            };
+            let bar = (progress && std::io::stderr().is_terminal()).then(|| {
+                let b = indicatif::ProgressBar::with_draw_target(
+                    None,
+                    indicatif::ProgressDrawTarget::stderr_with_hz(4),
+                );
+                b.set_style(
+                    indicatif::ProgressStyle::with_template("{msg}")
+                        .unwrap_or_else(|_| indicatif::ProgressStyle::default_spinner()),
+                );
+                b
+            });
+            if let (Some(b), Ok(mut slot)) = (&bar, PROGRESS.lock()) {
+                *slot = Some(b.clone());
+            }
+            // The progress line's rate is over the last second or so.
+            let mut history: std::collections::VecDeque<GraphStatus> = Default::default();
+            loop {
+                let ended = flag.load(std::sync::atomic::Ordering::Relaxed);
+                let now = snapshot(&base, &stats, &states, ended);
+                if let Some(p) = &mut publisher {
+                    let _ = p.publish(&now);
+                }
+                if let Some(b) = &bar {
+                    while history
+                        .front()
+                        .is_some_and(|h| now.now_ns.saturating_sub(h.now_ns) > 1_000_000_000)
+                    {
+                        history.pop_front();
+                    }
+                    let p = crate::status::progress(history.front(), &now);
+                    b.set_message(p.line());
+                    history.push_back(now);
+                }
+                if ended {
+                    break;
+                }
+                let t0 = Instant::now();
+                while t0.elapsed() < crate::status::STATUS_PERIOD
+                    && !flag.load(std::sync::atomic::Ordering::Relaxed)
+                {
+                    std::thread::sleep(Duration::from_millis(10));
+                }
+            }
+            if let Ok(mut slot) = PROGRESS.lock() {
+                *slot = None;
+            }
+            if let Some(b) = bar {
+                b.finish_and_clear();
+            }
+        });
+        Self {
+            stop,
+            thread: Some(thread),
+        }
+    }
+
+    /// Publishes the last status (the run ended) and clears the progress line.
+    fn stop(mut self) {
+        self.stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// The run's status now: `base` with each node's state and figures so far.
+fn snapshot(base: &GraphStatus, stats: &StatsSink, states: &States, ended: bool) -> GraphStatus {
+    let mut s = base.clone();
+    s.now_ns = crate::edge::now_ns();
+    s.ended = ended;
+    let heard = stats.lock().map(|h| h.clone()).unwrap_or_default();
+    let states = states.lock().map(|s| s.clone()).unwrap_or_default();
+    for n in &mut s.nodes {
+        let runs = heard.get(&n.id);
+        if let Some(runs) = runs {
+            let all: Vec<NodeStats> = runs.iter().flatten().map(|h| h.stats.clone()).collect();
+            n.stats = crate::stats::merge(&all);
+        }
+        if let Some(&(state, restarts, pid)) = states.get(&n.id) {
+            let reported = runs
+                .and_then(|r| r.get(restarts as usize))
+                .is_some_and(Option::is_some);
+            n.state = match state {
+                NodeState::Starting if reported => NodeState::Running,
+                other => other,
+            };
+            n.restarts = restarts;
+            n.pid = pid;
+        }
+    }
+    s
 }
 
 /// What woke the supervisor.
@@ -654,20 +821,9 @@ pub fn print_summary(
             );
         }
     }
-    // The graph's own ends: nodes no other node reads, taps (recorder, viewer) and
-    // feedback inputs aside.
-    let tap = |id: &str| graph.node(id).is_some_and(|n| n.tap);
     let sinks: Vec<&NodeStats> = graph
-        .nodes
+        .ends()
         .iter()
-        .filter(|n| !tap(&n.id))
-        .filter(|n| {
-            !graph
-                .nodes
-                .iter()
-                .filter(|m| !tap(&m.id))
-                .any(|m| m.inputs.iter().any(|i| i.node == n.id && !i.feedback))
-        })
         .filter_map(|n| stats.get(&n.id))
         .collect();
     let done = sinks.iter().map(|s| s.frames_in).min().unwrap_or(0);

@@ -76,6 +76,10 @@ pub const WRITER_WAIT: Duration = Duration::from_secs(30);
 /// Largest number of readers of one edge.
 const MAX_READERS: usize = 16;
 
+/// The reader-name prefix of a watcher ([`Transport::watcher`]): a reader outside the graph
+/// (`topic hz`, `topic echo`) that a lossless writer never waits for.
+pub const WATCHER_PREFIX: &str = "watch-";
+
 /// Times a lossless edge sends again a frame that reached none of its connected readers
 /// ([`EdgePublisher::send`]).
 const LOSSLESS_RESENDS: u32 = 3;
@@ -159,10 +163,19 @@ impl Transport {
     pub fn publisher(&self, edge: &str, cfg: &EdgeConfig) -> Result<EdgePublisher, TransportError> {
         let (pubsub, event) = self.services(edge, cfg)?;
         let lenient = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let watchers = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
         let handler = {
-            let lenient = lenient.clone();
-            move |_: &iceoryx2::port::BackpressureInfo| {
-                if lenient.load(std::sync::atomic::Ordering::Relaxed) {
+            let (lenient, watchers) = (lenient.clone(), watchers.clone());
+            move |info: &iceoryx2::port::BackpressureInfo| {
+                // A watcher's full queue is skipped: looking at a graph must not slow it.
+                let watcher = || {
+                    watchers
+                        .lock()
+                        .is_ok_and(|w: std::sync::MutexGuard<Vec<u128>>| {
+                            w.contains(&info.receiver_port_id)
+                        })
+                };
+                if lenient.load(std::sync::atomic::Ordering::Relaxed) || watcher() {
                     iceoryx2::port::BackpressureAction::DiscardData
                 } else {
                     iceoryx2::port::BackpressureAction::FollowBackpressureyStrategy
@@ -196,7 +209,50 @@ impl Transport {
             sent: Cell::new(0),
             overflow: cfg.overflow,
             lenient,
+            watchers,
+            seen_readers: Cell::new(usize::MAX),
         })
+    }
+
+    /// A reader of a running graph's `edge` from outside it (`topic hz`, `topic echo`):
+    /// the edge must exist; its writer never waits for this reader's full queue, so it
+    /// may lose messages (counted as dropped) but never slows the graph.
+    pub fn watcher(&self, edge: &str) -> Result<EdgeSubscriber, TransportError> {
+        let name = ServiceName::new(edge).map_err(|_| TransportError::Name(edge.into()))?;
+        let pubsub = self
+            .node
+            .service_builder(&name)
+            .publish_subscribe::<[u8]>()
+            .user_header::<FrameHeader>()
+            .open()
+            .map_err(|e| fail(edge, "opening the edge (is the graph running?)")(&e))?;
+        let event = self
+            .node
+            .service_builder(&name)
+            .event()
+            .open()
+            .map_err(|e| fail(edge, "opening the edge's events")(&e))?;
+        let depth = pubsub.static_config().subscriber_max_buffer_size();
+        let cfg = EdgeConfig {
+            depth,
+            overflow: if pubsub.static_config().has_safe_overflow() {
+                Overflow::DropOldest
+            } else {
+                Overflow::Block
+            },
+        };
+        let listener = event
+            .listener_builder()
+            .create()
+            .map_err(|e| fail(edge, "creating the listener")(&e))?;
+        let port = format!("{WATCHER_PREFIX}{}", std::process::id());
+        let subscriber = pubsub
+            .subscriber_builder()
+            .buffer_size(depth.max(1))
+            .name(&PortName::new(&port).map_err(|_| TransportError::Name(port.clone()))?)
+            .create()
+            .map_err(|e| fail(edge, "creating the subscriber")(&e))?;
+        Ok(EdgeSubscriber::new(edge, subscriber, listener, cfg))
     }
 
     /// The reading end of `edge`.
@@ -254,19 +310,31 @@ impl Transport {
         let subscriber = builder
             .create()
             .map_err(|e| fail(edge, "creating the subscriber")(&e))?;
-        Ok(EdgeSubscriber {
+        Ok(EdgeSubscriber::new(edge, subscriber, listener, *cfg))
+    }
+}
+
+impl EdgeSubscriber {
+    fn new(
+        edge: &str,
+        subscriber: Subscriber<Service, [u8], FrameHeader>,
+        listener: Listener<Service>,
+        cfg: EdgeConfig,
+    ) -> Self {
+        Self {
             edge: edge.into(),
             subscriber,
             listener,
-            cfg: *cfg,
+            cfg,
             first: Cell::new(None),
             last: Cell::new(None),
             last_on_edge: Cell::new(None),
             received: Cell::new(0),
+            age_ms_sum: Cell::new(0.0),
             dropped: Cell::new(0),
             missing: Cell::new(0),
             end: Cell::new(None),
-        })
+        }
     }
 }
 
@@ -282,6 +350,11 @@ pub struct EdgePublisher {
     /// While set, a send skips a reader whose queue is full instead of waiting for it
     /// (the publisher's back-pressure handler reads it).
     lenient: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    /// The port ids of the watchers connected ([`WATCHER_PREFIX`]), whose full queues the
+    /// back-pressure handler skips.
+    watchers: std::sync::Arc<std::sync::Mutex<Vec<u128>>>,
+    /// How many readers the edge had when `watchers` was last made.
+    seen_readers: Cell<usize>,
 }
 
 impl EdgePublisher {
@@ -315,6 +388,7 @@ impl EdgePublisher {
         stamp: bool,
     ) -> Result<usize, TransportError> {
         use std::sync::atomic::Ordering::Relaxed;
+        self.note_watchers();
         let mut tries = 0;
         let readers = loop {
             let mut sample = self
@@ -398,6 +472,27 @@ impl EdgePublisher {
         sent
     }
 
+    /// Makes the list of watchers anew when the number of readers changed (a count read
+    /// from shared memory: cheap enough for every send).
+    fn note_watchers(&self) {
+        use iceoryx2::service::port_factory::PortFactory;
+        let n = self.service.dynamic_config().number_of_subscribers();
+        if n == self.seen_readers.get() {
+            return;
+        }
+        self.seen_readers.set(n);
+        let mut ids = Vec::new();
+        self.service.dynamic_config().list_subscribers(|s| {
+            if s.subscriber_name.as_str().starts_with(WATCHER_PREFIX) {
+                ids.push(s.subscriber_id.value());
+            }
+            CallbackProgression::Continue
+        });
+        if let Ok(mut w) = self.watchers.lock() {
+            *w = ids;
+        }
+    }
+
     /// Whether the edge's writer waits for a reader with a full queue.
     pub fn lossless(&self) -> bool {
         self.overflow == Overflow::Block
@@ -447,6 +542,7 @@ pub struct EdgeSubscriber {
     last: Cell<Option<u64>>,
     last_on_edge: Cell<Option<u64>>,
     received: Cell<u64>,
+    age_ms_sum: Cell<f64>,
     dropped: Cell<u64>,
     missing: Cell<u64>,
     end: Cell<Option<u64>>,
@@ -545,6 +641,10 @@ impl EdgeSubscriber {
             self.first.set(Some(h.sequence));
         }
         self.received.set(self.received.get() + 1);
+        self.age_ms_sum.set(
+            self.age_ms_sum.get()
+                + crate::edge::now_ns().saturating_sub(h.capture_ns) as f64 * 1e-6,
+        );
         Ok(Some(Received::Frame(m)))
     }
 
@@ -556,6 +656,11 @@ impl EdgeSubscriber {
     /// Messages received so far.
     pub fn received(&self) -> u64 {
         self.received.get()
+    }
+
+    /// The received frames' ages at receipt (capture to receipt) summed, ms.
+    pub fn age_ms_sum(&self) -> f64 {
+        self.age_ms_sum.get()
     }
 
     /// Messages lost on this edge: overwritten in a full queue or let go unused.
@@ -844,5 +949,44 @@ mod tests {
             wait_any(&[&sub], Duration::from_millis(20), &mut ready).unwrap(),
             Wake::Timeout
         );
+    }
+
+    #[test]
+    fn a_watcher_that_never_reads_does_not_hold_up_a_lossless_writer() {
+        let edge = edge_name("watched");
+        let cfg = EdgeConfig {
+            depth: 1,
+            overflow: Overflow::Block,
+        };
+        let t = Transport::new("watched").unwrap();
+        let p = t.publisher(&edge, &cfg).unwrap();
+        let reader = t.reader(&edge, &cfg, Some("graph.in")).unwrap();
+        // A watcher of an edge that is not there: one clear error, nothing created.
+        assert!(t.watcher(&edge_name("no-such-edge")).is_err());
+        let watcher = t.watcher(&edge).unwrap();
+        assert_eq!(watcher.config(), cfg);
+        // The graph's reader takes every frame; the watcher none until the end. Without the
+        // skip, the second send would wait for the watcher's full queue for ever.
+        for seq in 0..20u64 {
+            p.send(header(seq, 8), 8, |b| b.fill(seq as u8)).unwrap();
+            let m = reader
+                .receive()
+                .unwrap()
+                .expect("the graph's reader gets every frame");
+            assert_eq!(m.user_header().sequence, seq);
+        }
+        let mut seen = Vec::new();
+        while let Some(m) = watcher.receive().unwrap() {
+            seen.push(m.user_header().sequence);
+        }
+        // It kept the first frame its queue took and lost the rest, counted.
+        assert_eq!(seen, vec![0]);
+        p.send(header(20, 8), 8, |b| b.fill(20)).unwrap();
+        assert_eq!(
+            watcher.receive().unwrap().unwrap().user_header().sequence,
+            20
+        );
+        assert_eq!((watcher.received(), watcher.dropped()), (2, 19));
+        assert_eq!(reader.received(), 20);
     }
 }
