@@ -123,6 +123,24 @@ pub struct Supervision {
     /// frames/s, drops, restarts); `microstereo top` shows a running graph in full.
     #[arg(long, short)]
     pub quiet: bool,
+    /// Run only this host's part of a graph split over hosts (`host = "NAME"` per node,
+    /// `[hosts.NAME]` with the link's endpoints): its edges to the other hosts go over
+    /// iceoryx2's Zenoh link, the rest stays shared memory.
+    #[arg(long)]
+    pub host: Option<String>,
+    /// Zenoh endpoint this part's link listens on, e.g. `tcp/0.0.0.0:7447` (repeatable;
+    /// replaces the launch file's `listen` and `connect`).
+    #[arg(long, requires = "host")]
+    pub listen: Vec<String>,
+    /// Zenoh endpoint of another host's link to connect to, e.g. `tcp/capture-pc:7447`
+    /// (repeatable; replaces the launch file's `listen` and `connect`).
+    #[arg(long, requires = "host")]
+    pub connect: Vec<String>,
+    /// The iceoryx2 domain to run in: graphs in different domains share no memory, even on
+    /// one machine (two parts of a graph on one machine, say). Default: $MICROSTEREO_DOMAIN,
+    /// else the default domain.
+    #[arg(long)]
+    pub domain: Option<String>,
 }
 
 /// Runs `graph` as processes and prints the summary; returns the frame rate.
@@ -144,6 +162,7 @@ pub fn run_graph(
                 .into(),
         ));
     }
+    runtime::transport::set_domain(s.domain.as_deref()).map_err(CliError::Other)?;
     let exe = std::env::current_exe()
         .map_err(|e| CliError::Other(format!("cannot find this program: {e}")))?;
     let report = runtime::supervisor::run(
@@ -154,9 +173,22 @@ pub fn run_graph(
             grace: s.grace,
             instance: s.instance.clone(),
             progress: !s.quiet,
+            host: s.host.clone(),
+            endpoints: (!s.listen.is_empty() || !s.connect.is_empty()).then(|| {
+                hostlink::Endpoints {
+                    listen: s.listen.clone(),
+                    connect: s.connect.clone(),
+                }
+            }),
         },
     )?;
-    let rate = runtime::supervisor::print_summary(graph, &report.stats, report.wall, frames);
+    let rate = runtime::supervisor::print_summary(
+        graph,
+        &report.stats,
+        report.wall,
+        frames,
+        report.host.as_deref(),
+    );
     if let Some(f) = report.failure {
         let kept = out
             .record

@@ -13,9 +13,14 @@ const ATTACH_PATIENCE: Duration = Duration::from_secs(3);
 /// Which running graph to look at.
 #[derive(Args, Debug, Clone)]
 pub struct Attach {
-    /// The run's instance (`run --instance`; default: the newest run on this machine).
+    /// The run: its instance (`run --instance`), `INSTANCE@HOST` for one part of a graph
+    /// over hosts (default: the newest run on this machine).
     #[arg(long)]
     pub instance: Option<String>,
+    /// The iceoryx2 domain it runs in (`run --domain`; default: $MICROSTEREO_DOMAIN, else
+    /// the default domain).
+    #[arg(long)]
+    pub domain: Option<String>,
 }
 
 impl Attach {
@@ -33,6 +38,7 @@ impl Attach {
 
     /// Attaches to the run and takes its first snapshot.
     fn open(&self) -> Result<(StatusReader, GraphStatus), CliError> {
+        runtime::transport::set_domain(self.domain.as_deref()).map_err(CliError::Other)?;
         let instance = self.resolve()?;
         let reader = StatusReader::open(&instance, ATTACH_PATIENCE).map_err(CliError::Other)?;
         let first = reader
@@ -627,7 +633,7 @@ mod tests {
     #[test]
     fn the_live_view_draws_the_nodes_and_edges_of_a_snapshot() {
         let g = crate::run::load_with(None, &[]).unwrap();
-        let mut now = GraphStatus::of(&g, "view-test", Some(100), 1_000_000_000);
+        let mut now = GraphStatus::of(&g, "view-test", None, Some(100), 1_000_000_000);
         now.now_ns = 3_000_000_000;
         let backend = ratatui::backend::TestBackend::new(120, 40);
         let mut term = ratatui::Terminal::new(backend).unwrap();

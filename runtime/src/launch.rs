@@ -160,6 +160,8 @@ struct NodeDecl {
     ports: Option<Spanned<PortsDecl>>,
     #[serde(default)]
     in_flight: Option<Spanned<InFlight>>,
+    #[serde(default)]
+    host: Option<Spanned<String>>,
 }
 
 /// A source's limit on the frames in flight: it lets a frame in only while fewer than
@@ -192,6 +194,21 @@ const MAX_IN_FLIGHT: u64 = 64;
 struct FileDecl {
     #[serde(default)]
     node: Vec<Spanned<NodeDecl>>,
+    #[serde(default)]
+    hosts: BTreeMap<String, Spanned<Host>>,
+}
+
+/// A host of a graph split over machines (`[hosts.NAME]`): where its part's link listens
+/// and whom it connects to (Zenoh endpoints such as `tcp/0.0.0.0:7447`).
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Host {
+    /// Endpoints its link listens on.
+    #[serde(default)]
+    pub listen: Vec<String>,
+    /// Endpoints of other hosts its link connects to.
+    #[serde(default)]
+    pub connect: Vec<String>,
 }
 
 /// One port of a node kind: its name and the message it carries.
@@ -304,6 +321,9 @@ pub struct NodeSpec {
     /// A source's limit on its frames in flight.
     #[serde(default)]
     pub in_flight: Option<InFlight>,
+    /// The host whose part runs it (`None`: a graph on one machine).
+    #[serde(default)]
+    pub host: Option<String>,
 }
 
 impl NodeSpec {
@@ -327,6 +347,9 @@ pub struct Graph {
     pub text: String,
     /// Nodes, producers first.
     pub nodes: Vec<NodeSpec>,
+    /// The hosts of a graph split over machines, by name.
+    #[serde(default)]
+    pub hosts: BTreeMap<String, Host>,
 }
 
 impl Graph {
@@ -396,6 +419,50 @@ impl Graph {
     /// The node with this id.
     pub fn node(&self, id: &str) -> Option<&NodeSpec> {
         self.nodes.iter().find(|n| n.id == id)
+    }
+
+    /// The host that runs node `id` (`None`: a graph on one machine).
+    pub fn host_of(&self, id: &str) -> Option<&str> {
+        self.node(id).and_then(|n| n.host.as_deref())
+    }
+
+    /// Whether nodes `a` and `b` run on different hosts.
+    pub fn apart(&self, a: &str, b: &str) -> bool {
+        self.host_of(a) != self.host_of(b)
+    }
+
+    /// The readers of output `port` of node `id`: (reader node id, reader name), the
+    /// in-flight counts of sources included.
+    pub fn readers_of<'a>(
+        &'a self,
+        id: &'a str,
+        port: &'a str,
+    ) -> impl Iterator<Item = (&'a str, String)> + 'a {
+        self.nodes
+            .iter()
+            .flat_map(|n| n.inputs.iter().map(move |i| (n, i)))
+            .filter(move |(_, i)| i.node == id && i.output == port)
+            .map(|(n, i)| (n.id.as_str(), format!("{}.{}", n.id, i.port)))
+            .chain(
+                self.in_flight_readers(id, port)
+                    .map(|n| (n.id.as_str(), format!("{}.in-flight", n.id))),
+            )
+    }
+
+    /// The edges between hosts, as (writer, output): those a host's link carries.
+    pub fn cross_host_edges(&self) -> Vec<(String, String)> {
+        let mut out = Vec::new();
+        for n in &self.nodes {
+            for (port, _) in &n.outputs {
+                if self
+                    .readers_of(&n.id, port)
+                    .any(|(r, _)| self.apart(r, &n.id))
+                {
+                    out.push((n.id.clone(), port.clone()));
+                }
+            }
+        }
+        out
     }
 
     /// The graph's own ends: nodes no other node reads, taps (recorder, viewer) and
@@ -535,6 +602,7 @@ impl Graph {
             tap: true,
             logs: false,
             in_flight: None,
+            host: None,
         });
         Ok(())
     }
@@ -1017,6 +1085,7 @@ impl LaunchFile {
                     tap: false,
                     logs: false,
                     in_flight: n.in_flight.as_ref().map(|f| f.get_ref().clone()),
+                    host: n.host.as_ref().map(|h| h.get_ref().clone()),
                 },
                 wanted,
             ));
@@ -1119,6 +1188,62 @@ impl LaunchFile {
                 ),
             );
         }
+        // A graph over several hosts: every node on a declared one.
+        for (name, h) in &self.decl.hosts {
+            if name.is_empty()
+                || name.len() > 64
+                || !name
+                    .chars()
+                    .all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
+            {
+                err(
+                    &mut errs,
+                    h.span().start,
+                    format!(
+                        "[hosts.{name}]: a host name is 1 to 64 letters, digits, '-', '_' or '.'"
+                    ),
+                );
+            }
+        }
+        for n in &self.decl.node {
+            let d = n.get_ref();
+            match (&d.host, self.decl.hosts.is_empty()) {
+                (Some(h), true) => err(
+                    &mut errs,
+                    h.span().start,
+                    format!(
+                        "node '{}': host = \"{}\" but the file declares no [hosts]; add [hosts.{}] with its link's listen/connect endpoints",
+                        d.id.get_ref(),
+                        h.get_ref(),
+                        h.get_ref()
+                    ),
+                ),
+                (Some(h), false) if !self.decl.hosts.contains_key(h.get_ref()) => err(
+                    &mut errs,
+                    h.span().start,
+                    format!(
+                        "node '{}': no host '{}' in [hosts]; the hosts: {}",
+                        d.id.get_ref(),
+                        h.get_ref(),
+                        self.decl
+                            .hosts
+                            .keys()
+                            .cloned()
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    ),
+                ),
+                (None, false) => err(
+                    &mut errs,
+                    n.span().start,
+                    format!(
+                        "node '{}' has no host; in a launch file with [hosts] every node names the host that runs it",
+                        d.id.get_ref()
+                    ),
+                ),
+                _ => {}
+            }
+        }
         if self.decl.node.is_empty() {
             errs.push(LaunchError {
                 file: file.clone(),
@@ -1137,6 +1262,12 @@ impl LaunchFile {
             nodes: order
                 .into_iter()
                 .map(|i| slots[i].take().expect("once"))
+                .collect(),
+            hosts: self
+                .decl
+                .hosts
+                .iter()
+                .map(|(k, v)| (k.clone(), v.get_ref().clone()))
                 .collect(),
         })
     }

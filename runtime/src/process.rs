@@ -132,6 +132,86 @@ impl InFlightGate {
     }
 }
 
+/// The least queue depth of an edge from another host, on the reading host.
+const REMOTE_DEPTH: usize = 8;
+
+/// The reader name of a host's link on an edge (iceoryx2's link names none of its ports).
+const LINK_READER: &str = "";
+
+/// How long a writer waits for its readers on other hosts before it sends anyway.
+const REMOTE_READERS_PATIENCE: Duration = Duration::from_secs(60);
+
+/// After the other host's readers run, the time its link takes to bridge their edges
+/// (a discovery round there, and Zenoh's declaration of it here).
+const LINK_SETTLE: Duration = Duration::from_millis(400);
+
+/// Waits until node `spec`'s readers on other hosts run (their parts' status says so): a
+/// frame sent before the link over there bridged the edge would reach none of them.
+fn wait_for_readers_elsewhere(
+    graph: &Graph,
+    instance: &str,
+    spec: &crate::launch::NodeSpec,
+    transport: &Transport,
+) {
+    let mut waiting: Vec<(String, String)> = Vec::new();
+    for (port, _) in &spec.outputs {
+        for (r, _) in graph.readers_of(&spec.id, port) {
+            if graph.apart(r, &spec.id)
+                && let Some(h) = graph.host_of(r)
+                && !waiting.iter().any(|(n, _)| n == r)
+            {
+                waiting.push((r.to_string(), h.to_string()));
+            }
+        }
+    }
+    if waiting.is_empty() {
+        return;
+    }
+    let t0 = Instant::now();
+    let mut readers: std::collections::HashMap<String, crate::status::StatusReader> =
+        Default::default();
+    while !waiting.is_empty() {
+        if t0.elapsed() > REMOTE_READERS_PATIENCE {
+            eprintln!(
+                "warning: the readers on other hosts ({}) did not start within {} s; sending anyway",
+                waiting
+                    .iter()
+                    .map(|(n, h)| format!("{n} on {h}"))
+                    .collect::<Vec<_>>()
+                    .join(", "),
+                REMOTE_READERS_PATIENCE.as_secs()
+            );
+            return;
+        }
+        for (_, h) in &waiting {
+            if !readers.contains_key(h)
+                && let Ok(r) = crate::status::StatusReader::open(
+                    &crate::status::run_name(instance, Some(h)),
+                    Duration::ZERO,
+                )
+            {
+                readers.insert(h.clone(), r);
+            }
+        }
+        let mut running = Vec::new();
+        for (h, r) in &readers {
+            if let Ok(Some(s)) = r.next(Duration::ZERO) {
+                running.extend(
+                    s.nodes
+                        .iter()
+                        .filter(|n| n.state == crate::status::NodeState::Running)
+                        .map(|n| (n.id.clone(), h.clone())),
+                );
+            }
+        }
+        waiting.retain(|w| !running.contains(w));
+        if !waiting.is_empty() && !transport.sleep(Duration::from_millis(20)) {
+            return;
+        }
+    }
+    transport.sleep(LINK_SETTLE);
+}
+
 /// The name under which node `id` reads its input `port`.
 fn reader_name(id: &str, port: &str) -> String {
     format!("{id}.{port}")
@@ -147,11 +227,22 @@ fn readers(
     spec.inputs
         .iter()
         .map(|i| {
-            transport.reader(
-                &Graph::edge_name(instance, &i.node, &i.output),
-                &graph.edge_config(&i.node, &i.output),
-                Some(&reader_name(&spec.id, &i.port)),
-            )
+            let (edge, cfg, name) = (
+                Graph::edge_name(instance, &i.node, &i.output),
+                graph.edge_config(&i.node, &i.output),
+                reader_name(&spec.id, &i.port),
+            );
+            if graph.apart(&i.node, &spec.id) {
+                // Frames from another host come in bursts (the network's, the link's
+                // rounds): a deeper queue takes them without making the link wait.
+                let cfg = crate::edge::EdgeConfig {
+                    depth: cfg.depth.max(REMOTE_DEPTH),
+                    ..cfg
+                };
+                transport.remote_reader(&edge, &cfg, &name)
+            } else {
+                transport.reader(&edge, &cfg, Some(&name))
+            }
         })
         .collect::<Result<Vec<_>, _>>()
         .map_err(|e| e.to_string())
@@ -339,18 +430,16 @@ pub fn run_node(
         .outputs
         .iter()
         .map(|(port, _)| {
-            graph
-                .nodes
-                .iter()
-                .flat_map(|n| n.inputs.iter().map(move |i| (n, i)))
-                .filter(|(_, i)| i.node == id && i.output == *port)
-                .map(|(n, i)| reader_name(&n.id, &i.port))
-                .chain(
-                    graph
-                        .in_flight_readers(id, port)
-                        .map(|n| reader_name(&n.id, IN_FLIGHT_PORT)),
-                )
-                .collect()
+            let mut want: Vec<String> = graph
+                .readers_of(id, port)
+                .filter(|(r, _)| !graph.apart(r, id))
+                .map(|(_, name)| name)
+                .collect();
+            // Readers on another host: this host's link reads the edge for them.
+            if graph.readers_of(id, port).any(|(r, _)| graph.apart(r, id)) {
+                want.push(LINK_READER.into());
+            }
+            want
         })
         .collect();
     let read_in_graph = graph.is_read(id);
@@ -365,6 +454,7 @@ pub fn run_node(
         }
         std::thread::sleep(Duration::from_millis(2));
     }
+    wait_for_readers_elsewhere(graph, instance, spec, &transport);
     // A restarted node tells the nodes downstream that the frames its predecessor held are
     // gone, before any frame of its own (see [`Restarts`]).
     if generation > 0 {
@@ -377,6 +467,14 @@ pub fn run_node(
         sent: 0,
     };
     let mut tally = Tally::new();
+    // A first report once the node's edges are up: its part's status shows it running
+    // (what writers on other hosts wait for).
+    tally.report(
+        id,
+        spec,
+        0,
+        subs.iter().chain(feedback.iter().map(|(_, s)| s)),
+    );
     if subs.is_empty() {
         let period = fps
             .filter(|f| *f > 0.0)

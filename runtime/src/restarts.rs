@@ -158,6 +158,7 @@ mod tests {
             tap: false,
             logs: false,
             in_flight: None,
+            host: None,
         }
     }
 
@@ -167,6 +168,7 @@ mod tests {
         Graph {
             file: "test.toml".into(),
             text: String::new(),
+            hosts: Default::default(),
             nodes: vec![
                 node("capture", &[]),
                 node("segment", &[("frame", "capture/frame")]),

@@ -16,9 +16,22 @@ pub const STATUS_PERIOD: Duration = Duration::from_millis(250);
 /// The header `kind` of a status message (no message kind of the schemas has it).
 pub const STATUS_KIND: u32 = u32::MAX - 2;
 
-/// The iceoryx2 service a run's status is published on (no node id has an `@`).
-pub fn status_service(instance: &str) -> String {
-    format!("microstereo/{instance}/@status")
+/// The iceoryx2 service a run's status is published on (no node id has an `@`): one per
+/// part of a graph split over hosts.
+pub fn status_service(instance: &str, host: Option<&str>) -> String {
+    match host {
+        Some(h) => format!("microstereo/{instance}/@status/{h}"),
+        None => format!("microstereo/{instance}/@status"),
+    }
+}
+
+/// A run as `top` and `topic` name it: `INSTANCE`, or `INSTANCE@HOST` for one part of a
+/// graph split over hosts.
+pub fn run_name(instance: &str, host: Option<&str>) -> String {
+    match host {
+        Some(h) => format!("{instance}@{h}"),
+        None => instance.to_string(),
+    }
 }
 
 /// What a node's processes are doing.
@@ -104,6 +117,9 @@ pub struct NodeStatus {
 pub struct GraphStatus {
     /// The run's instance name.
     pub instance: String,
+    /// The part's host, for a graph split over hosts.
+    #[serde(default)]
+    pub host: Option<String>,
     /// The supervisor's process id.
     pub supervisor_pid: u32,
     /// The launch file it runs.
@@ -124,7 +140,13 @@ pub struct GraphStatus {
 
 impl GraphStatus {
     /// A snapshot of `graph` with nothing reported yet (the supervisor fills in the rest).
-    pub fn of(graph: &Graph, instance: &str, frames: Option<u64>, started_ns: u64) -> Self {
+    pub fn of(
+        graph: &Graph,
+        instance: &str,
+        host: Option<&str>,
+        frames: Option<u64>,
+        started_ns: u64,
+    ) -> Self {
         let readers = |id: &str, port: &str| -> Vec<String> {
             graph
                 .nodes
@@ -136,6 +158,7 @@ impl GraphStatus {
         };
         Self {
             instance: instance.into(),
+            host: host.map(String::from),
             supervisor_pid: std::process::id(),
             launch: graph.file.display().to_string(),
             started_ns,
@@ -145,6 +168,7 @@ impl GraphStatus {
             nodes: graph
                 .nodes
                 .iter()
+                .filter(|n| host.is_none() || n.host.as_deref() == host)
                 .map(|n| NodeStatus {
                     id: n.id.clone(),
                     kind: match &n.runner {
@@ -181,7 +205,12 @@ impl GraphStatus {
                         .collect(),
                 })
                 .collect(),
-            ends: graph.ends().iter().map(|n| n.id.clone()).collect(),
+            ends: graph
+                .ends()
+                .iter()
+                .filter(|n| host.is_none() || n.host.as_deref() == host)
+                .map(|n| n.id.clone())
+                .collect(),
         }
     }
 
@@ -393,12 +422,12 @@ const STATUS_EDGE: EdgeConfig = EdgeConfig {
 };
 
 impl StatusPublisher {
-    /// Opens run `instance`'s status service.
-    pub fn new(instance: &str) -> Result<Self, String> {
+    /// Opens the status service of run `instance` (of its part on `host`).
+    pub fn new(instance: &str, host: Option<&str>) -> Result<Self, String> {
         let transport =
             Transport::new(&format!("{instance}/supervisor")).map_err(|e| e.to_string())?;
         let publisher = transport
-            .publisher(&status_service(instance), &STATUS_EDGE)
+            .publisher(&status_service(instance, host), &STATUS_EDGE)
             .map_err(|e| e.to_string())?;
         Ok(Self {
             _transport: transport,
@@ -431,17 +460,22 @@ pub struct StatusReader {
 }
 
 impl StatusReader {
-    /// Attaches to run `instance`, waiting up to `patience` for it to start.
-    pub fn open(instance: &str, patience: Duration) -> Result<Self, String> {
+    /// Attaches to run `name` ([`run_name`]: `INSTANCE` or `INSTANCE@HOST`), waiting up to
+    /// `patience` for it to start.
+    pub fn open(name: &str, patience: Duration) -> Result<Self, String> {
+        let (instance, host) = match name.split_once('@') {
+            Some((i, h)) => (i, Some(h)),
+            None => (name, None),
+        };
         let transport =
             Transport::new(&format!("watch-{}", std::process::id())).map_err(|e| e.to_string())?;
         let t0 = Instant::now();
         let sub = loop {
-            match transport.watcher(&status_service(instance)) {
+            match transport.watcher(&status_service(instance, host)) {
                 Ok(s) => break s,
                 Err(e) if t0.elapsed() >= patience => {
                     return Err(format!(
-                        "no graph is running as instance '{instance}' ({e}): start one with `microstereo run --instance {instance}`, or see `microstereo topic list` for the running ones"
+                        "no graph is running as '{name}' ({e}): start one with `microstereo run --instance {instance}`, or give --instance of a running one"
                     ));
                 }
                 Err(_) => {
@@ -482,9 +516,9 @@ impl StatusReader {
     }
 }
 
-/// The instance lock file of run `instance` ([`crate::supervisor`] holds it while it runs).
-pub(crate) fn lock_path(instance: &str) -> std::path::PathBuf {
-    std::env::temp_dir().join(format!("microstereo-{instance}.lock"))
+/// The lock file of run `name` ([`run_name`]; [`crate::supervisor`] holds it while it runs).
+pub(crate) fn lock_path(name: &str) -> std::path::PathBuf {
+    std::env::temp_dir().join(format!("microstereo-{name}.lock"))
 }
 
 /// The runs going on on this machine now, newest first: instance names whose lock a
@@ -554,6 +588,7 @@ mod tests {
         };
         GraphStatus {
             instance: "i".into(),
+            host: None,
             supervisor_pid: 1,
             launch: "l".into(),
             started_ns: 10 * s,
@@ -604,7 +639,7 @@ mod tests {
     #[test]
     fn a_published_status_reaches_a_reader_of_its_instance() {
         let instance = format!("status-test-{}", std::process::id());
-        let mut p = StatusPublisher::new(&instance).unwrap();
+        let mut p = StatusPublisher::new(&instance, None).unwrap();
         let r = StatusReader::open(&instance, Duration::from_secs(5)).unwrap();
         let mut s = snapshot(1, 5, 10.0, 5, 5.0);
         s.instance = instance.clone();
@@ -622,7 +657,7 @@ mod tests {
             .err()
             .unwrap();
         assert!(
-            err.contains("no graph is running as instance 'no-such-run-here'"),
+            err.contains("no graph is running as 'no-such-run-here'"),
             "{err}"
         );
     }

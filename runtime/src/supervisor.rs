@@ -30,6 +30,11 @@ pub struct RunOptions {
     pub instance: Option<String>,
     /// Show a one-line progress status on stderr while it runs (only on a terminal).
     pub progress: bool,
+    /// Run only this host's part of a graph split over hosts (its edges to the other
+    /// hosts carried by the link).
+    pub host: Option<String>,
+    /// Where this part's link listens and connects (default: the graph's `[hosts.HOST]`).
+    pub endpoints: Option<hostlink::Endpoints>,
 }
 
 /// What a run did: each node's statistics and how long it took.
@@ -39,6 +44,8 @@ pub struct RunReport {
     pub stats: HashMap<String, NodeStats>,
     /// Wall-clock time of the whole run.
     pub wall: Duration,
+    /// The host whose part ran (`None`: the whole graph).
+    pub host: Option<String>,
     /// Why the run ended early: a node failed beyond its restart policy (the stats still
     /// hold what was done until then).
     pub failure: Option<String>,
@@ -91,6 +98,54 @@ impl InstanceLock {
 /// Runs `graph` as processes until its frames are done, Ctrl-C or SIGTERM; a node that
 /// fails beyond its restart policy stops the graph and is the report's `failure`.
 pub fn run(graph: &Graph, o: &RunOptions) -> Result<RunReport, String> {
+    // A part runs its host's nodes and the taps added for it (recorder, viewer).
+    let mut graph = graph.clone();
+    if o.host.is_none() {
+        // The whole graph here: one host, whatever the file says.
+        for n in &mut graph.nodes {
+            n.host = None;
+        }
+    }
+    if let Some(h) = &o.host {
+        if !graph.hosts.contains_key(h) {
+            return Err(format!(
+                "--host {h}: the launch file declares no such host; its hosts: {}",
+                if graph.hosts.is_empty() {
+                    "none (add [hosts.NAME] tables and a host per node)".to_string()
+                } else {
+                    graph.hosts.keys().cloned().collect::<Vec<_>>().join(", ")
+                }
+            ));
+        }
+        for n in &mut graph.nodes {
+            n.host.get_or_insert_with(|| h.clone());
+        }
+        // A tap here records what reaches this host: its nodes' outputs and the edges its
+        // nodes read from other hosts (the others are recorded on their own host).
+        let on_host = |g: &Graph, node: &str, output: &str| {
+            g.host_of(node) == Some(h.as_str())
+                || g.nodes.iter().any(|m| {
+                    !m.tap
+                        && m.host.as_deref() == Some(h.as_str())
+                        && m.inputs
+                            .iter()
+                            .any(|i| i.node == node && i.output == output)
+                })
+        };
+        let snapshot = graph.clone();
+        for n in graph.nodes.iter_mut().filter(|n| n.tap) {
+            let before = n.inputs.len();
+            n.inputs.retain(|i| on_host(&snapshot, &i.node, &i.output));
+            if n.inputs.len() < before {
+                eprintln!(
+                    "{}: {} edge(s) written and read only on other hosts are left out here (record them on their host)",
+                    n.id,
+                    before - n.inputs.len()
+                );
+            }
+        }
+    }
+    let graph = &graph;
     let stale = crate::process::remove_stale_resources();
     if stale.removed > 0 || stale.empty_files > 0 {
         eprintln!(
@@ -121,7 +176,14 @@ pub fn run(graph: &Graph, o: &RunOptions) -> Result<RunReport, String> {
             instance.chars().take(80).collect::<String>()
         ));
     }
-    let _lock = InstanceLock::take(&instance)?;
+    let _lock = InstanceLock::take(&crate::status::run_name(&instance, o.host.as_deref()))?;
+    // The part's link to the other hosts, up before its nodes: it carries only the edges
+    // between hosts, and each only once a node here holds it (with the edge's own queue
+    // settings), and the other parts' status.
+    let link = match &o.host {
+        Some(h) => Some(start_link(graph, o, h, &instance)?),
+        None => None,
+    };
     let file = GraphFile(std::env::temp_dir().join(format!(
         "microstereo-{instance}-{}.graph.json",
         std::process::id()
@@ -133,9 +195,15 @@ pub fn run(graph: &Graph, o: &RunOptions) -> Result<RunReport, String> {
         .build()
         .map_err(|e| format!("cannot start the supervisor: {e}"))?;
     let (stats, wall, failure) = rt.block_on(supervise(graph, o, &file.0, &instance))?;
+    if let Some(l) = link {
+        // The last status (the run ended) goes across before the link does.
+        std::thread::sleep(Duration::from_millis(300));
+        l.stop();
+    }
     Ok(RunReport {
         stats,
         wall,
+        host: o.host.clone(),
         failure,
     })
 }
@@ -186,6 +254,10 @@ fn spawn(
         }
         .to_args(),
     );
+    match crate::transport::domain() {
+        Some(d) => cmd.env(crate::transport::DOMAIN_ENV, d),
+        None => cmd.env_remove(crate::transport::DOMAIN_ENV),
+    };
     cmd.env_remove(crate::process::GENERATION_ENV);
     if generation > 0 {
         cmd.env(crate::process::GENERATION_ENV, generation.to_string());
@@ -332,7 +404,10 @@ async fn supervise(
         tx
     });
     let mut children = Vec::new();
-    for n in &graph.nodes {
+    let here = |n: &crate::launch::NodeSpec| a.host.is_none() || n.host == a.host;
+    // The parts on other hosts that read this one's edges: it stops once they ended.
+    let mut readers_elsewhere = RemoteParts::of(graph, instance, a.host.as_deref());
+    for n in graph.nodes.iter().filter(|n| here(n)) {
         let mut proc = spawn(graph, a, file, instance, &n.id, 0, None)?;
         set_state(&states, &n.id, NodeState::Starting, 0, proc.id());
         let reports = forward_logs(&n.id, 0, n.logs, &mut proc, &stats, &tap);
@@ -358,11 +433,16 @@ async fn supervise(
             break;
         }
         // Every node nobody reads is done: the ones they read may go.
-        if !stopping && children.iter().all(|c| graph.is_read(&c.id)) {
+        if !stopping
+            && children.iter().all(|c| graph.is_read(&c.id))
+            && readers_elsewhere.all_ended()
+        {
             stopping = true;
             terminate(&children);
         }
-        let watched = !stopping && graph.nodes.iter().any(|n| n.restart.heartbeat_ms.is_some());
+        let watched = !stopping
+            && (graph.nodes.iter().any(|n| n.restart.heartbeat_ms.is_some())
+                || !readers_elsewhere.is_empty());
         let event = {
             let waits = children
                 .iter_mut()
@@ -394,6 +474,11 @@ async fn supervise(
             Event::Tick => {
                 if !stopping {
                     watch(graph, &stats, &mut children);
+                    if let Some(why) = readers_elsewhere.look() {
+                        failure = Some(why);
+                        stopping = true;
+                        terminate(&children);
+                    }
                 }
                 continue;
             }
@@ -572,18 +657,28 @@ impl Monitor {
         states: States,
     ) -> Self {
         let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
-        let base = GraphStatus::of(graph, instance, o.frames, crate::edge::now_ns());
+        let base = GraphStatus::of(
+            graph,
+            instance,
+            o.host.as_deref(),
+            o.frames,
+            crate::edge::now_ns(),
+        );
+        let host = o.host.clone();
         let (flag, instance, progress) = (stop.clone(), instance.to_string(), o.progress);
         let thread = std::thread::spawn(move || {
             use std::io::IsTerminal;
             // The status is a view: a run whose status cannot be published still runs.
-            let mut publisher = match crate::status::StatusPublisher::new(&instance) {
-                Ok(p) => Some(p),
-                Err(e) => {
-                    above_progress(|| eprintln!("warning: the run's status is not published: {e}"));
-                    None
-                }
-            };
+            let mut publisher =
+                match crate::status::StatusPublisher::new(&instance, host.as_deref()) {
+                    Ok(p) => Some(p),
+                    Err(e) => {
+                        above_progress(|| {
+                            eprintln!("warning: the run's status is not published: {e}")
+                        });
+                        None
+                    }
+                };
             let bar = (progress && std::io::stderr().is_terminal()).then(|| {
                 let b = indicatif::ProgressBar::with_draw_target(
                     None,
@@ -677,6 +772,133 @@ fn snapshot(base: &GraphStatus, stats: &StatsSink, states: &States, ended: bool)
     s
 }
 
+/// Starts part `host`'s link: the graph's edges between hosts and the parts' status.
+fn start_link(
+    graph: &Graph,
+    o: &RunOptions,
+    host: &str,
+    instance: &str,
+) -> Result<hostlink::HostLink, String> {
+    let endpoints = o.endpoints.clone().unwrap_or_else(|| {
+        let h = graph.hosts.get(host).cloned().unwrap_or_default();
+        hostlink::Endpoints {
+            listen: h.listen,
+            connect: h.connect,
+        }
+    });
+    if endpoints.listen.is_empty() && endpoints.connect.is_empty() {
+        return Err(format!(
+            "host '{host}' has no link endpoints: give [hosts.{host}] listen = [\"tcp/0.0.0.0:7447\"] (or connect = [\"tcp/OTHER-HOST:7447\"]), or --listen/--connect"
+        ));
+    }
+    let edges: std::collections::HashSet<String> = graph
+        .cross_host_edges()
+        .iter()
+        .map(|(n, p)| Graph::edge_name(instance, n, p))
+        .collect();
+    let status = format!("{}/", crate::status::status_service(instance, None));
+    let config = crate::transport::iceoryx_config().clone();
+    let local = config.clone();
+    hostlink::HostLink::start(config, &endpoints, move |name| {
+        // An edge only once a node here made it with its own settings: a mirror the link
+        // made first would have iceoryx2's defaults, which the node's settings then
+        // contradict. A status is read only with `open`, which takes any settings.
+        name.starts_with(&status)
+            || (edges.contains(name)
+                && iceoryx2::prelude::ServiceName::new(name).is_ok_and(|n| {
+                    use iceoryx2::service::Service as _;
+                    crate::transport::Service::does_exist(
+                        &n,
+                        &local,
+                        iceoryx2::service::messaging_pattern::MessagingPattern::PublishSubscribe,
+                    )
+                    .unwrap_or(false)
+                }))
+    })
+    .map_err(|e| format!("host '{host}': {e}"))
+}
+
+/// The parts on other hosts that read this part's edges, seen through their status.
+struct RemoteParts {
+    parts: Vec<RemotePart>,
+}
+
+struct RemotePart {
+    name: String,
+    reader: Option<crate::status::StatusReader>,
+    ended: bool,
+    last_heard: Option<Instant>,
+}
+
+/// How long a part that published its status may fall silent before it counts as gone.
+const PART_SILENCE: Duration = Duration::from_secs(10);
+
+impl RemoteParts {
+    fn of(graph: &Graph, instance: &str, host: Option<&str>) -> Self {
+        let Some(host) = host else {
+            return Self { parts: Vec::new() };
+        };
+        let mut hosts: Vec<String> = Vec::new();
+        for n in graph
+            .nodes
+            .iter()
+            .filter(|n| n.host.as_deref() == Some(host))
+        {
+            for (port, _) in &n.outputs {
+                for (r, _) in graph.readers_of(&n.id, port) {
+                    if let Some(h) = graph.host_of(r)
+                        && h != host
+                        && !hosts.iter().any(|x| x == h)
+                    {
+                        hosts.push(h.to_string());
+                    }
+                }
+            }
+        }
+        Self {
+            parts: hosts
+                .into_iter()
+                .map(|h| RemotePart {
+                    name: crate::status::run_name(instance, Some(&h)),
+                    reader: None,
+                    ended: false,
+                    last_heard: None,
+                })
+                .collect(),
+        }
+    }
+
+    fn is_empty(&self) -> bool {
+        self.parts.is_empty()
+    }
+
+    fn all_ended(&self) -> bool {
+        self.parts.iter().all(|p| p.ended)
+    }
+
+    /// Reads their status; why the run must stop, if a part that was heard fell silent.
+    fn look(&mut self) -> Option<String> {
+        for p in &mut self.parts {
+            if p.reader.is_none() {
+                p.reader = crate::status::StatusReader::open(&p.name, Duration::ZERO).ok();
+            }
+            let Some(r) = &p.reader else { continue };
+            if let Ok(Some(s)) = r.next(Duration::ZERO) {
+                p.last_heard = Some(Instant::now());
+                p.ended |= s.ended;
+            }
+            if !p.ended && p.last_heard.is_some_and(|t| t.elapsed() > PART_SILENCE) {
+                return Some(format!(
+                    "part '{}' fell silent for {} s (its host or the link between them is down)",
+                    p.name,
+                    PART_SILENCE.as_secs()
+                ));
+            }
+        }
+        None
+    }
+}
+
 /// What woke the supervisor.
 enum Event {
     /// The child at this index exited.
@@ -745,7 +967,16 @@ pub fn print_summary(
     stats: &HashMap<String, NodeStats>,
     wall: Duration,
     frames: Option<u64>,
+    host: Option<&str>,
 ) -> f64 {
+    // A part's summary: its host's nodes (and the taps it added).
+    let mut graph = graph.clone();
+    if host.is_some() {
+        graph
+            .nodes
+            .retain(|n| n.host.is_none() || n.host.as_deref() == host);
+    }
+    let graph = &graph;
     crate::outln!();
     crate::outln!(
         "{:<20} {:>9} {:>9} {:>10} {:>10} {:>12} {:>7}",

@@ -76,6 +76,10 @@ pub const WRITER_WAIT: Duration = Duration::from_secs(30);
 /// Largest number of readers of one edge.
 const MAX_READERS: usize = 16;
 
+/// Largest number of writers of one edge: its node (a restarted one's successor while the
+/// old one goes) and a host's link.
+const MAX_WRITERS: usize = 4;
+
 /// The reader-name prefix of a watcher ([`Transport::watcher`]): a reader outside the graph
 /// (`topic hz`, `topic echo`) that a lossless writer never waits for.
 pub const WATCHER_PREFIX: &str = "watch-";
@@ -84,19 +88,78 @@ pub const WATCHER_PREFIX: &str = "watch-";
 /// ([`EdgePublisher::send`]).
 const LOSSLESS_RESENDS: u32 = 3;
 
+/// This process's iceoryx2 configuration: its domain's ([`domain_config`]).
+///
 /// iceoryx2's default configuration without its own clean-up of dead nodes when a node
 /// starts or ends or a service opens: that clean-up can wait forever (iceoryx2 0.10 waits for
 /// shared memory that a process killed while creating it left with no size), so it happens
 /// once per run, bounded, in [`crate::process::remove_stale_resources`].
-pub(crate) fn iceoryx_config() -> &'static Config {
+pub fn iceoryx_config() -> &'static Config {
     static CONFIG: std::sync::OnceLock<Config> = std::sync::OnceLock::new();
-    CONFIG.get_or_init(|| {
-        let mut c = Config::global_config().clone();
-        c.global.node.cleanup_dead_nodes_on_creation = false;
-        c.global.node.cleanup_dead_nodes_on_destruction = false;
-        c.global.service.cleanup_dead_nodes_on_open = false;
-        c
-    })
+    CONFIG.get_or_init(|| domain_config(domain().as_deref()))
+}
+
+/// The environment variable naming the iceoryx2 domain a process joins (the supervisor
+/// sets it for its nodes): graphs in different domains share no shared memory, even on one
+/// machine; a host's link joins domains over the network.
+pub const DOMAIN_ENV: &str = "MICROSTEREO_DOMAIN";
+
+static DOMAIN: std::sync::OnceLock<Option<String>> = std::sync::OnceLock::new();
+
+/// Checks a domain name: it becomes part of shared-memory file names.
+pub fn check_domain(d: &str) -> Result<(), String> {
+    if d.is_empty()
+        || d.len() > 32
+        || !d
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || "-_".contains(c))
+    {
+        return Err(format!(
+            "domain '{}' is not a usable name: use 1 to 32 letters, digits, '-' or '_'",
+            d.chars().take(40).collect::<String>()
+        ));
+    }
+    Ok(())
+}
+
+/// Sets this process's iceoryx2 domain (`None`: the default one), before its first edge;
+/// without a call, [`DOMAIN_ENV`] names it.
+pub fn set_domain(d: Option<&str>) -> Result<(), String> {
+    if let Some(d) = d {
+        check_domain(d)?;
+    }
+    let want = d.map(String::from);
+    let got = DOMAIN.get_or_init(|| want.clone());
+    if *got != want {
+        return Err("the domain was set after the transport started".into());
+    }
+    Ok(())
+}
+
+/// This process's iceoryx2 domain (`None`: the default one).
+pub fn domain() -> Option<String> {
+    DOMAIN
+        .get_or_init(|| {
+            std::env::var(DOMAIN_ENV)
+                .ok()
+                .filter(|d| check_domain(d).is_ok())
+        })
+        .clone()
+}
+
+/// iceoryx2's default configuration in `domain` (its own prefix of every shared-memory
+/// resource), without its own clean-up of dead nodes.
+pub fn domain_config(domain: Option<&str>) -> Config {
+    let mut c = Config::global_config().clone();
+    if let Some(d) = domain
+        && let Ok(prefix) = iceoryx2::prelude::FileName::new(format!("ms_{d}_").as_bytes())
+    {
+        c.global.prefix = prefix;
+    }
+    c.global.node.cleanup_dead_nodes_on_creation = false;
+    c.global.node.cleanup_dead_nodes_on_destruction = false;
+    c.global.service.cleanup_dead_nodes_on_open = false;
+    c
 }
 
 impl Transport {
@@ -146,6 +209,7 @@ impl Transport {
             .subscriber_max_borrowed_samples(max_held(cfg))
             .enable_safe_overflow(cfg.overflow == Overflow::DropOldest)
             .max_subscribers(MAX_READERS)
+            .max_publishers(MAX_WRITERS)
             .history_size(0)
             .open_or_create()
             .map_err(|e| fail(edge, "opening the publish-subscribe service")(&e))?;
@@ -277,8 +341,30 @@ impl Transport {
         cfg: &EdgeConfig,
         name: Option<&str>,
     ) -> Result<EdgeSubscriber, TransportError> {
+        self.reader_impl(edge, cfg, name, name.is_some())
+    }
+
+    /// A named reader of an edge whose writer is on another host: its writer here is the
+    /// host's link, which bridges the edge only once a reader holds it, so the reader does
+    /// not wait for it (the writer over there waits for this reader instead).
+    pub fn remote_reader(
+        &self,
+        edge: &str,
+        cfg: &EdgeConfig,
+        name: &str,
+    ) -> Result<EdgeSubscriber, TransportError> {
+        self.reader_impl(edge, cfg, Some(name), false)
+    }
+
+    fn reader_impl(
+        &self,
+        edge: &str,
+        cfg: &EdgeConfig,
+        name: Option<&str>,
+        wait_for_writer: bool,
+    ) -> Result<EdgeSubscriber, TransportError> {
         let (pubsub, event) = self.services(edge, cfg)?;
-        if name.is_some() {
+        if wait_for_writer {
             use iceoryx2::service::port_factory::PortFactory;
             let t0 = std::time::Instant::now();
             while pubsub.dynamic_config().number_of_publishers() == 0 {
