@@ -73,6 +73,17 @@ impl HostLink {
         admit: impl Fn(&str) -> bool + Send + 'static,
     ) -> Result<Self, String> {
         let zenoh = zenoh_config(endpoints)?;
+        // The link's writers give a sample up for a reader whose queue is full instead of
+        // waiting for it. Each bridge also reads the service it writes (it skips its own
+        // samples, but they fill its queue): a round that brings more samples than that
+        // queue holds would wait for itself for ever; and one thread carries every edge, so
+        // a wait on one slow reader would hold up all of them. A reader that falls so far
+        // behind loses the frames (counted as dropped on its edge).
+        let mut config = config;
+        config.defaults.publish_subscribe.backpressure_strategy =
+            iceoryx2::port::backpressure_strategy::BackpressureStrategy::DiscardData;
+        // The carrier warns on each sample its inbox drops; the readers count them.
+        set_log_level_from_env_or(LogLevel::Error);
         let stop = Arc::new(AtomicBool::new(false));
         let (ready_tx, ready_rx) = std::sync::mpsc::channel::<Result<(), String>>();
         let flag = stop.clone();
