@@ -109,6 +109,12 @@ pub struct OutputOpts {
     /// targets keep every frame).
     #[arg(long, value_name = "PATTERN=N", value_parser = parse_every, requires = "record")]
     pub every: Vec<(String, u64)>,
+    /// Split the recording into files: a new one once SIZE of messages (before
+    /// compression, e.g. 1GiB, 500MB) are in the current one, or every TIME (e.g. 10min,
+    /// 30s): NAME-000.mcap, NAME-001.mcap, …;
+    /// `replay`, `inspect`, `view` and `test-node` given NAME.mcap read the parts as one.
+    #[arg(long, value_name = "SIZE|TIME", value_parser = parse_split, requires = "record")]
+    pub split: Option<Split>,
     /// Replace the file given to --record or to --viewer save if it exists.
     #[arg(long)]
     pub overwrite: bool,
@@ -153,6 +159,15 @@ impl OutputOpts {
                         .collect(),
                 ),
             );
+            match self.split {
+                Some(Split::Bytes(b)) => {
+                    params.insert("split_bytes".into(), toml::Value::Integer(b as i64));
+                }
+                Some(Split::Seconds(t)) => {
+                    params.insert("split_seconds".into(), toml::Value::Float(t));
+                }
+                None => {}
+            }
             graph.add_tap(RECORDER_ID, RECORDER_KIND, &self.edges, params)?;
             let recorded: Vec<String> = graph
                 .input_edges(RECORDER_ID)
@@ -184,6 +199,57 @@ impl OutputOpts {
 const EVERY_MAX: u64 = 1_000_000;
 
 /// Parses `--every PATTERN=N`.
+/// Where a recording is split (`--split`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Split {
+    /// Bytes of messages (before compression) per file.
+    Bytes(u64),
+    /// Seconds per file.
+    Seconds(f64),
+}
+
+/// Reads `--split`: a size (`1GiB`, `500MB`, `64MiB`, `100kB`) or a time (`30s`, `10min`,
+/// `2h`).
+pub fn parse_split(s: &str) -> Result<Split, String> {
+    let t = s.trim();
+    let at = t
+        .find(|c: char| !(c.is_ascii_digit() || c == '.'))
+        .unwrap_or(t.len());
+    let (num, unit) = t.split_at(at);
+    let bad = || format!("'{s}' is neither a size (e.g. 1GiB, 500MB) nor a time (e.g. 10min, 30s)");
+    let n: f64 = num.parse().map_err(|_| bad())?;
+    let (bytes, secs) = match unit.trim() {
+        "B" => (Some(1.0), None),
+        "kB" | "KB" => (Some(1e3), None),
+        "KiB" => (Some(1024.0), None),
+        "MB" => (Some(1e6), None),
+        "MiB" => (Some(1024.0 * 1024.0), None),
+        "GB" => (Some(1e9), None),
+        "GiB" => (Some(1024.0 * 1024.0 * 1024.0), None),
+        "s" => (None, Some(1.0)),
+        "min" => (None, Some(60.0)),
+        "h" => (None, Some(3600.0)),
+        _ => return Err(bad()),
+    };
+    match (bytes, secs) {
+        (Some(u), _) => {
+            let b = n * u;
+            if !(1024.0..=1e15).contains(&b) {
+                return Err(format!("--split {s}: give 1KiB to 1PB"));
+            }
+            Ok(Split::Bytes(b as u64))
+        }
+        (_, Some(u)) => {
+            let t = n * u;
+            if !(1.0..=1e7).contains(&t) {
+                return Err(format!("--split {s}: give 1 s to 1e7 s"));
+            }
+            Ok(Split::Seconds(t))
+        }
+        _ => Err(bad()),
+    }
+}
+
 fn parse_every(s: &str) -> Result<(String, u64), String> {
     let (pattern, n) = s
         .rsplit_once('=')
@@ -211,16 +277,21 @@ pub fn apply_replay(
     replace: &[String],
     rate: &str,
     looped: bool,
+    window: (f64, Option<f64>),
 ) -> Result<(), String> {
     let file = std::path::absolute(file).unwrap_or(file.to_path_buf());
-    let params = toml::Table::from_iter([
+    let mut params = toml::Table::from_iter([
         (
             "file".to_string(),
             toml::Value::String(file.display().to_string()),
         ),
         ("rate".to_string(), toml::Value::String(rate.to_string())),
         ("loop".to_string(), toml::Value::Boolean(looped)),
+        ("start".to_string(), toml::Value::Float(window.0)),
     ]);
+    if let Some(d) = window.1 {
+        params.insert("duration".into(), toml::Value::Float(d));
+    }
     graph.replace_with_sources(replace, REPLAY_KIND, &params)
 }
 
@@ -229,10 +300,15 @@ pub fn check_record_target(opts: &OutputOpts) -> Result<(), CliError> {
     let Some(path) = &opts.record else {
         return Ok(());
     };
-    if path.exists() && !opts.overwrite {
+    let first = match opts.split {
+        Some(_) => recorder::file::part_path(path, 0),
+        None => path.clone(),
+    };
+    if first.exists() && !opts.overwrite {
         return Err(CliError::Other(format!(
-            "--record {}: the file exists; choose another name or add --overwrite",
-            path.display()
+            "--record {}: the file {} exists; choose another name or add --overwrite",
+            path.display(),
+            first.display()
         )));
     }
     let dir = path

@@ -241,6 +241,12 @@ pub struct ReplayArgs {
     /// Stop after this many frames (default: the end of the recording).
     #[arg(long)]
     pub frames: Option<u64>,
+    /// Seconds into the recording to start at (from its first frame's capture time).
+    #[arg(long, default_value_t = 0.0)]
+    pub start: f64,
+    /// Seconds of the recording to replay (default: to its end).
+    #[arg(long)]
+    pub duration: Option<f64>,
     /// How the processes are run.
     #[command(flatten)]
     pub supervision: crate::run::Supervision,
@@ -252,10 +258,38 @@ pub struct ReplayArgs {
 /// Runs a launch file's graph with recorded edges in place of the replaced nodes.
 pub fn replay(a: ReplayArgs) -> Result<(), CliError> {
     recorder::node::Rate::parse(&a.rate).map_err(|e| CliError::Other(format!("--rate: {e}")))?;
+    if !(a.start >= 0.0 && a.start <= 1e9) {
+        return Err(CliError::Other(format!(
+            "--start {} is out of range: give 0 to 1e9 seconds into the recording",
+            a.start
+        )));
+    }
+    if let Some(d) = a.duration
+        && !(d > 0.0 && d <= 1e9)
+    {
+        return Err(CliError::Other(format!(
+            "--duration {d} is out of range: give above 0 to 1e9 seconds"
+        )));
+    }
     let o = readable(&a.file)?;
     crate::graphopts::check_record_target(&a.out)?;
     crate::graphopts::check_viewer_target(&a.out)?;
     let mut graph = launch_of(&a.file, &o, a.launch.as_deref())?;
+    // A start past the end would send no frame, and the graph wait for one.
+    let edges = o.channels.iter().filter(|c| c.edge.is_some());
+    if let (Some(t0), Some(t1)) = (
+        edges.clone().map(|c| c.first_ns).min(),
+        edges.map(|c| c.last_ns).max(),
+    ) {
+        let span = (t1 - t0) as f64 * 1e-9;
+        if a.start > 0.0 && a.start >= span {
+            return Err(CliError::Other(format!(
+                "--start {} is past the end of {}: it holds {span:.2} s",
+                a.start,
+                a.file.display()
+            )));
+        }
+    }
     let mut replaced: Vec<(String, MessageKind)> = Vec::new();
     for id in &a.replace {
         if graph.node(id).is_none() {
@@ -267,9 +301,19 @@ pub fn replay(a: ReplayArgs) -> Result<(), CliError> {
         replaced.extend(graph.output_edges(id));
     }
     check_channels(&a.file, &o, &replaced).map_err(CliError::Other)?;
-    crate::graphopts::apply_replay(&mut graph, &a.file, &a.replace, &a.rate, a.looped)?;
+    crate::graphopts::apply_replay(
+        &mut graph,
+        &a.file,
+        &a.replace,
+        &a.rate,
+        a.looped,
+        (a.start, a.duration),
+    )?;
     a.out.apply(&mut graph)?;
-    let frames = match (a.frames, a.looped) {
+    // A window of the recording ends with its last frame (the nodes take the end of the
+    // stream from the source).
+    let window = a.start > 0.0 || a.duration.is_some();
+    let frames = match (a.frames, a.looped || window) {
         (Some(n), _) => Some(n),
         (None, true) => None,
         (None, false) => o.last_sequence.map(|s| s + 1),

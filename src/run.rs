@@ -210,10 +210,19 @@ pub fn run_graph(
             .stats
             .get(crate::graphopts::RECORDER_ID)
             .map_or(0, |s| s.frames_out);
-        let size = std::fs::metadata(path).map_or(0, |m| m.len());
+        let files = recorder::file::recording_files(path);
+        let size: u64 = files
+            .iter()
+            .map(|f| std::fs::metadata(f).map_or(0, |m| m.len()))
+            .sum();
         runtime::outln!(
-            "recorded {written} message(s) into {} ({:.1} MB); `microstereo inspect {}` lists them",
+            "recorded {written} message(s) into {}{} ({:.1} MB); `microstereo inspect {}` lists them",
             path.display(),
+            if out.split.is_some() {
+                format!(" as {} part(s), {} …", files.len(), files[0].display())
+            } else {
+                String::new()
+            },
             size as f64 / 1e6,
             path.display()
         );

@@ -2316,3 +2316,139 @@ fn a_graph_over_two_hosts_runs_in_two_domains_joined_by_the_link_and_delivers_ev
         }
     }
 }
+
+/// Sum of the recorded messages' bytes (before compression).
+fn recorded_bytes(path: &Path) -> u64 {
+    recorder::overview(path)
+        .unwrap()
+        .channels
+        .iter()
+        .filter(|c| c.edge.is_some())
+        .map(|c| c.bytes)
+        .sum()
+}
+
+#[test]
+fn a_recording_split_into_three_parts_replays_bit_identical_to_an_unsplit_one() {
+    let _heavy = heavy();
+    let file = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/graph/small.toml");
+    let dir = tempfile::tempdir().unwrap();
+    let p = |name: &str| dir.path().join(name);
+    let pid = std::process::id();
+    let go = |args: &[&str]| {
+        let out = Command::new(bin())
+            .args(args)
+            .arg("--quiet")
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{args:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        String::from_utf8_lossy(&out.stdout).into_owned()
+    };
+    let s = |p: &Path| p.to_str().unwrap().to_string();
+    // A recording of the graph, then two replays of it recorded: one whole, one split.
+    let source = p("source.mcap");
+    go(&[
+        "run",
+        &s(&file),
+        "--frames",
+        "24",
+        "--instance",
+        &format!("split-src-{pid}"),
+        "--record",
+        &s(&source),
+    ]);
+    let replay = |from: &Path, to: &Path, split: Option<String>, tag: &str| {
+        let mut args = vec![
+            "replay".to_string(),
+            s(from),
+            "--rate".into(),
+            "max".into(),
+            "--instance".into(),
+            format!("split-{tag}-{pid}"),
+            "--record".into(),
+            s(to),
+        ];
+        if let Some(sz) = split {
+            args.extend(["--split".to_string(), sz]);
+        }
+        let refs: Vec<&str> = args.iter().map(String::as_str).collect();
+        go(&refs)
+    };
+    let whole = p("whole.mcap");
+    replay(&source, &whole, None, "whole");
+    // A part holds at least the limit: 40 % of the whole makes two full parts and a third.
+    let limit = recorded_bytes(&whole) * 2 / 5;
+    let split = p("split.mcap");
+    let said = replay(&source, &split, Some(format!("{limit}B")), "split");
+    let parts: Vec<PathBuf> = (0..5)
+        .map(|i| recorder::file::part_path(&split, i))
+        .filter(|f| f.exists())
+        .collect();
+    assert_eq!(parts.len(), 3, "{said}");
+    assert!(!split.exists());
+    assert!(said.contains("as 3 part(s)"), "{said}");
+    // Read through its name, the parts are one recording: the same messages as the whole.
+    let (w, sp) = (recorded(&whole), recorded(&split));
+    assert_eq!(w.len(), 24 * 12);
+    assert!(
+        w == sp,
+        "the split recording holds other messages than the whole one"
+    );
+    // Each part alone is a recording of its own (launch file and cameras first).
+    for f in &parts {
+        let o = recorder::overview(f).unwrap();
+        assert!(o.launch.is_some() && o.error.is_none(), "{}", f.display());
+    }
+    assert_eq!(
+        parts.iter().map(|f| recorded(f).len()).sum::<usize>(),
+        w.len()
+    );
+    // Replayed, both drive the graph to the same outputs, bit for bit.
+    let (again_w, again_s) = (p("again-whole.mcap"), p("again-split.mcap"));
+    replay(&whole, &again_w, None, "again-whole");
+    replay(&split, &again_s, None, "again-split");
+    let (a, b) = (recorded(&again_w), recorded(&again_s));
+    assert_eq!(a.len(), w.len());
+    assert!(
+        a == b,
+        "the replays of the split and the whole recording differ"
+    );
+    // A window of the split recording: --start and --duration on its own clock.
+    let first = w.values().map(|(h, _)| h.capture_ns).min().unwrap();
+    let last = w.values().map(|(h, _)| h.capture_ns).max().unwrap();
+    let span = (last - first) as f64 * 1e-9;
+    let (start, duration) = (span / 4.0, span / 2.0);
+    let window = p("window.mcap");
+    go(&[
+        "replay",
+        &s(&split),
+        "--rate",
+        "max",
+        "--instance",
+        &format!("split-window-{pid}"),
+        "--start",
+        &format!("{start}"),
+        "--duration",
+        &format!("{duration}"),
+        "--record",
+        &s(&window),
+    ]);
+    let want: std::collections::BTreeSet<u64> = w
+        .values()
+        .map(|(h, _)| h.capture_ns)
+        .filter(|&ns| {
+            let t = (ns - first) as f64 * 1e-9;
+            t >= start && t < start + duration
+        })
+        .collect();
+    let got: std::collections::BTreeSet<u64> = recorded(&window)
+        .values()
+        .map(|(h, _)| h.capture_ns)
+        .collect();
+    assert!(!want.is_empty());
+    assert_eq!(got, want);
+}

@@ -706,8 +706,8 @@ pub fn run_node(
 
 /// Runs node `id` of `graph` as a tap (a recorder or a viewer): every message on each of
 /// its inputs goes to `on_msg` (input index, header, payload) as it arrives, not joined by
-/// frame. Ends on a stop request, or, given a frame count, once every input has delivered
-/// the last frame.
+/// frame. Ends on a stop request, or once every input's stream ended (its end marker came,
+/// or, given a frame count, its last frame).
 pub fn run_tap(
     graph: &Graph,
     instance: &str,
@@ -771,7 +771,8 @@ pub fn run_tap(
                 finished[i] |= frames.is_some_and(|n| h.sequence + 1 >= n);
             }
         }
-        Ok(!(frames.is_some() && finished.iter().all(|f| *f)))
+        // Every stream ended (or delivered its last frame): nothing more will come.
+        Ok(!finished.iter().all(|f| *f))
     })?;
     Ok(stats(received, &times, last_frame))
 }

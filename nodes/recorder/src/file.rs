@@ -92,6 +92,8 @@ pub struct RecordingWriter {
     last_flush: Instant,
     /// Edge messages written.
     pub messages: u64,
+    /// Bytes of messages written (before compression).
+    pub bytes: u64,
 }
 
 impl std::fmt::Debug for RecordingWriter {
@@ -151,6 +153,7 @@ impl RecordingWriter {
             channels: HashMap::new(),
             last_flush: Instant::now(),
             messages: 0,
+            bytes: 0,
         })
     }
 
@@ -299,6 +302,7 @@ impl RecordingWriter {
                     &p.cdr,
                 )
                 .map_err(err)?;
+            self.bytes += p.cdr.len() as u64;
         }
         self.messages += 1;
         self.flush_if_due()
@@ -412,6 +416,32 @@ impl Overview {
             .filter(|c| c.edge.as_deref() == Some(edge))
             .collect()
     }
+}
+
+/// The name of part `i` of a recording split into files (`--split`): `run.mcap` →
+/// `run-000.mcap`, `run-001.mcap`, …
+pub fn part_path(path: &Path, i: usize) -> PathBuf {
+    let stem = path
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let name = match path.extension() {
+        Some(e) => format!("{stem}-{i:03}.{}", e.to_string_lossy()),
+        None => format!("{stem}-{i:03}"),
+    };
+    path.with_file_name(name)
+}
+
+/// The files of recording `path`: itself, or where it does not exist and it was split,
+/// its parts in order ([`part_path`]), read as one recording.
+pub fn recording_files(path: &Path) -> Vec<PathBuf> {
+    if path.exists() || !part_path(path, 0).exists() {
+        return vec![path.to_path_buf()];
+    }
+    (0..)
+        .map(|i| part_path(path, i))
+        .take_while(|p| p.exists())
+        .collect()
 }
 
 fn open(path: &Path) -> Result<(File, bool), RecordingError> {
@@ -822,6 +852,42 @@ impl RawMessages {
 /// Reads a recording once and lists its channels (a truncated or corrupt file gives what
 /// could be read, with the reason it stopped).
 pub fn overview(path: &Path) -> Result<Overview, RecordingError> {
+    let files = recording_files(path);
+    let mut all = overview_of(&files[0])?;
+    for f in &files[1..] {
+        if all.error.is_some() {
+            break;
+        }
+        let o = overview_of(f)?;
+        for c in o.channels {
+            match all.channels.iter_mut().find(|a| a.topic == c.topic) {
+                Some(a) => {
+                    a.messages += c.messages;
+                    a.bytes += c.bytes;
+                    a.first_ns = a.first_ns.min(c.first_ns);
+                    a.last_ns = a.last_ns.max(c.last_ns);
+                }
+                None => all.channels.push(c),
+            }
+        }
+        all.launch = all.launch.or(o.launch);
+        all.error = o.error.map(|e| format!("{}: {e}", f.display()));
+        all.truncated = o.truncated;
+        all.damaged.extend(
+            o.damaged
+                .into_iter()
+                .map(|d| format!("{}: {d}", f.display())),
+        );
+        all.last_sequence = all.last_sequence.max(o.last_sequence);
+        all.first_sequence = match (all.first_sequence, o.first_sequence) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        };
+    }
+    Ok(all)
+}
+
+fn overview_of(path: &Path) -> Result<Overview, RecordingError> {
     let (mut raw, truncated) = raw_messages(path)?;
     let mut o = Overview {
         truncated,
@@ -873,7 +939,10 @@ pub fn overview(path: &Path) -> Result<Overview, RecordingError> {
 /// Reads the messages of chosen edges back, in the order they were recorded, with the
 /// two images of a stereo frame joined again.
 pub struct EdgeReader {
+    /// The file being read (a part of a split recording).
     path: PathBuf,
+    /// The parts after it.
+    more: std::collections::VecDeque<PathBuf>,
     raw: RawMessages,
     truncated: bool,
     edges: Option<Vec<String>>,
@@ -895,9 +964,12 @@ impl std::fmt::Debug for EdgeReader {
 impl EdgeReader {
     /// Opens `path`; with `edges`, only those edges' messages are decoded and given.
     pub fn open(path: &Path, edges: Option<Vec<String>>) -> Result<Self, RecordingError> {
-        let (raw, truncated) = raw_messages(path)?;
+        let mut files: std::collections::VecDeque<PathBuf> = recording_files(path).into();
+        let first = files.pop_front().expect("one file at least");
+        let (raw, truncated) = raw_messages(&first)?;
         Ok(Self {
-            path: path.into(),
+            path: first,
+            more: files,
             raw,
             truncated,
             edges,
@@ -937,6 +1009,24 @@ impl Iterator for EdgeReader {
         }
         loop {
             let m = match self.raw.next_message() {
+                // A split recording goes on in its next part.
+                None if !self.truncated && !self.more.is_empty() => {
+                    let next = self.more.pop_front().expect("not empty");
+                    match raw_messages(&next) {
+                        Ok((raw, truncated)) => {
+                            let launch = self.raw.launch.take();
+                            self.raw = raw;
+                            self.raw.launch = launch;
+                            self.truncated = truncated;
+                            self.path = next;
+                            continue;
+                        }
+                        Err(e) => {
+                            self.done = true;
+                            return Some(Err(e));
+                        }
+                    }
+                }
                 None => {
                     self.done = true;
                     return self.truncated.then(|| {

@@ -37,6 +37,126 @@ pub struct RecorderParams {
     /// N, keeping about one frame in N ([`Thinning`]); the other edges keep every frame.
     #[serde(default)]
     pub every: std::collections::BTreeMap<String, u64>,
+    /// Start a new file once this many bytes of messages (before compression) are in the
+    /// current one: `path`'s parts `NAME-000.mcap`, `NAME-001.mcap`, … ([`file::part_path`]).
+    #[serde(default)]
+    pub split_bytes: Option<u64>,
+    /// Start a new file once the current one is this many seconds old.
+    #[serde(default)]
+    pub split_seconds: Option<f64>,
+}
+
+/// Starts part `index` of recording `path` (the file itself when not `split`) with the
+/// launch file and the cameras first.
+fn create_part(
+    path: &Path,
+    overwrite: bool,
+    split: bool,
+    index: usize,
+    launch: &Option<(PathBuf, String)>,
+    cameras: &Option<Cameras>,
+) -> Result<RecordingWriter, String> {
+    let path = if split {
+        crate::file::part_path(path, index)
+    } else {
+        path.to_path_buf()
+    };
+    let mut w = RecordingWriter::create(&path, overwrite).map_err(|e| e.to_string())?;
+    if let Some((file, text)) = launch {
+        w.write_launch(file, text).map_err(|e| e.to_string())?;
+    }
+    if let Some(c) = cameras {
+        w.write_calibration(&c.calibration, (c.width, c.height), now_ns())
+            .map_err(|e| e.to_string())?;
+    }
+    Ok(w)
+}
+
+/// A recording written as one file, or split into parts by size or time, each part a
+/// whole recording (the launch file and the cameras first) and all of them read as one.
+struct Parts {
+    path: PathBuf,
+    overwrite: bool,
+    split_bytes: Option<u64>,
+    split_seconds: Option<f64>,
+    launch: Option<(PathBuf, String)>,
+    cameras: Option<Cameras>,
+    index: usize,
+    started: std::time::Instant,
+    writer: RecordingWriter,
+    /// Messages in the parts already finished.
+    done: u64,
+}
+
+impl Parts {
+    fn split(&self) -> bool {
+        self.split_bytes.is_some() || self.split_seconds.is_some()
+    }
+
+    fn create(&self, index: usize) -> Result<RecordingWriter, String> {
+        create_part(
+            &self.path,
+            self.overwrite,
+            self.split(),
+            index,
+            &self.launch,
+            &self.cameras,
+        )
+    }
+
+    fn open(p: &RecorderParams, graph: &Graph) -> Result<Self, String> {
+        let launch = (!graph.text.is_empty()).then(|| (graph.file.clone(), graph.text.clone()));
+        let split = p.split_bytes.is_some() || p.split_seconds.is_some();
+        let writer = create_part(&p.path, p.overwrite, split, 0, &launch, &p.cameras)?;
+        Ok(Self {
+            path: p.path.clone(),
+            overwrite: p.overwrite,
+            split_bytes: p.split_bytes,
+            split_seconds: p.split_seconds,
+            launch,
+            cameras: p.cameras,
+            index: 0,
+            started: std::time::Instant::now(),
+            writer,
+            done: 0,
+        })
+    }
+
+    /// Writes one message, into a new part first when the current one is full or old.
+    fn write(
+        &mut self,
+        edge: &str,
+        kind: MessageKind,
+        header: &FrameHeader,
+        payload: &[u8],
+        log_time: u64,
+    ) -> Result<(), RecordingError> {
+        let full = self.split_bytes.is_some_and(|b| self.writer.bytes >= b)
+            || self
+                .split_seconds
+                .is_some_and(|s| self.started.elapsed().as_secs_f64() >= s);
+        if full && self.writer.messages > 0 {
+            let next = self
+                .create(self.index + 1)
+                .map_err(|reason| RecordingError::Io {
+                    path: crate::file::part_path(&self.path, self.index + 1),
+                    what: "starting the next part",
+                    reason,
+                })?;
+            let old = std::mem::replace(&mut self.writer, next);
+            self.done += old.messages;
+            old.finish()?;
+            self.index += 1;
+            self.started = std::time::Instant::now();
+        }
+        self.writer.write(edge, kind, header, payload, log_time)
+    }
+
+    fn finish(self) -> Result<u64, RecordingError> {
+        let n = self.done + self.writer.messages;
+        self.writer.finish()?;
+        Ok(n)
+    }
 }
 
 /// The frames kept by the edges recorded at one reduced rate: the first frame at or after
@@ -166,17 +286,7 @@ pub fn run_recorder(
     let names: Vec<String> = edges.iter().map(|(e, _)| e.clone()).collect();
     let (rate_of, rates) = edge_rates(&p.every, &names)?;
     let mut thinning: Vec<Thinning> = rates.iter().map(|&n| Thinning::new(n)).collect();
-    let mut writer = RecordingWriter::create(&p.path, p.overwrite).map_err(|e| e.to_string())?;
-    if !graph.text.is_empty() {
-        writer
-            .write_launch(&graph.file, &graph.text)
-            .map_err(|e| e.to_string())?;
-    }
-    if let Some(c) = &p.cameras {
-        writer
-            .write_calibration(&c.calibration, (c.width, c.height), now_ns())
-            .map_err(|e| e.to_string())?;
-    }
+    let mut writer = Parts::open(&p, graph)?;
     let (tx, rx) = sync_channel::<Taken>(QUEUE);
     let thread_edges = edges.clone();
     let writing = std::thread::spawn(move || -> Result<u64, RecordingError> {
@@ -186,13 +296,11 @@ pub fn run_recorder(
                     let (edge, kind) = &thread_edges[t.input];
                     writer.write(edge, *kind, &t.header, &t.payload, t.log_time)?;
                 }
-                Err(RecvTimeoutError::Timeout) => writer.flush_if_due()?,
+                Err(RecvTimeoutError::Timeout) => writer.writer.flush_if_due()?,
                 Err(RecvTimeoutError::Disconnected) => break,
             }
         }
-        let n = writer.messages;
-        writer.finish()?;
-        Ok(n)
+        writer.finish()
     });
     let tapped =
         runtime::process::run_tap(graph, instance, id, frames, |input, header, payload| {
@@ -260,6 +368,12 @@ pub struct ReplayParams {
     /// Start again at the end, with frame numbers and times running on.
     #[serde(default)]
     pub r#loop: bool,
+    /// Seconds of the recording (from its first frame's capture) to skip.
+    #[serde(default)]
+    pub start: f64,
+    /// Seconds of the recording to replay from `start` (the rest of it without).
+    #[serde(default)]
+    pub duration: Option<f64>,
 }
 
 fn recorded_speed() -> String {
@@ -285,6 +399,8 @@ pub struct ReplayNode {
     last: Option<(u64, u64)>,
     /// Frames skipped in earlier passes (some output missing).
     skipped: u64,
+    /// The recording's first capture time (`start` counts from it).
+    origin: Option<u64>,
 }
 
 impl ReplayNode {
@@ -298,6 +414,14 @@ impl ReplayNode {
     /// A replay of node `params.node`, whose outputs are `outputs` (port names in order).
     pub fn new(params: ReplayParams, outputs: &[String]) -> Result<Self, String> {
         let rate = Rate::parse(&params.rate)?;
+        if !(params.start >= 0.0 && params.start.is_finite())
+            || params.duration.is_some_and(|d| !(d > 0.0 && d.is_finite()))
+        {
+            return Err(format!(
+                "replay window start {} s, duration {:?} s: give a start of 0 or more and a duration above 0",
+                params.start, params.duration
+            ));
+        }
         let edges: Vec<String> = outputs
             .iter()
             .map(|o| format!("{}/{o}", params.node))
@@ -313,12 +437,30 @@ impl ReplayNode {
             first: None,
             last: None,
             skipped: 0,
+            origin: None,
         })
     }
 
     /// The next whole frame of this pass, or `None` at its end.
     fn next_frame(&mut self) -> Result<Option<Vec<EdgeMessage>>, String> {
-        self.frames.next().transpose().map_err(|e| e.to_string())
+        loop {
+            let Some(msgs) = self.frames.next().transpose().map_err(|e| e.to_string())? else {
+                return Ok(None);
+            };
+            // The window `start`..`start + duration` of the recording's own clock.
+            let ns = msgs[0].header.capture_ns;
+            let origin = *self.origin.get_or_insert(ns);
+            let from = origin.saturating_add((self.params.start * 1e9) as u64);
+            if ns < from {
+                continue;
+            }
+            if let Some(d) = self.params.duration
+                && ns >= from.saturating_add((d * 1e9) as u64)
+            {
+                return Ok(None);
+            }
+            return Ok(Some(msgs));
+        }
     }
 }
 
