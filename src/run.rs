@@ -174,6 +174,12 @@ pub fn run_graph(
             instance: s.instance.clone(),
             progress: !s.quiet,
             host: s.host.clone(),
+            controls: graph
+                .nodes
+                .iter()
+                .filter(|n| n.kind() == Some(recorder::node::REPLAY_KIND))
+                .map(|n| n.id.clone())
+                .collect(),
             endpoints: (!s.listen.is_empty() || !s.connect.is_empty()).then(|| {
                 hostlink::Endpoints {
                     listen: s.listen.clone(),

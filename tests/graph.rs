@@ -2452,3 +2452,80 @@ fn a_recording_split_into_three_parts_replays_bit_identical_to_an_unsplit_one() 
     assert!(!want.is_empty());
     assert_eq!(got, want);
 }
+
+#[test]
+fn a_replay_pauses_steps_and_resumes_from_the_terminal() {
+    let _heavy = heavy();
+    let file = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/graph/small.toml");
+    let dir = tempfile::tempdir().unwrap();
+    let source = dir.path().join("source.mcap");
+    let pid = std::process::id();
+    let out = Command::new(bin())
+        .args(["run", file.to_str().unwrap(), "--frames", "40", "--quiet"])
+        .args([
+            "--set",
+            "capture.fps=20",
+            "--instance",
+            &format!("pause-src-{pid}"),
+        ])
+        .args(["--record", source.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    // The replay at recorded speed (2 s), its stdin a terminal.
+    let instance = format!("pause-{pid}");
+    let (mut keys, slave) = pty();
+    let replay = Command::new(bin())
+        .args(["replay", source.to_str().unwrap(), "--quiet"])
+        .args(["--instance", &instance])
+        .stdin(Stdio::from(slave))
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let status = runtime::status::StatusReader::open(&instance, Duration::from_secs(20)).unwrap();
+    let sent = || loop {
+        if let Some(s) = status.next(Duration::from_secs(2)).unwrap() {
+            return s
+                .node("capture")
+                .and_then(|n| n.stats.as_ref())
+                .map_or(0, |st| st.frames_out);
+        }
+    };
+    let t0 = Instant::now();
+    while sent() < 4 {
+        assert!(
+            t0.elapsed() < Duration::from_secs(30),
+            "the replay never started"
+        );
+    }
+    let type_line = |keys: &mut std::fs::File, l: &str| {
+        use std::io::Write;
+        keys.write_all(format!("{l}\n").as_bytes()).unwrap();
+        keys.flush().unwrap();
+    };
+    type_line(&mut keys, "p");
+    std::thread::sleep(Duration::from_millis(600));
+    let paused = sent();
+    std::thread::sleep(Duration::from_millis(1200));
+    assert_eq!(sent(), paused, "frames went on while paused");
+    assert!(paused < 40, "the replay ended before the pause");
+    for _ in 0..3 {
+        type_line(&mut keys, "s");
+        std::thread::sleep(Duration::from_millis(400));
+    }
+    assert_eq!(sent(), paused + 3, "three steps, three frames");
+    type_line(&mut keys, "p");
+    let out = replay.wait_with_output().unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(text.contains("40 frame(s) of 40"), "{text}");
+}

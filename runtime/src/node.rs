@@ -288,6 +288,10 @@ pub trait GraphNode {
     fn fps(&self) -> Option<f64> {
         None
     }
+
+    /// A source was paused (or stepped) and goes on now: one that keeps its own clock
+    /// (a replay at recorded speed) starts it anew, instead of catching up.
+    fn resumed(&mut self) {}
 }
 
 /// Sends each encoded output on its port, stamped.

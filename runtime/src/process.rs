@@ -51,6 +51,50 @@ impl Outputs for ShmOutputs<'_> {
     }
 }
 
+/// The file through which the supervisor pauses and steps source `id` of run `instance`
+/// (its terminal's `p` and `s`): `PAUSES STEPS`, two counts that only grow; an odd number
+/// of pauses holds the source, each step lets one frame through.
+pub fn control_path(instance: &str, id: &str) -> PathBuf {
+    std::env::temp_dir().join(format!("microstereo-{instance}-{id}.control"))
+}
+
+/// Where a source is with its pause requests.
+struct PauseState {
+    path: PathBuf,
+    steps: Option<u64>,
+}
+
+impl PauseState {
+    fn new(instance: &str, id: &str) -> Self {
+        Self {
+            path: control_path(instance, id),
+            steps: None,
+        }
+    }
+
+    /// Whether to hold the next frame back now (a step lets one through).
+    fn hold(&mut self) -> bool {
+        // No file: never paused (a read costs microseconds a frame).
+        let (pauses, steps) = std::fs::read_to_string(&self.path)
+            .ok()
+            .and_then(|t| {
+                let mut w = t.split_whitespace().map(|x| x.parse::<u64>().ok());
+                Some((w.next()??, w.next()??))
+            })
+            .unwrap_or((0, 0));
+        let seen = *self.steps.get_or_insert(steps);
+        if pauses % 2 == 0 {
+            self.steps = Some(steps);
+            return false;
+        }
+        if steps > seen {
+            self.steps = Some(seen + 1);
+            return false;
+        }
+        true
+    }
+}
+
 /// The reader name of a source's in-flight count ([`crate::launch::InFlight`]).
 const IN_FLIGHT_PORT: &str = "in-flight";
 
@@ -487,7 +531,29 @@ pub fn run_node(
             Some(f) => Some(InFlightGate::new(&transport, graph, instance, id, f)?),
             None => None,
         };
+        let mut start = start;
+        let mut pause = PauseState::new(instance, id);
         while frames.is_none_or(|n| seq < n) {
+            // Paused from the terminal (`replay`): no frame until resumed or stepped; a
+            // stop still ends it.
+            let held = Instant::now();
+            let mut was_held = false;
+            while pause.hold() {
+                was_held = true;
+                // Reports go on while held (the watchdog, the status).
+                tally.report(id, spec, out.sent, feedback.iter().map(|(_, s)| s));
+                if !transport.sleep(Duration::from_millis(20)) {
+                    stopped = true;
+                    break;
+                }
+            }
+            if stopped {
+                break;
+            }
+            if was_held {
+                start += held.elapsed();
+                node.resumed();
+            }
             // Also the place where a stop request is noticed between frames.
             let wait = period.map_or(Duration::ZERO, |p| {
                 (start + p * (seq - first) as u32).saturating_duration_since(Instant::now())

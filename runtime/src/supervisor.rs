@@ -35,6 +35,8 @@ pub struct RunOptions {
     pub host: Option<String>,
     /// Where this part's link listens and connects (default: the graph's `[hosts.HOST]`).
     pub endpoints: Option<hostlink::Endpoints>,
+    /// Sources the terminal pauses and steps (`p`, `s` and Enter), when stdin is one.
+    pub controls: Vec<String>,
 }
 
 /// What a run did: each node's statistics and how long it took.
@@ -398,6 +400,11 @@ async fn supervise(
     let start = Instant::now();
     let states: States = Default::default();
     let monitor = Monitor::start(graph, instance, a, stats.clone(), states.clone());
+    // A control file left by an earlier run of this instance would hold its sources.
+    for n in graph.nodes.iter().filter(|n| n.inputs.is_empty()) {
+        let _ = std::fs::remove_file(crate::process::control_path(instance, &n.id));
+    }
+    let control_files = control_from_terminal(&a.controls, instance);
     let tap: LogTap = graph.nodes.iter().find(|n| n.logs).map(|_| {
         let (tx, rx) = tokio::sync::mpsc::unbounded_channel();
         *VIEWER_LOGS.lock().expect("logs") = Some(rx);
@@ -608,6 +615,9 @@ async fn supervise(
     tokio::time::sleep(Duration::from_millis(50)).await;
     let wall = start.elapsed();
     monitor.stop();
+    for f in control_files {
+        let _ = std::fs::remove_file(f);
+    }
     let stats = stats
         .lock()
         .expect("stats")
@@ -618,6 +628,58 @@ async fn supervise(
         })
         .collect();
     Ok((stats, wall, failure))
+}
+
+/// Pauses, resumes and steps the sources `ids` from the terminal, when stdin is one: a
+/// line `p` pauses or resumes them, `s` lets one frame through while paused (through their
+/// control files, [`crate::process::control_path`], which they read between frames).
+fn control_from_terminal(ids: &[String], instance: &str) -> Vec<std::path::PathBuf> {
+    use std::io::{BufRead, IsTerminal};
+    if ids.is_empty() || !std::io::stdin().is_terminal() {
+        return Vec::new();
+    }
+    above_progress(|| {
+        eprintln!(
+            "{}: type p and Enter to pause or resume, s and Enter to step one frame",
+            ids.join(", ")
+        )
+    });
+    let files: Vec<std::path::PathBuf> = ids
+        .iter()
+        .map(|id| crate::process::control_path(instance, id))
+        .collect();
+    let paths = files.clone();
+    // Reads until the process ends (stdin stays open while the run goes on).
+    std::thread::spawn(move || {
+        let (mut pauses, mut steps) = (0u64, 0u64);
+        for line in std::io::stdin().lock().lines() {
+            let Ok(line) = line else { break };
+            let said = match line.trim() {
+                "p" => {
+                    pauses += 1;
+                    if pauses % 2 == 1 {
+                        "paused: s steps one frame, p resumes"
+                    } else {
+                        "resumed"
+                    }
+                }
+                "s" if pauses % 2 == 1 => {
+                    steps += 1;
+                    "one frame"
+                }
+                "s" => "not paused: p pauses first",
+                _ => continue,
+            };
+            for f in &paths {
+                let tmp = f.with_extension("control.new");
+                if std::fs::write(&tmp, format!("{pauses} {steps}")).is_ok() {
+                    let _ = std::fs::rename(&tmp, f);
+                }
+            }
+            above_progress(|| eprintln!("{said}"));
+        }
+    });
+    files
 }
 
 /// Per node id: what its processes are doing, its restarts and its process now.

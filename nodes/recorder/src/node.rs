@@ -465,6 +465,11 @@ impl ReplayNode {
 }
 
 impl GraphNode for ReplayNode {
+    fn resumed(&mut self) {
+        // After a pause the recorded timing goes on from the next frame.
+        self.clock = None;
+    }
+
     fn produce(&mut self, _seq: u64, out: &mut dyn Outputs) -> Result<bool, String> {
         let mut msgs = self.next_frame()?;
         if msgs.is_none() {
