@@ -306,9 +306,13 @@ pub fn check_record_target(opts: &OutputOpts) -> Result<(), CliError> {
     };
     if first.exists() && !opts.overwrite {
         return Err(CliError::Other(format!(
-            "--record {}: the file {} exists; choose another name or add --overwrite",
+            "--record {}: {}the file exists; choose another name or add --overwrite",
             path.display(),
-            first.display()
+            if first == *path {
+                String::new()
+            } else {
+                format!("its first part {} exists: ", first.display())
+            }
         )));
     }
     let dir = path
