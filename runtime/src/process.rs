@@ -58,24 +58,32 @@ pub fn control_path(instance: &str, id: &str) -> PathBuf {
     std::env::temp_dir().join(format!("microstereo-{instance}-{id}.control"))
 }
 
+/// Set (by the supervisor) for a source its terminal pauses and steps: only such a source
+/// reads its control file between frames.
+pub const CONTROL_ENV: &str = "MICROSTEREO_CONTROLLED";
+
 /// Where a source is with its pause requests.
 struct PauseState {
-    path: PathBuf,
+    /// The control file, for a source the terminal controls.
+    path: Option<PathBuf>,
     steps: Option<u64>,
 }
 
 impl PauseState {
     fn new(instance: &str, id: &str) -> Self {
         Self {
-            path: control_path(instance, id),
+            path: std::env::var_os(CONTROL_ENV).map(|_| control_path(instance, id)),
             steps: None,
         }
     }
 
     /// Whether to hold the next frame back now (a step lets one through).
     fn hold(&mut self) -> bool {
-        // No file: never paused (a read costs microseconds a frame).
-        let (pauses, steps) = std::fs::read_to_string(&self.path)
+        let Some(path) = &self.path else {
+            return false;
+        };
+        // No file: not paused.
+        let (pauses, steps) = std::fs::read_to_string(path)
             .ok()
             .and_then(|t| {
                 let mut w = t.split_whitespace().map(|x| x.parse::<u64>().ok());

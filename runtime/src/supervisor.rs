@@ -260,6 +260,11 @@ fn spawn(
         Some(d) => cmd.env(crate::transport::DOMAIN_ENV, d),
         None => cmd.env_remove(crate::transport::DOMAIN_ENV),
     };
+    // Only the sources the terminal controls look at a control file between frames.
+    cmd.env_remove(crate::process::CONTROL_ENV);
+    if o.controls.iter().any(|c| c == id) && std::io::IsTerminal::is_terminal(&std::io::stdin()) {
+        cmd.env(crate::process::CONTROL_ENV, "1");
+    }
     cmd.env_remove(crate::process::GENERATION_ENV);
     if generation > 0 {
         cmd.env(crate::process::GENERATION_ENV, generation.to_string());
