@@ -109,7 +109,7 @@ pub fn bench(a: BenchArgs) -> Result<(), CliError> {
 fn bench_pairs(a: &BenchArgs, pairs: &[(String, PathBuf, PathBuf)]) -> Result<(), CliError> {
     let range = DisparityRange::new(0, 63);
     let repeat = a.repeat.max(1);
-    println!(
+    runtime::outln!(
         "{} threads; median of {repeat} runs; ranges 0..63 (64 disparities, as SGBM numDisparities=64)",
         rayon::current_num_threads(),
     );
@@ -157,7 +157,7 @@ fn bench_pairs(a: &BenchArgs, pairs: &[(String, PathBuf, PathBuf)]) -> Result<()
                 .iter()
                 .map(|(n, v)| format!("{n} {v:.1}"))
                 .collect();
-            println!(
+            runtime::outln!(
                 "{:<10} {:<8} {:>4}×{:<4} total {:>7.1} ms  [{}]  {:.0} M disparity evaluations/s",
                 name,
                 format!("{mode:?}").to_lowercase(),

@@ -117,7 +117,7 @@ fn import(a: ImportArgs) -> Result<(), CliError> {
         .collect::<Vec<_>>()
         .join(" and ");
     write_file(&a.output, &file, &format!("Imported by microstereo calibration import from {from}.\n# Top level: the rectified views' geometry (triangulate); [stereo]: the raw cameras (rectify).")).map_err(CliError::Other)?;
-    println!(
+    runtime::outln!(
         "baseline {:.4} {}, rectified focal {:.2} px; written to {}",
         file.baseline,
         a.unit.unit().symbol(),
@@ -196,7 +196,7 @@ fn export(a: ExportArgs) -> Result<(), CliError> {
         text += &matrix("P2", 3, 4, &p2);
         formats::atomic::write_bytes(p, text.as_bytes())
             .map_err(|e| CliError::Other(e.to_string()))?;
-        println!("OpenCV stereo YAML written to {}", p.display());
+        runtime::outln!("OpenCV stereo YAML written to {}", p.display());
     }
     if let Some(ci) = &a.camera_info {
         let data = |v: &[f64]| {
@@ -221,7 +221,7 @@ fn export(a: ExportArgs) -> Result<(), CliError> {
             );
             formats::atomic::write_bytes(path, text.as_bytes())
                 .map_err(|e| CliError::Other(e.to_string()))?;
-            println!("{side} camera_info written to {}", path.display());
+            runtime::outln!("{side} camera_info written to {}", path.display());
         }
     }
     Ok(())

@@ -518,9 +518,10 @@ pub fn calibrate_manipulator(a: CalibrateManipulatorArgs) -> Result<(), CliError
             .and_then(|f| tip_in_scene(&f, &optics))
             .map_err(CliError::Other)?;
         let r = reg.with_offset_through(scene, at);
-        println!(
+        runtime::outln!(
             "offset re-registered at device {at:?}: tip at scene {scene:?}; offset {:?} (was {:?})",
-            r.offset, reg.offset
+            r.offset,
+            reg.offset
         );
         (
             r,
@@ -547,7 +548,7 @@ pub fn calibrate_manipulator(a: CalibrateManipulatorArgs) -> Result<(), CliError
     .refuse(a.max_rms);
     for (k, s) in stops.iter().enumerate() {
         match (&s.scene, s.residual, &s.why) {
-            (Some(p), Some(r), _) => println!(
+            (Some(p), Some(r), _) => runtime::outln!(
                 "stop {:>2}: device [{:.1}, {:.1}, {:.1}] -> tip [{:.2}, {:.2}, {:.2}] µm, residual {r:.3} µm",
                 k + 1,
                 s.device[0],
@@ -557,7 +558,7 @@ pub fn calibrate_manipulator(a: CalibrateManipulatorArgs) -> Result<(), CliError
                 p[1],
                 p[2]
             ),
-            (_, _, Some(why)) => println!(
+            (_, _, Some(why)) => runtime::outln!(
                 "stop {:>2}: device [{:.1}, {:.1}, {:.1}]: {why}",
                 k + 1,
                 s.device[0],
@@ -575,7 +576,7 @@ pub fn calibrate_manipulator(a: CalibrateManipulatorArgs) -> Result<(), CliError
         + m[2] * (m[3] * m[7] - m[4] * m[6]);
     let svd = nalgebra::Matrix3::from_row_slice(m).svd(false, false);
     let scales = svd.singular_values;
-    println!(
+    runtime::outln!(
         "registration: rms residual {rms:.3} µm over {} stops; axis scales {:.4} {:.4} {:.4}; {}; device = M·scene + offset with M rows [{:.4} {:.4} {:.4}] [{:.4} {:.4} {:.4}] [{:.4} {:.4} {:.4}]",
         stops.iter().filter(|s| s.residual.is_some()).count(),
         scales[0],
@@ -619,7 +620,7 @@ pub fn calibrate_manipulator(a: CalibrateManipulatorArgs) -> Result<(), CliError
     );
     formats::atomic::write_bytes(&a.output, text.as_bytes())
         .map_err(|e| CliError::Other(e.to_string()))?;
-    println!("registration written to {}", a.output.display());
+    runtime::outln!("registration written to {}", a.output.display());
     Ok(())
 }
 

@@ -252,12 +252,12 @@ pub fn calibrate_depth(a: CalibrateArgs) -> Result<(), CliError> {
         }
         None => triangulate::calibration::write(&out, &cal, a.pixel_pitch.unwrap_or(1.0))?,
     }
-    println!("{:>10} {:>12} {:>12}", "z (µm)", "d (px)", "resid (px)");
+    runtime::outln!("{:>10} {:>12} {:>12}", "z (µm)", "d (px)", "resid (px)");
     for ((zi, di), ri) in z.iter().zip(&d).zip(&fit.residuals) {
-        println!("{zi:>10.2} {di:>12.3} {ri:>12.4}");
+        runtime::outln!("{zi:>10.2} {di:>12.3} {ri:>12.4}");
     }
     let rms = (fit.residuals.iter().map(|r| r * r).sum::<f64>() / z.len() as f64).sqrt();
-    println!(
+    runtime::outln!(
         "b·f = {:.1} µm·px, f = {:.2} px{}, disparity offset {:.3} px, working distance {:.1} µm ({}); rms residual {:.4} px",
         fit.b_f,
         f_px,
@@ -273,6 +273,6 @@ pub fn calibrate_depth(a: CalibrateArgs) -> Result<(), CliError> {
         },
         rms
     );
-    println!("calibration written to {}", out.display());
+    runtime::outln!("calibration written to {}", out.display());
     Ok(())
 }

@@ -212,7 +212,7 @@ pub fn calibrate_stereo_cmd(a: CalibrateStereoArgs) -> Result<(), CliError> {
     };
     for p in &results {
         if let Err(e) = &p.boards {
-            eprintln!("pair {}: {e}; left out", p.name);
+            runtime::errln!("pair {}: {e}; left out", p.name);
         }
     }
     let (used, stereo) = loop {
@@ -231,7 +231,7 @@ pub fn calibrate_stereo_cmd(a: CalibrateStereoArgs) -> Result<(), CliError> {
             .expect("pairs");
         if worst > limit && used.len() > 3 {
             let p = &mut results[used[k]];
-            eprintln!(
+            runtime::errln!(
                 "pair {}: fits badly (RMS {worst:.3} px, limit {limit:.3}); left out, refitting",
                 p.name
             );
@@ -312,10 +312,10 @@ pub fn calibrate_stereo_cmd(a: CalibrateStereoArgs) -> Result<(), CliError> {
     .map_err(|e| CliError::Other(e.to_string()))?;
     for p in &results {
         if let Some(r) = p.rms {
-            println!("pair {}: RMS {r:.3} px", p.name);
+            runtime::outln!("pair {}: RMS {r:.3} px", p.name);
         }
     }
-    println!(
+    runtime::outln!(
         "{} of {} pairs used: RMS {:.4} px; baseline {:.3} {u}; left fx {:.1} fy {:.1} px, right fx {:.1} fy {:.1} px; rectified: focal {:.1} px, every board row within {worst_row:.3} px of one row",
         used.len(),
         results.len(),
@@ -328,7 +328,7 @@ pub fn calibrate_stereo_cmd(a: CalibrateStereoArgs) -> Result<(), CliError> {
         rect.f,
         u = unit.symbol()
     );
-    println!("calibration written to {}", outputs[0].display());
+    runtime::outln!("calibration written to {}", outputs[0].display());
     Ok(())
 }
 

@@ -57,6 +57,14 @@ enum Command {
 /// Runs the CLI and returns the process exit code.
 pub fn main() -> i32 {
     let cli = Cli::parse();
+    // The commands that run a graph (its supervisor, each node) take the stop signals from
+    // the start, before they make anything that would outlive them.
+    if matches!(
+        cli.command,
+        Command::Run(_) | Command::Node(_) | Command::Replay(_)
+    ) {
+        runtime::signals::install();
+    }
     if !matches!(
         cli.command,
         Command::Run(_)
@@ -80,8 +88,13 @@ pub fn main() -> i32 {
         Command::CalibrateManipulator(a) => crate::calibmanip::calibrate_manipulator(a),
         Command::Run(a) => crate::run::run_cmd(a),
         Command::Node(a) => crate::run::node_cmd(a),
-        Command::Top(a) => crate::top::top(a),
-        Command::Topic(a) => crate::top::topic(a),
+        // A watcher that outlived the run it watched takes the domain's memory with it.
+        Command::Top(a) => crate::top::top(a).inspect(|_| {
+            runtime::process::release_domain();
+        }),
+        Command::Topic(a) => crate::top::topic(a).inspect(|_| {
+            runtime::process::release_domain();
+        }),
         Command::Inspect(a) => crate::recording::inspect(a),
         Command::Replay(a) => crate::recording::replay(a),
         Command::TestNode(a) => crate::recording::test_node_cmd(a),
@@ -91,11 +104,11 @@ pub fn main() -> i32 {
         Ok(()) => 0,
         Err(CliError::Reported(code)) => code,
         Err(CliError::Failed(e)) => {
-            eprintln!("FAIL: {e}");
+            runtime::errln!("FAIL: {e}");
             1
         }
         Err(e) => {
-            eprintln!("error: {e}");
+            runtime::errln!("error: {e}");
             2
         }
     }
@@ -187,16 +200,24 @@ pub fn eval(a: EvalArgs) -> Result<(), CliError> {
     };
     let f = validate::evaluate(&disp, &gt, visible.as_ref());
     if a.json {
-        println!("{}", serde_json::to_string_pretty(&f).expect("serialises"));
+        runtime::outln!("{}", serde_json::to_string_pretty(&f).expect("serialises"));
         return Ok(());
     }
-    println!(
+    runtime::outln!(
         "{:<8} {:>9} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8}",
-        "pixels", "count", "bad0.5%", "bad1%", "bad2%", "bad4%", "mae", "rms", "dens%"
+        "pixels",
+        "count",
+        "bad0.5%",
+        "bad1%",
+        "bad2%",
+        "bad4%",
+        "mae",
+        "rms",
+        "dens%"
     );
     let label = if visible.is_some() { "nonocc" } else { "known" };
     for (name, s) in [(label, f.nonocc), ("all", f.all)] {
-        println!(
+        runtime::outln!(
             "{:<8} {:>9} {:>8.2} {:>8.2} {:>8.2} {:>8.2} {:>8.3} {:>8.3} {:>8.2}",
             name,
             s.pixels,

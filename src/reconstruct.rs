@@ -549,7 +549,7 @@ pub fn reconstruct(a: ReconstructArgs) -> Result<(), CliError> {
     io::write_pfm(&o.join("disparity_raw.pfm"), &raw)?;
     let lost = io::write_disparity_png(&o.join("disparity.png"), &disparity)?;
     if lost > 0 {
-        eprintln!(
+        runtime::errln!(
             "warning: {lost} pixels have disparities disparity.png cannot hold (below 1/512 px, where 0 already means unknown, or ≥ 256); disparity.pfm has them"
         );
     }
@@ -594,7 +594,7 @@ pub fn reconstruct(a: ReconstructArgs) -> Result<(), CliError> {
         total_ms,
     };
     write_json(&o.join("report.json"), &report)?;
-    println!(
+    runtime::outln!(
         "{:?} mode, range {}..{}: consistent {:.1} %, off by 1 {:.1} %, off by more {:.1} %; density after LR check {:.1} %",
         a.mode(),
         range.min,
@@ -605,9 +605,9 @@ pub fn reconstruct(a: ReconstructArgs) -> Result<(), CliError> {
         100.0 * schemas::density(&raw)
     );
     if let (Some((c, _)), Some(u)) = (&cloud, unit) {
-        println!("{} points ({})", c.points.len(), u.symbol());
+        runtime::outln!("{} points ({})", c.points.len(), u.symbol());
     }
-    println!("total {:.1} ms; outputs in {}", total_ms, o.display());
+    runtime::outln!("total {:.1} ms; outputs in {}", total_ms, o.display());
     Ok(())
 }
 
@@ -712,7 +712,7 @@ fn write_cells(
         cells: &targets.cells,
     };
     write_json(&o.join("cells.json"), &report)?;
-    println!(
+    runtime::outln!(
         "{} cells left, {} right, {} paired; matched {:.1} % of the image",
         report.cells_left,
         report.cells_right,
@@ -730,7 +730,7 @@ fn write_cells(
             None => String::new(),
             Some(why) => format!(" — NOT TRUSTED: {why}"),
         };
-        println!(
+        runtime::outln!(
             "cell {:>3}: centroid ({:.1}, {:.1}) px, {height}, volume {:.0} {u}³, 3D centroid ({:.1}, {:.1}, {:.1}) {u}, substrate from {}{trust}",
             c.id,
             c.centroid_px[0],
@@ -745,7 +745,7 @@ fn write_cells(
                 .unwrap_or_default(),
         );
     }
-    println!(
+    runtime::outln!(
         "total {:.1} ms; outputs in {}",
         t0.elapsed().as_secs_f64() * 1e3,
         o.display()

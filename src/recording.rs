@@ -80,8 +80,9 @@ pub fn view(a: ViewArgs) -> Result<(), CliError> {
     done
 }
 
-/// Reads the channel overview of a recording; a file that cannot be read to its end is an
-/// error that says what was read.
+/// Reads the channel overview of a recording; a corrupt file, or one with nothing
+/// readable, is an error that says what was read. A file cut short (its writer died, the
+/// disk filled, a copy lost its tail) is used up to its last whole record, the loss said.
 fn readable(path: &Path) -> Result<Overview, CliError> {
     let o = recorder::overview(path).map_err(|e| CliError::Other(e.to_string()))?;
     if let Some(why) = stopped(path, &o) {
@@ -90,9 +91,23 @@ fn readable(path: &Path) -> Result<Overview, CliError> {
             path.display()
         )));
     }
-    // Damaged chunks cost their own messages only: the rest is used, the loss is said.
-    for d in &o.damaged {
-        eprintln!("warning: {}: {d}", path.display());
+    let messages: u64 = o.channels.iter().map(|c| c.messages).sum();
+    if messages == 0 {
+        let why: Vec<&str> = o.cut.iter().chain(&o.damaged).map(String::as_str).collect();
+        return Err(CliError::Other(format!(
+            "{}: no message in it can be read{}",
+            path.display(),
+            if why.is_empty() {
+                " (it holds none)".to_string()
+            } else {
+                format!(": {}", why.join("; "))
+            }
+        )));
+    }
+    // Damaged chunks cost their own messages only, a cut its tail: the rest is used, the
+    // loss is said.
+    for d in o.cut.iter().chain(&o.damaged) {
+        runtime::errln!("warning: {}: {d}", path.display());
     }
     Ok(o)
 }
@@ -182,13 +197,14 @@ pub fn inspect(a: InspectArgs) -> Result<(), CliError> {
             c.bytes as f64 / 1e6
         );
     }
+    let problems: Vec<&String> = o.cut.iter().chain(&o.damaged).collect();
     match stopped(&a.file, &o) {
-        None if o.damaged.is_empty() => Ok(()),
+        None if problems.is_empty() => Ok(()),
         None => {
             // Every damaged part but the last on its own line; the last is the error.
-            let (last, rest) = o.damaged.split_last().expect("not empty");
+            let (last, rest) = problems.split_last().expect("not empty");
             for d in rest {
-                eprintln!("{}: {d}", a.file.display());
+                runtime::errln!("{}: {d}", a.file.display());
             }
             Err(CliError::Other(format!(
                 "{}: {last}; the figures above are the rest, read in full",

@@ -188,6 +188,14 @@ pub fn run_graph(
             }),
         },
     )?;
+    if let Some(sig) = report.signal
+        && report.stats.is_empty()
+    {
+        runtime::errln!(
+            "stopped by {} before the graph started",
+            runtime::signals::name(sig)
+        );
+    }
     let rate = runtime::supervisor::print_summary(
         graph,
         &report.stats,

@@ -152,20 +152,21 @@ pub fn segment_cmd(a: SegmentArgs) -> Result<(), CliError> {
     write_segmentation(&a.output, &a.image, &img.rgb, &seg, &params, score)?;
     let max_label = seg.cells.len();
     if max_label > 65535 {
-        eprintln!(
+        runtime::errln!(
             "warning: {max_label} cells; labels.png holds ids up to 65535, cells.json has all"
         );
     }
     match seg.otsu {
-        Some(o) => println!(
+        Some(o) => runtime::outln!(
             "Otsu threshold {o} of 255 (applied {}; 255 = local std {:.1} grey levels)",
-            seg.threshold, seg.variance_max
+            seg.threshold,
+            seg.variance_max
         ),
-        None => println!("flat image: no threshold, no cells"),
+        None => runtime::outln!("flat image: no threshold, no cells"),
     }
-    println!("{} cells in {ms:.1} ms", seg.cells.len());
+    runtime::outln!("{} cells in {ms:.1} ms", seg.cells.len());
     if let Some(s) = score {
-        println!(
+        runtime::outln!(
             "truth: Dice {:.3}, {} cells found / {} in the truth ({:+.1} %)",
             s.dice,
             s.found_cells,
@@ -173,7 +174,7 @@ pub fn segment_cmd(a: SegmentArgs) -> Result<(), CliError> {
             100.0 * s.count_error
         );
     }
-    println!("outputs in {}", a.output.display());
+    runtime::outln!("outputs in {}", a.output.display());
     Ok(())
 }
 

@@ -208,6 +208,67 @@ fn scene_files(prefix: &str) -> [String; 6] {
     .map(|n| format!("{prefix}{n}"))
 }
 
+/// Says how far a long render got, every few seconds on stderr, until dropped.
+struct RenderProgress {
+    stop: Option<std::sync::mpsc::Sender<()>>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl RenderProgress {
+    /// Pixels of rendering (both views and the truth, over every scene) that take long
+    /// enough to be worth a progress line: a 2048² scene takes seconds on two cores.
+    const WORTH: usize = 3 * 2048 * 2048;
+
+    fn start(width: usize, height: usize, scenes: usize) -> Self {
+        let total_rows = (3 * height * scenes) as u64;
+        if 3 * width * height * scenes < Self::WORTH {
+            return Self {
+                stop: None,
+                thread: None,
+            };
+        }
+        let (tx, rx) = std::sync::mpsc::channel::<()>();
+        let start = std::time::Instant::now();
+        let first = synth::rows_rendered();
+        let thread = std::thread::spawn(move || {
+            while let Err(std::sync::mpsc::RecvTimeoutError::Timeout) =
+                rx.recv_timeout(std::time::Duration::from_secs(2))
+            {
+                let done = (synth::rows_rendered() - first).min(total_rows);
+                let f = done as f64 / total_rows as f64;
+                let secs = start.elapsed().as_secs_f64();
+                runtime::errln!(
+                    "rendering {width}×{height}{}: {:.0} % after {secs:.0} s{}",
+                    if scenes > 1 {
+                        format!(", {scenes} scenes")
+                    } else {
+                        String::new()
+                    },
+                    100.0 * f,
+                    if f > 0.02 {
+                        format!(", about {:.0} s to go", secs * (1.0 - f) / f)
+                    } else {
+                        String::new()
+                    }
+                );
+            }
+        });
+        Self {
+            stop: Some(tx),
+            thread: Some(thread),
+        }
+    }
+}
+
+impl Drop for RenderProgress {
+    fn drop(&mut self) {
+        drop(self.stop.take());
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
 fn write_scene(dir: &Path, scene: &Scene, prefix: &str) -> Result<synth::Rendered, CliError> {
     let r = scene.render();
     save_grey(&dir.join(format!("{prefix}left.png")), &r.left)?;
@@ -395,6 +456,11 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
     })?;
     let cal = optics.calibration();
     triangulate::calibration::write(&a.output.join("calibration.toml"), &cal, optics.pixel_pitch)?;
+    let scenes = match (&a.stage_heights, a.frames.unwrap_or(0)) {
+        (Some(zs), _) => zs.len(),
+        (None, n) => n.max(1),
+    };
+    let _progress = RenderProgress::start(optics.width, optics.height, scenes);
     if let Some(zs) = &a.stage_heights {
         let mut csv = String::from("left,right,z_um\n");
         for (i, &z) in zs.iter().enumerate() {
@@ -404,7 +470,7 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
             csv += &format!("{prefix}left.png,{prefix}right.png,{z}\n");
         }
         io::atomic::write_bytes(&a.output.join("heights.csv"), csv.as_bytes())?;
-        println!(
+        runtime::outln!(
             "{} target pairs at stage heights {:?} µm; working distance {} µm; outputs in {}",
             zs.len(),
             zs,
@@ -462,12 +528,8 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
             azimuth: az,
         });
     }
-    if scene.cells.len() < a.cells {
-        eprintln!(
-            "warning: only {} of {} cells fit without overlapping",
-            scene.cells.len(),
-            a.cells
-        );
+    if let Some(why) = synth::shortfall(&scene, &spec) {
+        runtime::errln!("warning: {why}");
     }
     let frames = a.frames.unwrap_or(0);
     if frames == 0 {
@@ -477,7 +539,7 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
             .data
             .iter()
             .fold((f32::MAX, f32::MIN), |(x, y), &d| (x.min(d), y.max(d)));
-        println!(
+        runtime::outln!(
             "{} cells; disparity {lo:.2}..{hi:.2} px ({:.3} px per µm of height); outputs in {}",
             r.cells.len(),
             optics.px_per_um_height(),
@@ -492,7 +554,7 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
                 &format!("f{f:04}_"),
             )?;
         }
-        println!(
+        runtime::outln!(
             "{frames} frames of {} cells; outputs in {}",
             scene.cells.len(),
             a.output.display()

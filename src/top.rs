@@ -137,7 +137,7 @@ pub fn text(prev: Option<&GraphStatus>, now: &GraphStatus) -> String {
     for r in status::node_rows(prev, now) {
         let _ = writeln!(
             out,
-            "{:<20} {:<18} {:<10} {:>8} {:>9} {:>9.2} {:>9} {:>9.2} {:>7.1}",
+            "{:<20} {:<18} {:<10} {:>8} {:>9} {:>9.2} {:>9} {:>9.2} {:>7.1}{}",
             r.id,
             clip(&r.kind, 18),
             r.state.word(),
@@ -146,7 +146,8 @@ pub fn text(prev: Option<&GraphStatus>, now: &GraphStatus) -> String {
             r.rate,
             r.mean_ms.map_or("-".into(), |m| format!("{m:.2}")),
             r.p99_ms,
-            r.cpu_percent
+            r.cpu_percent,
+            r.note.as_ref().map_or(String::new(), |n| format!("  {n}"))
         );
     }
     let rows = status::edge_rows(prev, now);
@@ -228,7 +229,15 @@ pub fn draw(f: &mut ratatui::Frame, prev: Option<&GraphStatus>, now: &GraphStatu
                 r.mean_ms.map_or("-".into(), |m| format!("{m:.2}")),
                 format!("{:.2}", r.p99_ms),
                 format!("{:.1}", r.cpu_percent),
+                r.note.clone().unwrap_or_default(),
             ])
+            // A node that makes nothing, or still prepares, stands out.
+            .style(match (&r.note, r.state) {
+                (Some(_), status::NodeState::Running) => {
+                    Style::default().fg(ratatui::style::Color::Yellow)
+                }
+                _ => Style::default(),
+            })
         }),
         [
             Constraint::Length(20),
@@ -240,11 +249,13 @@ pub fn draw(f: &mut ratatui::Frame, prev: Option<&GraphStatus>, now: &GraphStatu
             Constraint::Length(8),
             Constraint::Length(8),
             Constraint::Length(6),
+            Constraint::Min(20),
         ],
     )
     .header(
         Row::new(vec![
-            "node", "kind", "state", "restarts", "frames", "frames/s", "step ms", "p99 ms", "CPU %",
+            "node", "kind", "state", "restarts", "frames", "frames/s", "step ms", "p99 ms",
+            "CPU %", "",
         ])
         .style(bold),
     )

@@ -7,33 +7,14 @@
 mod common;
 
 use manipulator_bridge::bridge::Bridge;
-use manipulator_bridge::device::{Device, DeviceError, DeviceState, SimDevice, wall_clock};
+use manipulator_bridge::device::{Device, SimDevice, wall_clock};
 use manipulator_bridge::geom::P3;
 use manipulator_bridge::node::BridgeParams;
 use manipulator_bridge::scene::Scene;
 use microstereo::calibmanip::{Optics, SimMicroscope, grid_stops, mount, register};
 use schemas::DisparityRange;
 use std::io::{BufRead, Write};
-use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
-
-/// The sim, shared with the test (which reads where it truly is).
-struct Shared(Arc<Mutex<SimDevice>>);
-
-impl Device for Shared {
-    fn describe(&self) -> String {
-        "sim (mounted)".into()
-    }
-    fn start_move(&mut self, to: P3, speed: f64) -> Result<(), DeviceError> {
-        self.0.lock().unwrap().start_move(to, speed)
-    }
-    fn state(&mut self) -> Result<DeviceState, DeviceError> {
-        self.0.lock().unwrap().state()
-    }
-    fn stop(&mut self) -> Result<(), DeviceError> {
-        self.0.lock().unwrap().stop()
-    }
-}
 
 #[test]
 fn after_calibrate_manipulator_an_approach_reaches_the_injection_point_within_2_um() {
@@ -41,13 +22,9 @@ fn after_calibrate_manipulator_an_approach_reaches_the_injection_point_within_2_
     let mut micro = SimMicroscope::new(2, truth);
     let z0 = micro.scene.optics.working_distance();
     let start: P3 = [-60.0, 20.0, 3940.0];
-    let sim = Arc::new(Mutex::new(SimDevice::new(
-        truth.to_device(start),
-        2000.0,
-        20_000.0,
-        wall_clock(),
-    )));
-    let mut dev = Shared(sim.clone());
+    // Clones drive the same sim: the test reads where it truly is.
+    let sim = SimDevice::new(truth.to_device(start), 2000.0, 20_000.0, wall_clock());
+    let mut dev = sim.clone();
     let optics = Optics {
         rectify: None,
         calibration: micro.scene.optics.calibration(),
@@ -96,12 +73,7 @@ fn after_calibrate_manipulator_an_approach_reaches_the_injection_point_within_2_
     )).unwrap())
     .unwrap();
     let cfg = params.config();
-    let bridge = Bridge::start(
-        cfg.clone(),
-        "127.0.0.1:0",
-        Ok(Box::new(Shared(sim.clone()))),
-    )
-    .unwrap();
+    let bridge = Bridge::start(cfg.clone(), "127.0.0.1:0", Ok(Box::new(sim.clone()))).unwrap();
     let client = std::net::TcpStream::connect(bridge.addr).unwrap();
     client
         .set_read_timeout(Some(Duration::from_millis(20)))
@@ -163,11 +135,11 @@ fn after_calibrate_manipulator_an_approach_reaches_the_injection_point_within_2_
             }
             line.clear();
         }
-        path.push(front(&micro, sim.lock().unwrap().state().unwrap().position));
+        path.push(front(&micro, sim.clone().state().unwrap().position));
         std::thread::sleep(Duration::from_millis(15));
     }
     let end = end.unwrap();
-    let got = front(&micro, sim.lock().unwrap().state().unwrap().position);
+    let got = front(&micro, sim.clone().state().unwrap().position);
     let err =
         ((got[0] - end[0]).powi(2) + (got[1] - end[1]).powi(2) + (got[2] - end[2]).powi(2)).sqrt();
     // The true body along the whole path, against every cell but the target.

@@ -99,6 +99,9 @@ pub struct Restart {
 /// 500 ms.
 pub const MIN_HEARTBEAT_MS: u64 = 1000;
 
+/// The longest restart back-off a launch file may ask for, ms (ten minutes).
+pub const MAX_BACKOFF_MS: u64 = 600_000;
+
 fn default_max_restarts() -> u32 {
     3
 }
@@ -1025,6 +1028,18 @@ impl LaunchFile {
                         ),
                     );
                 }
+            }
+            if let Some(r) = &n.restart
+                && r.get_ref().backoff_ms > MAX_BACKOFF_MS
+            {
+                err(
+                    &mut errs,
+                    r.span().start,
+                    format!(
+                        "node '{id}': backoff_ms = {} is out of range; give 0 to {MAX_BACKOFF_MS} (it doubles while a node keeps failing)",
+                        r.get_ref().backoff_ms
+                    ),
+                );
             }
             if let Some(r) = &n.restart
                 && let Some(h) = r.get_ref().heartbeat_ms

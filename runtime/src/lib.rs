@@ -27,6 +27,16 @@ macro_rules! outln {
     }};
 }
 
+/// `eprintln!` that never panics: a full disk (`2>/dev/full`), a closed terminal or a pipe
+/// whose reader left must not kill a supervisor or a node in the middle of its clean-up.
+#[macro_export]
+macro_rules! errln {
+    ($($t:tt)*) => {{
+        use std::io::Write as _;
+        let _ = writeln!(std::io::stderr(), $($t)*);
+    }};
+}
+
 pub mod edge;
 pub mod exec;
 pub mod harness;
@@ -36,6 +46,7 @@ pub mod node;
 pub mod process;
 pub mod registry;
 pub mod restarts;
+pub mod signals;
 pub mod stats;
 pub mod status;
 pub mod supervisor;

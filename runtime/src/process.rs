@@ -224,7 +224,7 @@ fn wait_for_readers_elsewhere(
         Default::default();
     while !waiting.is_empty() {
         if t0.elapsed() > REMOTE_READERS_PATIENCE {
-            eprintln!(
+            crate::errln!(
                 "warning: the readers on other hosts ({}) did not start within {} s; sending anyway",
                 waiting
                     .iter()
@@ -403,6 +403,7 @@ impl Tally {
             latency_p99_ms: percentile(&mut latencies, 0.99),
             first_step_end_ns: self.ends.map(|e| e.0),
             last_step_end_ns: self.ends.map(|e| e.1),
+            phase: None,
         }
     }
 
@@ -501,12 +502,17 @@ pub fn run_node(
         want.iter().any(|w| !have.contains(w))
     }) {
         if t0.elapsed() > Duration::from_secs(30) {
-            eprintln!("warning: not every reader connected within 30 s; sending anyway");
+            crate::errln!("warning: not every reader connected within 30 s; sending anyway");
             break;
         }
-        std::thread::sleep(Duration::from_millis(2));
+        if !transport.sleep(Duration::from_millis(2)) {
+            return Ok(stopped_early(id));
+        }
     }
     wait_for_readers_elsewhere(graph, instance, spec, &transport);
+    if crate::signals::stop_requested() {
+        return Ok(stopped_early(id));
+    }
     // A restarted node tells the nodes downstream that the frames its predecessor held are
     // gone, before any frame of its own (see [`Restarts`]).
     if generation > 0 {
@@ -528,9 +534,10 @@ pub fn run_node(
         subs.iter().chain(feedback.iter().map(|(_, s)| s)),
     );
     if subs.is_empty() {
+        // A rate too small for a period (the kinds check their rates) counts as the slowest.
         let period = fps
             .filter(|f| *f > 0.0)
-            .map(|f| Duration::from_secs_f64(1.0 / f));
+            .map(|f| Duration::try_from_secs_f64(1.0 / f).unwrap_or(Duration::MAX));
         let start = Instant::now();
         let first = first_frame_from_env()?;
         let mut seq = first;
@@ -564,7 +571,8 @@ pub fn run_node(
             }
             // Also the place where a stop request is noticed between frames.
             let wait = period.map_or(Duration::ZERO, |p| {
-                (start + p * (seq - first) as u32).saturating_duration_since(Instant::now())
+                due(start, p, seq - first)
+                    .map_or(p, |t| t.saturating_duration_since(Instant::now()))
             });
             if !sleep_beating(&transport, wait, || {
                 tally.report(id, spec, out.sent, feedback.iter().map(|(_, s)| s))
@@ -815,6 +823,7 @@ pub fn run_tap(
         latency_p99_ms: 0.0,
         first_step_end_ns: None,
         last_step_end_ns: None,
+        phase: None,
     };
     wait_loop::<String>(&refs, Duration::from_millis(500), |wake, _| {
         if wake == Wake::Stop {
@@ -923,10 +932,17 @@ fn linger(transport: &Transport, read_in_graph: bool, mut beat: impl FnMut()) {
 
 /// [`Transport::sleep`] for `wait`, reporting (`beat`) every [`BEAT`] on the way; false
 /// when a stop request cut it short.
+/// When frame `n` of a source paced at `period` from `start` is due (`None`: beyond any
+/// clock this process will see).
+fn due(start: Instant, period: Duration, n: u64) -> Option<Instant> {
+    let ns = period.as_nanos().checked_mul(u128::from(n))?;
+    start.checked_add(Duration::from_nanos(u64::try_from(ns).ok()?))
+}
+
 fn sleep_beating(transport: &Transport, wait: Duration, mut beat: impl FnMut()) -> bool {
-    let end = Instant::now() + wait;
+    let start = Instant::now();
     loop {
-        let left = end.saturating_duration_since(Instant::now());
+        let left = wait.saturating_sub(start.elapsed());
         if !transport.sleep(left.min(BEAT)) {
             return false;
         }
@@ -1015,6 +1031,37 @@ pub fn remove_stale_resources() -> StaleCleanup {
             empty_files,
             gave_up: true,
         },
+    }
+}
+
+/// Removes the domain's own shared memory (iceoryx2's node counter, which outlives every
+/// node by design) when no node of the domain lives any more: the last run of a domain
+/// leaves nothing behind. Returns whether it was removed.
+pub fn release_domain() -> bool {
+    set_log_level_from_env_or(LogLevel::Error);
+    let config = crate::transport::iceoryx_config();
+    let mut in_use = false;
+    let listed = Node::<crate::transport::Service>::list(config, |state| {
+        match state {
+            NodeState::Dead(view) => {
+                // A dead node's resources go first; one that cannot be removed keeps the
+                // domain in use.
+                in_use |= view.try_remove_stale_resources().is_err();
+            }
+            _ => in_use = true,
+        }
+        CallbackProgression::Continue
+    });
+    if listed.is_err() || in_use {
+        return false;
+    }
+    // SAFETY: iceoryx2 asks that no other process use the domain. No node of it lives: a
+    // process that opened the segment and has yet to make its node keeps its own mapping
+    // and its id (ids are made of the process id and the time besides this counter), and
+    // the next one makes the segment anew.
+    unsafe {
+        iceoryx2::testing::remove_global_mgmt_segment::<crate::transport::Service>(config)
+            .unwrap_or(false)
     }
 }
 
@@ -1229,9 +1276,30 @@ pub fn write_graph(path: &Path, graph: &Graph) -> Result<(), String> {
     std::fs::write(path, json).map_err(|e| format!("cannot write {}: {e}", path.display()))
 }
 
+/// The report of a node stopped before it handled a frame.
+fn stopped_early(id: &str) -> NodeStats {
+    NodeStats {
+        id: id.into(),
+        runs: 1,
+        cpu_ms: crate::stats::process_cpu_ms(),
+        ..NodeStats::default()
+    }
+}
+
 /// Runs node `a.id` of the graph in `a.graph` as this process, with the node kinds of
-/// `registry` (an `exec` node's program holds its one kind there).
+/// `registry` (an `exec` node's program holds its one kind there). A node asked to stop
+/// ends quietly with what it did, whatever its stop cut short (a wait for a writer, a
+/// send): the stop is what happened, not an error.
 pub fn run_graph_node(registry: &Registry, a: &NodeArgs) -> Result<NodeStats, String> {
+    crate::signals::install();
+    AS_PROCESS.store(true, std::sync::atomic::Ordering::Relaxed);
+    match run_graph_node_inner(registry, a) {
+        Err(_) if crate::signals::stop_requested() => Ok(stopped_early(&a.id)),
+        r => r,
+    }
+}
+
+fn run_graph_node_inner(registry: &Registry, a: &NodeArgs) -> Result<NodeStats, String> {
     let graph = load_graph(&a.graph)?;
     let spec = graph
         .node(&a.id)
@@ -1256,9 +1324,26 @@ pub fn run_graph_node(registry: &Registry, a: &NodeArgs) -> Result<NodeStats, St
     .map_err(|e| format!("node '{}': {e}", a.id))
 }
 
+/// Set while this process runs a node of a graph for a supervisor (not in-process).
+static AS_PROCESS: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// Tells the supervisor (and `top`) what this node is doing before its first frame when
+/// that takes long, e.g. `rendering the loop: 12 of 30 frames`. Nothing happens where the
+/// node does not run as a process of a graph (in `reconstruct`, in tests).
+pub fn report_phase(phase: &str) {
+    if AS_PROCESS.load(std::sync::atomic::Ordering::Relaxed) {
+        print_stats(&NodeStats {
+            runs: 1,
+            cpu_ms: crate::stats::process_cpu_ms(),
+            phase: Some(phase.into()),
+            ..NodeStats::default()
+        });
+    }
+}
+
 /// Prints a node's statistics the way the supervisor reads them.
 pub fn print_stats(stats: &NodeStats) {
-    println!(
+    crate::outln!(
         "{STATS_PREFIX}{}",
         serde_json::to_string(stats).expect("serialises")
     );
@@ -1293,6 +1378,7 @@ pub fn set_parent_death_signal() {
 /// }
 /// ```
 pub fn exec_main(registry: Registry) -> i32 {
+    crate::signals::install();
     set_parent_death_signal();
     let args: Vec<String> = std::env::args().skip(1).collect();
     let result = Invocation::parse(&args).and_then(|inv| match inv {
@@ -1300,7 +1386,7 @@ pub fn exec_main(registry: Registry) -> i32 {
             let params: toml::Table = toml::from_str(&params)
                 .map_err(|e| format!("--params is not a TOML table: {}", e.message()))?;
             let spec = registry.describe_only_kind(&params, &connected)?;
-            println!("{}", serde_json::to_string(&spec).expect("serialises"));
+            crate::outln!("{}", serde_json::to_string(&spec).expect("serialises"));
             Ok(())
         }
         Invocation::Run(a) => run_graph_node(&registry, &a).map(|s| print_stats(&s)),
@@ -1308,7 +1394,7 @@ pub fn exec_main(registry: Registry) -> i32 {
     match result {
         Ok(()) => 0,
         Err(e) => {
-            eprintln!("error: {e}");
+            crate::errln!("error: {e}");
             2
         }
     }

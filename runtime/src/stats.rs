@@ -43,6 +43,10 @@ pub struct NodeStats {
     /// When its last step ended, ns since the Unix epoch.
     #[serde(default)]
     pub last_step_end_ns: Option<u64>,
+    /// What it is doing before its first frame, while that takes long (a source rendering
+    /// its loop ahead, say), with how far it got: `top` shows the node as preparing.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub phase: Option<String>,
 }
 
 impl NodeStats {
@@ -146,6 +150,8 @@ pub fn merge(runs: &[NodeStats]) -> Option<NodeStats> {
             (a, b) => a.or(b),
         };
         m.last_step_end_ns = m.last_step_end_ns.max(r.last_step_end_ns);
+        // What the newest process is doing.
+        m.phase = r.phase.clone();
         for (i, ri) in r.inputs.iter().enumerate() {
             match m.inputs.get_mut(i) {
                 Some(mi) => {
@@ -211,6 +217,7 @@ mod tests {
             latency_p99_ms: p99,
             first_step_end_ns: None,
             last_step_end_ns: None,
+            phase: None,
         }
     }
 

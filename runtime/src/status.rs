@@ -25,6 +25,16 @@ pub fn status_service(instance: &str, host: Option<&str>) -> String {
     }
 }
 
+/// Every status service a run of `instance` may publish: the whole graph's and each host
+/// part's.
+pub fn status_services<'a, V>(
+    instance: &'a str,
+    hosts: &'a std::collections::BTreeMap<String, V>,
+) -> impl Iterator<Item = String> + 'a {
+    std::iter::once(status_service(instance, None))
+        .chain(hosts.keys().map(move |h| status_service(instance, Some(h))))
+}
+
 /// A run as `top` and `topic` name it: `INSTANCE`, or `INSTANCE@HOST` for one part of a
 /// graph split over hosts.
 pub fn run_name(instance: &str, host: Option<&str>) -> String {
@@ -40,6 +50,8 @@ pub fn run_name(instance: &str, host: Option<&str>) -> String {
 pub enum NodeState {
     /// Its process runs and has not reported yet.
     Starting,
+    /// Its process prepares its first frame (its report says what it does).
+    Preparing,
     /// Its process runs and reports.
     Running,
     /// Its process ended and another starts after the back-off.
@@ -55,6 +67,7 @@ impl NodeState {
     pub fn word(self) -> &'static str {
         match self {
             NodeState::Starting => "starting",
+            NodeState::Preparing => "preparing",
             NodeState::Running => "running",
             NodeState::Restarting => "restarting",
             NodeState::Exited => "exited",
@@ -248,7 +261,13 @@ pub struct NodeRow {
     pub p99_ms: f64,
     /// Its processes' CPU over the window, % of one core.
     pub cpu_percent: f64,
+    /// What a preparing node does, or how long a running one has produced nothing (after
+    /// [`QUIET_AFTER`]).
+    pub note: Option<String>,
 }
+
+/// How long a running node may go without a step before `top` says so.
+pub const QUIET_AFTER: std::time::Duration = std::time::Duration::from_secs(3);
 
 /// An edge's row of `top` (one per reader): figures over the window between two snapshots.
 #[derive(Clone, Debug, PartialEq)]
@@ -306,6 +325,16 @@ pub fn node_rows(prev: Option<&GraphStatus>, now: &GraphStatus) -> Vec<NodeRow> 
             let secs = w.map_or(since_start, |(dt, _)| dt);
             let frames = s.frames_in.saturating_sub(before.frames_in);
             let busy = s.mean_ms * s.frames_in as f64 - before.mean_ms * before.frames_in as f64;
+            let quiet_ns = now
+                .now_ns
+                .saturating_sub(s.last_step_end_ns.unwrap_or(now.started_ns));
+            let note = match n.state {
+                NodeState::Preparing => s.phase.clone(),
+                NodeState::Running if !now.ended && quiet_ns >= QUIET_AFTER.as_nanos() as u64 => {
+                    Some(format!("nothing for {:.0} s", quiet_ns as f64 * 1e-9))
+                }
+                _ => None,
+            };
             NodeRow {
                 id: n.id.clone(),
                 kind: n.kind.clone(),
@@ -316,6 +345,7 @@ pub fn node_rows(prev: Option<&GraphStatus>, now: &GraphStatus) -> Vec<NodeRow> 
                 mean_ms: (frames > 0).then(|| (busy / frames as f64).max(0.0)),
                 p99_ms: s.p99_ms,
                 cpu_percent: ((s.cpu_ms - before.cpu_ms).max(0.0) / (secs * 1e3)) * 100.0,
+                note,
             }
         })
         .collect()

@@ -51,6 +51,8 @@ pub struct RunReport {
     /// Why the run ended early: a node failed beyond its restart policy (the stats still
     /// hold what was done until then).
     pub failure: Option<String>,
+    /// The signal that stopped the run, if one did.
+    pub signal: Option<i32>,
 }
 
 /// The graph file of a run, removed when the run ends.
@@ -65,41 +67,66 @@ impl Drop for GraphFile {
 /// One run per instance name on this machine: two runs sharing one would read and write each
 /// other's edges and wait on each other for ever. An exclusive `flock` on a file named after
 /// the instance, held for the run; the kernel lets go of it however the supervisor ends,
-/// SIGKILL included, so nothing stale is left to clean.
-struct InstanceLock(#[allow(dead_code)] std::fs::File);
+/// SIGKILL included. The file is removed when the run ends (while still locked, so that a
+/// run starting meanwhile never holds a lock on a file that is gone: it checks the file it
+/// locked is still the one at the path).
+struct InstanceLock {
+    file: std::fs::File,
+    path: PathBuf,
+}
 
 impl InstanceLock {
     fn take(instance: &str) -> Result<Self, String> {
         use std::io::{Read, Seek, Write};
         use std::os::fd::AsRawFd;
+        use std::os::unix::fs::MetadataExt;
         let path = crate::status::lock_path(instance);
-        let mut f = std::fs::OpenOptions::new()
-            .read(true)
-            .write(true)
-            .create(true)
-            .truncate(false)
-            .open(&path)
-            .map_err(|e| format!("cannot open the instance lock '{}': {e}", path.display()))?;
-        // SAFETY: flock on a descriptor this function owns; no memory is involved.
-        let rc = unsafe { libc::flock(f.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) };
-        if rc != 0 {
-            let mut holder = String::new();
-            let _ = f.read_to_string(&mut holder);
-            return Err(format!(
-                "instance '{instance}' is in use by another run (supervisor process {}): give this run another --instance, or stop that one",
-                holder.trim()
-            ));
+        loop {
+            let mut f = std::fs::OpenOptions::new()
+                .read(true)
+                .write(true)
+                .create(true)
+                .truncate(false)
+                .open(&path)
+                .map_err(|e| format!("cannot open the instance lock '{}': {e}", path.display()))?;
+            // SAFETY: flock on a descriptor this function owns; no memory is involved.
+            let rc = unsafe { libc::flock(f.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) };
+            if rc != 0 {
+                let mut holder = String::new();
+                let _ = f.read_to_string(&mut holder);
+                return Err(format!(
+                    "instance '{instance}' is in use by another run (supervisor process {}): give this run another --instance, or stop that one",
+                    holder.trim()
+                ));
+            }
+            // The run before may have removed the file between our open and our lock.
+            let same = match (f.metadata(), std::fs::metadata(&path)) {
+                (Ok(a), Ok(b)) => a.ino() == b.ino() && a.dev() == b.dev(),
+                _ => false,
+            };
+            if !same {
+                continue;
+            }
+            let _ = f.set_len(0);
+            let _ = f.rewind();
+            let _ = write!(f, "{}", std::process::id());
+            return Ok(Self { file: f, path });
         }
-        let _ = f.set_len(0);
-        let _ = f.rewind();
-        let _ = write!(f, "{}", std::process::id());
-        Ok(Self(f))
+    }
+}
+
+impl Drop for InstanceLock {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.path);
+        let _ = &self.file;
     }
 }
 
 /// Runs `graph` as processes until its frames are done, Ctrl-C or SIGTERM; a node that
 /// fails beyond its restart policy stops the graph and is the report's `failure`.
 pub fn run(graph: &Graph, o: &RunOptions) -> Result<RunReport, String> {
+    // Before anything is made that a signal's default action would leave behind.
+    crate::signals::install();
     // A part runs its host's nodes and the taps added for it (recorder, viewer).
     let mut graph = graph.clone();
     if o.host.is_none() {
@@ -139,7 +166,7 @@ pub fn run(graph: &Graph, o: &RunOptions) -> Result<RunReport, String> {
             let before = n.inputs.len();
             n.inputs.retain(|i| on_host(&snapshot, &i.node, &i.output));
             if n.inputs.len() < before {
-                eprintln!(
+                crate::errln!(
                     "{}: {} edge(s) written and read only on other hosts are left out here (record them on their host)",
                     n.id,
                     before - n.inputs.len()
@@ -150,13 +177,14 @@ pub fn run(graph: &Graph, o: &RunOptions) -> Result<RunReport, String> {
     let graph = &graph;
     let stale = crate::process::remove_stale_resources();
     if stale.removed > 0 || stale.empty_files > 0 {
-        eprintln!(
+        crate::errln!(
             "removed the shared memory of {} dead node(s) and {} unfinished edge(s)",
-            stale.removed, stale.empty_files
+            stale.removed,
+            stale.empty_files
         );
     }
     if stale.gave_up {
-        eprintln!(
+        crate::errln!(
             "warning: the shared memory of dead nodes could not be removed within {:?}; \
              the graph starts anyway (`rm /dev/shm/iox2_*` and `rm -r /tmp/iceoryx2` with \
              no graph running clears it)",
@@ -179,6 +207,15 @@ pub fn run(graph: &Graph, o: &RunOptions) -> Result<RunReport, String> {
         ));
     }
     let _lock = InstanceLock::take(&crate::status::run_name(&instance, o.host.as_deref()))?;
+    // What a dead run of this instance may have left half made (its edges, its graph and
+    // control files): nobody else makes them while the lock is held.
+    let reclaimed = reclaim_instance(graph, &instance);
+    if reclaimed > 0 {
+        crate::errln!(
+            "removed {reclaimed} file(s) an earlier run of instance '{instance}' left unfinished"
+        );
+    }
+
     // The part's link to the other hosts, up before its nodes: it carries only the edges
     // between hosts, and each only once a node here holds it (with the edge's own queue
     // settings), and the other parts' status.
@@ -196,18 +233,78 @@ pub fn run(graph: &Graph, o: &RunOptions) -> Result<RunReport, String> {
         .enable_all()
         .build()
         .map_err(|e| format!("cannot start the supervisor: {e}"))?;
-    let (stats, wall, failure) = rt.block_on(supervise(graph, o, &file.0, &instance))?;
+    let (stats, wall, failure, killed) = rt.block_on(supervise(graph, o, &file.0, &instance));
     if let Some(l) = link {
         // The last status (the run ended) goes across before the link does.
         std::thread::sleep(Duration::from_millis(300));
         l.stop();
     }
+    // A node killed (after its grace, or by anyone with SIGKILL) could not clean up: its
+    // shared memory goes now, not at some later run's start.
+    if killed {
+        let _ = crate::process::remove_stale_resources();
+        reclaim_instance(graph, &instance);
+    }
+    // The last run of a domain takes the domain's own memory with it.
+    drop(rt);
+    crate::process::release_domain();
     Ok(RunReport {
         stats,
         wall,
         host: o.host.clone(),
         failure,
+        signal: crate::signals::first_signal(),
     })
+}
+
+/// Removes what a dead run of `instance` left behind: edges iceoryx2 never finished making
+/// (a process killed while making one leaves it "being set up" for ever, and every later
+/// run of the instance then fails to open it), its graph files and its control files.
+/// Only under the instance's lock, and before any node of this run starts. Returns the
+/// number of files removed.
+fn reclaim_instance(graph: &Graph, instance: &str) -> usize {
+    let mut removed = crate::transport::remove_unfinished_services(
+        graph
+            .nodes
+            .iter()
+            .flat_map(|n| {
+                n.outputs
+                    .iter()
+                    .map(|(port, _)| Graph::edge_name(instance, &n.id, port))
+            })
+            .chain(crate::status::status_services(instance, &graph.hosts)),
+    );
+    let tmp = std::env::temp_dir();
+    if let Ok(dir) = std::fs::read_dir(&tmp) {
+        let graph_file = format!("microstereo-{instance}-");
+        for e in dir.filter_map(Result::ok) {
+            let name = e.file_name().to_string_lossy().into_owned();
+            let stale_graph = name.starts_with(&graph_file)
+                && name.ends_with(".graph.json")
+                && name[graph_file.len()..name.len() - ".graph.json".len()]
+                    .parse::<u32>()
+                    .is_ok_and(|pid| !process_alive(pid));
+            if stale_graph && std::fs::remove_file(e.path()).is_ok() {
+                removed += 1;
+            }
+        }
+    }
+    for n in &graph.nodes {
+        let control = crate::process::control_path(instance, &n.id);
+        for p in [control.with_extension("control.new"), control] {
+            if std::fs::remove_file(p).is_ok() {
+                removed += 1;
+            }
+        }
+    }
+    removed
+}
+
+/// Whether a process with this id exists.
+fn process_alive(pid: u32) -> bool {
+    // SAFETY: kill(2) with signal 0 sends nothing; it only checks that the process exists.
+    let rc = unsafe { libc::kill(pid as i32, 0) };
+    rc == 0 || std::io::Error::last_os_error().raw_os_error() == Some(libc::EPERM)
 }
 
 struct Child {
@@ -280,7 +377,11 @@ fn spawn(
         } else {
             Stdio::null()
         })
-        .kill_on_drop(true);
+        .kill_on_drop(true)
+        // A group of its own: the terminal's Ctrl-C, Ctrl-\ and hang-up reach the
+        // supervisor only, which stops the nodes in order (a node that took the terminal's
+        // SIGINT itself ended before the supervisor knew of any stop, and counted as failed).
+        .process_group(0);
     #[cfg(target_os = "linux")]
     // SAFETY: only async-signal-safe prctl between fork and exec.
     unsafe {
@@ -356,7 +457,7 @@ fn forward_logs(
                 if let Some(t) = &tap {
                     let _ = t.send(format!("{id}\tWARN\t{l}"));
                 }
-                above_progress(|| eprintln!("[{id}] {l}"));
+                above_progress(|| crate::errln!("[{id}] {l}"));
             }
         });
     }
@@ -383,24 +484,43 @@ fn forward_logs(
 static VIEWER_LOGS: std::sync::Mutex<Option<tokio::sync::mpsc::UnboundedReceiver<String>>> =
     std::sync::Mutex::new(None);
 
+/// Asks every node to stop: SIGTERM to each node's process group (the node and whatever
+/// it started; each node leads a group of its own).
 fn terminate(children: &[Child]) {
     for c in children {
         if let Some(pid) = c.proc.id() {
-            // SAFETY: kill(2) on our own child's pid.
+            // SAFETY: kill(2) on the process group our own child leads.
             unsafe {
-                libc::kill(pid as i32, libc::SIGTERM);
+                libc::kill(-(pid as i32), libc::SIGTERM);
             }
         }
     }
 }
+
+/// Kills every node that is left, with whatever it started.
+fn kill_all(children: &mut [Child]) {
+    for c in children {
+        if let Some(pid) = c.proc.id() {
+            // SAFETY: kill(2) on the process group our own child leads.
+            unsafe {
+                libc::kill(-(pid as i32), libc::SIGKILL);
+            }
+        }
+        let _ = c.proc.start_kill();
+    }
+}
+
+/// What a supervised run gives back: per node its reports, the wall time, why it ended
+/// early (if it did) and whether a node had to be killed (its shared memory then needs
+/// removing).
+type Supervised = (HashMap<String, NodeStats>, Duration, Option<String>, bool);
 
 async fn supervise(
     graph: &Graph,
     a: &RunOptions,
     file: &std::path::Path,
     instance: &str,
-) -> Result<(HashMap<String, NodeStats>, Duration, Option<String>), String> {
-    use tokio::signal::unix::{SignalKind, signal};
+) -> Supervised {
     let stats: StatsSink = Default::default();
     let start = Instant::now();
     let states: States = Default::default();
@@ -419,8 +539,23 @@ async fn supervise(
     let here = |n: &crate::launch::NodeSpec| a.host.is_none() || n.host == a.host;
     // The parts on other hosts that read this one's edges: it stops once they ended.
     let mut readers_elsewhere = RemoteParts::of(graph, instance, a.host.as_deref());
+    let mut failure: Option<String> = None;
+    // Set once the graph is told to stop: when its grace runs out, whatever still runs is
+    // killed.
+    let mut stopping: Option<Instant> = None;
+    let mut killed = false;
     for n in graph.nodes.iter().filter(|n| here(n)) {
-        let mut proc = spawn(graph, a, file, instance, &n.id, 0, None)?;
+        // A stop while the nodes start: the rest are not started.
+        if crate::signals::stop_requested() {
+            break;
+        }
+        let mut proc = match spawn(graph, a, file, instance, &n.id, 0, None) {
+            Ok(p) => p,
+            Err(e) => {
+                failure = Some(e);
+                break;
+            }
+        };
         set_state(&states, &n.id, NodeState::Starting, 0, proc.id());
         let reports = forward_logs(&n.id, 0, n.logs, &mut proc, &stats, &tap);
         children.push(Child {
@@ -432,71 +567,98 @@ async fn supervise(
             reports,
         });
     }
-    let mut sigterm =
-        signal(SignalKind::terminate()).map_err(|e| format!("cannot watch SIGTERM: {e}"))?;
-    // A node that others read stays after its last frame (its readers may still be taking
-    // them) until it is told to stop.
-    let mut failure: Option<String> = None;
-    let mut stopping = false;
+    let grace = Duration::try_from_secs_f64(a.grace).unwrap_or(Duration::ZERO);
+    let stop = |children: &[Child], stopping: &mut Option<Instant>| {
+        if stopping.is_none() {
+            *stopping = Some(Instant::now());
+            terminate(children);
+        }
+    };
+    if failure.is_some() || crate::signals::stop_requested() {
+        stop(&children, &mut stopping);
+    }
     // Restarts so far in this run: a restarted node's markers carry the count.
     let mut generation = 0u64;
+    // Signals already acted on (a second one means: now).
+    let mut signals_seen = 0;
     loop {
         if children.is_empty() {
             break;
         }
+        let signals = crate::signals::signal_count();
+        if signals > signals_seen || (signals_seen == 0 && crate::signals::stop_requested()) {
+            if stopping.is_none() {
+                above_progress(|| crate::errln!("stopping the graph"));
+            } else if signals_seen > 0 {
+                above_progress(|| crate::errln!("stopping now: the nodes left are killed"));
+                kill_all(&mut children);
+                killed = true;
+            }
+            signals_seen = signals.max(1);
+            stop(&children, &mut stopping);
+        }
         // Every node nobody reads is done: the ones they read may go.
-        if !stopping
+        if stopping.is_none()
             && children.iter().all(|c| graph.is_read(&c.id))
             && readers_elsewhere.all_ended()
         {
-            stopping = true;
-            terminate(&children);
+            stop(&children, &mut stopping);
         }
-        let watched = !stopping
+        if let Some(t) = stopping
+            && t.elapsed() >= grace
+            && !killed
+        {
+            kill_all(&mut children);
+            killed = true;
+        }
+        let watched = stopping.is_none()
             && (graph.nodes.iter().any(|n| n.restart.heartbeat_ms.is_some())
                 || !readers_elsewhere.is_empty());
+        // The stop flag is a signal handler's: it is looked at this often.
+        let tick = if watched { WATCH_TICK } else { SIGNAL_TICK };
         let event = {
             let waits = children
                 .iter_mut()
                 .enumerate()
                 .map(|(i, c)| Box::pin(async move { (i, c.proc.wait().await) }));
             tokio::select! {
+                biased;
                 (r, _, _) = futures_select(waits) => Event::Exit(r.0, r.1),
-                _ = tokio::signal::ctrl_c() => Event::Stop,
-                _ = sigterm.recv() => Event::Stop,
-                _ = tokio::time::sleep(Duration::from_secs_f64(a.grace)), if stopping => {
-                    for c in &mut children {
-                        let _ = c.proc.start_kill();
-                    }
-                    Event::Tick
-                }
-                _ = tokio::time::sleep(WATCH_TICK), if watched => Event::Tick,
+                _ = tokio::time::sleep(tick.min(SIGNAL_TICK)) => Event::Tick,
             }
         };
         let (i, status) = match event {
             Event::Exit(i, status) => (i, status),
-            Event::Stop => {
-                if !stopping {
-                    eprintln!("stopping the graph");
-                    stopping = true;
-                    terminate(&children);
-                }
-                continue;
-            }
             Event::Tick => {
-                if !stopping {
+                if stopping.is_none() && watched {
                     watch(graph, &stats, &mut children);
                     if let Some(why) = readers_elsewhere.look() {
                         failure = Some(why);
-                        stopping = true;
-                        terminate(&children);
+                        stop(&children, &mut stopping);
                     }
                 }
                 continue;
             }
         };
-        let status = status.map_err(|e| format!("waiting for a node: {e}"))?;
         let mut c = children.remove(i);
+        let status = match status {
+            Ok(s) => s,
+            Err(e) => {
+                // It cannot be waited for: killed, so that nothing outlives the run.
+                let _ = c.proc.start_kill();
+                killed = true;
+                if stopping.is_none() {
+                    failure = Some(format!("waiting for node '{}': {e}", c.id));
+                    stop(&children, &mut stopping);
+                }
+                continue;
+            }
+        };
+        // Killed by a signal (SIGKILL after its grace, the watchdog, anyone): whatever it
+        // had made stays until removed.
+        if std::os::unix::process::ExitStatusExt::signal(&status).is_some() {
+            killed = true;
+        }
         // Its last reports may still be in the pipe (the reader task runs beside this one,
         // and lags under load): a restarted source would otherwise go on from a frame
         // before its predecessor's last and send frame numbers twice. Bounded, in case
@@ -508,7 +670,7 @@ async fn supervise(
         // A node others read never ends on its own before the graph stops: one that did
         // was stopped from outside (a SIGTERM it obeyed), and its readers would wait for
         // its frames for ever. It counts as failed.
-        let ended_early = !stopping && status.success() && graph.is_read(&c.id);
+        let ended_early = stopping.is_none() && status.success() && graph.is_read(&c.id);
         let failed = !status.success() || ended_early || c.hung.is_some();
         let why = if let Some(h) = c.hung {
             format!(
@@ -520,7 +682,7 @@ async fn supervise(
         } else {
             format!("{status}")
         };
-        let restart = !stopping
+        let restart = stopping.is_none()
             && match spec.restart.policy {
                 RestartPolicy::Never => false,
                 RestartPolicy::OnFailure => failed,
@@ -540,9 +702,13 @@ async fn supervise(
                 .and_then(Option::as_ref)
                 .is_some_and(|h| h.stats.frames_in > 0);
             let exponent = if progressed { 0 } else { c.streak };
-            let wait = Duration::from_millis(spec.restart.backoff_ms << exponent.min(10));
+            let wait = Duration::from_millis(
+                spec.restart
+                    .backoff_ms
+                    .saturating_mul(1 << exponent.min(10)),
+            );
             above_progress(|| {
-                eprintln!(
+                crate::errln!(
                     "[{}] exited ({why}); restart {} of {} in {:?}",
                     c.id,
                     c.restarts + 1,
@@ -559,10 +725,20 @@ async fn supervise(
                     .await
                     .unwrap_or_default();
                 if stale.gave_up {
-                    eprintln!("[{}] warning: its shared memory could not be removed", c.id);
+                    above_progress(|| {
+                        crate::errln!("[{}] warning: its shared memory could not be removed", c.id)
+                    });
                 }
             }
-            tokio::time::sleep(wait).await;
+            // The back-off is cut short by a stop.
+            let until = Instant::now() + wait;
+            while Instant::now() < until && !crate::signals::stop_requested() {
+                tokio::time::sleep(SIGNAL_TICK.min(until - Instant::now())).await;
+            }
+            if crate::signals::stop_requested() {
+                set_state(&states, &c.id, NodeState::Exited, c.restarts, None);
+                continue;
+            }
             generation += 1;
             // A source goes on from the frame after the last its predecessors reported.
             let first_frame = spec
@@ -578,7 +754,15 @@ async fn supervise(
                 })
                 .flatten()
                 .map(|l| l + 1);
-            let mut proc = spawn(graph, a, file, instance, &c.id, generation, first_frame)?;
+            let mut proc = match spawn(graph, a, file, instance, &c.id, generation, first_frame) {
+                Ok(p) => p,
+                Err(e) => {
+                    set_state(&states, &c.id, NodeState::Failed, c.restarts, None);
+                    failure = Some(e);
+                    stop(&children, &mut stopping);
+                    continue;
+                }
+            };
             set_state(
                 &states,
                 &c.id,
@@ -603,16 +787,15 @@ async fn supervise(
                 reports,
             });
         } else {
-            let state = if failed && !stopping {
+            let state = if failed && stopping.is_none() {
                 NodeState::Failed
             } else {
                 NodeState::Exited
             };
             set_state(&states, &c.id, state, c.restarts, None);
-            if failed && !stopping {
+            if failed && stopping.is_none() {
                 failure = Some(format!("node '{}' failed ({why})", c.id));
-                stopping = true;
-                terminate(&children);
+                stop(&children, &mut stopping);
             }
         }
     }
@@ -632,8 +815,11 @@ async fn supervise(
             Some((id.clone(), crate::stats::merge(&runs)?))
         })
         .collect();
-    Ok((stats, wall, failure))
+    (stats, wall, failure, killed)
 }
+
+/// How often the supervisor looks at the stop flag its signal handler raises.
+const SIGNAL_TICK: Duration = Duration::from_millis(20);
 
 /// Pauses, resumes and steps the sources `ids` from the terminal, when stdin is one: a
 /// line `p` pauses or resumes them, `s` lets one frame through while paused (through their
@@ -644,7 +830,7 @@ fn control_from_terminal(ids: &[String], instance: &str) -> Vec<std::path::PathB
         return Vec::new();
     }
     above_progress(|| {
-        eprintln!(
+        crate::errln!(
             "{}: type p and Enter to pause or resume, s and Enter to step one frame",
             ids.join(", ")
         )
@@ -681,7 +867,7 @@ fn control_from_terminal(ids: &[String], instance: &str) -> Vec<std::path::PathB
                     let _ = std::fs::rename(&tmp, f);
                 }
             }
-            above_progress(|| eprintln!("{said}"));
+            above_progress(|| crate::errln!("{said}"));
         }
     });
     files
@@ -741,7 +927,7 @@ impl Monitor {
                     Ok(p) => Some(p),
                     Err(e) => {
                         above_progress(|| {
-                            eprintln!("warning: the run's status is not published: {e}")
+                            crate::errln!("warning: the run's status is not published: {e}")
                         });
                         None
                     }
@@ -828,7 +1014,9 @@ fn snapshot(base: &GraphStatus, stats: &StatsSink, states: &States, ended: bool)
             let reported = runs
                 .and_then(|r| r.get(restarts as usize))
                 .is_some_and(Option::is_some);
+            let preparing = n.stats.as_ref().is_some_and(|s| s.phase.is_some());
             n.state = match state {
+                NodeState::Starting if reported && preparing => NodeState::Preparing,
                 NodeState::Starting if reported => NodeState::Running,
                 other => other,
             };
@@ -970,9 +1158,7 @@ impl RemoteParts {
 enum Event {
     /// The child at this index exited.
     Exit(usize, std::io::Result<std::process::ExitStatus>),
-    /// Ctrl-C or SIGTERM.
-    Stop,
-    /// Time to look at the watchdog (or the grace period ran out).
+    /// Time to look at the stop flag and the watchdog.
     Tick,
 }
 
@@ -998,7 +1184,7 @@ fn watch(graph: &Graph, stats: &StatsSink, children: &mut [Child]) {
         let Some(last) = last else { continue };
         let silent = last.elapsed();
         if silent > limit {
-            eprintln!(
+            crate::errln!(
                 "[{}] no report for {} ms (heartbeat_ms = {}): hung; killing it",
                 c.id,
                 silent.as_millis(),

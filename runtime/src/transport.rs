@@ -99,6 +99,50 @@ pub fn iceoryx_config() -> &'static Config {
     CONFIG.get_or_init(|| domain_config(domain().as_deref()))
 }
 
+/// Where iceoryx2 keeps the static configuration of service `name` with `pattern`.
+pub fn service_config_path(
+    name: &str,
+    pattern: iceoryx2::service::messaging_pattern::MessagingPattern,
+) -> Option<std::path::PathBuf> {
+    use iceoryx2::service::service_hash::ServiceHash;
+    let cfg = iceoryx_config();
+    let n = ServiceName::new(name).ok()?;
+    let hash =
+        ServiceHash::new::<<Service as iceoryx2::service::Service>::ServiceNameHasher>(&n, pattern);
+    Some(
+        std::path::PathBuf::from(cfg.global.service_dir().to_string()).join(format!(
+            "{}{}{}",
+            cfg.global.prefix,
+            hash.as_str(),
+            cfg.global.service.static_config_storage_suffix
+        )),
+    )
+}
+
+/// Removes the static configurations of these services that iceoryx2 never finished making:
+/// a process killed while making one leaves it "being set up" (owner read-write, not yet
+/// read-only) for ever, and iceoryx2's clean-up of dead nodes does not remove it. Only for
+/// services nobody can be making now (the caller holds their run's lock). Returns how many
+/// were removed.
+pub fn remove_unfinished_services(names: impl IntoIterator<Item = String>) -> usize {
+    use iceoryx2::service::messaging_pattern::MessagingPattern;
+    use std::os::unix::fs::PermissionsExt;
+    let mut removed = 0;
+    for name in names {
+        for pattern in [MessagingPattern::PublishSubscribe, MessagingPattern::Event] {
+            let Some(path) = service_config_path(&name, pattern) else {
+                continue;
+            };
+            let unfinished = std::fs::metadata(&path)
+                .is_ok_and(|m| m.is_file() && m.permissions().mode() & 0o777 == 0o600);
+            if unfinished && std::fs::remove_file(&path).is_ok() {
+                removed += 1;
+            }
+        }
+    }
+    removed
+}
+
 /// The environment variable naming the iceoryx2 domain a process joins (the supervisor
 /// sets it for its nodes): graphs in different domains share no shared memory, even on one
 /// machine; a host's link joins domains over the network.
@@ -122,9 +166,19 @@ pub fn check_domain(d: &str) -> Result<(), String> {
     Ok(())
 }
 
-/// Sets this process's iceoryx2 domain (`None`: the default one), before its first edge;
-/// without a call, [`DOMAIN_ENV`] names it.
+/// Sets this process's iceoryx2 domain before its first edge: `d`, else the one
+/// [`DOMAIN_ENV`] names, else the default one. A name that cannot be one is an error,
+/// wherever it came from.
 pub fn set_domain(d: Option<&str>) -> Result<(), String> {
+    let from_env = std::env::var(DOMAIN_ENV).ok().filter(|v| !v.is_empty());
+    let d = match (d, from_env.as_deref()) {
+        (Some(d), _) => Some(d),
+        (None, Some(e)) => {
+            check_domain(e).map_err(|m| format!("${DOMAIN_ENV}: {m}"))?;
+            Some(e)
+        }
+        (None, None) => None,
+    };
     if let Some(d) = d {
         check_domain(d)?;
     }
@@ -177,19 +231,23 @@ impl Transport {
         Ok(Self { node })
     }
 
-    /// Sleeps for `d`; false when the process was asked to stop (SIGINT / SIGTERM), at once.
+    /// Sleeps for `d`; false when the process was asked to stop (a stop signal:
+    /// [`crate::signals`]), at once.
     pub fn sleep(&self, d: Duration) -> bool {
-        let until = std::time::Instant::now() + d;
+        let start = std::time::Instant::now();
         loop {
-            match self
-                .node
-                .wait(until.saturating_duration_since(std::time::Instant::now()))
-            {
-                Ok(()) => return true,
-                // Any signal cuts the sleep short; only SIGINT and SIGTERM (which a zero wait
-                // reports) stop the node.
-                Err(NodeWaitFailure::Interrupt) if self.node.wait(Duration::ZERO).is_ok() => {}
-                Err(_) => return false,
+            if crate::signals::stop_requested() {
+                return false;
+            }
+            let left = d.saturating_sub(start.elapsed());
+            match self.node.wait(left) {
+                Ok(()) if start.elapsed() >= d => return !crate::signals::stop_requested(),
+                // Woken early (a signal that is not a stop, or an interrupted sleep).
+                Ok(()) | Err(NodeWaitFailure::Interrupt) => {}
+                Err(NodeWaitFailure::TerminationRequest) => {
+                    crate::signals::request_stop();
+                    return false;
+                }
             }
         }
     }
@@ -369,7 +427,7 @@ impl Transport {
             let t0 = std::time::Instant::now();
             while pubsub.dynamic_config().number_of_publishers() == 0 {
                 if t0.elapsed() > WRITER_WAIT {
-                    eprintln!(
+                    crate::errln!(
                         "warning: edge '{edge}' has no writer after {} s; reading it anyway",
                         WRITER_WAIT.as_secs()
                     );
@@ -826,10 +884,12 @@ pub fn wait_loop<E: From<TransportError>>(
         for (s, _) in inputs.iter().zip(&ready).filter(|(_, r)| **r) {
             s.drain_events();
         }
-        // A signal other than SIGINT and SIGTERM also interrupts the wait: the next wait
-        // tells a stop request from it.
+        // Any signal interrupts the wait; the stop signals leave their flag.
+        if result == iceoryx2::waitset::WaitSetRunResult::TerminationRequest {
+            crate::signals::request_stop();
+        }
         let wake = match result {
-            iceoryx2::waitset::WaitSetRunResult::TerminationRequest => Wake::Stop,
+            _ if crate::signals::stop_requested() => Wake::Stop,
             _ if ready.contains(&true) => Wake::Ready,
             _ => Wake::Timeout,
         };

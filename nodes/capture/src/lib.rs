@@ -86,16 +86,30 @@ impl Params for CaptureParams {
                 Ok(())
             }
             #[cfg(feature = "v4l")]
-            Self::V4l(p) => check_fps(p.fps),
+            Self::V4l(p) => {
+                check_fps(p.fps)?;
+                if !(p.max_skew_ms > 0.0 && p.max_skew_ms <= 1000.0) {
+                    return Err(format!(
+                        "max_skew_ms {} is out of range: use above 0, at most 1000 ms",
+                        p.max_skew_ms
+                    ));
+                }
+                Ok(())
+            }
         }
     }
 }
 
-/// A frame rate, where one is given: above 0, at most 10 000 frames/s.
-fn check_fps(fps: Option<f64>) -> Result<(), String> {
+/// The slowest camera rate a capture takes: a frame every 1000 s.
+pub const MIN_FPS: f64 = 1e-3;
+/// The fastest camera rate a capture takes.
+pub const MAX_FPS: f64 = 10_000.0;
+
+/// Checks a frame rate: within [`MIN_FPS`]..=[`MAX_FPS`] (leave it out to run unpaced).
+pub fn check_fps(fps: Option<f64>) -> Result<(), String> {
     match fps {
-        Some(f) if !(f > 0.0 && f <= 10_000.0) => Err(format!(
-            "fps {f} is out of range: use a rate above 0, at most 10000"
+        Some(f) if !(MIN_FPS..=MAX_FPS).contains(&f) => Err(format!(
+            "fps {f} is out of range: use {MIN_FPS} to {MAX_FPS} frames per second, or leave fps out to run as fast as the graph takes frames"
         )),
         _ => Ok(()),
     }

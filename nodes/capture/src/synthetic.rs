@@ -35,9 +35,12 @@ pub struct SyntheticParams {
     /// Frames per second (as fast as possible without it).
     #[serde(default)]
     pub fps: Option<f64>,
-    /// Render this many frames once, each when first asked for, and play them in a loop:
-    /// frame `n` is frame `n mod repeat`, so a frame costs a copy, as a camera's would, not
-    /// a render (the renderer took a fifth of the default graph's CPU). Every frame is
+    /// Render this many frames once, each when first asked for, and play them forwards
+    /// and backwards in turn (0, 1, …, repeat−1, repeat−2, …, 1, 0, 1, …), so a frame costs
+    /// a copy, as a camera's would, not a render (the renderer took a fifth of the default
+    /// graph's CPU), and no cell ever jumps between two frames (a loop played from its
+    /// start again moved every cell back by up to 29 drift steps at once, which a tracker
+    /// or the bridge following its target cannot tell from another cell). Every frame is
     /// rendered without it, and while the pipette follows a manipulator.
     #[serde(default)]
     pub repeat: Option<usize>,
@@ -72,9 +75,7 @@ impl SyntheticParams {
                 p.width, p.height
             ));
         }
-        if p.fps.is_some_and(|f| f.is_nan() || f <= 0.0) {
-            return Err("fps must be positive".into());
-        }
+        crate::check_fps(p.fps)?;
         if let Some(n) = p.repeat {
             // Two bytes a pixel per frame are kept: at most 2 GiB in all.
             let bytes = (n as u128) * (p.width * p.height * 2) as u128;
@@ -121,6 +122,9 @@ impl SyntheticCapture {
             ..CellSpec::default()
         };
         let mut scene = Scene::random(optics, Look::default(), &spec, p.seed);
+        if let Some(why) = synth::shortfall(&scene, &spec) {
+            runtime::errln!("warning: {why}");
+        }
         let s = optics.um_per_px();
         scene.pipette = p.pipette.map(|h| Pipette {
             tip: [-0.5 * p.width as f64 * s + 20.0 * s, 0.0],
@@ -145,6 +149,17 @@ impl SyntheticCapture {
     pub fn calibration(&self) -> schemas::Calibration {
         self.scene.optics.calibration()
     }
+}
+
+/// Which of a loop's `n` frames plays as frame `seq`: forwards, then backwards, so that
+/// consecutive frames are always neighbours in the loop.
+pub fn loop_index(seq: u64, n: u64) -> u64 {
+    if n <= 1 {
+        return 0;
+    }
+    let period = 2 * (n - 1);
+    let m = seq % period;
+    if m < n { m } else { period - m }
 }
 
 /// The longest [`SyntheticCapture::render_loop`] renders ahead (the graph's readers wait
@@ -186,9 +201,19 @@ impl SyntheticCapture {
     /// rest are rendered when first asked for.
     pub fn render_loop(&mut self) {
         let start = std::time::Instant::now();
-        for k in 0..self.played.len() {
-            if start.elapsed() > LOOP_RENDER_BUDGET {
+        let n = self.played.len();
+        let mut told = None::<std::time::Instant>;
+        for k in 0..n {
+            // A stop (the graph ends while the camera starts) cuts it short too.
+            if start.elapsed() > LOOP_RENDER_BUDGET || runtime::signals::stop_requested() {
                 break;
+            }
+            // Said while it takes long, so that `top` shows what the camera does.
+            if told.is_none_or(|t| t.elapsed() > std::time::Duration::from_millis(250)) {
+                runtime::process::report_phase(&format!(
+                    "rendering its loop ahead: {k} of {n} frames"
+                ));
+                told = Some(std::time::Instant::now());
             }
             if self.played[k].is_none() {
                 self.played[k] = Some(self.render(k as u64));
@@ -202,7 +227,7 @@ impl SyntheticCapture {
         if n == 0 || self.manipulated.is_some() {
             return self.render(seq);
         }
-        let k = (seq % n) as usize;
+        let k = loop_index(seq, n) as usize;
         if self.played[k].is_none() {
             self.played[k] = Some(self.render(k as u64));
         }
@@ -247,9 +272,30 @@ mod tests {
         let mut looped = SyntheticCapture::new(&params(Some(3)));
         let first: Vec<StereoFrame> = (0..3).map(|k| live.frame(k)).collect();
         assert_ne!(first[0], first[1], "the cells drift and the noise changes");
-        // Asked out of order, as after a restart that goes on from a later frame.
-        for seq in [4, 0, 1, 2, 3, 5, 7, 6] {
-            assert_eq!(looped.frame(seq), first[(seq % 3) as usize], "frame {seq}");
+        // Forwards and back: 0 1 2 1 0 1 2 1 …, asked out of order, as after a restart
+        // that goes on from a later frame.
+        let played = [0, 1, 2, 1, 0, 1, 2, 1, 0];
+        for seq in [4, 0, 1, 2, 3, 5, 7, 6, 8] {
+            assert_eq!(
+                looped.frame(seq),
+                first[played[seq as usize]],
+                "frame {seq}"
+            );
+        }
+        assert_eq!(
+            (0..9).map(|s| loop_index(s, 3)).collect::<Vec<_>>(),
+            played.map(|k| k as u64)
+        );
+        assert_eq!(loop_index(7, 1), 0);
+        // Consecutive frames are neighbours in the loop, so no cell ever jumps.
+        for n in 2..40 {
+            for s in 0..200 {
+                assert_eq!(
+                    loop_index(s, n).abs_diff(loop_index(s + 1, n)),
+                    1,
+                    "n {n} s {s}"
+                );
+            }
         }
         assert_ne!(live.frame(3), first[0], "without repeat every frame is new");
         // Rendered up front, the loop holds the same frames, and none is left to render.
@@ -257,7 +303,7 @@ mod tests {
         ahead.render_loop();
         assert!(ahead.played.iter().all(Option::is_some));
         for seq in [5, 0, 1] {
-            assert_eq!(ahead.frame(seq), first[(seq % 3) as usize], "frame {seq}");
+            assert_eq!(ahead.frame(seq), first[played[seq as usize]], "frame {seq}");
         }
         // Without repeat there is no loop to render.
         let mut plain = SyntheticCapture::new(&params(None));

@@ -4,8 +4,13 @@
 //! - the graph node hands in each frame's targets ([`Bridge::on_targets`]): they become the
 //!   scene (objects touching the pipette's recent body are taken for the pipette itself),
 //!   are served to every controller, and the reply is the state message of that frame;
-//! - one reader per controller parses commands; `stop` raises the emergency flag at once,
-//!   so it wins over everything queued;
+//! - one reader per controller parses commands; `stop` is carried out by that reader
+//!   itself: it opens a new stop epoch (every command queued before it is dropped), tells
+//!   the device to stop through the device's own emergency handle and answers, sharing no
+//!   lock and no queue with anything that waits on a controller or a device read;
+//! - one writer per controller sends it its events from a bounded queue: a controller
+//!   that stops reading is dropped once it has left [`OUTBOX_LIMIT`] bytes unread, and
+//!   nobody else ever waits on its socket;
 //! - the controller thread owns the device: it plans, moves leg by leg, polls the position,
 //!   re-checks the rest of the path against every new scene (replanning or stopping when
 //!   it is blocked) and stops when the scene goes stale.
@@ -13,6 +18,7 @@
 //! The bridge enforces the workspace and the speed limit itself; the device's own limits
 //! come on top.
 
+use crate::device::EmergencyStop;
 use crate::device::{Device, DeviceError};
 use crate::geom::{P3, dist, flip};
 use crate::plan::{
@@ -21,15 +27,15 @@ use crate::plan::{
 };
 use crate::protocol::{Command, Line, MAX_LINE, parse_command, read_line, shorten};
 use crate::registration::Registration;
-use crate::scene::Scene;
+use crate::scene::{Obstacle, Scene};
 use schemas::{ManipulatorState, PathPlan, Targets};
 use serde_json::{Value, json};
 use std::collections::VecDeque;
 use std::io::{BufReader, Write};
 use std::net::{SocketAddr, TcpListener, TcpStream};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender, channel};
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
 use std::time::{Duration, Instant};
 
 /// What the bridge needs besides its device.
@@ -55,6 +61,9 @@ pub struct BridgeConfig {
     pub replan_tolerance: f64,
     /// Height of a cell whose measured height is not trusted, µm.
     pub untrusted_height: f64,
+    /// Bytes of events a controller may leave unread before it is dropped
+    /// ([`OUTBOX_LIMIT`] by default).
+    pub outbox_limit: usize,
 }
 
 impl BridgeConfig {
@@ -79,37 +88,184 @@ fn event(kind: &str, mut fields: Value) -> String {
     s
 }
 
-/// The connected controllers.
+/// Bytes of events a controller may leave unread before the bridge drops it: a feed of
+/// a few seconds at camera rate. The lines are shared between controllers, so a crowd of
+/// idle controllers costs this once, not once each.
+pub const OUTBOX_LIMIT: usize = 16 << 20;
+
+/// One controller's events on their way out: a bounded queue that its own writer thread
+/// empties. Whoever sends only appends (or finds it full and drops the controller); no one
+/// but that thread ever waits on the controller's socket.
+struct Outbox {
+    state: Mutex<OutState>,
+    ready: Condvar,
+    limit: usize,
+}
+
+#[derive(Default)]
+struct OutState {
+    lines: VecDeque<Arc<str>>,
+    bytes: usize,
+    /// No more lines: the writer sends what is queued, then ends the connection.
+    closing: bool,
+    /// Gone: nothing more is sent.
+    dead: bool,
+}
+
+impl Outbox {
+    fn lock(&self) -> MutexGuard<'_, OutState> {
+        // Held only to move a line in or out; a panic cannot leave it half changed.
+        self.state.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// Queues a line, unless the controller is gone or has left too much unread; an
+    /// `urgent` one (the emergency stop's answer) goes before every line still queued.
+    fn push(&self, line: &Arc<str>, urgent: bool) -> Result<(), Gone> {
+        let mut st = self.lock();
+        if st.dead || st.closing {
+            return Err(Gone::Left);
+        }
+        if st.bytes + line.len() > self.limit {
+            st.dead = true;
+            st.lines.clear();
+            drop(st);
+            self.ready.notify_all();
+            return Err(Gone::Overflow);
+        }
+        st.bytes += line.len();
+        if urgent {
+            st.lines.push_front(line.clone());
+        } else {
+            st.lines.push_back(line.clone());
+        }
+        drop(st);
+        self.ready.notify_all();
+        Ok(())
+    }
+
+    /// The next line to write; `None` when the writer should end.
+    fn pop(&self) -> Option<Arc<str>> {
+        let mut st = self.lock();
+        loop {
+            if st.dead {
+                return None;
+            }
+            if let Some(l) = st.lines.pop_front() {
+                st.bytes -= l.len();
+                return Some(l);
+            }
+            if st.closing {
+                return None;
+            }
+            st = self.ready.wait(st).unwrap_or_else(PoisonError::into_inner);
+        }
+    }
+
+    fn set(&self, f: impl FnOnce(&mut OutState)) {
+        f(&mut self.lock());
+        self.ready.notify_all();
+    }
+}
+
+/// Why a controller is no longer fed.
+enum Gone {
+    /// It hung up, or its connection was closed.
+    Left,
+    /// It left more than its limit of bytes unread.
+    Overflow,
+}
+
+/// One connected controller.
+struct Client {
+    id: u64,
+    out: Arc<Outbox>,
+    /// For cutting the connection of a controller that is dropped.
+    socket: TcpStream,
+}
+
+/// The connected controllers. Its lock is held only to queue lines, never while anything
+/// is written to a socket.
 #[derive(Default)]
 struct Clients {
     next_id: u64,
-    list: Vec<(u64, TcpStream)>,
+    list: Vec<Client>,
 }
 
 impl Clients {
     fn broadcast(&mut self, line: &str) {
-        // A controller that went away is dropped; the others keep their feed.
-        self.list
-            .retain_mut(|(_, s)| s.write_all(line.as_bytes()).is_ok());
+        let line: Arc<str> = line.into();
+        self.list.retain(|c| keep(c, &line, false));
+    }
+
+    /// [`Clients::broadcast`] ahead of every line still queued: what a controller waits
+    /// for after a stop never waits behind scenes.
+    fn broadcast_urgent(&mut self, line: &str) {
+        let line: Arc<str> = line.into();
+        self.list.retain(|c| keep(c, &line, true));
     }
 
     fn send(&mut self, id: u64, line: &str) {
-        self.list
-            .retain_mut(|(i, s)| *i != id || s.write_all(line.as_bytes()).is_ok());
+        let line: Arc<str> = line.into();
+        self.list.retain(|c| c.id != id || keep(c, &line, false));
     }
 
-    /// Ends what goes out to one controller (after what was sent) and forgets it.
+    /// Ends what goes out to one controller (after what was queued) and forgets it.
     fn close(&mut self, id: u64) {
-        self.list.retain(|(i, s)| {
-            if *i == id {
-                let _ = s.shutdown(std::net::Shutdown::Write);
+        self.list.retain(|c| {
+            if c.id == id {
+                c.out.set(|st| st.closing = true);
             }
-            *i != id
+            c.id != id
         });
     }
 }
 
-/// State shared by the node, the readers and the controller thread.
+/// Queues `line` for `c`; a controller that left too much unread is cut off.
+fn keep(c: &Client, line: &Arc<str>, urgent: bool) -> bool {
+    match c.out.push(line, urgent) {
+        Ok(()) => return true,
+        Err(Gone::Overflow) => runtime::errln!(
+            "manipulator-bridge: controller {} dropped: it left more than {} kB of events unread",
+            c.id,
+            c.out.limit >> 10
+        ),
+        Err(Gone::Left) => {}
+    }
+    // Wakes its reader and writer, which then end.
+    let _ = c.socket.shutdown(std::net::Shutdown::Both);
+    false
+}
+
+/// Writes a controller's queued events to it until it is closed or gone.
+fn write_out(out: Arc<Outbox>, mut socket: TcpStream) {
+    while let Some(line) = out.pop() {
+        if socket.write_all(line.as_bytes()).is_err() {
+            out.set(|st| st.dead = true);
+            let _ = socket.shutdown(std::net::Shutdown::Both);
+            return;
+        }
+    }
+    let _ = socket.shutdown(std::net::Shutdown::Write);
+}
+
+/// The emergency stop's state, shared by the readers and the controller thread without a
+/// lock: each stop starts a new epoch; a command queued in an earlier epoch never runs.
+#[derive(Default)]
+struct Estop {
+    epoch: AtomicU64,
+    /// Commands queued for the controller thread and not yet taken.
+    queued: AtomicU64,
+}
+
+/// A command on its way to the controller thread, with the stop epoch it came in.
+struct Queued {
+    id: u64,
+    command: Command,
+    epoch: u64,
+}
+
+/// State shared by the node and the controller thread (never held across a device read or
+/// a socket write).
 struct Shared {
     scene: Option<(Scene, Instant, u64)>,
     tip: P3,
@@ -141,16 +297,63 @@ impl Drop for Bridge {
     }
 }
 
+/// A target cell followed from frame to frame by its footprint centre and drift.
+#[derive(Clone, Copy, Debug)]
+struct Follow {
+    /// Its id in the scene it was last seen in.
+    id: u32,
+    centre: [f64; 2],
+    /// The frame it was last seen in.
+    frame: u64,
+    /// Its drift, µm per frame.
+    velocity: [f64; 2],
+}
+
+impl Follow {
+    fn new(id: u32, centre: [f64; 2], frame: u64) -> Self {
+        Self {
+            id,
+            centre,
+            frame,
+            velocity: [0.0; 2],
+        }
+    }
+
+    /// The cell of `scene` that is this target: the nearest to where its drift puts it
+    /// now, within `radius`. Follows it there.
+    fn find<'a>(&mut self, scene: &'a Scene, radius: f64) -> Option<&'a Obstacle> {
+        let frames = scene.frame.saturating_sub(self.frame).max(1) as f64;
+        let guess = [
+            self.centre[0] + self.velocity[0] * frames,
+            self.centre[1] + self.velocity[1] * frames,
+        ];
+        let c = scene
+            .nearest(guess, radius)
+            .or_else(|| scene.nearest(self.centre, radius))?;
+        // Its drift from the last two sightings, no faster than the radius allows.
+        let v = [0, 1].map(|k| ((c.centre[k] - self.centre[k]) / frames).clamp(-radius, radius));
+        *self = Self {
+            id: c.id,
+            centre: c.centre,
+            frame: scene.frame,
+            velocity: v,
+        };
+        Some(c)
+    }
+}
+
 /// What the controller thread is doing.
 struct Job {
     plan: Plan,
     /// The waypoint it is moving to.
     next: usize,
     speed: f64,
-    /// The target's footprint centre as last seen (approach only).
-    target: Option<[f64; 2]>,
+    /// The target as last seen (approach only).
+    target: Option<Follow>,
     seen_scene: u64,
     last_progress: Instant,
+    /// The stop epoch it began in: a stop since then ends it before its next move.
+    epoch: u64,
 }
 
 struct Controller {
@@ -159,8 +362,11 @@ struct Controller {
     missing: String,
     shared: Arc<Mutex<Shared>>,
     clients: Arc<Mutex<Clients>>,
-    estop: Arc<AtomicBool>,
-    rx: Receiver<(u64, Command)>,
+    last_tip: Arc<Mutex<P3>>,
+    estop: Arc<Estop>,
+    /// The stop epoch whose stop it has settled.
+    settled: u64,
+    rx: Receiver<Queued>,
     job: Option<Job>,
     /// The cell the pipette was last sent into, by footprint centre.
     inside: Option<[f64; 2]>,
@@ -214,33 +420,50 @@ impl Bridge {
             device: device.as_ref().map_or("none".into(), |d| d.describe()),
         }));
         let clients: Arc<Mutex<Clients>> = Arc::default();
-        let estop = Arc::new(AtomicBool::new(false));
+        let estop = Arc::new(Estop::default());
         let closing = Arc::new(AtomicBool::new(false));
+        let last_tip = Arc::new(Mutex::new(flip(cfg.home)));
         let (tx, rx) = channel();
-        {
-            let (clients, estop, closing) = (clients.clone(), estop.clone(), closing.clone());
-            std::thread::spawn(move || accept(listener, clients, tx, estop, closing));
-        }
         let mut c = Controller {
             cfg: cfg.clone(),
             device,
             missing,
             shared: shared.clone(),
             clients: clients.clone(),
-            estop,
+            last_tip: last_tip.clone(),
+            estop: estop.clone(),
+            settled: 0,
             rx,
             job: None,
             inside: None,
             t0: Instant::now(),
         };
+        let mut stopper = None;
         if let Some(d) = c.device.as_mut() {
-            match d.state() {
-                Ok(s) => c.shared.lock().expect("shared").tip = cfg.tip_at(s.position),
+            match d.state().and_then(|s| Ok((s, d.emergency_stop()?))) {
+                Ok((s, e)) => {
+                    let tip = cfg.tip_at(s.position);
+                    c.shared.lock().expect("shared").tip = tip;
+                    *lock(&last_tip) = flip(tip);
+                    stopper = Some(e);
+                }
                 Err(e) => {
                     c.missing = e.0;
                     c.device = None;
                 }
             }
+        }
+        {
+            let ctx = Readers {
+                outbox_limit: cfg.outbox_limit,
+                clients: clients.clone(),
+                tx,
+                estop,
+                stopper,
+                last_tip,
+            };
+            let closing = closing.clone();
+            std::thread::spawn(move || accept(listener, ctx, closing));
         }
         std::thread::spawn(move || c.run());
         Ok(Self {
@@ -309,47 +532,70 @@ impl Bridge {
     }
 }
 
-fn accept(
-    listener: TcpListener,
+/// What every controller's reader thread holds.
+#[derive(Clone)]
+struct Readers {
+    /// Bytes a controller may leave unread.
+    outbox_limit: usize,
     clients: Arc<Mutex<Clients>>,
-    tx: Sender<(u64, Command)>,
-    estop: Arc<AtomicBool>,
-    closing: Arc<AtomicBool>,
-) {
-    for s in listener.incoming().flatten() {
-        if closing.load(Ordering::SeqCst) {
-            return;
-        }
-        let _ = s.set_nodelay(true);
-        // A controller that stops reading must not stall the graph: a write that cannot
-        // go out within this time drops it.
-        let _ = s.set_write_timeout(Some(Duration::from_millis(200)));
-        let Ok(reader) = s.try_clone() else { continue };
-        let id = {
-            let mut c = clients.lock().expect("clients");
-            c.next_id += 1;
-            let id = c.next_id;
-            c.list.push((id, s));
-            id
+    tx: Sender<Queued>,
+    estop: Arc<Estop>,
+    /// The device's emergency stop (none without a device).
+    stopper: Option<Arc<dyn EmergencyStop>>,
+    last_tip: Arc<Mutex<P3>>,
+}
+
+/// A lock held only to copy or queue a few values: a panic elsewhere cannot leave what it
+/// guards half changed, so a poisoned one is used as it is.
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(PoisonError::into_inner)
+}
+
+impl Readers {
+    fn send(&self, id: u64, line: &str) {
+        lock(&self.clients).send(id, line);
+    }
+
+    /// The emergency stop, on the reader that read it.
+    fn emergency_stop(&self, id: u64) {
+        // A new epoch first: whatever the controller thread takes from now on, or is about
+        // to start, it sees the stop.
+        self.estop.epoch.fetch_add(1, Ordering::SeqCst);
+        let dropped = self.estop.queued.load(Ordering::SeqCst);
+        let result = self.stopper.as_ref().map_or(Ok(()), |s| s.stop_now());
+        let tip = *lock(&self.last_tip);
+        let line = match result {
+            Ok(()) => event(
+                "stopped",
+                json!({ "tip": tip, "dropped": dropped, "by": id }),
+            ),
+            Err(e) => event(
+                "error",
+                json!({ "message": format!("the emergency stop could not reach the device: {e}") }),
+            ),
         };
-        let (clients, tx, estop) = (clients.clone(), tx.clone(), estop.clone());
-        std::thread::spawn(move || {
-            let mut reader = BufReader::new(reader);
-            loop {
-                let line = match read_line(&mut reader, MAX_LINE) {
-                    Ok(Line::Text(l)) => l,
-                    Ok(Line::NotUtf8) => {
-                        clients.lock().expect("clients").send(
-                            id,
-                            &event(
-                                "error",
-                                json!({ "message": "the line is not UTF-8 text; send one JSON command per line" }),
-                            ),
-                        );
-                        continue;
-                    }
-                    Ok(Line::TooLong) => {
-                        let mut c = clients.lock().expect("clients");
+        lock(&self.clients).broadcast_urgent(&line);
+    }
+
+    /// Reads one controller's commands until its connection ends.
+    fn serve(&self, id: u64, reader: TcpStream) {
+        let mut reader = BufReader::new(reader);
+        loop {
+            let line = match read_line(&mut reader, MAX_LINE) {
+                Ok(Line::Text(l)) => l,
+                Ok(Line::NotUtf8) => {
+                    self.send(
+                        id,
+                        &event(
+                            "error",
+                            json!({ "message": "the line is not UTF-8 text; send one JSON command per line" }),
+                        ),
+                    );
+                    continue;
+                }
+                Ok(Line::TooLong) => {
+                    {
+                        let mut c = lock(&self.clients);
                         c.send(
                             id,
                             &event(
@@ -358,46 +604,74 @@ fn accept(
                             ),
                         );
                         c.close(id);
-                        drop(c);
-                        // Read what is still coming and throw it away, for a while: closing
-                        // with unread input would reset the connection and could lose the
-                        // error line on its way out.
-                        let mut s = reader.into_inner();
-                        let _ = s.set_read_timeout(Some(Duration::from_millis(200)));
-                        let t0 = Instant::now();
-                        let mut sink = [0u8; 8192];
-                        while t0.elapsed() < Duration::from_secs(2)
-                            && matches!(std::io::Read::read(&mut s, &mut sink), Ok(n) if n > 0)
-                        {
-                        }
+                    }
+                    // Read what is still coming and throw it away, for a while: closing
+                    // with unread input would reset the connection and could lose the
+                    // error line on its way out.
+                    let mut s = reader.into_inner();
+                    let _ = s.set_read_timeout(Some(Duration::from_millis(200)));
+                    let t0 = Instant::now();
+                    let mut sink = [0u8; 8192];
+                    while t0.elapsed() < Duration::from_secs(2)
+                        && matches!(std::io::Read::read(&mut s, &mut sink), Ok(n) if n > 0)
+                    {
+                    }
+                    break;
+                }
+                Ok(Line::End) | Err(_) => break,
+            };
+            if line.trim().is_empty() {
+                continue;
+            }
+            match parse_command(&line) {
+                Ok(Command::Stop) => self.emergency_stop(id),
+                Ok(command) => {
+                    self.estop.queued.fetch_add(1, Ordering::SeqCst);
+                    let epoch = self.estop.epoch.load(Ordering::SeqCst);
+                    if self.tx.send(Queued { id, command, epoch }).is_err() {
                         break;
                     }
-                    Ok(Line::End) | Err(_) => break,
-                };
-                if line.trim().is_empty() {
-                    continue;
                 }
-                match parse_command(&line) {
-                    Ok(Command::Stop) => {
-                        // Seen by the controller before anything queued.
-                        estop.store(true, Ordering::SeqCst);
-                        let _ = tx.send((id, Command::Stop));
-                    }
-                    Ok(c) => {
-                        if tx.send((id, c)).is_err() {
-                            break;
-                        }
-                    }
-                    Err(m) => clients.lock().expect("clients").send(
-                        id,
-                        &event(
-                            "error",
-                            json!({ "message": m, "command": shorten(&line, 200) }),
-                        ),
+                Err(m) => self.send(
+                    id,
+                    &event(
+                        "error",
+                        json!({ "message": m, "command": shorten(&line, 200) }),
                     ),
-                }
+                ),
             }
+        }
+    }
+}
+
+fn accept(listener: TcpListener, ctx: Readers, closing: Arc<AtomicBool>) {
+    for s in listener.incoming().flatten() {
+        if closing.load(Ordering::SeqCst) {
+            return;
+        }
+        let _ = s.set_nodelay(true);
+        let (Ok(reader), Ok(writer)) = (s.try_clone(), s.try_clone()) else {
+            continue;
+        };
+        let out = Arc::new(Outbox {
+            state: Mutex::default(),
+            ready: Condvar::new(),
+            limit: ctx.outbox_limit,
         });
+        let id = {
+            let mut c = lock(&ctx.clients);
+            c.next_id += 1;
+            let id = c.next_id;
+            c.list.push(Client {
+                id,
+                out: out.clone(),
+                socket: s,
+            });
+            id
+        };
+        std::thread::spawn(move || write_out(out, writer));
+        let ctx = ctx.clone();
+        std::thread::spawn(move || ctx.serve(id, reader));
     }
 }
 
@@ -416,12 +690,23 @@ impl Controller {
 
     fn run(mut self) {
         loop {
-            if self.estop.swap(false, Ordering::SeqCst) {
-                self.emergency_stop();
-            }
+            self.settle_stop();
             match self.rx.recv_timeout(self.cfg.poll) {
-                Ok((_, Command::Stop)) => self.emergency_stop(),
-                Ok((id, c)) => self.command(id, c),
+                Ok(q) => {
+                    self.estop.queued.fetch_sub(1, Ordering::SeqCst);
+                    self.settle_stop();
+                    if q.epoch != self.estop.epoch.load(Ordering::SeqCst) {
+                        self.tell(
+                            q.id,
+                            &event(
+                                "error",
+                                json!({ "message": "dropped: an emergency stop came after it" }),
+                            ),
+                        );
+                    } else {
+                        self.command(q.id, q.command, q.epoch);
+                    }
+                }
                 Err(RecvTimeoutError::Timeout) => {}
                 Err(RecvTimeoutError::Disconnected) => return,
             }
@@ -429,23 +714,15 @@ impl Controller {
         }
     }
 
-    fn emergency_stop(&mut self) {
-        self.estop.store(false, Ordering::SeqCst);
-        let mut dropped = 0;
-        while let Ok((id, c)) = self.rx.try_recv() {
-            if c != Command::Stop {
-                dropped += 1;
-                self.tell(
-                    id,
-                    &event(
-                        "error",
-                        json!({ "message": "dropped: an emergency stop came after it" }),
-                    ),
-                );
-            }
+    /// After an emergency stop (the reader already told the device): the job ends, and the
+    /// device's own state is settled by its owner, this thread.
+    fn settle_stop(&mut self) {
+        let epoch = self.estop.epoch.load(Ordering::SeqCst);
+        if epoch == self.settled {
+            return;
         }
+        self.settled = epoch;
         self.job = None;
-        let tip = self.shared.lock().expect("shared").tip;
         if let Some(d) = self.device.as_mut()
             && let Err(e) = d.stop()
         {
@@ -453,10 +730,15 @@ impl Controller {
             return;
         }
         self.set_status("stopped");
-        self.broadcast(&event(
-            "stopped",
-            json!({ "tip": flip(tip), "dropped": dropped }),
-        ));
+    }
+
+    /// Whether an emergency stop came since `epoch` (and was settled).
+    fn stopped_since(&mut self, epoch: u64) -> bool {
+        if self.estop.epoch.load(Ordering::SeqCst) == epoch {
+            return false;
+        }
+        self.settle_stop();
+        true
     }
 
     fn fail(&mut self, e: DeviceError) {
@@ -517,7 +799,7 @@ impl Controller {
         }
     }
 
-    fn command(&mut self, id: u64, c: Command) {
+    fn command(&mut self, id: u64, c: Command, epoch: u64) {
         if self.device.is_none() {
             let m = format!(
                 "no manipulator: {}; the bridge serves the scene only",
@@ -556,10 +838,12 @@ impl Controller {
         match self.plan_for(&c, &scene, tip) {
             Ok(plan) => {
                 let target = match plan.goal {
-                    Goal::Approach { cell } => scene.cell(cell).map(|c| c.centre),
+                    Goal::Approach { cell } => scene
+                        .cell(cell)
+                        .map(|c| Follow::new(c.id, c.centre, scene.frame)),
                     _ => None,
                 };
-                self.begin(plan, speed, target, seq, None);
+                self.begin(plan, speed, target, seq, None, epoch);
             }
             Err(e) => {
                 self.set_status("blocked");
@@ -576,9 +860,10 @@ impl Controller {
         &mut self,
         plan: Plan,
         speed: f64,
-        target: Option<[f64; 2]>,
+        target: Option<Follow>,
         seen: u64,
         replanned: Option<String>,
+        epoch: u64,
     ) {
         self.broadcast(&event(
             "plan",
@@ -600,6 +885,7 @@ impl Controller {
             target,
             seen_scene: seen,
             last_progress: Instant::now(),
+            epoch,
         });
         // Leg 0 ends where the tip is: the first tick starts the move to waypoint 1.
     }
@@ -614,6 +900,7 @@ impl Controller {
         };
         let tip = self.cfg.tip_at(st.position);
         let t = self.t0.elapsed().as_secs_f64();
+        *lock(&self.last_tip) = flip(tip);
         {
             let mut sh = self.shared.lock().expect("shared");
             sh.tip = tip;
@@ -676,8 +963,12 @@ impl Controller {
                 return;
             }
             let to = job.plan.waypoints[job.next];
+            let epoch = job.epoch;
             // In device units: no scene direction moves faster than `speed`.
             let speed = job.speed * self.cfg.registration.least_stretch();
+            if self.stopped_since(epoch) {
+                return;
+            }
             let r = self
                 .device
                 .as_mut()
@@ -685,6 +976,11 @@ impl Controller {
                 .start_move(self.cfg.device_for(to), speed);
             if let Err(e) = r {
                 return self.fail(e);
+            }
+            // A stop that came while the move was going out: it may have reached the device
+            // first, so the move is stopped again.
+            if self.stopped_since(epoch) {
+                return;
             }
         }
         let job = self.job.as_mut().expect("job");
@@ -714,19 +1010,44 @@ impl Controller {
         let committed = job.next > job.plan.axial_from;
         let mut exempt = None;
         let mut moved = false;
-        if let Some(centre) = job.target
-            && let Some(c) = scene.nearest(centre, self.cfg.track_radius)
-        {
-            exempt = Some(c.id);
-            job.target = Some(c.centre);
-            moved = !committed
-                && dist(injection_point(c, &cfg), job.plan.end) > self.cfg.replan_tolerance;
+        let mut lost = None;
+        if let Some(follow) = job.target.as_mut() {
+            let before = *follow;
+            match follow.find(&scene, self.cfg.track_radius) {
+                Some(c) => {
+                    exempt = Some(c.id);
+                    moved = !committed
+                        && dist(injection_point(c, &cfg), job.plan.end) > self.cfg.replan_tolerance;
+                }
+                None => lost = Some(before),
+            }
+        }
+        if let Some(f) = lost {
+            // Not found where it was or where its drift took it: the move ends here, said
+            // as it is (the cell the pipette was sent into is not an obstacle to blame).
+            self.job = None;
+            if let Err(e) = self.halt() {
+                self.fail(e);
+                return false;
+            }
+            self.set_status("blocked");
+            self.broadcast(&event(
+                "blocked",
+                json!({
+                    "reason": format!(
+                        "the target (cell {} in frame {}, at X {:.1}, Y {:.1} µm) is lost: no cell within {} µm of it in frame {}; stopped",
+                        f.id, f.frame, f.centre[0], f.centre[1], self.cfg.track_radius, scene.frame
+                    ),
+                    "cells": [],
+                }),
+            ));
+            return false;
         }
         let blocked = check_rest(&scene, &cfg, &job.plan, tip, job.next.max(1), exempt);
         if blocked.is_empty() && !moved {
             return true;
         }
-        let (goal, speed, end) = (job.plan.goal, job.speed, job.plan.end);
+        let (goal, speed, end, epoch) = (job.plan.goal, job.speed, job.plan.end, job.epoch);
         let target = job.target;
         self.job = None;
         let tip = match self.halt() {
@@ -748,7 +1069,7 @@ impl Controller {
                     self.set_status("blocked");
                     self.broadcast(&event(
                         "blocked",
-                        json!({ "reason": format!("{reason}, and the target is lost"), "cells": blocked }),
+                        json!({ "reason": format!("{reason}, and the target is unknown"), "cells": blocked }),
                     ));
                     return false;
                 }
@@ -769,6 +1090,7 @@ impl Controller {
                     target,
                     seq,
                     Some(format!("{reason}; replanned")),
+                    epoch,
                 );
                 true
             }

@@ -2,7 +2,7 @@
 //! manipulator [`SimDevice`].
 
 use crate::geom::{P3, axpy, dist, sub};
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Instant;
 
 /// Why a device command failed.
@@ -37,6 +37,17 @@ pub trait Device: Send {
     fn state(&mut self) -> Result<DeviceState, DeviceError>;
     /// Stops any move as fast as the device can.
     fn stop(&mut self) -> Result<(), DeviceError>;
+    /// A handle that stops the device from any thread, at once, even while another thread
+    /// is in the middle of a command of this device: the emergency stop's own path, which
+    /// must never wait for a read in progress.
+    fn emergency_stop(&mut self) -> Result<Arc<dyn EmergencyStop>, DeviceError>;
+}
+
+/// Stops a device from any thread without waiting for anything else the device is doing.
+pub trait EmergencyStop: Send + Sync {
+    /// Tells the device to stop now; returns once the order has gone out. It reads no
+    /// answer: the thread that owns the device settles its state afterwards.
+    fn stop_now(&self) -> Result<(), DeviceError>;
 }
 
 /// Seconds on some clock: the wall clock for a live sim, a hand-set one in tests.
@@ -90,8 +101,13 @@ impl Move {
 }
 
 /// The simulated manipulator: straight moves with a trapezoidal speed profile (speed and
-/// acceleration limits), exact position readback.
+/// acceleration limits), exact position readback. Clones drive the same manipulator.
+#[derive(Clone)]
 pub struct SimDevice {
+    inner: Arc<Mutex<Sim>>,
+}
+
+struct Sim {
     clock: Clock,
     position: P3,
     max_speed: f64,
@@ -99,18 +115,7 @@ pub struct SimDevice {
     current: Option<Move>,
 }
 
-impl SimDevice {
-    /// A sim at `home` with these limits (µm/s, µm/s²).
-    pub fn new(home: P3, max_speed: f64, max_accel: f64, clock: Clock) -> Self {
-        Self {
-            clock,
-            position: home,
-            max_speed,
-            max_accel,
-            current: None,
-        }
-    }
-
+impl Sim {
     /// Settles a finished move and gives the position and speed now.
     fn now(&mut self) -> (P3, f64) {
         let t = (self.clock)();
@@ -128,60 +133,13 @@ impl SimDevice {
         }
         (self.position, 0.0)
     }
-}
 
-impl Device for SimDevice {
-    fn describe(&self) -> String {
-        "sim".into()
-    }
-
-    fn start_move(&mut self, to: P3, speed: f64) -> Result<(), DeviceError> {
-        let (from, v0) = self.now();
-        if v0 > 1e-9 {
-            return Err(DeviceError(
-                "the sim is still moving; stop it before a new move".into(),
-            ));
-        }
-        let d = dist(from, to);
-        self.position = from;
-        if d < 1e-12 {
-            self.current = None;
-            return Ok(());
-        }
-        let (v, a) = (speed.min(self.max_speed), self.max_accel);
-        let dir = sub(to, from).map(|c| c / d);
-        let phases = if d >= v * v / a {
-            let ta = v / a;
-            vec![(ta, a), ((d - v * v / a) / v, 0.0), (ta, -a)]
-        } else {
-            let ta = (d / a).sqrt();
-            vec![(ta, a), (ta, -a)]
-        };
-        self.current = Some(Move {
-            from,
-            to,
-            dir,
-            start: (self.clock)(),
-            v0: 0.0,
-            phases,
-        });
-        Ok(())
-    }
-
-    fn state(&mut self) -> Result<DeviceState, DeviceError> {
-        let (p, _) = self.now();
-        Ok(DeviceState {
-            position: p,
-            moving: self.current.is_some(),
-        })
-    }
-
-    fn stop(&mut self) -> Result<(), DeviceError> {
+    /// Brakes at full deceleration from the speed it has.
+    fn brake(&mut self) {
         let (p, v) = self.now();
         if let Some(m) = &self.current {
             let dir = m.dir;
             self.position = p;
-            // Brake at full deceleration from the speed it has.
             let brake = v * v / (2.0 * self.max_accel);
             self.current = (v > 1e-9).then(|| Move {
                 from: p,
@@ -192,6 +150,92 @@ impl Device for SimDevice {
                 phases: vec![(v / self.max_accel, -self.max_accel)],
             });
         }
+    }
+}
+
+impl SimDevice {
+    /// A sim at `home` with these limits (µm/s, µm/s²).
+    pub fn new(home: P3, max_speed: f64, max_accel: f64, clock: Clock) -> Self {
+        Self {
+            inner: Arc::new(Mutex::new(Sim {
+                clock,
+                position: home,
+                max_speed,
+                max_accel,
+                current: None,
+            })),
+        }
+    }
+
+    fn sim(&self) -> std::sync::MutexGuard<'_, Sim> {
+        // The sim's state is whole after every statement: a panic elsewhere leaves it usable.
+        self.inner.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+}
+
+impl Device for SimDevice {
+    fn describe(&self) -> String {
+        "sim".into()
+    }
+
+    fn start_move(&mut self, to: P3, speed: f64) -> Result<(), DeviceError> {
+        let mut sim = self.sim();
+        let (from, v0) = sim.now();
+        if v0 > 1e-9 {
+            return Err(DeviceError(
+                "the sim is still moving; stop it before a new move".into(),
+            ));
+        }
+        let d = dist(from, to);
+        sim.position = from;
+        if d < 1e-12 {
+            sim.current = None;
+            return Ok(());
+        }
+        let (v, a) = (speed.min(sim.max_speed), sim.max_accel);
+        let dir = sub(to, from).map(|c| c / d);
+        let phases = if d >= v * v / a {
+            let ta = v / a;
+            vec![(ta, a), ((d - v * v / a) / v, 0.0), (ta, -a)]
+        } else {
+            let ta = (d / a).sqrt();
+            vec![(ta, a), (ta, -a)]
+        };
+        let start = (sim.clock)();
+        sim.current = Some(Move {
+            from,
+            to,
+            dir,
+            start,
+            v0: 0.0,
+            phases,
+        });
+        Ok(())
+    }
+
+    fn state(&mut self) -> Result<DeviceState, DeviceError> {
+        let mut sim = self.sim();
+        let (p, _) = sim.now();
+        Ok(DeviceState {
+            position: p,
+            moving: sim.current.is_some(),
+        })
+    }
+
+    fn stop(&mut self) -> Result<(), DeviceError> {
+        self.sim().brake();
+        Ok(())
+    }
+
+    fn emergency_stop(&mut self) -> Result<Arc<dyn EmergencyStop>, DeviceError> {
+        Ok(Arc::new(self.clone()))
+    }
+}
+
+impl EmergencyStop for SimDevice {
+    fn stop_now(&self) -> Result<(), DeviceError> {
+        // The sim's lock is held only for arithmetic, never across a wait.
+        self.sim().brake();
         Ok(())
     }
 }

@@ -17,10 +17,12 @@
 //! are read). The controller cannot report its position during a move, so the driver
 //! estimates it from the commanded speed until the move's CR arrives.
 
-use crate::device::{Device, DeviceError, DeviceState};
+use crate::device::{Device, DeviceError, DeviceState, EmergencyStop};
 use crate::geom::{P3, axpy, dist, sub};
 use serialport::SerialPort;
 use std::io::{Read, Write};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
 const CR: u8 = 0x0d;
@@ -58,6 +60,35 @@ pub struct Mp285 {
     /// Whether opening found a move under way (an earlier driver's, e.g. a bridge killed
     /// mid-move) and interrupted it.
     interrupted_on_open: bool,
+    /// Interrupts sent by the emergency stop's handle, from another thread.
+    estops: Arc<AtomicU64>,
+    /// Of those, the ones this driver has accounted for.
+    estops_seen: u64,
+}
+
+/// The MP-285's emergency stop: the interrupt byte written on a second handle of the line.
+/// The controller takes an interrupt at any moment (an idle one ignores it), and the kernel
+/// writes each `write` to a tty whole, so it never splits a command of the driver's.
+struct Mp285Stop {
+    port: Mutex<Box<dyn SerialPort>>,
+    sent: Arc<AtomicU64>,
+    name: String,
+}
+
+impl EmergencyStop for Mp285Stop {
+    fn stop_now(&self) -> Result<(), DeviceError> {
+        // Counted before it goes out: the driver then knows an error 8 it reads is ours.
+        self.sent.fetch_add(1, Ordering::SeqCst);
+        let mut port = self.port.lock().unwrap_or_else(PoisonError::into_inner);
+        port.write_all(&[INTERRUPT])
+            .and_then(|_| port.flush())
+            .map_err(|e| {
+                DeviceError(format!(
+                    "MP-285 on {}: cannot send the interrupt ({e}); is it still connected?",
+                    self.name
+                ))
+            })
+    }
 }
 
 /// How long opening waits for the answer to its interrupt: the controller answers an
@@ -93,6 +124,8 @@ impl Mp285 {
             position: [0.0; 3],
             timeout,
             interrupted_on_open: false,
+            estops: Arc::default(),
+            estops_seen: 0,
         };
         let _ = d.port.set_timeout(READ_SLICE);
         d.interrupted_on_open = d.stop_any_move()?;
@@ -258,6 +291,12 @@ impl Mp285 {
             let mut cr = [0u8; 1];
             let _ = self.port.read_exact(&mut cr);
             self.moving = None;
+            let ours = self.estops.load(Ordering::SeqCst);
+            if matches!(b[0], b'8' | 8) && ours != self.estops_seen {
+                // Interrupted by the emergency stop: the move ended where it stood.
+                self.estops_seen = ours;
+                return Ok(true);
+            }
             return Err(self.err(format!("move failed: error {}", error_text(b[0]))));
         }
         Ok(true)
@@ -335,8 +374,21 @@ impl Device for Mp285 {
             }
         }
         self.moving = None;
+        self.estops_seen = self.estops.load(Ordering::SeqCst);
         self.position = self.read_position()?;
         Ok(())
+    }
+
+    fn emergency_stop(&mut self) -> Result<Arc<dyn EmergencyStop>, DeviceError> {
+        let port = self
+            .port
+            .try_clone()
+            .map_err(|e| self.err(format!("cannot open a second handle on the line ({e})")))?;
+        Ok(Arc::new(Mp285Stop {
+            port: Mutex::new(port),
+            sent: self.estops.clone(),
+            name: self.name.clone(),
+        }))
     }
 }
 

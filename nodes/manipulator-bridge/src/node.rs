@@ -190,6 +190,8 @@ impl Params for BridgeParams {
                 ));
             }
         }
+        // The box as the user wrote it first: the planner's own check speaks its frame.
+        p.workspace.check()?;
         let c = p.config();
         c.planner.check()?;
         p.registration()?;
@@ -262,6 +264,7 @@ impl BridgeParams {
             track_radius: self.track_radius,
             replan_tolerance: self.replan_tolerance,
             untrusted_height: self.untrusted_height,
+            outbox_limit: crate::bridge::OUTBOX_LIMIT,
         }
     }
 
@@ -292,7 +295,7 @@ impl BridgeParams {
                 let port = self.port.as_deref().unwrap_or_default();
                 let d = Mp285::open(port, Duration::from_secs(2))?;
                 if d.interrupted_on_open() {
-                    eprintln!(
+                    runtime::errln!(
                         "manipulator-bridge: the MP-285 on {port} was still moving (an earlier \
                          bridge's move); stopped it before anything else"
                     );
@@ -322,7 +325,7 @@ impl BridgeNode {
     pub fn new(p: &BridgeParams) -> Result<Self, String> {
         let device = p.open_device();
         if let Err(e) = &device {
-            eprintln!("manipulator-bridge: no manipulator: {e}; serving the scene only");
+            runtime::errln!("manipulator-bridge: no manipulator: {e}; serving the scene only");
         }
         let bridge = Bridge::start(p.config(), &p.listen, device)?;
         let addr = bridge.addr;

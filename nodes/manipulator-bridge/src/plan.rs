@@ -332,8 +332,19 @@ fn check_start(
     Ok(())
 }
 
+/// A planner point as the user gives it: the camera frame `(X, Y, Z)`, Z the depth.
 fn fmt_p(p: P3) -> String {
-    format!("({:.1}, {:.1}, {:.1})", p[0], p[1], p[2])
+    let [x, y, z] = crate::geom::flip(p);
+    format!("(X {x:.1}, Y {y:.1}, Z {z:.1})")
+}
+
+/// The planner's workspace as the user gives it, in the camera frame.
+fn fmt_box(w: &Workspace) -> String {
+    let (min, max) = (crate::geom::flip(w.min), crate::geom::flip(w.max));
+    format!(
+        "X {:.1}..{:.1}, Y {:.1}..{:.1}, Z {:.1}..{:.1} (camera frame, µm)",
+        min[0], max[0], min[1], max[1], max[2], min[2]
+    )
 }
 
 /// Checks that `p` is inside the workspace and above the floor.
@@ -341,10 +352,9 @@ fn check_reach(scene: &Scene, cfg: &PlannerConfig, p: P3, what: &str) -> Result<
     if !cfg.workspace.contains(p) {
         return Err(no_path(
             format!(
-                "{what} {} is out of reach: the workspace is {} to {}",
+                "{what} {} is out of reach: the workspace is {}",
                 fmt_p(p),
-                fmt_p(cfg.workspace.min),
-                fmt_p(cfg.workspace.max)
+                fmt_box(&cfg.workspace)
             ),
             vec![],
         ));

@@ -121,16 +121,89 @@ pub enum Command {
     Stop,
 }
 
+/// A JSON value read with every object's keys checked for repeats (serde_json keeps the
+/// last of two equal keys without a word; a command must not mean what its first key hid).
+struct Strict(serde_json::Value);
+
+impl<'de> serde::Deserialize<'de> for Strict {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        d.deserialize_any(StrictVisitor)
+    }
+}
+
+struct StrictVisitor;
+
+impl<'de> serde::de::Visitor<'de> for StrictVisitor {
+    type Value = Strict;
+
+    fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+        f.write_str("a JSON value")
+    }
+    fn visit_bool<E>(self, v: bool) -> Result<Strict, E> {
+        Ok(Strict(v.into()))
+    }
+    fn visit_i64<E>(self, v: i64) -> Result<Strict, E> {
+        Ok(Strict(v.into()))
+    }
+    fn visit_u64<E>(self, v: u64) -> Result<Strict, E> {
+        Ok(Strict(v.into()))
+    }
+    fn visit_f64<E>(self, v: f64) -> Result<Strict, E> {
+        Ok(Strict(v.into()))
+    }
+    fn visit_str<E>(self, v: &str) -> Result<Strict, E> {
+        Ok(Strict(v.into()))
+    }
+    fn visit_unit<E>(self) -> Result<Strict, E> {
+        Ok(Strict(serde_json::Value::Null))
+    }
+    fn visit_seq<A: serde::de::SeqAccess<'de>>(self, mut seq: A) -> Result<Strict, A::Error> {
+        let mut v = Vec::new();
+        while let Some(Strict(e)) = seq.next_element()? {
+            v.push(e);
+        }
+        Ok(Strict(v.into()))
+    }
+    fn visit_map<A: serde::de::MapAccess<'de>>(self, mut map: A) -> Result<Strict, A::Error> {
+        let mut m = serde_json::Map::new();
+        while let Some(k) = map.next_key::<String>()? {
+            if m.contains_key(&k) {
+                return Err(serde::de::Error::custom(format!(
+                    "the key \"{k}\" is given twice"
+                )));
+            }
+            let Strict(v) = map.next_value()?;
+            m.insert(k, v);
+        }
+        Ok(Strict(m.into()))
+    }
+}
+
 /// Reads one command line; `Err` is the message of the error event it gets.
+///
+/// A stop is read as leniently as safety asks: a byte-order mark before it, any letter
+/// case (`{"cmd":"STOP"}`) and the bare word `stop` are all stops.
 pub fn parse_command(line: &str) -> Result<Command, String> {
-    let v: serde_json::Value = serde_json::from_str(line).map_err(|e| {
+    let line = line.trim_start_matches('\u{feff}').trim();
+    if line.eq_ignore_ascii_case("stop") {
+        return Ok(Command::Stop);
+    }
+    let Strict(mut v) = serde_json::from_str(line).map_err(|e| {
         format!("not a JSON object ({e}); send one command per line, e.g. {{\"cmd\": \"stop\"}}")
     })?;
-    let Some(name) = v.get("cmd").and_then(|c| c.as_str()).map(str::to_owned) else {
+    let Some(name) = v
+        .get("cmd")
+        .and_then(|c| c.as_str())
+        .map(str::to_ascii_lowercase)
+    else {
         return Err(
             "no \"cmd\" in the command; commands: approach, retract, goto, home, stop".into(),
         );
     };
+    if name == "stop" {
+        return Ok(Command::Stop);
+    }
+    v["cmd"] = name.clone().into();
     let known = ["approach", "retract", "goto", "home", "stop"];
     if !known.contains(&name.as_str()) {
         return Err(format!(
@@ -227,5 +300,34 @@ mod tests {
         );
         let e = parse_command(r#"{"cmd":"home","speed":-1}"#).unwrap_err();
         assert!(e.contains("speed must be positive"), "{e}");
+    }
+
+    #[test]
+    fn any_spelling_of_stop_stops_and_repeated_keys_are_refused() {
+        for l in [
+            r#"{"cmd":"stop"}"#,
+            r#"{"cmd":"STOP"}"#,
+            r#"{"cmd":"Stop","speed":3}"#,
+            "\u{feff}{\"cmd\":\"stop\"}",
+            "\u{feff}STOP",
+            " stop \r",
+            "Stop",
+        ] {
+            assert_eq!(parse_command(l), Ok(Command::Stop), "{l:?}");
+        }
+        assert_eq!(
+            parse_command("\u{feff}{\"cmd\":\"Home\"}"),
+            Ok(Command::Home { speed: None })
+        );
+        // The last key does not win: the whole line is refused.
+        for l in [
+            r#"{"cmd":"stop","cmd":"approach","cell":1}"#,
+            r#"{"cmd":"approach","cmd":"stop"}"#,
+            r#"{"cmd":"goto","x":1,"y":2,"z":3,"x":900}"#,
+        ] {
+            let e = parse_command(l).unwrap_err();
+            assert!(e.contains("is given twice"), "{l}: {e}");
+        }
+        assert!(parse_command("stopp").is_err());
     }
 }

@@ -18,10 +18,12 @@
 //! An unknown or malformed command is answered `E`. Unlike the MP-285, the controller
 //! answers during a move, so the position is read, not estimated.
 
-use crate::device::{Device, DeviceError, DeviceState};
+use crate::device::{Device, DeviceError, DeviceState, EmergencyStop};
 use crate::geom::P3;
 use serialport::SerialPort;
 use std::io::{Read, Write};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
 const CR: u8 = 0x0d;
@@ -35,6 +37,30 @@ pub struct Scientifica {
     old: bool,
     speed: Option<f64>,
     timeout: Duration,
+    /// `STOP`s sent by the emergency stop's handle, from another thread: each is answered
+    /// `A` between the driver's own answers.
+    estops: Arc<AtomicU64>,
+    /// Of those answers, the ones this driver has read.
+    estops_read: u64,
+}
+
+/// The Scientifica's emergency stop: `STOP` written on a second handle of the line. The
+/// controller reads commands one by one, and the kernel writes each `write` to a tty
+/// whole, so it never splits a command of the driver's; its `A` is skipped by the driver.
+struct ScientificaStop {
+    port: Mutex<Box<dyn SerialPort>>,
+    sent: Arc<AtomicU64>,
+    name: String,
+}
+
+impl EmergencyStop for ScientificaStop {
+    fn stop_now(&self) -> Result<(), DeviceError> {
+        self.sent.fetch_add(1, Ordering::SeqCst);
+        let mut port = self.port.lock().unwrap_or_else(PoisonError::into_inner);
+        port.write_all(b"STOP\r")
+            .and_then(|_| port.flush())
+            .map_err(|e| DeviceError(format!("{}: cannot send STOP ({e})", self.name)))
+    }
 }
 
 impl Scientifica {
@@ -64,6 +90,8 @@ impl Scientifica {
             old: false,
             speed: None,
             timeout,
+            estops: Arc::default(),
+            estops_read: 0,
         };
         let _ = d.port.clear(serialport::ClearBuffer::All);
         let ver = d.command("VER")?;
@@ -93,9 +121,21 @@ impl Scientifica {
         let mut line = Vec::new();
         let mut b = [0u8; 1];
         let deadline = Instant::now() + self.timeout;
+        // Commands answered with anything but `A` take an `A` for the emergency stop's.
+        let acked = matches!(cmd.split(' ').next(), Some("ABS" | "TOP" | "STOP"));
         loop {
             match self.port.read(&mut b) {
-                Ok(1) if b[0] == CR => break,
+                Ok(1) if b[0] == CR => {
+                    if !acked
+                        && line == b"A"
+                        && self.estops_read < self.estops.load(Ordering::SeqCst)
+                    {
+                        self.estops_read += 1;
+                        line.clear();
+                        continue;
+                    }
+                    break;
+                }
                 Ok(1) => line.push(b[0]),
                 Ok(_) => {}
                 Err(e) if e.kind() == std::io::ErrorKind::TimedOut => {}
@@ -186,6 +226,18 @@ impl Device for Scientifica {
             return Err(self.err(format!("answered STOP with '{a}'")));
         }
         Ok(())
+    }
+
+    fn emergency_stop(&mut self) -> Result<Arc<dyn EmergencyStop>, DeviceError> {
+        let port = self
+            .port
+            .try_clone()
+            .map_err(|e| self.err(format!("cannot open a second handle on the line ({e})")))?;
+        Ok(Arc::new(ScientificaStop {
+            port: Mutex::new(port),
+            sent: self.estops.clone(),
+            name: self.name.clone(),
+        }))
     }
 }
 

@@ -130,7 +130,7 @@ impl RecordingWriter {
             .map_err(|e| RecordingError::Io {
                 path: part.clone(),
                 what: "creating the recording",
-                reason: e.to_string(),
+                reason: io_reason(&e),
             })?;
         let mcap = mcap::WriteOptions::new()
             .profile("ros2")
@@ -142,7 +142,7 @@ impl RecordingWriter {
             .map_err(|e| RecordingError::Io {
                 path: path.into(),
                 what: "starting the MCAP file",
-                reason: e.to_string(),
+                reason: mcap_reason(e),
             })?;
         Ok(Self {
             path: path.into(),
@@ -165,7 +165,7 @@ impl RecordingWriter {
         move |e| RecordingError::Io {
             path,
             what,
-            reason: e.to_string(),
+            reason: mcap_reason(e),
         }
     }
 
@@ -330,13 +330,13 @@ impl RecordingWriter {
             .map_err(|e| RecordingError::Io {
                 path: path.clone(),
                 what: "finishing the file",
-                reason: e.into_error().to_string(),
+                reason: io_reason(&e.into_error()),
             })?
             .sync_all()
             .map_err(|e| RecordingError::Io {
                 path: path.clone(),
                 what: "syncing the file",
-                reason: e.to_string(),
+                reason: io_reason(&e),
             })?;
         let part = self.part.display().to_string();
         formats::atomic::commit(&self.part, &path, self.overwrite).map_err(|e| RecordingError::Io {
@@ -396,10 +396,13 @@ pub struct Overview {
     pub channels: Vec<ChannelInfo>,
     /// The launch file stored in it, `(path, text)`.
     pub launch: Option<(String, String)>,
-    /// Why reading stopped early (a truncated or corrupt file).
+    /// Why reading stopped early (a corrupt file).
     pub error: Option<String>,
     /// The file ends without the MCAP footer.
     pub truncated: bool,
+    /// How a truncated file (or part) broke off: read up to its last whole record, the
+    /// rest lost.
+    pub cut: Vec<String>,
     /// What was skipped and why (damaged chunks, found by their CRCs): the rest was read.
     pub damaged: Vec<String>,
     /// Largest frame number seen.
@@ -442,6 +445,26 @@ pub fn recording_files(path: &Path) -> Vec<PathBuf> {
         .map(|i| part_path(path, i))
         .take_while(|p| p.exists())
         .collect()
+}
+
+/// An I/O error as a user needs it: a full disk said plainly (mcap's own words for any I/O
+/// error hide which one it was).
+pub fn io_reason(e: &std::io::Error) -> String {
+    if e.kind() == std::io::ErrorKind::StorageFull || e.raw_os_error() == Some(28) {
+        format!(
+            "the disk is full (ENOSPC: {e}); free some space or record to another disk (--split keeps the parts already written whole)"
+        )
+    } else {
+        e.to_string()
+    }
+}
+
+/// An MCAP writer's error, its I/O error said as [`io_reason`] says it.
+fn mcap_reason(e: mcap::McapError) -> String {
+    match e {
+        mcap::McapError::Io(io) => io_reason(&io),
+        e => e.to_string(),
+    }
 }
 
 fn open(path: &Path) -> Result<(File, bool), RecordingError> {
@@ -508,6 +531,8 @@ fn raw_messages(path: &Path) -> Result<(RawMessages, bool), RecordingError> {
         launch: None,
         damaged: Vec::new(),
         undeclared: HashMap::new(),
+        truncated,
+        cut_at: None,
     };
     if !truncated {
         // The summary repeats every schema and channel: a message whose channel was
@@ -596,6 +621,10 @@ struct RawMessages {
     damaged: Vec<String>,
     /// Messages skipped on channels that no readable record declares, per channel.
     undeclared: HashMap<u16, u64>,
+    /// The file ends without its footer (its writer did not close it).
+    truncated: bool,
+    /// Where a truncated file breaks off: the byte its last whole record ends at.
+    cut_at: Option<u64>,
 }
 
 /// A decoded record that matters here.
@@ -711,6 +740,23 @@ impl RawMessages {
         Ok(Parsed::Other)
     }
 
+    /// How a truncated file broke off, once the reader got there: what was read and what
+    /// was lost.
+    fn cut(&self) -> Option<String> {
+        let at = self.cut_at?;
+        let lost = self.len - at;
+        Some(if lost == 0 {
+            format!(
+                "the file is truncated (its writer did not close it): read to its end at byte {at}; only its index is missing"
+            )
+        } else {
+            format!(
+                "the file is truncated (its writer did not close it): read up to its last complete record, at byte {at} of {}; the {lost} byte(s) after it, an unfinished record, are lost (with whatever was never written to the file)",
+                self.len
+            )
+        })
+    }
+
     /// What was skipped so far, each with where and why.
     fn damage(&self) -> Vec<String> {
         let mut d = self.damaged.clone();
@@ -784,12 +830,21 @@ impl RawMessages {
             }
             if got == 0 {
                 self.ended = true;
+                if self.truncated {
+                    self.cut_at = Some(at);
+                }
                 return None;
             }
             let n = u64::from_le_bytes(head[1..].try_into().expect("8 bytes"));
             let end = at.saturating_add(9).saturating_add(n);
             if got < head.len() || end > self.len {
                 self.ended = true;
+                // A file cut short (its writer died, the disk filled, a copy lost its
+                // tail) is read up to its last whole record; the loss is said, not fatal.
+                if self.truncated {
+                    self.cut_at = Some(at);
+                    return None;
+                }
                 return Some(Err(format!(
                     "the record at byte {at} runs past the end of the file"
                 )));
@@ -854,11 +909,20 @@ impl RawMessages {
 pub fn overview(path: &Path) -> Result<Overview, RecordingError> {
     let files = recording_files(path);
     let mut all = overview_of(&files[0])?;
+    if files.len() > 1 {
+        all.cut = all
+            .cut
+            .into_iter()
+            .map(|c| format!("{}: {c}", files[0].display()))
+            .collect();
+    }
     for f in &files[1..] {
         if all.error.is_some() {
             break;
         }
         let o = overview_of(f)?;
+        all.cut
+            .extend(o.cut.iter().map(|c| format!("{}: {c}", f.display())));
         for c in o.channels {
             match all.channels.iter_mut().find(|a| a.topic == c.topic) {
                 Some(a) => {
@@ -872,7 +936,7 @@ pub fn overview(path: &Path) -> Result<Overview, RecordingError> {
         }
         all.launch = all.launch.or(o.launch);
         all.error = o.error.map(|e| format!("{}: {e}", f.display()));
-        all.truncated = o.truncated;
+        all.truncated |= o.truncated;
         all.damaged.extend(
             o.damaged
                 .into_iter()
@@ -930,9 +994,7 @@ fn overview_of(path: &Path) -> Result<Overview, RecordingError> {
     }
     o.launch = raw.launch.take();
     o.damaged = raw.damage();
-    if truncated && o.error.is_none() {
-        o.error = Some("the file ends without its MCAP footer".into());
-    }
+    o.cut = raw.cut().into_iter().collect();
     Ok(o)
 }
 
@@ -944,8 +1006,9 @@ pub struct EdgeReader {
     /// The parts after it.
     more: std::collections::VecDeque<PathBuf>,
     raw: RawMessages,
-    truncated: bool,
     edges: Option<Vec<String>>,
+    /// How the parts read so far broke off, where they did.
+    cuts: Vec<String>,
     /// Halves of two-image messages waiting for their other side: (edge, frame) → parts.
     halves: HashMap<(String, u64), [Option<Vec<u8>>; 2]>,
     read: u64,
@@ -966,13 +1029,13 @@ impl EdgeReader {
     pub fn open(path: &Path, edges: Option<Vec<String>>) -> Result<Self, RecordingError> {
         let mut files: std::collections::VecDeque<PathBuf> = recording_files(path).into();
         let first = files.pop_front().expect("one file at least");
-        let (raw, truncated) = raw_messages(&first)?;
+        let (raw, _) = raw_messages(&first)?;
         Ok(Self {
             path: first,
             more: files,
             raw,
-            truncated,
             edges,
+            cuts: Vec::new(),
             halves: HashMap::new(),
             read: 0,
             done: false,
@@ -988,6 +1051,18 @@ impl EdgeReader {
     /// What was skipped so far and why (damaged chunks): the reader goes on past them.
     pub fn damaged(&self) -> Vec<String> {
         self.raw.damage()
+    }
+
+    /// How the recording (or a part of it) broke off, once the reader got there: a file
+    /// whose writer did not close it is read up to its last whole record.
+    pub fn lost(&self) -> Vec<String> {
+        let mut v = self.cuts.clone();
+        v.extend(
+            self.raw
+                .cut()
+                .map(|c| format!("{}: {c}", self.path.display())),
+        );
+        v
     }
 
     fn message_error(&self, topic: &str, sequence: u64, reason: String) -> RecordingError {
@@ -1009,15 +1084,17 @@ impl Iterator for EdgeReader {
         }
         loop {
             let m = match self.raw.next_message() {
-                // A split recording goes on in its next part.
-                None if !self.truncated && !self.more.is_empty() => {
+                // A split recording goes on in its next part (after a part cut short too).
+                None if !self.more.is_empty() => {
                     let next = self.more.pop_front().expect("not empty");
                     match raw_messages(&next) {
-                        Ok((raw, truncated)) => {
+                        Ok((raw, _)) => {
+                            if let Some(c) = self.raw.cut() {
+                                self.cuts.push(format!("{}: {c}", self.path.display()));
+                            }
                             let launch = self.raw.launch.take();
                             self.raw = raw;
                             self.raw.launch = launch;
-                            self.truncated = truncated;
                             self.path = next;
                             continue;
                         }
@@ -1029,14 +1106,7 @@ impl Iterator for EdgeReader {
                 }
                 None => {
                     self.done = true;
-                    return self.truncated.then(|| {
-                        Err(RecordingError::Corrupt {
-                            path: self.path.clone(),
-                            reason: "the file ends without its MCAP footer".into(),
-                            messages: self.read,
-                            truncated: true,
-                        })
-                    });
+                    return None;
                 }
                 Some(Err(reason)) => {
                     self.done = true;
@@ -1044,7 +1114,7 @@ impl Iterator for EdgeReader {
                         path: self.path.clone(),
                         reason,
                         messages: self.read,
-                        truncated: self.truncated,
+                        truncated: self.raw.truncated,
                     }));
                 }
                 Some(Ok(m)) => m,
@@ -1152,6 +1222,11 @@ impl FrameReader {
     /// What was skipped so far and why (damaged chunks): the reader goes on past them.
     pub fn damaged(&self) -> Vec<String> {
         self.reader.damaged()
+    }
+
+    /// How the recording broke off, once the reader got there ([`EdgeReader::lost`]).
+    pub fn lost(&self) -> Vec<String> {
+        self.reader.lost()
     }
 }
 
@@ -1372,23 +1447,74 @@ mod tests {
     }
 
     #[test]
+    fn a_full_disk_is_said_plainly() {
+        // /dev/full answers every write with ENOSPC, as a full disk does.
+        let full = File::options().write(true).open("/dev/full").unwrap();
+        let mut w = mcap::WriteOptions::new()
+            .create(BufWriter::new(full))
+            .unwrap();
+        let e = w.flush().unwrap_err();
+        let said = mcap_reason(e);
+        assert!(said.starts_with("the disk is full (ENOSPC"), "{said}");
+        assert_eq!(
+            io_reason(&std::io::Error::from(std::io::ErrorKind::NotFound)),
+            "entity not found"
+        );
+    }
+
+    #[test]
     fn a_truncated_file_gives_what_it_holds_and_says_so() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("r.mcap");
         write_three(&path);
         let bytes = std::fs::read(&path).unwrap();
-        // Cut inside the footer's summary: the data section is whole.
+        // Cut inside the footer's summary: the data section is whole, nothing is lost.
         let cut = dir.path().join("cut.mcap");
         std::fs::write(&cut, &bytes[..bytes.len() - 30]).unwrap();
-        let got: Vec<_> = EdgeReader::open(&cut, None).unwrap().collect();
-        assert!(got.len() >= 3, "{got:?}");
-        let last = got.last().unwrap().as_ref().unwrap_err().to_string();
-        assert!(last.contains("truncated"), "{last}");
-        // Cut in the middle: the chunk is lost, the error says where.
+        let mut r = EdgeReader::open(&cut, None).unwrap();
+        let got: Vec<_> = r.by_ref().collect::<Result<_, _>>().unwrap();
+        assert_eq!(got.len(), 3);
+        assert!(r.lost().is_empty(), "{:?}", r.lost());
+        assert!(overview(&cut).unwrap().truncated);
+        // Four chunks of three frames; cut at every byte of the third chunk: the first two
+        // chunks read back exactly, the loss is said with where it begins, and nothing
+        // is an error.
+        let path = dir.path().join("four.mcap");
+        let mut w = RecordingWriter::create(&path, false).unwrap();
+        w.write_launch(Path::new("g.toml"), "[[node]]\n").unwrap();
+        for seq in 0..12 {
+            let (h, p) = frame(seq, 64);
+            w.write("cam/frame", MessageKind::StereoFrame, &h, &p, 50 + seq)
+                .unwrap();
+            if seq % 3 == 2 {
+                w.mcap.flush().unwrap();
+            }
+        }
+        w.finish().unwrap();
+        let clean = std::fs::read(&path).unwrap();
+        let found = chunks(&clean);
+        let (third, _, _) = found[2];
+        let end = third
+            + 9
+            + u64::from_le_bytes(clean[third + 1..third + 9].try_into().unwrap()) as usize;
         let half = dir.path().join("half.mcap");
-        std::fs::write(&half, &bytes[..bytes.len() / 2]).unwrap();
-        let o = overview(&half).unwrap();
-        assert!(o.truncated && o.error.is_some(), "{o:?}");
+        for at in (third + 1..end).step_by(7) {
+            std::fs::write(&half, &clean[..at]).unwrap();
+            let o = overview(&half).unwrap();
+            assert!(o.truncated && o.error.is_none(), "{o:?}");
+            assert_eq!(o.channels[0].messages, 6, "cut at {at}");
+            assert_eq!(o.cut.len(), 1, "{o:?}");
+            assert!(
+                o.cut[0].contains(&format!("at byte {third} of {at}")),
+                "{:?}",
+                o.cut
+            );
+            let mut frames = FrameReader::open(&half, vec!["cam/frame".into()]).unwrap();
+            let back: Vec<_> = frames.by_ref().collect::<Result<_, _>>().unwrap();
+            let seqs: Vec<u64> = back.iter().map(|f| f[0].header.sequence).collect();
+            assert_eq!(seqs, (0..6).collect::<Vec<_>>());
+            assert_eq!(frames.lost().len(), 1);
+        }
         // Not an MCAP file at all.
         let junk = dir.path().join("junk.mcap");
         std::fs::write(&junk, b"hello, world, this is text").unwrap();

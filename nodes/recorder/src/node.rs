@@ -282,6 +282,16 @@ pub fn run_recorder(
         .node(id)
         .ok_or_else(|| format!("no node '{id}' in {}", graph.file.display()))?;
     let p: RecorderParams = runtime::registry::from_table(&spec.params)?;
+    if let Some(s) = p.split_seconds
+        && !(1.0..=1e7).contains(&s)
+    {
+        return Err(format!(
+            "split_seconds {s} is out of range: use 1 to 10000000 seconds"
+        ));
+    }
+    if p.split_bytes == Some(0) {
+        return Err("split_bytes 0 would start a file per message: give at least 1".into());
+    }
     let edges = graph.input_edges(id);
     let names: Vec<String> = edges.iter().map(|(e, _)| e.clone()).collect();
     let (rate_of, rates) = edge_rates(&p.every, &names)?;
@@ -340,15 +350,23 @@ pub enum Rate {
 }
 
 impl Rate {
+    /// The slowest replay: a thousandth of the recorded speed (a second of recording in
+    /// about 17 minutes).
+    pub const SLOWEST: f64 = 1e-3;
+    /// The fastest paced replay (`max` takes frames as fast as the graph does).
+    pub const FASTEST: f64 = 1e3;
+
     /// Reads `1.0`, `0.5`, `max`.
     pub fn parse(s: &str) -> Result<Self, String> {
         if s == "max" {
             return Ok(Self::Max);
         }
         match s.parse::<f64>() {
-            Ok(r) if r > 0.0 && r.is_finite() => Ok(Self::Times(r)),
+            Ok(r) if (Self::SLOWEST..=Self::FASTEST).contains(&r) => Ok(Self::Times(r)),
             _ => Err(format!(
-                "rate '{s}' is neither 'max' nor a positive number (1.0 = recorded speed)"
+                "rate '{s}' is neither 'max' nor a speed from {} to {} (1.0 = recorded speed)",
+                Self::SLOWEST,
+                Self::FASTEST
             )),
         }
     }
@@ -488,11 +506,11 @@ impl GraphNode for ReplayNode {
             }
         }
         let Some(msgs) = msgs else {
-            for d in self.frames.damaged() {
-                eprintln!("{}: {d}", self.params.file.display());
+            for d in self.frames.lost().iter().chain(&self.frames.damaged()) {
+                runtime::errln!("{}: {d}", self.params.file.display());
             }
             if self.skipped > 0 {
-                eprintln!(
+                runtime::errln!(
                     "{}: {} recorded frame(s) lack some of {} and were skipped",
                     self.params.file.display(),
                     self.skipped,
@@ -507,8 +525,13 @@ impl GraphNode for ReplayNode {
         let ns_out = ns + self.offset.1;
         if let Rate::Times(r) = self.rate {
             let (c0, t0) = *self.clock.get_or_insert((ns_out, Instant::now()));
-            let due = t0 + Duration::from_secs_f64(ns_out.saturating_sub(c0) as f64 / 1e9 / r);
-            std::thread::sleep(due.saturating_duration_since(Instant::now()));
+            let after = Duration::try_from_secs_f64(ns_out.saturating_sub(c0) as f64 / 1e9 / r)
+                .unwrap_or(Duration::MAX);
+            let wait = after.saturating_sub(t0.elapsed());
+            // A stop cuts the wait short (a slow replay waits long between frames).
+            if !runtime::signals::sleep(wait) {
+                return Ok(false);
+            }
         }
         for (port, m) in msgs.iter().enumerate() {
             let h = FrameHeader {

@@ -24,6 +24,7 @@ use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 use schemas::{Calibration, DisparityMap, LengthUnit, Plane};
 use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
 
 /// The optics and the sensor.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -401,9 +402,40 @@ impl Default for CellSpec {
     }
 }
 
+/// Rows rendered so far by this process (each view's and the ground truth's): what a long
+/// render's progress is read from.
+static ROWS_RENDERED: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+
+/// How many image rows this process has rendered so far: [`Scene::render`] renders three
+/// per row of the image (both views and the ground truth).
+pub fn rows_rendered() -> u64 {
+    ROWS_RENDERED.load(std::sync::atomic::Ordering::Relaxed)
+}
+
+/// What to tell a user whose scene holds fewer cells than `spec` asked for (they did not fit
+/// without overlapping), with what to change; `None` when all fit.
+pub fn shortfall(scene: &Scene, spec: &CellSpec) -> Option<String> {
+    let placed = scene.cells.len();
+    (placed < spec.count).then(|| {
+        let o = &scene.optics;
+        let s = o.um_per_px();
+        format!(
+            "only {placed} of {} cells fit without overlapping in {}×{} px ({:.0}×{:.0} µm at {s:.2} µm/px) with footprints {}–{} µm across and {} µm apart: give a larger view (width, height), smaller cells (diameter) or fewer cells",
+            spec.count,
+            o.width,
+            o.height,
+            o.width as f64 * s,
+            o.height as f64 * s,
+            spec.diameter[0],
+            spec.diameter[1],
+            spec.gap
+        )
+    })
+}
+
 impl Scene {
     /// A random scene: non-overlapping cells fully inside both views. Fewer cells than asked
-    /// when they do not fit (the spec is then reported by `cells.len()`).
+    /// when they do not fit ([`shortfall`] says so).
     pub fn random(optics: Optics, look: Look, spec: &CellSpec, seed: u64) -> Self {
         let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_ce11);
         let s = optics.um_per_px();
@@ -413,7 +445,20 @@ impl Scene {
         );
         let margin = 6.0 * s + 0.35 * spec.height[1];
         let mut cells: Vec<CellShape> = Vec::new();
-        for _ in 0..spec.count * 200 {
+        // Cells placed so far by square of the grid: a new cell can only be too close to
+        // one in its own square or the eight around it (a square is wider than any two
+        // cells' reach and the gap), so thousands of cells place in a moment; the
+        // decisions, and the scene, are the ones every other cell gives.
+        let grown = 1.0 + 3.0 * spec.irregular;
+        let square = (spec.diameter[1] * grown + spec.gap).max(1e-3) * 1.01 + 1.0;
+        let key = |c: [f64; 2]| {
+            (
+                (c[0] / square).floor() as i64,
+                (c[1] / square).floor() as i64,
+            )
+        };
+        let mut grid: HashMap<(i64, i64), Vec<usize>> = HashMap::new();
+        for _ in 0..spec.count.saturating_mul(200) {
             if cells.len() == spec.count {
                 break;
             }
@@ -431,9 +476,17 @@ impl Scene {
                 rng.random_range(-hw + r..hw - r),
                 rng.random_range(-hh + r..hh - r),
             ];
-            let grown = 1.0 + 3.0 * spec.irregular;
-            let clear = cells.iter().all(|o| {
-                (o.centre[0] - c[0]).hypot(o.centre[1] - c[1]) > a * grown + o.reach() + spec.gap
+            let (kx, ky) = key(c);
+            let clear = (-1..=1).all(|dx| {
+                (-1..=1).all(|dy| {
+                    grid.get(&(kx + dx, ky + dy)).is_none_or(|near| {
+                        near.iter().all(|&i| {
+                            let o = &cells[i];
+                            (o.centre[0] - c[0]).hypot(o.centre[1] - c[1])
+                                > a * grown + o.reach() + spec.gap
+                        })
+                    })
+                })
             });
             if !clear {
                 continue;
@@ -455,6 +508,7 @@ impl Scene {
                     cell.outline[k + 3] = rng.random_range(0.0..std::f64::consts::TAU);
                 }
             }
+            grid.entry(key(c)).or_default().push(cells.len());
             cells.push(cell);
         }
         Self {
@@ -1030,6 +1084,7 @@ impl Scene {
         let rows: Vec<(Vec<f64>, Vec<f64>)> = (0..h)
             .into_par_iter()
             .map(|v| {
+                ROWS_RENDERED.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                 let sub_row = |j: usize| v as f64 + (j as f64 + 0.5) / n as f64 - 0.5;
                 let touched = backdrop.map(|_| self.touched(right, v, cal));
                 let mut dark_row = Vec::new();
@@ -1285,19 +1340,27 @@ impl Scene {
         let mut depth = Plane::filled(w, h, 0f32);
         let mut labels = Plane::filled(w, h, 0u32);
         let off = cal.cx_right - cal.cx;
-        for v in 0..h {
-            let candidates = self.cells_on_row(v as f64, &cal);
-            for u in 0..w {
-                let (hit, z) = self.cast(false, u as f64, v as f64, &cal, &candidates, true);
-                *depth.get_mut(u, v) = z as f32;
-                *disparity.get_mut(u, v) = (self.optics.baseline * cal.focal_px / z - off) as f32;
-                *labels.get_mut(u, v) = match hit {
-                    Hit::Substrate(_) => 0,
-                    Hit::Cell(k, _) => k as u32 + 1,
-                    Hit::Pipette => PIPETTE,
-                };
-            }
-        }
+        // Row by row in parallel: each pixel's ray is its own.
+        depth
+            .data
+            .par_chunks_mut(w)
+            .zip(disparity.data.par_chunks_mut(w))
+            .zip(labels.data.par_chunks_mut(w))
+            .enumerate()
+            .for_each(|(v, ((depth, disparity), labels))| {
+                ROWS_RENDERED.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                let candidates = self.cells_on_row(v as f64, &cal);
+                for u in 0..w {
+                    let (hit, z) = self.cast(false, u as f64, v as f64, &cal, &candidates, true);
+                    depth[u] = z as f32;
+                    disparity[u] = (self.optics.baseline * cal.focal_px / z - off) as f32;
+                    labels[u] = match hit {
+                        Hit::Substrate(_) => 0,
+                        Hit::Cell(k, _) => k as u32 + 1,
+                        Hit::Pipette => PIPETTE,
+                    };
+                }
+            });
         let z0 = self.z0();
         // Pixel count and coordinate sums per label, in one pass.
         let mut sums = vec![(0u64, 0f64, 0f64); self.cells.len() + 1];
@@ -1433,6 +1496,111 @@ pub fn gaussian_blur(img: &Plane<f64>, sigma: f64) -> Plane<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The placement of [`Scene::random`] checking every cell placed so far (no grid).
+    fn placed_naively(optics: Optics, spec: &CellSpec, seed: u64) -> Vec<[f64; 4]> {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_ce11);
+        let s = optics.um_per_px();
+        let (hw, hh) = (
+            0.5 * optics.width as f64 * s,
+            0.5 * optics.height as f64 * s,
+        );
+        let margin = 6.0 * s + 0.35 * spec.height[1];
+        let grown = 1.0 + 3.0 * spec.irregular;
+        let mut cells: Vec<CellShape> = Vec::new();
+        for _ in 0..spec.count * 200 {
+            if cells.len() == spec.count {
+                break;
+            }
+            let d = rng.random_range(spec.diameter[0]..=spec.diameter[1]);
+            let ecc = rng.random_range(0.75..=1.0);
+            let (a, b) = (0.5 * d, 0.5 * d * ecc);
+            let h = rng
+                .random_range(spec.height[0]..=spec.height[1])
+                .min(0.8 * d);
+            let r = a * grown + margin;
+            if 2.0 * r >= 2.0 * hw.min(hh) {
+                continue;
+            }
+            let c = [
+                rng.random_range(-hw + r..hw - r),
+                rng.random_range(-hh + r..hh - r),
+            ];
+            if !cells.iter().all(|o| {
+                (o.centre[0] - c[0]).hypot(o.centre[1] - c[1]) > a * grown + o.reach() + spec.gap
+            }) {
+                continue;
+            }
+            let mut cell = CellShape {
+                centre: c,
+                semi_axes: [a, b],
+                angle: rng.random_range(0.0..std::f64::consts::PI),
+                height: h,
+                texture_offset: [rng.random_range(0.0..1e4), rng.random_range(0.0..1e4)],
+                brightness: rng.random_range(-15.0..15.0),
+                profile: spec.profile,
+                outline: [0.0; 6],
+            };
+            if spec.irregular > 0.0 {
+                for k in 0..3 {
+                    cell.outline[k] = rng.random_range(0.0..=spec.irregular);
+                    cell.outline[k + 3] = rng.random_range(0.0..std::f64::consts::TAU);
+                }
+            }
+            cells.push(cell);
+        }
+        cells
+            .iter()
+            .map(|c| [c.centre[0], c.centre[1], c.semi_axes[0], c.height])
+            .collect()
+    }
+
+    #[test]
+    fn the_grid_places_the_cells_every_cell_would_and_thousands_in_a_moment() {
+        for (w, h, count, irregular, gap, dmax, seed) in [
+            (640, 480, 40, 0.0, 12.0, 100.0, 1),
+            (640, 480, 1000, 0.0, 12.0, 100.0, 2),
+            (1280, 1024, 300, 0.3, 5.0, 60.0, 3),
+            (300, 200, 50, 0.1, 0.0, 20.0, 4),
+        ] {
+            let optics = Optics {
+                width: w,
+                height: h,
+                ..Optics::default()
+            };
+            let spec = CellSpec {
+                count,
+                diameter: [10.0, dmax],
+                gap,
+                irregular,
+                ..CellSpec::default()
+            };
+            let scene = Scene::random(optics, Look::default(), &spec, seed);
+            let got: Vec<[f64; 4]> = scene
+                .cells
+                .iter()
+                .map(|c| [c.centre[0], c.centre[1], c.semi_axes[0], c.height])
+                .collect();
+            assert_eq!(got, placed_naively(optics, &spec, seed), "{w}×{h} {count}");
+            assert!(!got.is_empty());
+        }
+        // 10 000 asked of an 8192² view (the list checked whole took tens of minutes).
+        let optics = Optics {
+            width: 8192,
+            height: 8192,
+            ..Optics::default()
+        };
+        let many = Scene::random(
+            optics,
+            Look::default(),
+            &CellSpec {
+                count: 10_000,
+                ..CellSpec::default()
+            },
+            5,
+        );
+        assert!(many.cells.len() > 1000, "{}", many.cells.len());
+    }
 
     #[test]
     fn substrate_has_zero_disparity_and_heights_give_the_designed_slope() {

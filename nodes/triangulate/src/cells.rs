@@ -618,7 +618,9 @@ pub fn measure(
     background: Option<Background>,
     calib: &Calibration,
 ) -> Vec<Cell3> {
-    let z_of = |d: f64| calib.baseline * calib.focal_px / (d + calib.cx_right - calib.cx);
+    // At or beyond infinite depth a disparity is no point: such pixels are left out, and a
+    // cell whose substrate lies there is not measured (`beyond_infinity` counts them).
+    let z_of = |d: f64| crate::depth_of(d, calib);
     let one = |k: usize, i: usize, j: usize| -> Option<Cell3> {
         let cell = &left_cells[i];
         let b = cell.bbox;
@@ -653,7 +655,7 @@ pub fn measure(
             }
             _ => cell.centroid,
         };
-        let z_sub = z_of(d_sub);
+        let z_sub = z_of(d_sub)?;
         let pixel_area = (z_sub / calib.focal_px).powi(2);
         let xy = |x: usize, y: usize| {
             let d = *disparity.get(x, y) as f64;
@@ -661,7 +663,7 @@ pub fn measure(
         };
         let (mut vol, mut wx, mut wy, mut wz) = (0.0, 0.0, 0.0, 0.0);
         for &(x, y, d) in &inside {
-            let z = z_of(d as f64);
+            let Some(z) = z_of(d as f64) else { continue };
             let hgt = (z_sub - z).max(0.0);
             // The ground each pixel covers: one camera sees a slope facing it with more
             // pixels than the slope facing away, so equal weights would pull the centroid
@@ -688,8 +690,7 @@ pub fn measure(
         let centroid = if vol > 0.0 {
             [wx / vol, wy / vol, wz / vol]
         } else {
-            crate::triangulate_pixel(cell.centroid[0], cell.centroid[1], d_sub, calib)
-                .unwrap_or([f64::NAN; 3])
+            crate::triangulate_pixel(cell.centroid[0], cell.centroid[1], d_sub, calib)?
         };
         let contour = cell
             .contour
@@ -697,12 +698,13 @@ pub fn measure(
             .filter_map(|c| crate::triangulate_pixel(c[0] as f64, c[1] as f64, d_sub, calib))
             .collect();
         let valid_share = valid_raw as f64 / cell.area.max(1) as f64;
-        let height = (d_top > d_sub).then(|| z_sub - z_of(d_top));
+        let z_top = z_of(d_top).filter(|_| d_top > d_sub);
+        let height = z_top.map(|z| z_sub - z);
         // dZ/dd' = −Z²/(b·f): the substrate's error, and the top's (its fit's, at least
         // 0.05 px, what the dome fit reaches on synthetic truth).
         let dz = |z: f64| z * z / (calib.baseline * calib.focal_px);
         let top_std = tops[k].map_or(TOP_STD, |t| t.std.max(TOP_STD));
-        let height_std = height.map(|_| (dz(z_sub) * base.std).hypot(dz(z_of(d_top)) * top_std));
+        let height_std = z_top.map(|z| (dz(z_sub) * base.std).hypot(dz(z) * top_std));
         let doubt = base
             .doubt
             .clone()
@@ -743,7 +745,7 @@ pub fn measure(
                 )),
                 _ => None,
             });
-        Some(Cell3 {
+        finite(Cell3 {
             id: cell.id,
             right_id: right_cells[j].id,
             area_px: cell.area,
@@ -771,6 +773,36 @@ pub fn measure(
         .enumerate()
         .filter_map(|(k, &(i, j))| one(k, i, j))
         .collect()
+}
+
+/// `c` if every number it carries is one (a NaN or an infinity would travel as JSON
+/// `null`, which no reader of a number takes).
+fn finite(c: Cell3) -> Option<Cell3> {
+    let f = |v: f64| v.is_finite();
+    let opt = |v: Option<f64>| v.is_none_or(f);
+    (c.centroid_px.iter().all(|&v| f(v))
+        && f(c.disparity)
+        && c.centroid.iter().all(|&v| f(v))
+        && f(c.substrate_z)
+        && opt(c.height)
+        && f(c.volume)
+        && c.contour.iter().flatten().all(|&v| f(v))
+        && f(c.valid_share)
+        && f(c.quality.substrate_std)
+        && opt(c.quality.height_std)
+        && opt(c.quality.residual))
+    .then_some(c)
+}
+
+/// How many of these substrate disparities lie at or beyond infinite depth with `calib`
+/// (their cells cannot be measured): a calibration whose principal points' offset
+/// (`cx_right − cx`) is missing or wrong for the pair.
+pub fn beyond_infinity(bases: &[Option<Base>], calib: &Calibration) -> usize {
+    bases
+        .iter()
+        .flatten()
+        .filter(|b| crate::depth_of(b.d, calib).is_none())
+        .count()
 }
 
 /// The textured background a cell stands on, for [`measure`].
@@ -932,7 +964,6 @@ pub fn lone_cells(
     range: DisparityRange,
     calib: &Calibration,
 ) -> Vec<Cell3> {
-    let z_of = |d: f64| calib.baseline * calib.focal_px / (d + calib.cx_right - calib.cx);
     let plane = plane.filter(|_| {
         bases
             .iter()
@@ -952,8 +983,8 @@ pub fn lone_cells(
                     None => (median?, RING_STD, SubstrateSource::Rims),
                 },
             };
-            let z_sub = z_of(d);
-            Some(Cell3 {
+            let z_sub = crate::depth_of(d, calib)?;
+            finite(Cell3 {
                 id: cell.id,
                 right_id: 0,
                 area_px: cell.area,

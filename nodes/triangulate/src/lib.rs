@@ -25,6 +25,16 @@ pub mod substrate;
 
 use schemas::{Calibration, DisparityMap, Plane, Point3, PointCloud};
 
+/// The depth `Z = b·f/d'` of disparity `d` (`d' = d + cx_right − cx`, the disparity the
+/// principal points' offset makes of it); `None` at or beyond infinite depth (`d' ≤ 0`):
+/// no point of the scene, and never a number that is not one.
+pub fn depth_of(d: f64, c: &Calibration) -> Option<f64> {
+    let dp = d + c.cx_right - c.cx;
+    (dp > 0.0)
+        .then(|| c.baseline * c.focal_px / dp)
+        .filter(|z| z.is_finite())
+}
+
 /// One pixel's 3D position, or `None` when it has no disparity or lies at/behind infinity.
 pub fn triangulate_pixel(x: f64, y: f64, d: f64, c: &Calibration) -> Option<[f64; 3]> {
     if !d.is_finite() {

@@ -97,6 +97,8 @@ pub struct Triangulate {
     calibration: Option<(usize, usize, Calibration)>,
     /// The substrate plane tracked up to the last frame, its frame size and disparity range.
     plane: Option<((usize, usize), DisparityRange, PlaneTrack)>,
+    /// Whether it said that cells lie beyond infinite depth (once a run).
+    told_infinity: bool,
 }
 
 impl Triangulate {
@@ -114,6 +116,14 @@ impl Triangulate {
     }
 }
 
+/// What a frame whose cells lie at or beyond infinite depth tells the user.
+pub fn infinity_warning(cells: usize, calib: &Calibration) -> String {
+    format!(
+        "warning: {cells} cell(s) lie at or beyond infinite depth with this calibration (disparity + cx_right − cx ≤ 0, with cx_right − cx = {:.1} px) and are left out: give the calibration's cx_right (the right camera's principal point in the left's rectified frame), or check its cx",
+        calib.cx_right - calib.cx
+    )
+}
+
 impl Task for Triangulate {
     const KIND: &'static str = "triangulate";
     type Params = TriangulateParams;
@@ -126,6 +136,7 @@ impl Task for Triangulate {
             params,
             calibration: None,
             plane: None,
+            told_infinity: false,
         })
     }
 
@@ -205,6 +216,11 @@ impl Task for Triangulate {
                     }),
                     &calib,
                 );
+                let beyond = crate::cells::beyond_infinity(&bases, &calib);
+                if beyond > 0 && !self.told_infinity {
+                    self.told_infinity = true;
+                    runtime::errln!("{}", infinity_warning(beyond, &calib));
+                }
                 let lone = lone_cells(
                     (left, right),
                     (&labels.left, &lists.left),

@@ -34,10 +34,23 @@ fn view(a: ViewCli) -> Result<(), String> {
         .map_err(|e| e.to_string())
         .and_then(|o| match o.error {
             Some(e) => Err(format!("{}: {e}", a.file.display())),
+            None if o.channels.iter().all(|c| c.messages == 0) => {
+                let why: Vec<&str> = o.cut.iter().chain(&o.damaged).map(String::as_str).collect();
+                Err(format!(
+                    "{}: no message in it can be read{}",
+                    a.file.display(),
+                    if why.is_empty() {
+                        " (it holds none)".to_string()
+                    } else {
+                        format!(": {}", why.join("; "))
+                    }
+                ))
+            }
             None => {
-                // Damaged chunks are skipped; the rest is shown.
-                for d in o.damaged {
-                    eprintln!("warning: {}: {d}", a.file.display());
+                // Damaged chunks are skipped, a cut file read up to its last whole record;
+                // the rest is shown.
+                for d in o.cut.iter().chain(&o.damaged) {
+                    runtime::errln!("warning: {}: {d}", a.file.display());
                 }
                 Ok(())
             }
@@ -45,7 +58,13 @@ fn view(a: ViewCli) -> Result<(), String> {
     let mut sink = Sink::new(viewer::open(&target)?);
     let n = viewer::log_recording(&mut sink, &a.file)?;
     sink.finish()?;
-    eprintln!("{n} message(s) of {} shown", a.file.display());
+    if n == 0 {
+        return Err(format!(
+            "{}: none of its messages could be shown",
+            a.file.display()
+        ));
+    }
+    runtime::errln!("{n} message(s) of {} shown", a.file.display());
     Ok(())
 }
 
@@ -87,6 +106,7 @@ fn main() {
     let result = if std::env::args().nth(1).as_deref() == Some("view") {
         view(ViewCli::parse_from(std::env::args().skip(1)))
     } else {
+        runtime::signals::install();
         runtime::process::set_parent_death_signal();
         let args: Vec<String> = std::env::args().skip(1).collect();
         match Invocation::parse(&args) {
@@ -98,7 +118,7 @@ fn main() {
         }
     };
     if let Err(e) = result {
-        eprintln!("error: {e}");
+        runtime::errln!("error: {e}");
         std::process::exit(2);
     }
 }
