@@ -216,12 +216,11 @@ fn a_stop_signal_at_any_moment_ends_the_run_cleanly() {
 /// at once, and nothing of it is left.
 #[test]
 fn a_large_graph_stopped_during_its_start_leaves_nothing() {
-    let mut text = String::from(
-        "[[node]]\nid = \"capture\"\nkind = \"capture\"\nparams = { width = 64, height = 48, cells = 1, fps = 20.0 }\n",
-    );
-    for k in 0..60 {
+    // Thirty cameras, each with its segmentation: sixty processes.
+    let mut text = String::new();
+    for k in 0..30 {
         text += &format!(
-            "\n[[node]]\nid = \"seg{k}\"\nkind = \"segment\"\ninputs = {{ frame = \"capture/frame\" }}\n"
+            "[[node]]\nid = \"capture{k}\"\nkind = \"capture\"\nparams = {{ width = 64, height = 48, cells = 0, fps = 20.0 }}\n\n[[node]]\nid = \"seg{k}\"\nkind = \"segment\"\ninputs = {{ frame = \"capture{k}/frame\" }}\n\n"
         );
     }
     let dir = tempfile::tempdir().unwrap();
@@ -402,7 +401,7 @@ fn rates_and_durations_out_of_range_are_refused() {
     }
     let rec = Path::new(env!("CARGO_MANIFEST_DIR")).join("recordings/default.mcap");
     for rate in ["1e-300", "0", "nan", "1e9", "-1"] {
-        let out = common::run(&["replay", rec.to_str().unwrap(), "--rate", rate]);
+        let out = common::run(&["replay", rec.to_str().unwrap(), &format!("--rate={rate}")]);
         common::assert_clean_failure(&out, "rate");
     }
     let dir = tempfile::tempdir().unwrap();

@@ -99,6 +99,11 @@ pub struct Restart {
 /// 500 ms.
 pub const MIN_HEARTBEAT_MS: u64 = 1000;
 
+/// The most readers an edge of a launch file may have (of the transport's
+/// [`MAX_READERS`](crate::transport::MAX_READERS), the rest are kept for the readers a run
+/// adds).
+pub const MAX_GRAPH_READERS: usize = crate::transport::MAX_READERS - 4;
+
 /// The longest restart back-off a launch file may ask for, ms (ten minutes).
 pub const MAX_BACKOFF_MS: u64 = 600_000;
 
@@ -1259,6 +1264,26 @@ impl LaunchFile {
                 _ => {}
             }
         }
+        // An edge holds so many readers; the graph leaves room for the ones added to it
+        // (a recorder, a viewer, the link to another host, a watcher such as `topic`).
+        let mut readers: BTreeMap<(&str, &str), usize> = BTreeMap::new();
+        for (n, _) in &nodes {
+            for i in &n.inputs {
+                *readers.entry((&i.node, &i.output)).or_default() += 1;
+            }
+        }
+        for ((node, output), n) in readers {
+            if n > MAX_GRAPH_READERS {
+                err(
+                    &mut errs,
+                    seen.get(node).copied().unwrap_or(0),
+                    format!(
+                        "edge '{node}/{output}' has {n} readers; an edge of a launch file takes at most {MAX_GRAPH_READERS} (iceoryx2 holds {} per edge, with room kept for a recorder, a viewer, the link between hosts and a watcher): let fewer nodes read it, or pass it on through a node",
+                        crate::transport::MAX_READERS
+                    ),
+                );
+            }
+        }
         if self.decl.node.is_empty() {
             errs.push(LaunchError {
                 file: file.clone(),
@@ -1651,6 +1676,37 @@ inputs = { frame = "b/frame" }
         .unwrap_err()
         .to_string();
         assert!(e.contains("in_flight is for sources"), "{e}");
+    }
+
+    #[test]
+    fn an_edge_read_by_more_nodes_than_it_holds_and_a_huge_back_off_are_refused() {
+        let mut text = String::from("[[node]]\nid = \"a\"\nkind = \"source\"\n");
+        for k in 0..MAX_GRAPH_READERS + 1 {
+            text += &format!(
+                "\n[[node]]\nid = \"f{k}\"\nkind = \"filter\"\ninputs = {{ frame = \"a/frame\" }}\n"
+            );
+        }
+        let e = check(&text).unwrap_err().to_string();
+        assert!(
+            e.contains(&format!(
+                "edge 'a/frame' has {} readers",
+                MAX_GRAPH_READERS + 1
+            )) && e.contains("g.toml:1:"),
+            "{e}"
+        );
+        // As many as it holds are fine.
+        let fine: String = text
+            .split("\n[[node]]")
+            .take(MAX_GRAPH_READERS + 1)
+            .collect::<Vec<_>>()
+            .join("\n[[node]]");
+        assert!(check(&fine).is_ok());
+        let e = check(
+            "[[node]]\nid = \"a\"\nkind = \"source\"\nrestart = { policy = \"always\", backoff_ms = 600001 }\n",
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("backoff_ms = 600001 is out of range"), "{e}");
     }
 
     #[test]

@@ -74,7 +74,7 @@ type EdgeEvents = iceoryx2::service::port_factory::event::PortFactory<Service>;
 pub const WRITER_WAIT: Duration = Duration::from_secs(30);
 
 /// Largest number of readers of one edge.
-const MAX_READERS: usize = 16;
+pub const MAX_READERS: usize = 16;
 
 /// Largest number of writers of one edge: its node (a restarted one's successor while the
 /// old one goes) and a host's link.

@@ -274,6 +274,9 @@ struct Shared {
     trajectory: Vec<[f64; 4]>,
     /// Recent tip positions `(wall-clock ns, tip)`, for telling the pipette from cells.
     history: VecDeque<(u64, P3)>,
+    /// The objects of the latest scene taken for the pipette itself (touching its recent
+    /// body): no obstacles, but the cell the pipette is going into is among them.
+    touching: Vec<Obstacle>,
     device: String,
 }
 
@@ -307,16 +310,37 @@ struct Follow {
     frame: u64,
     /// Its drift, µm per frame.
     velocity: [f64; 2],
+    /// Its height above its base as last measured with trust, µm.
+    height: f64,
 }
 
 impl Follow {
-    fn new(id: u32, centre: [f64; 2], frame: u64) -> Self {
+    fn new(c: &Obstacle, frame: u64) -> Self {
         Self {
-            id,
-            centre,
+            id: c.id,
+            centre: c.centre,
             frame,
             velocity: [0.0; 2],
+            height: c.top - c.base,
         }
+    }
+
+    /// `scene` with the target standing at its last trusted height where this frame's
+    /// measurement of it is doubtful: a doubtful frame of the cell the pipette goes into
+    /// made it an obstacle of the tallest plausible height, in the pipette's way, and a
+    /// replan refused it. Other cells keep what the frame says.
+    fn trusted_in(&self, mut scene: Scene) -> Scene {
+        if let Some(o) = scene
+            .cells
+            .iter_mut()
+            .find(|o| o.id == self.id && !o.trusted)
+        {
+            o.top = o.base + self.height;
+            o.prism.zhi = o.top;
+            o.trusted = true;
+            o.doubt = None;
+        }
+        scene
     }
 
     /// The cell of `scene` that is this target: the nearest to where its drift puts it
@@ -337,6 +361,11 @@ impl Follow {
             centre: c.centre,
             frame: scene.frame,
             velocity: v,
+            height: if c.trusted {
+                c.top - c.base
+            } else {
+                self.height
+            },
         };
         Some(c)
     }
@@ -417,6 +446,7 @@ impl Bridge {
             plan: None,
             trajectory: Vec::new(),
             history: VecDeque::new(),
+            touching: Vec::new(),
             device: device.as_ref().map_or("none".into(), |d| d.describe()),
         }));
         let clients: Arc<Mutex<Clients>> = Arc::default();
@@ -498,6 +528,12 @@ impl Bridge {
             .collect();
         tips.push(sh.tip);
         let ignored = scene.touching(&tips, u, cfg.pipette.length, self.cfg.self_margin);
+        sh.touching = scene
+            .cells
+            .iter()
+            .filter(|c| ignored.contains(&c.id))
+            .cloned()
+            .collect();
         scene.cells.retain(|c| !ignored.contains(&c.id));
         let seq = sh.scene.as_ref().map_or(0, |s| s.2 + 1);
         sh.scene = Some((scene, Instant::now(), seq));
@@ -838,9 +874,9 @@ impl Controller {
         match self.plan_for(&c, &scene, tip) {
             Ok(plan) => {
                 let target = match plan.goal {
-                    Goal::Approach { cell } => scene
-                        .cell(cell)
-                        .map(|c| Follow::new(c.id, c.centre, scene.frame)),
+                    Goal::Approach { cell } => {
+                        scene.cell(cell).map(|c| Follow::new(c, scene.frame))
+                    }
                     _ => None,
                 };
                 self.begin(plan, speed, target, seq, None, epoch);
@@ -1005,21 +1041,36 @@ impl Controller {
             return true;
         };
         let cfg = self.cfg.planner;
+        // The target the pipette reaches touches its body, and is then taken for the
+        // pipette itself: it is followed there too.
+        let touched = Scene {
+            frame: scene.frame,
+            cells: self.shared.lock().expect("shared").touching.clone(),
+            substrate: scene.substrate,
+        };
         let job = self.job.as_mut().expect("job");
         job.seen_scene = seq;
         let committed = job.next > job.plan.axial_from;
         let mut exempt = None;
         let mut moved = false;
         let mut lost = None;
+        let mut scene = scene;
         if let Some(follow) = job.target.as_mut() {
             let before = *follow;
             match follow.find(&scene, self.cfg.track_radius) {
                 Some(c) => {
                     exempt = Some(c.id);
+                    // Where the target's measurement is doubtful, its injection point is
+                    // the trusted frames' (the plan's).
                     moved = !committed
+                        && c.trusted
                         && dist(injection_point(c, &cfg), job.plan.end) > self.cfg.replan_tolerance;
+                    scene = follow.trusted_in(scene);
                 }
-                None => lost = Some(before),
+                None => match follow.find(&touched, self.cfg.track_radius) {
+                    Some(c) => exempt = Some(c.id),
+                    None => lost = Some(before),
+                },
             }
         }
         if let Some(f) = lost {
