@@ -219,7 +219,13 @@ impl RenderProgress {
     /// enough to be worth a progress line: a 2048² scene takes seconds on two cores.
     const WORTH: usize = 3 * 2048 * 2048;
 
-    fn start(width: usize, height: usize, scenes: usize) -> Self {
+    /// Says `say` every `every` while `scenes` scenes of `width × height` render, when that
+    /// is [`Self::WORTH`] it.
+    fn start(
+        (width, height, scenes): (usize, usize, usize),
+        every: std::time::Duration,
+        say: impl Fn(String) + Send + 'static,
+    ) -> Self {
         let total_rows = (3 * height * scenes) as u64;
         if 3 * width * height * scenes < Self::WORTH {
             return Self {
@@ -231,13 +237,11 @@ impl RenderProgress {
         let start = std::time::Instant::now();
         let first = synth::rows_rendered();
         let thread = std::thread::spawn(move || {
-            while let Err(std::sync::mpsc::RecvTimeoutError::Timeout) =
-                rx.recv_timeout(std::time::Duration::from_secs(2))
-            {
+            while let Err(std::sync::mpsc::RecvTimeoutError::Timeout) = rx.recv_timeout(every) {
                 let done = (synth::rows_rendered() - first).min(total_rows);
                 let f = done as f64 / total_rows as f64;
                 let secs = start.elapsed().as_secs_f64();
-                runtime::errln!(
+                say(format!(
                     "rendering {width}×{height}{}: {:.0} % after {secs:.0} s{}",
                     if scenes > 1 {
                         format!(", {scenes} scenes")
@@ -250,7 +254,7 @@ impl RenderProgress {
                     } else {
                         String::new()
                     }
-                );
+                ));
             }
         });
         Self {
@@ -460,7 +464,11 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
         (Some(zs), _) => zs.len(),
         (None, n) => n.max(1),
     };
-    let _progress = RenderProgress::start(optics.width, optics.height, scenes);
+    let _progress = RenderProgress::start(
+        (optics.width, optics.height, scenes),
+        std::time::Duration::from_secs(2),
+        |line| runtime::errln!("{line}"),
+    );
     if let Some(zs) = &a.stage_heights {
         let mut csv = String::from("left,right,z_um\n");
         for (i, &z) in zs.iter().enumerate() {
@@ -561,4 +569,59 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
         );
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::{Arc, Mutex};
+
+    #[test]
+    fn a_long_render_says_how_far_it_got() {
+        let said: Arc<Mutex<Vec<String>>> = Arc::default();
+        let optics = Optics {
+            width: 1024,
+            height: 1024,
+            ..Optics::default()
+        };
+        let scene = Scene::random(optics, Look::default(), &CellSpec::default(), 1);
+        {
+            let said = said.clone();
+            let _progress = RenderProgress::start(
+                (1024, 1024, 4),
+                std::time::Duration::from_millis(20),
+                move |l| said.lock().unwrap().push(l),
+            );
+            for _ in 0..4 {
+                let _ = scene.render();
+            }
+        }
+        let said = said.lock().unwrap();
+        let percent: Vec<f64> = said
+            .iter()
+            .map(|l| {
+                assert!(l.starts_with("rendering 1024×1024, 4 scenes: "), "{l}");
+                l.split(": ")
+                    .nth(1)
+                    .unwrap()
+                    .split(' ')
+                    .next()
+                    .unwrap()
+                    .parse()
+                    .unwrap()
+            })
+            .collect();
+        assert!(!percent.is_empty());
+        assert!(percent.windows(2).all(|w| w[0] <= w[1]), "{said:?}");
+        assert!(percent.iter().all(|&p| p <= 100.0), "{said:?}");
+        // A small render says nothing.
+        let quiet: Arc<Mutex<Vec<String>>> = Arc::default();
+        let q = quiet.clone();
+        drop(RenderProgress::start(
+            (640, 480, 1),
+            std::time::Duration::from_millis(1),
+            move |l| q.lock().unwrap().push(l),
+        ));
+        assert!(quiet.lock().unwrap().is_empty());
+    }
 }

@@ -697,6 +697,85 @@ fn calibrate_depth_recovers_f_eff_from_a_synthetic_stack() {
     );
 }
 
+/// Asked for more cells than fit, synth says how many it placed and what to change.
+#[test]
+fn synth_says_when_the_cells_asked_for_do_not_fit() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = run(&["synth", "-o", s(&dir.path().join("s")), "--cells", "1000"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(
+        err.contains("of 1000 cells fit without overlapping in 640×480 px")
+            && err.contains("give a larger view"),
+        "{err}"
+    );
+    let placed: usize = err
+        .split("only ")
+        .nth(1)
+        .and_then(|r| r.split(' ').next())
+        .and_then(|n| n.parse().ok())
+        .expect("a count");
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert!(said.starts_with(&format!("{placed} cells;")), "{said}");
+}
+
+/// A calibration as a user writes it by hand (baseline, focal length, unit; no principal
+/// points): `reconstruct --cells` and the graph work with it, and every number they give is
+/// one (a disparity at infinite depth used to become JSON `null`, which the bridge and
+/// `reconstruct` then failed to read back).
+#[test]
+fn a_calibration_without_its_optional_keys_works() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = dir.path().join("scene");
+    let out = run(&["synth", "-o", s(&sc), "--seed", "3", "--cells", "4"]);
+    assert!(out.status.success());
+    let hand = dir.path().join("hand.toml");
+    std::fs::write(&hand, "baseline = 1200\nfocal_px = 4000\nunit = \"um\"\n").unwrap();
+    let o = dir.path().join("rec");
+    let out = run(&[
+        "reconstruct",
+        s(&sc.join("left.png")),
+        s(&sc.join("right.png")),
+        "-o",
+        s(&o),
+        "--cells",
+        "--calibration",
+        s(&hand),
+        "--min-disparity",
+        "-4",
+        "--max-disparity",
+        "12",
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    // This pair's disparities need the principal points' offset: what cannot be placed is
+    // said, the rest measured.
+    assert!(err.contains("at or beyond infinite depth"), "{err}");
+    let rep = json(&o.join("cells.json"));
+    for c in rep["cells"].as_array().unwrap() {
+        for v in c["centroid"].as_array().unwrap() {
+            assert!(v.as_f64().is_some_and(f64::is_finite), "{c}");
+        }
+    }
+    // The graph with it inline: the bridge reads every frame's targets.
+    let graph = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/data/graph/small.toml");
+    let out = run(&[
+        "run",
+        s(&graph),
+        "--frames",
+        "3",
+        "--set",
+        "triangulate.calibration={ baseline = 1200, focal_px = 4000, unit = \"um\" }",
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(
+        String::from_utf8_lossy(&out.stdout).contains("3 frame(s) of 3"),
+        "{}",
+        String::from_utf8_lossy(&out.stdout)
+    );
+}
+
 #[test]
 fn cells_bad_input_and_empty_scenes() {
     let dir = tempfile::tempdir().unwrap();
@@ -882,6 +961,56 @@ fn inspect_lists_the_bundled_recording() {
     assert_eq!(line.split_whitespace().nth(2), Some("1"), "{line}");
 }
 
+/// The chunks of an MCAP file: where each record starts and how long its body is.
+fn chunks(d: &[u8]) -> Vec<(usize, usize)> {
+    let (mut at, mut out) = (8, Vec::new());
+    while at + 9 <= d.len() {
+        let len = u64::from_le_bytes(d[at + 1..at + 9].try_into().unwrap()) as usize;
+        match d[at] {
+            0x06 => out.push((at + 9, len)),
+            0x0f => break,
+            _ => {}
+        }
+        at += 9 + len;
+    }
+    out
+}
+
+/// A recording cut short (its writer died, the disk filled, a copy lost its tail) is read
+/// up to its last whole chunk by replay, test-node and view, each saying what was lost.
+#[test]
+fn a_recording_cut_short_is_used_up_to_its_last_whole_chunk() {
+    let dir = tempfile::tempdir().unwrap();
+    let bytes = std::fs::read(bundled_recording()).unwrap();
+    let found = chunks(&bytes);
+    assert_eq!(found.len(), 2, "{found:?}");
+    // Cut inside the second chunk: the first one's frames are whole.
+    let (second, len) = found[1];
+    let cut = dir.path().join("cut.mcap");
+    std::fs::write(&cut, &bytes[..second + len / 3]).unwrap();
+    let said = |out: &std::process::Output| {
+        let err = String::from_utf8_lossy(&out.stderr).into_owned();
+        assert!(
+            out.status.success() && !err.contains("panicked"),
+            "{}\n{err}",
+            String::from_utf8_lossy(&out.stdout)
+        );
+        assert!(
+            err.contains("the file is truncated")
+                && err.contains(&format!("at byte {} of {}", second - 9, second + len / 3)),
+            "{err}"
+        );
+        String::from_utf8_lossy(&out.stdout).into_owned()
+    };
+    let out = said(&run(&["replay", s(&cut), "--quiet"]));
+    assert!(out.contains("2 frame(s) of 2"), "{out}");
+    let out = said(&run(&["test-node", s(&cut), "segment"]));
+    assert!(out.contains("PASS"), "{out}");
+    let rrd = dir.path().join("cut.rrd");
+    said(&run(&["view", s(&cut), "-o", s(&rrd)]));
+    assert!(rrd.metadata().unwrap().len() > 100_000);
+}
+
 #[test]
 fn bad_recordings_get_one_clear_error_and_exit_2() {
     let dir = tempfile::tempdir().unwrap();
@@ -895,14 +1024,41 @@ fn bad_recordings_get_one_clear_error_and_exit_2() {
         &run(&["test-node", s(&junk), "segment"]),
         "not an MCAP file",
     );
-    // Truncated: the first half of the bundled recording.
+    // Truncated inside its first chunk: nothing in it can be read.
     let bytes = std::fs::read(bundled_recording()).unwrap();
     let cut = dir.path().join("cut.mcap");
     std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
-    assert_clean_failure(&run(&["replay", s(&cut)]), "truncated");
+    for args in [
+        vec!["replay", s(&cut)],
+        vec!["test-node", s(&cut), "segment"],
+        vec!["view", s(&cut), "-o", s(&dir.path().join("cut.rrd"))],
+    ] {
+        let out = run(&args);
+        assert_clean_failure(&out, "truncated");
+        assert_clean_failure(&out, "no message in it can be read");
+    }
     let out = run(&["inspect", s(&cut)]);
     assert_clean_failure(&out, "truncated");
     assert!(String::from_utf8_lossy(&out.stdout).contains("topic"));
+    // Every chunk damaged: nothing to show either.
+    let mut flipped = bytes.clone();
+    for (at, len) in chunks(&bytes) {
+        flipped[at + len / 2] ^= 0x5a;
+        flipped[at + len / 2 + 1] ^= 0x5a;
+    }
+    let damaged = dir.path().join("damaged.mcap");
+    std::fs::write(&damaged, &flipped).unwrap();
+    for args in [
+        vec!["replay", s(&damaged)],
+        vec![
+            "view",
+            s(&damaged),
+            "-o",
+            s(&dir.path().join("damaged.rrd")),
+        ],
+    ] {
+        assert_clean_failure(&run(&args), "no message in it can be read");
+    }
     // Missing channels: the recording has no capture frames to replay.
     let maps = recording_of(dir.path(), "maps.mcap", &["match/left"]);
     assert_clean_failure(

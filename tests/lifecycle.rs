@@ -420,3 +420,58 @@ fn rates_and_durations_out_of_range_are_refused() {
     let out = common::run(&["run", file.to_str().unwrap(), "--frames", "2"]);
     common::assert_clean_failure(&out, "backoff_ms");
 }
+
+/// What `top` says of a node that prepares (a camera rendering its loop ahead) and of one
+/// that has produced nothing for seconds.
+#[test]
+fn top_shows_a_preparing_camera_and_marks_a_quiet_node() {
+    let names = Names::new("top");
+    // A long loop to render ahead, then one frame in five seconds.
+    let child = names.start(
+        &[
+            "run",
+            small().to_str().unwrap(),
+            "--quiet",
+            "--set",
+            "capture.width=2048",
+            "--set",
+            "capture.height=2048",
+            "--set",
+            "capture.repeat=30",
+            "--set",
+            "capture.fps=0.2",
+        ],
+        Stdio::piped(),
+        Stdio::piped(),
+    );
+    let top = || {
+        let out = Command::new(bin())
+            .args(["top", "--once", "--instance", &names.instance])
+            .env("MICROSTEREO_DOMAIN", &names.domain)
+            .output()
+            .unwrap();
+        String::from_utf8_lossy(&out.stdout).into_owned()
+    };
+    let row = |text: &str, id: &str| {
+        text.lines()
+            .find(|l| l.split_whitespace().next() == Some(id))
+            .unwrap_or_default()
+            .to_string()
+    };
+    let t0 = Instant::now();
+    let mut seen = (false, false);
+    while !(seen.0 && seen.1) && t0.elapsed() < Duration::from_secs(60) {
+        let text = top();
+        let capture = row(&text, "capture");
+        seen.0 |= capture.contains("preparing") && capture.contains("rendering its loop ahead");
+        // After its one frame, segment waits five seconds for the next.
+        seen.1 |= row(&text, "segment").contains("nothing for");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    send(&child, libc::SIGINT);
+    let (status, out, err) = wait(child, Duration::from_secs(30));
+    assert!(seen.0, "no preparing camera seen");
+    assert!(seen.1, "no quiet node marked");
+    assert_eq!(status.code(), Some(0), "{out}\n{err}");
+    names.assert_clean("top");
+}
