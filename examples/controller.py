@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """A controller for microstereo's manipulator bridge, with no dependencies: it sends the
-pipette into a cell and back out, as many times as asked.
+pipette into a cell, back out and home, as many times as asked.
 
     python3 examples/controller.py [HOST:PORT] [--times N] [--cell ID]
 
@@ -65,11 +65,14 @@ def main(argv):
             return 1
         print(f"in cell {target}, tip at {ev['tip']} (error {ev['error_um']:.2f} um)", flush=True)
         arrived += 1
-        send(cmd="retract")
-        ev = until("arrived", "blocked", "error", "stopped")
-        if ev["event"] != "arrived":
-            print(f"retract ended: {ev}", flush=True)
-            return 1
+        # Out along the axis, then home: the next approach starts from rest, clear of
+        # every cell.
+        for cmd in ("retract", "home"):
+            send(cmd=cmd)
+            ev = until("arrived", "blocked", "error", "stopped")
+            if ev["event"] != "arrived":
+                print(f"{cmd} ended: {ev}", flush=True)
+                return 1
         tried.add(target)
     print(f"{arrived} of {times} approaches arrived", flush=True)
     return 0

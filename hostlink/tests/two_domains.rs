@@ -119,4 +119,13 @@ fn frames_published_in_one_domain_arrive_whole_in_the_other() {
     assert!(got.windows(2).all(|w| w[1] > w[0]), "{got:?}");
     link_a.stop();
     link_b.stop();
+    drop((publisher, subscriber, svc_a, svc_b, node_a, node_b));
+    // The two domains were this test's alone: their own memory (iceoryx2's node counter,
+    // which outlives every node) goes with them.
+    for cfg in [&a, &b] {
+        // SAFETY: iceoryx2 asks that no other process use the domain; these domains are
+        // named after this test process, whose every node of them is gone.
+        let removed = unsafe { iceoryx2::testing::remove_global_mgmt_segment::<ipc::Service>(cfg) };
+        assert!(removed.is_ok_and(|r| r));
+    }
 }

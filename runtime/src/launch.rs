@@ -1691,7 +1691,7 @@ inputs = { frame = "b/frame" }
             e.contains(&format!(
                 "edge 'a/frame' has {} readers",
                 MAX_GRAPH_READERS + 1
-            )) && e.contains("g.toml:1:"),
+            )) && e.contains("g.toml:2:"),
             "{e}"
         );
         // As many as it holds are fine.

@@ -266,8 +266,11 @@ fn workspace_and_speed_limits_hold_in_the_bridge() {
     b.on_targets(&t).unwrap();
     c.send(r#"{"cmd":"goto","x":5000,"y":0,"z":3900}"#);
     let ev = c.next(&["blocked", "plan"]);
+    // Said in the frame the command was given in (Z the depth), not the planner's.
     assert!(
-        ev["reason"].as_str().unwrap().contains("out of reach"),
+        ev["reason"].as_str().unwrap().contains(
+            "the goal (X 5000.0, Y 0.0, Z 3900.0) is out of reach: the workspace is X -1000.0..1000.0, Y -1000.0..1000.0, Z 3600.0..4100.0 (camera frame, µm)"
+        ),
         "{ev}"
     );
     // 10 000 µm/s asked, the bridge's 100 given.

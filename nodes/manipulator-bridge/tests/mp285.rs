@@ -196,3 +196,30 @@ fn an_error_code_from_the_controller_is_reported() {
 }
 
 use std::io::{Read, Write};
+
+/// The emergency stop's handle interrupts a move from another thread while the driver
+/// keeps polling, without waiting for the driver; the driver takes the interrupted move's
+/// answer as the move's end, not as a fault, and an interrupt to an idle controller
+/// changes nothing.
+#[test]
+fn the_emergency_handle_stops_a_move_from_another_thread() {
+    let (mut d, state, _slave) = connect();
+    let estop = d.emergency_stop().unwrap();
+    d.start_move([50.0, 0.0, 0.0], 20.0).unwrap();
+    let handle = estop.clone();
+    let stopper = std::thread::spawn(move || {
+        std::thread::sleep(Duration::from_millis(300));
+        handle.stop_now().unwrap();
+    });
+    let p = wait_idle(&mut d);
+    stopper.join().unwrap();
+    let s = state.lock().unwrap().clone();
+    assert_eq!((s.interrupted, s.moves), (1, 0));
+    assert_eq!(p[0], s.steps[0] as f64 / 25.0);
+    assert!(p[0] > 3.0 && p[0] < 12.0, "{p:?}");
+    // Idle: ignored; the driver goes on exactly.
+    estop.stop_now().unwrap();
+    d.start_move([1.0, 2.0, 3.0], 800.0).unwrap();
+    assert_eq!(wait_idle(&mut d), [1.0, 2.0, 3.0]);
+    assert_eq!(state.lock().unwrap().moves, 1);
+}

@@ -88,3 +88,28 @@ fn a_silent_or_missing_controller_is_one_clear_error() {
         "{e}"
     );
 }
+
+/// The emergency stop's handle sends `STOP` from another thread while the driver keeps
+/// polling; the driver skips its answer among its own, and goes on exactly.
+#[test]
+fn the_emergency_handle_stops_a_move_from_another_thread() {
+    let (mut d, state, _slave) = connect();
+    let estop = d.emergency_stop().unwrap();
+    d.start_move([50.0, 0.0, 0.0], 20.0).unwrap();
+    let handle = estop.clone();
+    let stopper = std::thread::spawn(move || {
+        std::thread::sleep(Duration::from_millis(300));
+        handle.stop_now().unwrap();
+    });
+    let p = wait_idle(&mut d);
+    stopper.join().unwrap();
+    let s = state.lock().unwrap().clone();
+    assert_eq!((s.stopped, s.moves), (1, 0));
+    assert_eq!(p[0], s.ticks[0] as f64 / 100.0);
+    assert!(p[0] > 3.0 && p[0] < 12.0, "{p:?}");
+    // Stopped again while still: the answers stay in step.
+    estop.stop_now().unwrap();
+    d.start_move([1.0, 2.0, 3.0], 800.0).unwrap();
+    assert_eq!(wait_idle(&mut d), [1.0, 2.0, 3.0]);
+    assert_eq!(d.state().unwrap().position, [1.0, 2.0, 3.0]);
+}
