@@ -1010,14 +1010,26 @@ pub fn remove_stale_resources() -> StaleCleanup {
     // aside and is left behind after a deadline.
     std::thread::spawn(move || {
         let mut removed = 0;
-        let _ = Node::<crate::transport::Service>::list(config, |state| {
-            if let NodeState::Dead(view) = state
-                && view.try_remove_stale_resources().is_ok()
-            {
-                removed += 1;
-            }
-            CallbackProgression::Continue
-        });
+        let mut stuck = Vec::new();
+        let mut clean = |stuck: &mut Vec<String>| {
+            let _ = Node::<crate::transport::Service>::list(config, |state| {
+                if let NodeState::Dead(view) = state {
+                    let id = view.id().to_string();
+                    match view.try_remove_stale_resources() {
+                        Ok(()) => removed += 1,
+                        Err(_) => stuck.push(id),
+                    }
+                }
+                CallbackProgression::Continue
+            });
+        };
+        clean(&mut stuck);
+        // A node killed while it wrote a tag leaves the tag unfinished, which iceoryx2
+        // neither reads nor removes, and its node's directory then cannot go: such tags
+        // are removed (the node is dead, nobody finishes them) and the node cleaned again.
+        if remove_unfinished_tags(config, &stuck) > 0 {
+            clean(&mut Vec::new());
+        }
         let _ = tx.send(removed);
     });
     match rx.recv_timeout(STALE_CLEANUP_LIMIT) {
@@ -1032,6 +1044,35 @@ pub fn remove_stale_resources() -> StaleCleanup {
             gave_up: true,
         },
     }
+}
+
+/// Removes the unfinished tags (empty, owner read-write: their writer died while writing
+/// them) in the directories of the dead nodes `ids` (as iceoryx2 shows a node id: its value
+/// in hexadecimal). Returns how many were removed.
+fn remove_unfinished_tags(config: &iceoryx2::config::Config, ids: &[String]) -> usize {
+    use std::os::unix::fs::PermissionsExt;
+    let nodes = PathBuf::from(config.global.node_dir().to_string());
+    let mut removed = 0;
+    for id in ids {
+        let Ok(value) = u128::from_str_radix(id, 16) else {
+            continue;
+        };
+        let Ok(dir) = std::fs::read_dir(nodes.join(value.to_string())) else {
+            continue;
+        };
+        for e in dir.flatten() {
+            let name = e.file_name().to_string_lossy().into_owned();
+            let tag = name.ends_with(&config.global.node.service_tag_suffix.to_string())
+                || name.ends_with(&config.global.node.port_tag_suffix.to_string());
+            let unfinished = e.metadata().is_ok_and(|m| {
+                m.is_file() && m.len() == 0 && m.permissions().mode() & 0o777 == 0o600
+            });
+            if tag && unfinished && std::fs::remove_file(e.path()).is_ok() {
+                removed += 1;
+            }
+        }
+    }
+    removed
 }
 
 /// Removes the domain's own shared memory (iceoryx2's node counter, which outlives every

@@ -543,7 +543,12 @@ async fn supervise(
     // Set once the graph is told to stop: when its grace runs out, whatever still runs is
     // killed.
     let mut stopping: Option<Instant> = None;
+    // Whether a process of the run died by a signal (its shared memory is then removed at
+    // the end), and whether the stop's grace ran out (the rest were killed).
     let mut killed = false;
+    let mut grace_over = false;
+    // Report readers of ended processes that were still reading when they were last awaited.
+    let mut unread: Vec<tokio::task::JoinHandle<()>> = Vec::new();
     for n in graph.nodes.iter().filter(|n| here(n)) {
         // A stop while the nodes start: the rest are not started.
         if crate::signals::stop_requested() {
@@ -593,6 +598,7 @@ async fn supervise(
                 above_progress(|| crate::errln!("stopping now: the nodes left are killed"));
                 kill_all(&mut children);
                 killed = true;
+                grace_over = true;
             }
             signals_seen = signals.max(1);
             stop(&children, &mut stopping);
@@ -606,10 +612,11 @@ async fn supervise(
         }
         if let Some(t) = stopping
             && t.elapsed() >= grace
-            && !killed
+            && !grace_over
         {
             kill_all(&mut children);
             killed = true;
+            grace_over = true;
         }
         let watched = stopping.is_none()
             && (graph.nodes.iter().any(|n| n.restart.heartbeat_ms.is_some())
@@ -662,9 +669,17 @@ async fn supervise(
         // Its last reports may still be in the pipe (the reader task runs beside this one,
         // and lags under load): a restarted source would otherwise go on from a frame
         // before its predecessor's last and send frame numbers twice. Bounded, in case
-        // something the node started keeps the pipe open.
-        if let Some(r) = c.reports.take() {
-            let _ = tokio::time::timeout(Duration::from_secs(2), r).await;
+        // something the node started keeps the pipe open; briefly once the graph stops
+        // (no restart needs it, and the others' grace runs meanwhile).
+        if let Some(mut r) = c.reports.take() {
+            let wait = if stopping.is_some() {
+                Duration::from_millis(300)
+            } else {
+                Duration::from_secs(2)
+            };
+            if tokio::time::timeout(wait, &mut r).await.is_err() {
+                unread.push(r);
+            }
         }
         let spec = graph.node(&c.id).expect("validated");
         // A node others read never ends on its own before the graph stops: one that did
@@ -799,7 +814,9 @@ async fn supervise(
             }
         }
     }
-    // Give the log forwarders a moment to flush the last lines.
+    // The last reports still in their pipes (bounded, as above), and a moment for the log
+    // forwarders to flush the last lines.
+    let _ = tokio::time::timeout(Duration::from_secs(2), futures_all(unread.iter_mut())).await;
     tokio::time::sleep(Duration::from_millis(50)).await;
     let wall = start.elapsed();
     monitor.stop();
@@ -1193,6 +1210,16 @@ fn watch(graph: &Graph, stats: &StatsSink, children: &mut [Child]) {
             c.hung = Some(silent);
             let _ = c.proc.start_kill();
         }
+    }
+}
+
+/// Waits for every one of these futures.
+async fn futures_all<'a, F>(futs: impl Iterator<Item = &'a mut F>)
+where
+    F: std::future::Future + Unpin + 'a,
+{
+    for f in futs {
+        let _ = f.await;
     }
 }
 

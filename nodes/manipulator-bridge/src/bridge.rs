@@ -1,6 +1,6 @@
 //! The bridge between the graph, the controllers and the manipulator.
 //!
-//! Three kinds of threads share one [`Shared`] state:
+//! Four kinds of threads share the bridge's state:
 //! - the graph node hands in each frame's targets ([`Bridge::on_targets`]): they become the
 //!   scene (objects touching the pipette's recent body are taken for the pipette itself),
 //!   are served to every controller, and the reply is the state message of that frame;
@@ -224,11 +224,16 @@ impl Clients {
 fn keep(c: &Client, line: &Arc<str>, urgent: bool) -> bool {
     match c.out.push(line, urgent) {
         Ok(()) => return true,
-        Err(Gone::Overflow) => runtime::errln!(
-            "manipulator-bridge: controller {} dropped: it left more than {} kB of events unread",
-            c.id,
-            c.out.limit >> 10
-        ),
+        Err(Gone::Overflow) => {
+            // Said on a thread of its own: the controllers' lock is held here, and stderr
+            // may be a pipe that is full.
+            let (id, kb) = (c.id, c.out.limit >> 10);
+            std::thread::spawn(move || {
+                runtime::errln!(
+                    "manipulator-bridge: controller {id} dropped: it left more than {kb} kB of events unread"
+                )
+            });
+        }
         Err(Gone::Left) => {}
     }
     // Wakes its reader and writer, which then end.
@@ -289,14 +294,29 @@ pub struct Bridge {
     pub addr: SocketAddr,
     /// Set when the bridge is dropped: the accepting thread then ends and frees the port.
     closing: Arc<AtomicBool>,
+    estop: Arc<Estop>,
+    stopper: Option<Arc<dyn EmergencyStop>>,
 }
 
 impl Drop for Bridge {
     fn drop(&mut self) {
+        // A bridge that goes (its node stopped, its graph ended) leaves the device standing:
+        // a serial manipulator would otherwise finish the leg it was given, into a cell
+        // perhaps, with nobody watching.
+        self.estop.epoch.fetch_add(1, Ordering::SeqCst);
+        if let Some(s) = &self.stopper {
+            let _ = s.stop_now();
+        }
         // The accepting thread waits in accept(): a connection of our own wakes it to see
         // the flag (an in-process graph's bridge kept its port until the program ended).
         self.closing.store(true, Ordering::SeqCst);
         let _ = TcpStream::connect_timeout(&self.addr, Duration::from_millis(500));
+        // The controllers' connections end, their readers with them, and then the
+        // controller thread, which owns the device.
+        for c in lock(&self.clients).list.drain(..) {
+            c.out.set(|st| st.dead = true);
+            let _ = c.socket.shutdown(std::net::Shutdown::Both);
+        }
     }
 }
 
@@ -488,8 +508,8 @@ impl Bridge {
                 outbox_limit: cfg.outbox_limit,
                 clients: clients.clone(),
                 tx,
-                estop,
-                stopper,
+                estop: estop.clone(),
+                stopper: stopper.clone(),
                 last_tip,
             };
             let closing = closing.clone();
@@ -502,6 +522,8 @@ impl Bridge {
             clients,
             addr,
             closing,
+            estop,
+            stopper,
         })
     }
 
@@ -643,14 +665,19 @@ impl Readers {
                     }
                     // Read what is still coming and throw it away, for a while: closing
                     // with unread input would reset the connection and could lose the
-                    // error line on its way out.
-                    let mut s = reader.into_inner();
-                    let _ = s.set_read_timeout(Some(Duration::from_millis(200)));
+                    // error line on its way out. A stop among it still stops.
+                    let _ = reader
+                        .get_ref()
+                        .set_read_timeout(Some(Duration::from_millis(200)));
                     let t0 = Instant::now();
-                    let mut sink = [0u8; 8192];
-                    while t0.elapsed() < Duration::from_secs(2)
-                        && matches!(std::io::Read::read(&mut s, &mut sink), Ok(n) if n > 0)
-                    {
+                    while t0.elapsed() < Duration::from_secs(2) {
+                        match read_line(&mut reader, MAX_LINE) {
+                            Ok(Line::Text(l)) if parse_command(&l) == Ok(Command::Stop) => {
+                                self.emergency_stop(id)
+                            }
+                            Ok(Line::Text(_) | Line::NotUtf8 | Line::TooLong) => {}
+                            Ok(Line::End) | Err(_) => break,
+                        }
                     }
                     break;
                 }
@@ -681,10 +708,15 @@ impl Readers {
 }
 
 fn accept(listener: TcpListener, ctx: Readers, closing: Arc<AtomicBool>) {
-    for s in listener.incoming().flatten() {
+    for s in listener.incoming() {
         if closing.load(Ordering::SeqCst) {
             return;
         }
+        let Ok(s) = s else {
+            // Out of file handles, say: a moment before the next try, not a busy loop.
+            std::thread::sleep(Duration::from_millis(100));
+            continue;
+        };
         let _ = s.set_nodelay(true);
         let (Ok(reader), Ok(writer)) = (s.try_clone(), s.try_clone()) else {
             continue;
@@ -707,7 +739,12 @@ fn accept(listener: TcpListener, ctx: Readers, closing: Arc<AtomicBool>) {
         };
         std::thread::spawn(move || write_out(out, writer));
         let ctx = ctx.clone();
-        std::thread::spawn(move || ctx.serve(id, reader));
+        std::thread::spawn(move || {
+            ctx.serve(id, reader);
+            // A controller that hung up (or closed its sending side) is served no longer:
+            // what is queued goes out, then its connection ends and its threads with it.
+            lock(&ctx.clients).close(id);
+        });
     }
 }
 
@@ -879,6 +916,16 @@ impl Controller {
                     }
                     _ => None,
                 };
+                if self.stopped_since(epoch) {
+                    self.tell(
+                        id,
+                        &event(
+                            "error",
+                            json!({ "message": "dropped: an emergency stop came after it" }),
+                        ),
+                    );
+                    return;
+                }
                 self.begin(plan, speed, target, seq, None, epoch);
             }
             Err(e) => {
@@ -901,6 +948,10 @@ impl Controller {
         replanned: Option<String>,
         epoch: u64,
     ) {
+        // A stop that came while it was planned: no plan is announced, none runs.
+        if self.stopped_since(epoch) {
+            return;
+        }
         self.broadcast(&event(
             "plan",
             json!({ "plan": plan_view(&plan), "speed": speed, "replanned": replanned }),

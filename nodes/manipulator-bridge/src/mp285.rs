@@ -366,7 +366,11 @@ impl Device for Mp285 {
                 Ok(1) if b[0] == CR => break,
                 Ok(1) => {}
                 Ok(_) => {}
-                Err(e) if e.kind() == std::io::ErrorKind::TimedOut => {}
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        std::io::ErrorKind::TimedOut | std::io::ErrorKind::Interrupted
+                    ) => {}
                 Err(e) => return Err(self.err(format!("cannot read ({e})"))),
             }
             if Instant::now() > deadline {

@@ -138,7 +138,11 @@ impl Scientifica {
                 }
                 Ok(1) => line.push(b[0]),
                 Ok(_) => {}
-                Err(e) if e.kind() == std::io::ErrorKind::TimedOut => {}
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        std::io::ErrorKind::TimedOut | std::io::ErrorKind::Interrupted
+                    ) => {}
                 Err(e) => return Err(self.err(format!("cannot read ({e})"))),
             }
             if Instant::now() > deadline {

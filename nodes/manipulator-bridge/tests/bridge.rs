@@ -540,6 +540,37 @@ fn every_stop_is_answered_within_50_ms_beside_hundreds_of_idle_controllers() {
     }
 }
 
+/// A bridge that goes (its node stopped mid-move) leaves the device standing, and its
+/// controllers' connections end.
+#[test]
+fn a_dropped_bridge_stops_the_device() {
+    let cfg = config(5000);
+    let device = SimDevice::new(cfg.device_for(cfg.home), 1000.0, 2000.0, wall_clock());
+    let b = Bridge::start(cfg.clone(), "127.0.0.1:0", Ok(Box::new(device.clone()))).unwrap();
+    let mut c = Client::connect(&b);
+    b.on_targets(&targets(0)).unwrap();
+    c.send(r#"{"cmd":"goto","x":-100,"y":0,"z":3850,"speed":20}"#);
+    c.next(&["plan"]);
+    std::thread::sleep(Duration::from_millis(200));
+    assert!(device.clone().state().unwrap().moving);
+    drop(b);
+    let at = || device.clone().state().unwrap().position;
+    let a = at();
+    std::thread::sleep(Duration::from_millis(300));
+    // Braking from 20 µm/s at 2000 µm/s² takes 0.1 µm.
+    assert!(manipulator_bridge::geom::dist(a, at()) < 0.11);
+    assert!(!device.clone().state().unwrap().moving);
+    // Its connection ends (the end of the stream, not the read timeout).
+    let ended = loop {
+        match c.lines.next() {
+            None => break true,
+            Some(Err(_)) => break false,
+            Some(Ok(_)) => {}
+        }
+    };
+    assert!(ended, "the connection stayed open");
+}
+
 /// A dropped bridge frees its port (an in-process graph's bridge kept it until the program
 /// ended, so the same graph could not then run as processes).
 #[test]
