@@ -376,6 +376,8 @@ pub struct BenchTransportArgs {
 /// prints them side by side, with the ratios, for each placement of the two ends asked.
 pub fn bench_transport(a: BenchTransportArgs) -> Result<(), CliError> {
     use runtime::hop::Placement;
+    // Its edges live in this process: the domain's own memory goes with them.
+    let _domain = runtime::process::ReleaseDomain;
     if a.frames < 2 {
         return Err(CliError::Other(format!(
             "--frames {} is too few to time; use at least 2",

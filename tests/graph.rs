@@ -171,6 +171,7 @@ fn run_and_watch(
 ) -> (Vec<Edge>, std::process::Output) {
     let instance = format!("watch{}", std::process::id());
     let instance = format!("{instance}-{}", file.file_stem().unwrap().to_string_lossy());
+    let _domain = runtime::process::ReleaseDomain;
     let t = Transport::new("graph-test").unwrap();
     let subs: Vec<_> = watched
         .iter()

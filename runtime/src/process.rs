@@ -1046,6 +1046,16 @@ pub fn remove_stale_resources() -> StaleCleanup {
     }
 }
 
+/// Releases the domain ([`release_domain`]) when dropped: for a process that makes nodes
+/// of its own outside a run (a test, a tool), declared before them so that it goes last.
+pub struct ReleaseDomain;
+
+impl Drop for ReleaseDomain {
+    fn drop(&mut self) {
+        release_domain();
+    }
+}
+
 /// Removes the unfinished tags (empty, owner read-write: their writer died while writing
 /// them) in the directories of the dead nodes `ids` (as iceoryx2 shows a node id: its value
 /// in hexadecimal). Returns how many were removed.

@@ -668,6 +668,7 @@ mod tests {
 
     #[test]
     fn a_published_status_reaches_a_reader_of_its_instance() {
+        let _domain = crate::process::ReleaseDomain;
         let instance = format!("status-test-{}", std::process::id());
         let mut p = StatusPublisher::new(&instance, None).unwrap();
         let r = StatusReader::open(&instance, Duration::from_secs(5)).unwrap();

@@ -933,6 +933,7 @@ mod tests {
 
     #[test]
     fn frames_of_growing_size_arrive_bit_exact_and_wake_the_reader() {
+        let _domain = crate::process::ReleaseDomain;
         let edge = edge_name("grow");
         let cfg = EdgeConfig {
             depth: 4,
@@ -999,6 +1000,7 @@ mod tests {
 
     #[test]
     fn frames_lost_upstream_are_missing_but_not_dropped_here() {
+        let _domain = crate::process::ReleaseDomain;
         let edge = edge_name("upstream");
         let cfg = EdgeConfig::default();
         let t = Transport::new("both").unwrap();
@@ -1023,6 +1025,7 @@ mod tests {
 
     #[test]
     fn an_end_marker_says_which_readers_it_missed_and_a_lenient_one_never_waits() {
+        let _domain = crate::process::ReleaseDomain;
         let edge = edge_name("end");
         let cfg = EdgeConfig {
             depth: 1,
@@ -1059,6 +1062,7 @@ mod tests {
 
     #[test]
     fn a_full_drop_oldest_queue_keeps_the_newest_and_counts_the_rest() {
+        let _domain = crate::process::ReleaseDomain;
         let edge = edge_name("drop");
         let cfg = EdgeConfig {
             depth: 2,
@@ -1099,6 +1103,7 @@ mod tests {
 
     #[test]
     fn a_watcher_that_never_reads_does_not_hold_up_a_lossless_writer() {
+        let _domain = crate::process::ReleaseDomain;
         let edge = edge_name("watched");
         let cfg = EdgeConfig {
             depth: 1,
