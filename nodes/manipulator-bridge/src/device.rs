@@ -50,6 +50,35 @@ pub trait EmergencyStop: Send + Sync {
     fn stop_now(&self) -> Result<(), DeviceError>;
 }
 
+/// The emergency stop of a manipulator on a serial line: its stop command written on a
+/// second handle of the line. The kernel writes each `write` to a tty whole, so it never
+/// splits a command of the driver's; the driver counts the stops `sent` to tell their
+/// answers from its own.
+pub(crate) struct SerialStop {
+    pub(crate) port: Mutex<Box<dyn serialport::SerialPort>>,
+    pub(crate) sent: Arc<std::sync::atomic::AtomicU64>,
+    /// The device, for messages.
+    pub(crate) name: String,
+    pub(crate) command: &'static [u8],
+}
+
+impl EmergencyStop for SerialStop {
+    fn stop_now(&self) -> Result<(), DeviceError> {
+        use std::io::Write;
+        // Counted before it goes out: the driver then knows an answer it reads is ours.
+        self.sent.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        let mut port = self.port.lock().unwrap_or_else(PoisonError::into_inner);
+        port.write_all(self.command)
+            .and_then(|_| port.flush())
+            .map_err(|e| {
+                DeviceError(format!(
+                    "{}: cannot send the stop ({e}); is it still connected?",
+                    self.name
+                ))
+            })
+    }
+}
+
 /// Seconds on some clock: the wall clock for a live sim, a hand-set one in tests.
 pub type Clock = Arc<dyn Fn() -> f64 + Send + Sync>;
 

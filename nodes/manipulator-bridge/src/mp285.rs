@@ -17,12 +17,12 @@
 //! are read). The controller cannot report its position during a move, so the driver
 //! estimates it from the commanded speed until the move's CR arrives.
 
-use crate::device::{Device, DeviceError, DeviceState, EmergencyStop};
+use crate::device::{Device, DeviceError, DeviceState, EmergencyStop, SerialStop};
 use crate::geom::{P3, axpy, dist, sub};
 use serialport::SerialPort;
 use std::io::{Read, Write};
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 const CR: u8 = 0x0d;
@@ -64,31 +64,6 @@ pub struct Mp285 {
     estops: Arc<AtomicU64>,
     /// Of those, the ones this driver has accounted for.
     estops_seen: u64,
-}
-
-/// The MP-285's emergency stop: the interrupt byte written on a second handle of the line.
-/// The controller takes an interrupt at any moment (an idle one ignores it), and the kernel
-/// writes each `write` to a tty whole, so it never splits a command of the driver's.
-struct Mp285Stop {
-    port: Mutex<Box<dyn SerialPort>>,
-    sent: Arc<AtomicU64>,
-    name: String,
-}
-
-impl EmergencyStop for Mp285Stop {
-    fn stop_now(&self) -> Result<(), DeviceError> {
-        // Counted before it goes out: the driver then knows an error 8 it reads is ours.
-        self.sent.fetch_add(1, Ordering::SeqCst);
-        let mut port = self.port.lock().unwrap_or_else(PoisonError::into_inner);
-        port.write_all(&[INTERRUPT])
-            .and_then(|_| port.flush())
-            .map_err(|e| {
-                DeviceError(format!(
-                    "MP-285 on {}: cannot send the interrupt ({e}); is it still connected?",
-                    self.name
-                ))
-            })
-    }
 }
 
 /// How long opening waits for the answer to its interrupt: the controller answers an
@@ -388,10 +363,12 @@ impl Device for Mp285 {
             .port
             .try_clone()
             .map_err(|e| self.err(format!("cannot open a second handle on the line ({e})")))?;
-        Ok(Arc::new(Mp285Stop {
+        // The controller takes an interrupt at any moment; an idle one ignores it.
+        Ok(Arc::new(SerialStop {
             port: Mutex::new(port),
             sent: self.estops.clone(),
-            name: self.name.clone(),
+            name: self.describe(),
+            command: &[INTERRUPT],
         }))
     }
 }

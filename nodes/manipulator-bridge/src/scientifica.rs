@@ -18,12 +18,12 @@
 //! An unknown or malformed command is answered `E`. Unlike the MP-285, the controller
 //! answers during a move, so the position is read, not estimated.
 
-use crate::device::{Device, DeviceError, DeviceState, EmergencyStop};
+use crate::device::{Device, DeviceError, DeviceState, EmergencyStop, SerialStop};
 use crate::geom::P3;
 use serialport::SerialPort;
 use std::io::{Read, Write};
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 const CR: u8 = 0x0d;
@@ -42,25 +42,6 @@ pub struct Scientifica {
     estops: Arc<AtomicU64>,
     /// Of those answers, the ones this driver has read.
     estops_read: u64,
-}
-
-/// The Scientifica's emergency stop: `STOP` written on a second handle of the line. The
-/// controller reads commands one by one, and the kernel writes each `write` to a tty
-/// whole, so it never splits a command of the driver's; its `A` is skipped by the driver.
-struct ScientificaStop {
-    port: Mutex<Box<dyn SerialPort>>,
-    sent: Arc<AtomicU64>,
-    name: String,
-}
-
-impl EmergencyStop for ScientificaStop {
-    fn stop_now(&self) -> Result<(), DeviceError> {
-        self.sent.fetch_add(1, Ordering::SeqCst);
-        let mut port = self.port.lock().unwrap_or_else(PoisonError::into_inner);
-        port.write_all(b"STOP\r")
-            .and_then(|_| port.flush())
-            .map_err(|e| DeviceError(format!("{}: cannot send STOP ({e})", self.name)))
-    }
 }
 
 impl Scientifica {
@@ -237,10 +218,12 @@ impl Device for Scientifica {
             .port
             .try_clone()
             .map_err(|e| self.err(format!("cannot open a second handle on the line ({e})")))?;
-        Ok(Arc::new(ScientificaStop {
+        // Commands are read one by one; the driver skips the `A` this one is answered with.
+        Ok(Arc::new(SerialStop {
             port: Mutex::new(port),
             sent: self.estops.clone(),
             name: self.name.clone(),
+            command: b"STOP\r",
         }))
     }
 }

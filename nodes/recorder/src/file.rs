@@ -1394,16 +1394,10 @@ mod tests {
         out
     }
 
-    /// A bit flipped inside one chunk costs that chunk's messages only: the chunk is
-    /// reported with where it lies, every other message reads back exactly, also those on
-    /// channels the damaged chunk declared (the summary repeats them).
-    #[test]
-    fn a_damaged_chunk_is_skipped_and_reported_and_the_rest_reads_back() {
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("r.mcap");
-        let mut w = RecordingWriter::create(&path, false).unwrap();
+    /// A recording of twelve frames in four chunks of three.
+    fn write_four_chunks(path: &Path) {
+        let mut w = RecordingWriter::create(path, false).unwrap();
         w.write_launch(Path::new("g.toml"), "[[node]]\n").unwrap();
-        // Four chunks of three frames each.
         for seq in 0..12 {
             let (h, p) = frame(seq, 64);
             w.write("cam/frame", MessageKind::StereoFrame, &h, &p, 50 + seq)
@@ -1413,6 +1407,16 @@ mod tests {
             }
         }
         w.finish().unwrap();
+    }
+
+    /// A bit flipped inside one chunk costs that chunk's messages only: the chunk is
+    /// reported with where it lies, every other message reads back exactly, also those on
+    /// channels the damaged chunk declared (the summary repeats them).
+    #[test]
+    fn a_damaged_chunk_is_skipped_and_reported_and_the_rest_reads_back() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("r.mcap");
+        write_four_chunks(&path);
         let clean = std::fs::read(&path).unwrap();
         let found = chunks(&clean);
         assert_eq!(found.len(), 4, "{found:?}");
@@ -1480,17 +1484,7 @@ mod tests {
         // chunks read back exactly, the loss is said with where it begins, and nothing
         // is an error.
         let path = dir.path().join("four.mcap");
-        let mut w = RecordingWriter::create(&path, false).unwrap();
-        w.write_launch(Path::new("g.toml"), "[[node]]\n").unwrap();
-        for seq in 0..12 {
-            let (h, p) = frame(seq, 64);
-            w.write("cam/frame", MessageKind::StereoFrame, &h, &p, 50 + seq)
-                .unwrap();
-            if seq % 3 == 2 {
-                w.mcap.flush().unwrap();
-            }
-        }
-        w.finish().unwrap();
+        write_four_chunks(&path);
         let clean = std::fs::read(&path).unwrap();
         let found = chunks(&clean);
         let (third, _, _) = found[2];
