@@ -62,6 +62,29 @@ pub(crate) struct SerialStop {
     pub(crate) command: &'static [u8],
 }
 
+impl SerialStop {
+    /// The handle that sends `command` to the device on `port` (named `name`), counting in
+    /// `sent`.
+    pub(crate) fn on(
+        port: &dyn serialport::SerialPort,
+        sent: &Arc<std::sync::atomic::AtomicU64>,
+        name: String,
+        command: &'static [u8],
+    ) -> Result<Arc<dyn EmergencyStop>, DeviceError> {
+        let port = port.try_clone().map_err(|e| {
+            DeviceError(format!(
+                "{name}: cannot open a second handle on the line ({e})"
+            ))
+        })?;
+        Ok(Arc::new(Self {
+            port: Mutex::new(port),
+            sent: sent.clone(),
+            name,
+            command,
+        }))
+    }
+}
+
 impl EmergencyStop for SerialStop {
     fn stop_now(&self) -> Result<(), DeviceError> {
         use std::io::Write;

@@ -21,8 +21,8 @@ use crate::device::{Device, DeviceError, DeviceState, EmergencyStop, SerialStop}
 use crate::geom::{P3, axpy, dist, sub};
 use serialport::SerialPort;
 use std::io::{Read, Write};
+use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 const CR: u8 = 0x0d;
@@ -359,17 +359,8 @@ impl Device for Mp285 {
     }
 
     fn emergency_stop(&mut self) -> Result<Arc<dyn EmergencyStop>, DeviceError> {
-        let port = self
-            .port
-            .try_clone()
-            .map_err(|e| self.err(format!("cannot open a second handle on the line ({e})")))?;
         // The controller takes an interrupt at any moment; an idle one ignores it.
-        Ok(Arc::new(SerialStop {
-            port: Mutex::new(port),
-            sent: self.estops.clone(),
-            name: self.describe(),
-            command: &[INTERRUPT],
-        }))
+        SerialStop::on(&*self.port, &self.estops, self.describe(), &[INTERRUPT])
     }
 }
 

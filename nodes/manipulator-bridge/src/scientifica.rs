@@ -22,8 +22,8 @@ use crate::device::{Device, DeviceError, DeviceState, EmergencyStop, SerialStop}
 use crate::geom::P3;
 use serialport::SerialPort;
 use std::io::{Read, Write};
+use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 const CR: u8 = 0x0d;
@@ -214,17 +214,8 @@ impl Device for Scientifica {
     }
 
     fn emergency_stop(&mut self) -> Result<Arc<dyn EmergencyStop>, DeviceError> {
-        let port = self
-            .port
-            .try_clone()
-            .map_err(|e| self.err(format!("cannot open a second handle on the line ({e})")))?;
         // Commands are read one by one; the driver skips the `A` this one is answered with.
-        Ok(Arc::new(SerialStop {
-            port: Mutex::new(port),
-            sent: self.estops.clone(),
-            name: self.name.clone(),
-            command: b"STOP\r",
-        }))
+        SerialStop::on(&*self.port, &self.estops, self.name.clone(), b"STOP\r")
     }
 }
 
