@@ -17,6 +17,7 @@ pub fn builtin() -> Registry {
         .task::<validate::node::Validate>()
         .task::<postprocess::node::Postprocess>()
         .task::<triangulate::node::Triangulate>()
+        .task::<track::node::TrackNode>()
         .task::<manipulator_bridge::node::BridgeNode>()
         .tap(recorder::node::RECORDER_KIND, recorder::node::run_recorder)
         .rewritten(recorder::node::REPLAY_KIND, |spec| {

@@ -13,7 +13,8 @@ use serde::{Deserialize, Serialize};
 
 pub use msg::{
     CellLists, Cloud, CloudPoint, Disparity, DisparityPair, DisparityTile, DisparityTiles, Image,
-    Labels, ManipulatorState, Message, PathPlan, Side, StereoFrame, Targets,
+    Labels, ManipulatorState, Message, PathPlan, Side, StereoFrame, Targets, Track, TrackState,
+    Tracks,
 };
 pub use wire::{FrameHeader, MessageKind, PixelFormat};
 

@@ -336,6 +336,73 @@ pub struct Targets {
 
 json_message!(Targets, MessageKind::Targets, "targets");
 
+/// Where a track is in its life.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum TrackState {
+    /// Seen in too few frames yet to be taken for a cell (it may be noise).
+    Tentative,
+    /// A cell seen in enough frames: its id holds for as long as it is seen.
+    Confirmed,
+    /// Not seen lately (covered, out of view): kept, predicted, for a while, so that the
+    /// cell gets its id back when it reappears.
+    Lost,
+}
+
+/// One physical cell followed over time: what the track node sends per cell.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Track {
+    /// The cell's id for the whole run: never given to another cell, never reused.
+    pub id: u32,
+    /// Tentative, confirmed or lost.
+    pub state: TrackState,
+    /// Frames since the track was born (this frame included).
+    pub age: u32,
+    /// Frames since it was last seen (0: seen in this frame).
+    pub missed: u32,
+    /// Frames the fused height and volume rest on (outliers and doubtful frames left out).
+    pub frames_used: u32,
+    /// Fused 3D centroid `[X, Y, Z]` (in `unit`); predicted while the cell is lost.
+    pub position: [f64; 3],
+    /// Standard error of `position` along X and Y.
+    pub position_std: f64,
+    /// Velocity `[X, Y, Z]`, `unit` per second.
+    pub velocity: [f64; 3],
+    /// Fused height above the substrate (`None`: no frame gave one yet).
+    pub height: Option<f64>,
+    /// Standard error of `height`.
+    pub height_std: Option<f64>,
+    /// Fused volume.
+    pub volume: f64,
+    /// Standard error of `volume`.
+    pub volume_std: f64,
+    /// Whether the fused height can be trusted (sure to 2.5 %, from trusted frames).
+    pub trusted: bool,
+    /// This frame's measurement of the cell (absent while it is lost); its `id` is the
+    /// cell's index in this frame's segmentation, which changes from frame to frame.
+    pub cell: Option<Cell3>,
+}
+
+/// What the track node sends on `tracks` once per frame (JSON): every live track.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Tracks {
+    /// Frame number.
+    pub frame: u64,
+    /// Capture time, ns since the Unix epoch.
+    pub capture_ns: u64,
+    /// Unit of every coordinate.
+    pub unit: String,
+    /// The common shift of every cell since the last frame `[X, Y, Z]` (a stage move).
+    pub shift: [f64; 3],
+    /// The tracks, by id.
+    pub tracks: Vec<Track>,
+    /// The frame's substrate plane, as the targets gave it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub substrate: Option<crate::DisparityPlane>,
+}
+
+json_message!(Tracks, MessageKind::Tracks, "tracks");
+
 /// A planned pipette path as the bridge reports it.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PathPlan {

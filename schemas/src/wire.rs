@@ -73,11 +73,13 @@ pub enum MessageKind {
     ManipulatorState = 9,
     /// Disparity maps of a frame in tiles: the whole frame, or one crop per cell pair.
     DisparityTiles = 10,
+    /// The cells followed over time: one id per physical cell, fused measurements (JSON).
+    Tracks = 11,
 }
 
 impl MessageKind {
     /// Every kind, in wire order.
-    pub const ALL: [MessageKind; 10] = [
+    pub const ALL: [MessageKind; 11] = [
         Self::StereoFrame,
         Self::Image,
         Self::Disparity,
@@ -88,6 +90,7 @@ impl MessageKind {
         Self::DisparityPair,
         Self::ManipulatorState,
         Self::DisparityTiles,
+        Self::Tracks,
     ];
 
     /// Its name in launch files and recordings (`stereo-frame`, `disparity`, …).
@@ -103,6 +106,7 @@ impl MessageKind {
             Self::DisparityPair => "disparity-pair",
             Self::ManipulatorState => "manipulator-state",
             Self::DisparityTiles => "disparity-tiles",
+            Self::Tracks => "tracks",
         }
     }
 
@@ -124,6 +128,7 @@ impl MessageKind {
             8 => Self::DisparityPair,
             9 => Self::ManipulatorState,
             10 => Self::DisparityTiles,
+            11 => Self::Tracks,
             _ => return None,
         })
     }
