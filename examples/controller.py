@@ -2,7 +2,11 @@
 """A controller for microstereo's manipulator bridge, with no dependencies: it sends the
 pipette into a cell, back out and home, as many times as asked.
 
-    python3 examples/controller.py [HOST:PORT] [--times N] [--cell ID]
+    python3 examples/controller.py [HOST:PORT] [--times N] [--track ID]
+
+Cells are named by their track: one id per physical cell for as long as it is seen (the
+default graph's track node). A bridge fed by triangulate directly names them by their index
+in each frame instead (scene lines without "ids": "track"), which the controller then uses.
 
 The bridge sends one JSON object per line (every frame's scene, and the events of the moves);
 the controller sends one command per line. Events are read from a file opened for reading
@@ -22,7 +26,7 @@ def main(argv):
     for a in args:
         if a == "--times":
             times = int(next(args))
-        elif a == "--cell":
+        elif a in ("--track", "--cell"):
             cell = int(next(args))
         else:
             addr = a
@@ -44,26 +48,30 @@ def main(argv):
     tried = set()
     while arrived < times:
         scene = until("scene")
-        # Cells whose height is trusted are the ones the bridge sends the pipette into.
-        ids = [c["id"] for c in scene["cells"] if c["quality"]["trusted"]]
+        by_track = scene.get("ids") == "track"
+        key = "track" if by_track else "cell"
+        # Cells whose height is trusted are the ones the bridge sends the pipette into;
+        # with tracks, those confirmed and seen in this frame.
+        ready = {t["id"] for t in scene.get("tracks", []) if t["state"] == "confirmed" and t["missed"] == 0}
+        ids = [c["id"] for c in scene["cells"] if c["quality"]["trusted"] and (not by_track or c["id"] in ready)]
         if cell is not None:
             ids = [cell]
         fresh = [i for i in ids if i not in tried] or ids
         if not fresh:
             continue
         target = fresh[0]
-        send(cmd="approach", cell=target)
+        send(cmd="approach", **{key: target})
         ev = until("plan", "blocked", "error")
         if ev["event"] != "plan":
             # No way in to that cell now (walled in by others, say): another one.
-            print(f"cell {target}: {ev.get('reason') or ev.get('message')}", flush=True)
+            print(f"{key} {target}: {ev.get('reason') or ev.get('message')}", flush=True)
             tried.add(target)
             continue
         ev = until("arrived", "blocked", "error", "stopped")
         if ev["event"] != "arrived":
-            print(f"approach to cell {target} ended: {ev}", flush=True)
+            print(f"approach to {key} {target} ended: {ev}", flush=True)
             return 1
-        print(f"in cell {target}, tip at {ev['tip']} (error {ev['error_um']:.2f} um)", flush=True)
+        print(f"in {key} {target}, tip at {ev['tip']} (error {ev['error_um']:.2f} um)", flush=True)
         arrived += 1
         # Out along the axis, then home: the next approach starts from rest, clear of
         # every cell.

@@ -1686,7 +1686,7 @@ fn the_default_graph_keeps_moving_through_restarts_of_joined_nodes() {
         &text,
         "restart = { policy = \"on-failure\", max = 3, backoff_ms = 200 }\n",
     );
-    assert_eq!(restarting.matches("restart = {").count(), 8);
+    assert_eq!(restarting.matches("restart = {").count(), 9);
     let file = dir.path().join("restarts.toml");
     std::fs::write(&file, &restarting).unwrap();
     let instance = format!("restarts{}", std::process::id());

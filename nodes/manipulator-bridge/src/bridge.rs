@@ -28,7 +28,8 @@ use crate::plan::{
 use crate::protocol::{Command, Line, MAX_LINE, parse_command, read_line, shorten};
 use crate::registration::Registration;
 use crate::scene::{Obstacle, Scene};
-use schemas::{ManipulatorState, PathPlan, Targets};
+use schemas::{Cell3, ManipulatorState, PathPlan, Targets, TrackState, Tracks};
+use std::collections::HashMap;
 use serde_json::{Value, json};
 use std::collections::VecDeque;
 use std::io::{BufReader, Write};
@@ -283,11 +284,36 @@ struct Shared {
     /// body): no obstacles, but the cell the pipette is going into is among them.
     touching: Vec<Obstacle>,
     device: String,
+    /// What the scene's ids are: per-frame cell ids, or track ids with what is known of
+    /// each track.
+    ids: Ids,
 }
+
+/// What a scene's cell ids name.
+#[derive(Clone, Debug, Default)]
+enum Ids {
+    /// A cell's index in its frame (no track node feeds the bridge).
+    #[default]
+    Cells,
+    /// Tracks: the live ones and the frame each ended one was last present in.
+    Tracks {
+        live: HashMap<u32, (TrackState, u32)>,
+        ended: HashMap<u32, u64>,
+    },
+}
+
+/// The longest a scene's cells are led by their velocity, s: an older frame is stale.
+const MAX_LEAD_S: f64 = 1.0;
+
+/// Ended tracks remembered to say why they are refused.
+const ENDED_KEPT: usize = 100_000;
 
 /// The manipulator bridge: TCP server, controller thread and shared state.
 pub struct Bridge {
     cfg: BridgeConfig,
+    /// Each track's last cell and its position then: a lost track (a cell under the
+    /// pipette) stays an obstacle where its track predicts it.
+    last_cells: Mutex<HashMap<u32, (Cell3, [f64; 3])>>,
     shared: Arc<Mutex<Shared>>,
     clients: Arc<Mutex<Clients>>,
     /// Where it listens.
@@ -323,8 +349,10 @@ impl Drop for Bridge {
 /// A target cell followed from frame to frame by its footprint centre and drift.
 #[derive(Clone, Copy, Debug)]
 struct Follow {
-    /// Its id in the scene it was last seen in.
+    /// Its id in the scene it was last seen in (its track's, when `by_track`).
     id: u32,
+    /// Whether ids are tracks: the target is then its track, wherever it is.
+    by_track: bool,
     centre: [f64; 2],
     /// The frame it was last seen in.
     frame: u64,
@@ -335,9 +363,10 @@ struct Follow {
 }
 
 impl Follow {
-    fn new(c: &Obstacle, frame: u64) -> Self {
+    fn new(c: &Obstacle, frame: u64, by_track: bool) -> Self {
         Self {
             id: c.id,
+            by_track,
             centre: c.centre,
             frame,
             velocity: [0.0; 2],
@@ -366,6 +395,15 @@ impl Follow {
     /// The cell of `scene` that is this target: the nearest to where its drift puts it
     /// now, within `radius`. Follows it there.
     fn find<'a>(&mut self, scene: &'a Scene, radius: f64) -> Option<&'a Obstacle> {
+        if self.by_track {
+            let c = scene.cell(self.id)?;
+            self.centre = c.centre;
+            self.frame = scene.frame;
+            if c.trusted {
+                self.height = c.top - c.base;
+            }
+            return Some(c);
+        }
         let frames = scene.frame.saturating_sub(self.frame).max(1) as f64;
         let guess = [
             self.centre[0] + self.velocity[0] * frames,
@@ -378,6 +416,7 @@ impl Follow {
         let v = [0, 1].map(|k| ((c.centre[k] - self.centre[k]) / frames).clamp(-radius, radius));
         *self = Self {
             id: c.id,
+            by_track: false,
             centre: c.centre,
             frame: scene.frame,
             velocity: v,
@@ -468,6 +507,7 @@ impl Bridge {
             history: VecDeque::new(),
             touching: Vec::new(),
             device: device.as_ref().map_or("none".into(), |d| d.describe()),
+            ids: Ids::Cells,
         }));
         let clients: Arc<Mutex<Clients>> = Arc::default();
         let estop = Arc::new(Estop::default());
@@ -518,6 +558,7 @@ impl Bridge {
         std::thread::spawn(move || c.run());
         Ok(Self {
             cfg,
+            last_cells: Mutex::default(),
             shared,
             clients,
             addr,
@@ -535,6 +576,129 @@ impl Bridge {
     /// Takes one frame's targets: updates the scene, serves
     /// it to the controllers and returns the manipulator state for this frame.
     pub fn on_targets(&self, t: &Targets) -> Result<ManipulatorState, String> {
+        // The scene line: the targets as they travel (their JSON), tagged.
+        let raw = &serde_json::to_vec(t).map_err(|e| e.to_string())?[..];
+        let mut line = Vec::with_capacity(raw.len() + 20);
+        line.extend_from_slice(b"{\"event\":\"scene\",");
+        line.extend_from_slice(raw.strip_prefix(b"{").unwrap_or(raw));
+        line.push(b'\n');
+        self.take_scene(t, &String::from_utf8_lossy(&line))
+    }
+
+    /// Takes one frame's tracks: the scene's cells are the tracks' (ids their track ids,
+    /// heights the fused ones), each led by its track's velocity over the frame's age; a
+    /// lost track's cell stays where its track predicts it. Serves the scene, with the
+    /// tracks, to the controllers and returns the manipulator state for this frame.
+    pub fn on_tracks(&self, t: &Tracks) -> Result<ManipulatorState, String> {
+        let now = runtime::process::now_ns();
+        // The frame's age now: what the loop's latency has let every cell move.
+        let lead_s = if t.capture_ns > 0 && now > t.capture_ns {
+            ((now - t.capture_ns) as f64 * 1e-9).min(MAX_LEAD_S)
+        } else {
+            0.0
+        };
+        let mut cells = Vec::with_capacity(t.tracks.len());
+        {
+            let mut last = lock(&self.last_cells);
+            last.retain(|id, _| t.tracks.iter().any(|tr| tr.id == *id));
+            for tr in &t.tracks {
+                let (mut c, moved) = match &tr.cell {
+                    Some(c) => {
+                        last.insert(tr.id, (c.clone(), tr.position));
+                        (c.clone(), [0.0; 2])
+                    }
+                    None => match last.get(&tr.id) {
+                        Some((c, then)) => (
+                            c.clone(),
+                            [tr.position[0] - then[0], tr.position[1] - then[1]],
+                        ),
+                        None => continue,
+                    },
+                };
+                let d = [
+                    moved[0] + tr.velocity[0] * lead_s,
+                    moved[1] + tr.velocity[1] * lead_s,
+                ];
+                c.centroid[0] += d[0];
+                c.centroid[1] += d[1];
+                for p in &mut c.contour {
+                    p[0] += d[0];
+                    p[1] += d[1];
+                }
+                c.id = tr.id;
+                if let (Some(h), Some(s)) = (tr.height, tr.height_std) {
+                    c.height = Some(h);
+                    c.quality.height_std = Some(s);
+                    c.quality.trusted = tr.trusted;
+                    c.quality.doubt = if tr.trusted {
+                        None
+                    } else {
+                        Some(c.quality.doubt.take().unwrap_or_else(|| {
+                            format!(
+                                "its track's fused height ({h:.1} ± {s:.1}) is not yet sure to 2.5 %"
+                            )
+                        }))
+                    };
+                }
+                cells.push(c);
+            }
+        }
+        let targets = Targets {
+            frame: t.frame,
+            capture_ns: t.capture_ns,
+            unit: t.unit.clone(),
+            cells,
+            substrate: t.substrate,
+        };
+        {
+            let mut sh = self.shared.lock().expect("shared");
+            let (old, mut ended) = match std::mem::take(&mut sh.ids) {
+                Ids::Tracks { live, ended } => (live, ended),
+                Ids::Cells => (HashMap::new(), HashMap::new()),
+            };
+            let live: HashMap<u32, (TrackState, u32)> = t
+                .tracks
+                .iter()
+                .map(|tr| (tr.id, (tr.state, tr.missed)))
+                .collect();
+            for id in old.keys().filter(|id| !live.contains_key(id)) {
+                ended.insert(*id, t.frame.saturating_sub(1));
+            }
+            if ended.len() > ENDED_KEPT {
+                ended.clear();
+            }
+            sh.ids = Ids::Tracks { live, ended };
+        }
+        let mut v = serde_json::to_value(&targets).map_err(|e| e.to_string())?;
+        let summary: Vec<Value> = t
+            .tracks
+            .iter()
+            .map(|tr| {
+                json!({
+                    "id": tr.id,
+                    "state": tr.state,
+                    "age": tr.age,
+                    "missed": tr.missed,
+                    "position": tr.position,
+                    "velocity": tr.velocity,
+                    "height": tr.height,
+                    "height_std": tr.height_std,
+                    "trusted": tr.trusted,
+                    "frames_used": tr.frames_used,
+                })
+            })
+            .collect();
+        if let Value::Object(m) = &mut v {
+            m.insert("ids".into(), "track".into());
+            m.insert("tracks".into(), summary.into());
+        }
+        let line = format!("{{\"event\":\"scene\",{}\n", &v.to_string()[1..]);
+        self.take_scene(&targets, &line)
+    }
+
+    /// Makes `t` the scene, sends `line` to every controller and says the manipulator's
+    /// state for the frame.
+    fn take_scene(&self, t: &Targets, line: &str) -> Result<ManipulatorState, String> {
         let mut scene = Scene::from_targets(t, self.cfg.untrusted_height)?;
         let cfg = &self.cfg.planner;
         let u = cfg.pipette.axis();
@@ -576,16 +740,7 @@ impl Bridge {
             ignored,
         };
         drop(sh);
-        // The scene line: the targets as they travel (their JSON), tagged.
-        let raw = &serde_json::to_vec(t).map_err(|e| e.to_string())?[..];
-        let mut line = Vec::with_capacity(raw.len() + 20);
-        line.extend_from_slice(b"{\"event\":\"scene\",");
-        line.extend_from_slice(raw.strip_prefix(b"{").unwrap_or(raw));
-        line.push(b'\n');
-        self.clients
-            .lock()
-            .expect("clients")
-            .broadcast(&String::from_utf8_lossy(&line));
+        self.clients.lock().expect("clients").broadcast(line);
         Ok(state)
     }
 }
@@ -854,10 +1009,55 @@ impl Controller {
         }
     }
 
-    fn plan_for(&self, c: &Command, scene: &Scene, tip: P3) -> Result<Plan, NoPath> {
+    /// The scene id of the cell an approach names: its track where ids are tracks (a
+    /// track that is not confirmed is refused with the reason), else its frame index.
+    fn target_of(&self, c: &Command) -> Result<Option<u32>, String> {
+        let Command::Approach { track, cell, .. } = *c else {
+            return Ok(None);
+        };
+        let sh = self.shared.lock().expect("shared");
+        match (&sh.ids, track, cell) {
+            (Ids::Cells, None, Some(c)) => Ok(Some(c)),
+            (Ids::Cells, Some(t), _) => Err(format!(
+                "there is no track {t}: no track node feeds this bridge; name the cell by its id in the latest frame (\"cell\"), or put a track node between triangulate and the bridge"
+            )),
+            (Ids::Tracks { .. }, None, Some(c)) => Err(format!(
+                "\"cell\": {c} names a cell by its index in one frame, which changes from frame to frame; name it by its track (\"track\": its id in the scene lines)"
+            )),
+            (Ids::Tracks { live, ended }, Some(t), _) => match live.get(&t) {
+                Some((TrackState::Confirmed, _)) => Ok(Some(t)),
+                Some((TrackState::Tentative, _)) => Err(format!(
+                    "track {t} is tentative: seen in too few frames yet to be taken for a cell; ask again in a few frames"
+                )),
+                Some((TrackState::Lost, missed)) => Err(format!(
+                    "track {t} is lost: its cell has not been seen for {missed} frame(s) (covered or out of view); it is not approached until it is seen again"
+                )),
+                None => Err(match ended.get(&t) {
+                    Some(f) => format!(
+                        "track {t} ended: its cell was last followed in frame {f} and has been gone since; ids are never reused"
+                    ),
+                    None => format!("there is no track {t}"),
+                }),
+            },
+            (_, None, None) => Err("an approach names no cell".into()),
+        }
+    }
+
+    fn plan_for(
+        &self,
+        c: &Command,
+        target: Option<u32>,
+        scene: &Scene,
+        tip: P3,
+    ) -> Result<Plan, NoPath> {
         let cfg = &self.cfg.planner;
         match *c {
-            Command::Approach { cell, .. } => plan_approach(scene, cfg, tip, cell),
+            Command::Approach { .. } => plan_approach(
+                scene,
+                cfg,
+                tip,
+                target.expect("an approach's target is resolved before it is planned"),
+            ),
             Command::Retract { .. } => {
                 let inside = self
                     .inside
@@ -900,6 +1100,14 @@ impl Controller {
                 Err(e) => return self.fail(e),
             }
         };
+        let target = match self.target_of(&c) {
+            Ok(t) => t,
+            Err(m) => {
+                self.tell(id, &event("error", json!({ "message": m })));
+                return;
+            }
+        };
+        let by_track = matches!(self.shared.lock().expect("shared").ids, Ids::Tracks { .. });
         let speed = match c {
             Command::Approach { speed, .. }
             | Command::Retract { speed }
@@ -908,12 +1116,12 @@ impl Controller {
             Command::Stop => None,
         }
         .map_or(self.cfg.max_speed, |s| s.min(self.cfg.max_speed));
-        match self.plan_for(&c, &scene, tip) {
+        match self.plan_for(&c, target, &scene, tip) {
             Ok(plan) => {
                 let target = match plan.goal {
-                    Goal::Approach { cell } => {
-                        scene.cell(cell).map(|c| Follow::new(c, scene.frame))
-                    }
+                    Goal::Approach { cell } => scene
+                        .cell(cell)
+                        .map(|c| Follow::new(c, scene.frame, by_track)),
                     _ => None,
                 };
                 if self.stopped_since(epoch) {
@@ -1137,8 +1345,8 @@ impl Controller {
                 "blocked",
                 json!({
                     "reason": format!(
-                        "the target (cell {} in frame {}, at X {:.1}, Y {:.1} µm) is lost: no cell within {} µm of it in frame {}; stopped",
-                        f.id, f.frame, f.centre[0], f.centre[1], self.cfg.track_radius, scene.frame
+                        "the target ({} {} in frame {}, at X {:.1}, Y {:.1} µm) is lost: no cell within {} µm of it in frame {}; stopped",
+                        if f.by_track { "track" } else { "cell" }, f.id, f.frame, f.centre[0], f.centre[1], self.cfg.track_radius, scene.frame
                     ),
                     "cells": [],
                 }),
@@ -1166,7 +1374,11 @@ impl Controller {
         };
         let cmd = match goal {
             Goal::Approach { .. } => match exempt {
-                Some(cell) => Command::Approach { cell, speed: None },
+                Some(cell) => Command::Approach {
+                    track: None,
+                    cell: Some(cell),
+                    speed: None,
+                },
                 None => {
                     self.set_status("blocked");
                     self.broadcast(&event(
@@ -1184,7 +1396,7 @@ impl Controller {
                 speed: None,
             },
         };
-        match self.plan_for(&cmd, &scene, tip) {
+        match self.plan_for(&cmd, exempt, &scene, tip) {
             Ok(plan) => {
                 self.begin(
                     plan,

@@ -9,7 +9,7 @@ use crate::registration::Registration;
 use crate::scene::Workspace;
 use crate::scientifica::Scientifica;
 use runtime::node::{NodeError, Params, Stamp, Task};
-use schemas::{ManipulatorState, Targets};
+use schemas::{ManipulatorState, Targets, Tracks};
 use serde::Deserialize;
 use std::time::Duration;
 
@@ -341,8 +341,10 @@ impl BridgeNode {
 runtime::ports! {
     /// What the bridge reads.
     pub struct BridgeIn {
-        /// The frame's cells in 3D.
-        pub targets: Targets,
+        /// The frame's cells in 3D, addressed by their per-frame ids (no track node).
+        pub targets: Option<Targets>,
+        /// The cells followed over time, addressed by their track ids.
+        pub tracks: Option<Tracks>,
     }
 }
 
@@ -365,8 +367,26 @@ impl Task for BridgeNode {
         BridgeNode::new(&p).map_err(NodeError::Failed)
     }
 
+    fn check_inputs(_: &BridgeParams, connected: &[&str]) -> Result<(), String> {
+        match (connected.contains(&"targets"), connected.contains(&"tracks")) {
+            (true, false) | (false, true) => Ok(()),
+            _ => Err(
+                "the bridge reads one of tracks (from a track node: cells addressed by track) or targets (from triangulate: cells by their per-frame ids); connect one"
+                    .into(),
+            ),
+        }
+    }
+
     fn process(&mut self, _: Stamp, i: BridgeIn) -> Result<BridgeOut, NodeError> {
-        let state = self.bridge.on_targets(&i.targets)?;
+        let state = match (&i.tracks, &i.targets) {
+            (Some(t), _) => self.bridge.on_tracks(t)?,
+            (None, Some(t)) => self.bridge.on_targets(t)?,
+            (None, None) => {
+                return Err(NodeError::Failed(
+                    "no scene came on the bridge's input this frame".into(),
+                ));
+            }
+        };
         Ok(BridgeOut { state })
     }
 }

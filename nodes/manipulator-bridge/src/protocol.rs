@@ -3,7 +3,8 @@
 //! A controller sends commands, one JSON object per line:
 //!
 //! ```text
-//! {"cmd": "approach", "cell": 3}            into cell 3 of the latest frame
+//! {"cmd": "approach", "track": 17}          into the cell of track 17 (a track graph)
+//! {"cmd": "approach", "cell": 3}            into cell 3 of the latest frame (no track node)
 //! {"cmd": "retract"}                        back out along the pipette axis
 //! {"cmd": "goto", "x": 0, "y": 0, "z": 3850}  to a point (camera frame, µm: Z the depth)
 //! {"cmd": "home"}                           to the configured home
@@ -85,10 +86,15 @@ pub fn shorten(line: &str, max: usize) -> String {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "cmd", rename_all = "kebab-case")]
 pub enum Command {
-    /// Into a cell of the latest frame.
+    /// Into a cell: by its track where a track node feeds the bridge, else by its id in
+    /// the latest frame.
     Approach {
-        /// Its id in that frame.
-        cell: u32,
+        /// Its track's id.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        track: Option<u32>,
+        /// Its id in the latest frame (only where no track node feeds the bridge).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        cell: Option<u32>,
         /// µm/s.
         #[serde(default)]
         speed: Option<f64>,
@@ -222,6 +228,14 @@ pub fn parse_command(line: &str) -> Result<Command, String> {
     if speed.is_some_and(|s| !s.is_finite() || s <= 0.0) {
         return Err(format!("bad '{name}' command: speed must be positive µm/s"));
     }
+    if let Command::Approach { track, cell, .. } = c
+        && track.is_some() == cell.is_some()
+    {
+        return Err(
+            "bad 'approach' command: name the cell by \"track\" (its track id, e.g. {\"cmd\": \"approach\", \"track\": 17}) or, without a track node, by \"cell\" (its id in the latest frame); one of the two"
+                .into(),
+        );
+    }
     if let Command::Goto { x, y, z, .. } = c
         && ![x, y, z].iter().all(|v| v.is_finite())
     {
@@ -273,10 +287,21 @@ mod tests {
         assert_eq!(
             parse_command(r#"{"cmd":"approach","cell":3}"#).unwrap(),
             Command::Approach {
-                cell: 3,
+                track: None,
+                cell: Some(3),
                 speed: None
             }
         );
+        assert_eq!(
+            parse_command(r#"{"cmd":"approach","track":17,"speed":20}"#).unwrap(),
+            Command::Approach {
+                track: Some(17),
+                cell: None,
+                speed: Some(20.0)
+            }
+        );
+        let e = parse_command(r#"{"cmd":"approach","track":17,"cell":2}"#).unwrap_err();
+        assert!(e.contains("one of the two"), "{e}");
         assert_eq!(
             parse_command(r#"{"cmd":"goto","x":1,"y":-2,"z":3.5,"speed":50}"#).unwrap(),
             Command::Goto {
@@ -295,7 +320,7 @@ mod tests {
         assert!(e.contains("no \"cmd\""), "{e}");
         let e = parse_command(r#"{"cmd":"approach"}"#).unwrap_err();
         assert!(
-            e.contains("bad 'approach' command") && e.contains("cell"),
+            e.contains("bad 'approach' command") && e.contains("track") && e.contains("cell"),
             "{e}"
         );
         let e = parse_command(r#"{"cmd":"home","speed":-1}"#).unwrap_err();

@@ -11,7 +11,7 @@ use schemas::wire::CLOUD_POINT_BYTES;
 use schemas::{
     BoundingBox, Cell, Cell3, CellLists, CellQuality, DisparityPlane, DisparityRange,
     DisparityTile, DisparityTiles, FrameHeader, ManipulatorState, MessageKind, PathPlan,
-    PixelFormat, Plane, Side, Targets, ValidationFigures,
+    PixelFormat, Plane, Side, Targets, Track, TrackState, Tracks, ValidationFigures,
 };
 use serde::{Deserialize, Serialize};
 use serde_bytes::ByteBuf;
@@ -279,6 +279,46 @@ pub const TARGETS: MsgType = MsgType {
         "bool has_substrate\n",
         "DisparityPlane substrate\n",
         header_defs!(),
+        sep!(),
+        "MSG: microstereo_msgs/Cell3\n",
+        cell3_def!(),
+        sep!(),
+        "MSG: microstereo_msgs/DisparityPlane\n",
+        plane_def!()
+    ),
+};
+
+/// `microstereo_msgs/msg/Tracks`: the cells followed over time, once per frame. A track's
+/// `state` is tentative, confirmed or lost; `height` and `height_std` are NaN when no
+/// frame gave a height; `cell` holds this frame's measurement (empty while lost).
+pub const TRACKS: MsgType = MsgType {
+    name: "microstereo_msgs/msg/Tracks",
+    definition: concat!(
+        "std_msgs/Header header\n",
+        "uint64 frame\n",
+        "uint64 capture_ns\n",
+        "string unit\n",
+        "float64[3] shift\n",
+        "Track[] tracks\n",
+        "bool has_substrate\n",
+        "DisparityPlane substrate\n",
+        header_defs!(),
+        sep!(),
+        "MSG: microstereo_msgs/Track\n",
+        "uint32 id\n",
+        "string state\n",
+        "uint32 age\n",
+        "uint32 missed\n",
+        "uint32 frames_used\n",
+        "float64[3] position\n",
+        "float64 position_std\n",
+        "float64[3] velocity\n",
+        "float64 height\n",
+        "float64 height_std\n",
+        "float64 volume\n",
+        "float64 volume_std\n",
+        "bool trusted\n",
+        "Cell3[] cell\n",
         sep!(),
         "MSG: microstereo_msgs/Cell3\n",
         cell3_def!(),
@@ -568,6 +608,114 @@ struct RosTargets {
     substrate: RosPlane,
 }
 
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+struct RosTrack {
+    id: u32,
+    state: String,
+    age: u32,
+    missed: u32,
+    frames_used: u32,
+    position: [f64; 3],
+    position_std: f64,
+    velocity: [f64; 3],
+    height: f64,
+    height_std: f64,
+    volume: f64,
+    volume_std: f64,
+    trusted: bool,
+    cell: Vec<RosCell3>,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+struct RosTracks {
+    header: Header,
+    frame: u64,
+    capture_ns: u64,
+    unit: String,
+    shift: [f64; 3],
+    tracks: Vec<RosTrack>,
+    has_substrate: bool,
+    substrate: RosPlane,
+}
+
+impl RosPlane {
+    fn of(p: Option<DisparityPlane>) -> Self {
+        p.map_or_else(Self::default, |p| Self {
+            d0: p.d0,
+            dx: p.dx,
+            dy: p.dy,
+            centre: p.centre,
+            std: p.std,
+            pixels: p.pixels,
+        })
+    }
+
+    fn plane(&self) -> DisparityPlane {
+        DisparityPlane {
+            d0: self.d0,
+            dx: self.dx,
+            dy: self.dy,
+            centre: self.centre,
+            std: self.std,
+            pixels: self.pixels,
+        }
+    }
+}
+
+impl RosTrack {
+    fn of(t: &Track) -> Self {
+        Self {
+            id: t.id,
+            state: match t.state {
+                TrackState::Tentative => "tentative",
+                TrackState::Confirmed => "confirmed",
+                TrackState::Lost => "lost",
+            }
+            .into(),
+            age: t.age,
+            missed: t.missed,
+            frames_used: t.frames_used,
+            position: t.position,
+            position_std: t.position_std,
+            velocity: t.velocity,
+            height: t.height.unwrap_or(f64::NAN),
+            height_std: t.height_std.unwrap_or(f64::NAN),
+            volume: t.volume,
+            volume_std: t.volume_std,
+            trusted: t.trusted,
+            cell: t.cell.iter().map(RosCell3::from).collect(),
+        }
+    }
+
+    fn into_track(self) -> Result<Track, String> {
+        let state = match self.state.as_str() {
+            "tentative" => TrackState::Tentative,
+            "confirmed" => TrackState::Confirmed,
+            "lost" => TrackState::Lost,
+            other => return Err(format!("track {}: state '{other}' is not one of ours", self.id)),
+        };
+        if self.cell.len() > 1 {
+            return Err(format!("track {}: {} cells in one frame", self.id, self.cell.len()));
+        }
+        Ok(Track {
+            id: self.id,
+            state,
+            age: self.age,
+            missed: self.missed,
+            frames_used: self.frames_used,
+            position: self.position,
+            position_std: self.position_std,
+            velocity: self.velocity,
+            height: (!self.height.is_nan()).then_some(self.height),
+            height_std: (!self.height_std.is_nan()).then_some(self.height_std),
+            volume: self.volume,
+            volume_std: self.volume_std,
+            trusted: self.trusted,
+            cell: self.cell.into_iter().next().map(RosCell3::into_cell3).transpose()?,
+        })
+    }
+}
+
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 struct RosPlane {
     d0: f64,
@@ -851,6 +999,7 @@ pub fn msg_type(kind: MessageKind) -> MsgType {
         MessageKind::Targets => TARGETS,
         MessageKind::ManipulatorState => MANIPULATOR_STATE,
         MessageKind::DisparityTiles => DISPARITY_TILES,
+        MessageKind::Tracks => TRACKS,
     }
 }
 
@@ -1010,6 +1159,20 @@ pub fn encode(kind: MessageKind, h: &FrameHeader, payload: &[u8]) -> Result<Vec<
             };
             one(CELL_ARRAY, to_cdr(&msg)?)
         }
+        TRACKS => {
+            let t = Tracks::decode(h, payload).map_err(|e| e.to_string())?;
+            let msg = RosTracks {
+                header: header("world"),
+                frame: t.frame,
+                capture_ns: t.capture_ns,
+                unit: t.unit.clone(),
+                shift: t.shift,
+                tracks: t.tracks.iter().map(RosTrack::of).collect(),
+                has_substrate: t.substrate.is_some(),
+                substrate: RosPlane::of(t.substrate),
+            };
+            one(TRACKS, to_cdr(&msg)?)
+        }
         MANIPULATOR_STATE => {
             let m = ManipulatorState::decode(h, payload).map_err(|e| e.to_string())?;
             one(
@@ -1130,6 +1293,22 @@ pub fn decode(
                 right: cells(m.right)?,
             };
             Ok(encoded(&lists, stamp))
+        }
+        TRACKS => {
+            let m: RosTracks = from_cdr(parts[0], TRACKS.name)?;
+            let t = Tracks {
+                frame: m.frame,
+                capture_ns: m.capture_ns,
+                unit: m.unit,
+                shift: m.shift,
+                tracks: m
+                    .tracks
+                    .into_iter()
+                    .map(RosTrack::into_track)
+                    .collect::<Result<_, _>>()?,
+                substrate: m.has_substrate.then(|| m.substrate.plane()),
+            };
+            Ok(encoded(&t, stamp))
         }
         MANIPULATOR_STATE => {
             let m: RosManipulatorState = from_cdr(parts[0], MANIPULATOR_STATE.name)?;
@@ -1312,6 +1491,53 @@ mod tests {
             h,
             &serde_json::to_vec(&with_plane).unwrap(),
         );
+        let tracks = Tracks {
+            frame: 4,
+            capture_ns: 99,
+            unit: "µm".into(),
+            shift: [1.5, -0.25, 0.0],
+            tracks: vec![
+                Track {
+                    id: 17,
+                    state: TrackState::Confirmed,
+                    age: 40,
+                    missed: 0,
+                    frames_used: 30,
+                    position: [10.0, -20.5, 3990.0],
+                    position_std: 0.3,
+                    velocity: [2.0, 0.0, -0.1],
+                    height: Some(12.5),
+                    height_std: Some(0.2),
+                    volume: 3000.0,
+                    volume_std: 50.0,
+                    trusted: true,
+                    cell: with_plane.cells.first().cloned(),
+                },
+                Track {
+                    id: 18,
+                    state: TrackState::Lost,
+                    age: 3,
+                    missed: 2,
+                    frames_used: 0,
+                    position: [0.0; 3],
+                    position_std: 1.0,
+                    velocity: [0.0; 3],
+                    height: None,
+                    height_std: None,
+                    volume: 0.0,
+                    volume_std: 0.0,
+                    trusted: false,
+                    cell: None,
+                },
+            ],
+            substrate: with_plane.substrate,
+        };
+        let parts = round_trip(
+            MessageKind::Tracks,
+            stamped(json_header(MessageKind::Tracks)),
+            &serde_json::to_vec(&tracks).unwrap(),
+        );
+        assert_eq!(parts[0].msg, TRACKS);
         let mut tiles = DisparityTiles::whole(
             Side::Left,
             DisparityRange::new(-4, 12),

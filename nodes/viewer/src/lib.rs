@@ -18,7 +18,7 @@ use rerun::blueprint::{
 };
 use schemas::{
     CellLists, Cloud, Disparity, DisparityMap, DisparityPair, DisparityTiles, FrameHeader, Image,
-    Labels, ManipulatorState, Message, MessageKind, Side, StereoFrame, Targets,
+    Labels, ManipulatorState, Message, MessageKind, Side, StereoFrame, Targets, Tracks,
 };
 use std::collections::HashMap;
 use std::path::PathBuf;
@@ -101,6 +101,8 @@ pub struct Sink {
     metres: Option<f64>,
     /// Clouds waiting for their frame's targets (which carry the unit).
     clouds: HashMap<u64, (String, FrameHeader, Cloud)>,
+    /// Each track's recent tops, for its trail.
+    trails: HashMap<u32, std::collections::VecDeque<[f32; 3]>>,
 }
 
 impl std::fmt::Debug for Sink {
@@ -110,6 +112,9 @@ impl std::fmt::Debug for Sink {
             .finish()
     }
 }
+
+/// Tops a track's trail keeps (a second at 30 frames/s).
+const TRAIL: usize = 30;
 
 fn metres_per(unit: &str) -> f64 {
     match unit {
@@ -130,6 +135,7 @@ impl Sink {
             rec,
             metres: None,
             clouds: HashMap::new(),
+            trails: HashMap::new(),
         }
     }
 
@@ -303,6 +309,12 @@ impl Sink {
                     st.trajectory.len()
                 )
             }
+            MessageKind::Tracks => {
+                let t = Tracks::decode(h, payload).map_err(bad)?;
+                let m = metres_per(&t.unit);
+                self.metres = Some(m);
+                self.log_tracks(edge, &t, m)?
+            }
             MessageKind::Targets => {
                 let t = Targets::decode(h, payload).map_err(bad)?;
                 let m = metres_per(&t.unit);
@@ -369,6 +381,78 @@ impl Sink {
                     .with_level(rerun::TextLogLevel::INFO),
             )
             .map_err(err)
+    }
+
+    /// Each track as its fused top with a stable colour (its id as the class), its
+    /// label, and a trail of its last tops; tracks that ended lose their trail.
+    fn log_tracks(&mut self, edge: &str, t: &Tracks, m: f64) -> Result<String, String> {
+        let top = |tr: &schemas::Track| {
+            let base = tr
+                .cell
+                .as_ref()
+                .map_or(tr.position[2], |c| c.substrate_z);
+            [
+                (tr.position[0] * m) as f32,
+                (tr.position[1] * m) as f32,
+                ((base - tr.height.unwrap_or(0.0)) * m) as f32,
+            ]
+        };
+        let live: std::collections::HashSet<u32> = t.tracks.iter().map(|t| t.id).collect();
+        self.trails.retain(|id, _| live.contains(id));
+        for tr in &t.tracks {
+            let trail = self.trails.entry(tr.id).or_default();
+            trail.push_back(top(tr));
+            while trail.len() > TRAIL {
+                trail.pop_front();
+            }
+        }
+        let labels: Vec<String> = t
+            .tracks
+            .iter()
+            .map(|tr| {
+                let state = match tr.state {
+                    schemas::TrackState::Tentative => "tentative",
+                    schemas::TrackState::Confirmed => "confirmed",
+                    schemas::TrackState::Lost => "lost",
+                };
+                match (tr.height, tr.height_std) {
+                    (Some(h), Some(s)) => format!(
+                        "track {} ({state}): {h:.1} ± {s:.1} {}{}",
+                        tr.id,
+                        t.unit,
+                        if tr.trusted { "" } else { "?" }
+                    ),
+                    _ => format!("track {} ({state}): no height", tr.id),
+                }
+            })
+            .collect();
+        let ids = || t.tracks.iter().map(|tr| (tr.id % 65536) as u16);
+        self.rec
+            .log(
+                format!("/world/{edge}"),
+                &rerun::Points3D::new(t.tracks.iter().map(top))
+                    .with_labels(labels)
+                    .with_radii([rerun::components::Radius::new_ui_points(6.0)])
+                    .with_class_ids(ids()),
+            )
+            .map_err(err)?;
+        let trails: Vec<Vec<[f32; 3]>> = t
+            .tracks
+            .iter()
+            .map(|tr| self.trails[&tr.id].iter().copied().collect())
+            .collect();
+        self.rec
+            .log(
+                format!("/world/{edge}/trails"),
+                &rerun::LineStrips3D::new(trails).with_class_ids(ids()),
+            )
+            .map_err(err)?;
+        let confirmed = t
+            .tracks
+            .iter()
+            .filter(|tr| tr.state == schemas::TrackState::Confirmed)
+            .count();
+        Ok(format!("{} track(s), {confirmed} confirmed", t.tracks.len()))
     }
 
     fn log_image(&mut self, path: &str, img: &Image) -> Result<(), String> {
