@@ -11,9 +11,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let ev: serde_json::Value = serde_json::from_str(&line?)?;
         match (ev["event"].as_str(), ev["plan"]["goal"].as_str()) {
             (Some("scene"), _) if !sent && ev["cells"][0]["id"].is_u64() => {
+                // Tracks where a track node feeds the bridge, else the frame's index.
+                let key = if ev["ids"] == "track" { "track" } else { "cell" };
                 writeln!(
                     out,
-                    r#"{{"cmd":"approach","cell":{}}}"#,
+                    r#"{{"cmd":"approach","{key}":{}}}"#,
                     ev["cells"][0]["id"]
                 )?;
                 sent = true;

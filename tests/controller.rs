@@ -1,5 +1,5 @@
 //! The controller a user copies first (`examples/controller.py`, quoted in the README),
-//! against the default graph as `run` starts it: ten approaches into cells from rest, each
+//! against the default graph as `run` starts it: ten approaches into tracked cells from rest, each
 //! followed by a retract, all arrive.
 
 use std::path::Path;
@@ -78,7 +78,7 @@ fn the_example_controller_sends_the_pipette_into_ten_cells_of_the_default_graph(
         "the controller failed:\n{out}\n{err}\nthe run said:\n{log}"
     );
     assert_eq!(
-        out.lines().filter(|l| l.starts_with("in cell ")).count(),
+        out.lines().filter(|l| l.starts_with("in track ")).count(),
         10,
         "{out}"
     );

@@ -29,8 +29,8 @@ use crate::protocol::{Command, Line, MAX_LINE, parse_command, read_line, shorten
 use crate::registration::Registration;
 use crate::scene::{Obstacle, Scene};
 use schemas::{Cell3, ManipulatorState, PathPlan, Targets, TrackState, Tracks};
-use std::collections::HashMap;
 use serde_json::{Value, json};
+use std::collections::HashMap;
 use std::collections::VecDeque;
 use std::io::{BufReader, Write};
 use std::net::{SocketAddr, TcpListener, TcpStream};
@@ -442,7 +442,24 @@ struct Job {
     last_progress: Instant,
     /// The stop epoch it began in: a stop since then ends it before its next move.
     epoch: u64,
+    /// Short legs added after the target, which drifted while the last leg ran.
+    corrections: u32,
+    /// How far the leg under way's end has moved since the device was sent there, µm.
+    stale: f64,
+    /// Whether the device is to be sent to the leg's moved end.
+    retarget: bool,
 }
+
+/// How far a tracked target may move the end of the leg under way before the device is
+/// sent to the new end, µm.
+const RETARGET_UM: f64 = 2.0;
+
+/// How close to its tracked cell's injection point an approach ends, µm: farther, a short
+/// leg follows the cell.
+const FOLLOW_TOLERANCE_UM: f64 = 0.5;
+
+/// Most short legs after a drifting target per approach.
+const MAX_CORRECTIONS: u32 = 20;
 
 struct Controller {
     cfg: BridgeConfig,
@@ -1181,6 +1198,9 @@ impl Controller {
             seen_scene: seen,
             last_progress: Instant::now(),
             epoch,
+            corrections: 0,
+            stale: 0.0,
+            retarget: false,
         });
         // Leg 0 ends where the tip is: the first tick starts the move to waypoint 1.
     }
@@ -1240,8 +1260,47 @@ impl Controller {
         if self.job.as_ref().is_some_and(|j| j.seen_scene != seq) && !self.recheck(tip, seq) {
             return;
         }
+        let arriving = !st.moving
+            && self
+                .job
+                .as_ref()
+                .is_some_and(|j| j.next + 1 >= j.plan.waypoints.len());
+        let correction = if arriving { self.correction(tip) } else { None };
+        if st.moving && self.job.as_ref().is_some_and(|j| j.retarget) {
+            // The leg's end moved with the tracked cell: the device goes there instead.
+            let (to, speed, epoch) = {
+                let j = self.job.as_mut().expect("job");
+                j.retarget = false;
+                j.stale = 0.0;
+                (j.plan.waypoints[j.next], j.speed, j.epoch)
+            };
+            if let Err(e) = self.halt() {
+                return self.fail(e);
+            }
+            if self.stopped_since(epoch) {
+                return;
+            }
+            let speed = speed * self.cfg.registration.least_stretch();
+            let r = self
+                .device
+                .as_mut()
+                .expect("device")
+                .start_move(self.cfg.device_for(to), speed);
+            if let Err(e) = r {
+                return self.fail(e);
+            }
+            return;
+        }
         let job = self.job.as_mut().expect("job");
         if !st.moving {
+            if let Some(inj) = correction {
+                // The tracked cell moved on while the last leg ran: one more short leg to
+                // where its injection point is now.
+                job.plan.length += dist(job.plan.end, inj);
+                job.plan.waypoints.push(inj);
+                job.plan.end = inj;
+                job.corrections += 1;
+            }
             // At the waypoint it was moving to (the tip itself for leg 0).
             job.next += 1;
             if job.next >= job.plan.waypoints.len() {
@@ -1293,6 +1352,34 @@ impl Controller {
         }
     }
 
+    /// Where the injection point of an approach's tracked cell is now, when it lies
+    /// farther from the tip at the plan's end than [`FOLLOW_TOLERANCE_UM`] (and less than the
+    /// replan tolerance: farther is a cell that moved, not one that drifts) while the last
+    /// leg ran.
+    fn correction(&self, tip: P3) -> Option<P3> {
+        let job = self.job.as_ref()?;
+        let f = job.target.as_ref()?;
+        if !f.by_track || job.corrections >= MAX_CORRECTIONS {
+            return None;
+        }
+        let Goal::Approach { .. } = job.plan.goal else {
+            return None;
+        };
+        let (scene, _) = self.fresh_scene().ok()?;
+        // The pipette at its end touches the cell: it is then among the touching ones.
+        let touching = self.shared.lock().expect("shared").touching.clone();
+        let c = scene
+            .cell(f.id)
+            .or_else(|| touching.iter().find(|o| o.id == f.id))?;
+        if !c.trusted {
+            return None;
+        }
+        let inj = injection_point(c, &self.cfg.planner);
+        let off = dist(inj, tip);
+        (off > FOLLOW_TOLERANCE_UM && off <= self.cfg.replan_tolerance.max(FOLLOW_TOLERANCE_UM))
+            .then_some(inj)
+    }
+
     /// Checks the rest of the path against a new scene; replans or stops when it is
     /// blocked or the target moved. `false` when the job ended.
     fn recheck(&mut self, tip: P3, seq: u64) -> bool {
@@ -1316,16 +1403,49 @@ impl Controller {
         let mut scene = scene;
         if let Some(follow) = job.target.as_mut() {
             let before = *follow;
-            match follow.find(&scene, self.cfg.track_radius) {
-                Some(c) => {
+            // A tracked target touching the pipette is still followed by its track.
+            let found = match follow.find(&scene, self.cfg.track_radius) {
+                Some(c) => Some((c.clone(), true)),
+                None if follow.by_track => follow
+                    .find(&touched, self.cfg.track_radius)
+                    .map(|c| (c.clone(), false)),
+                None => None,
+            };
+            match found {
+                Some((c, in_scene)) if in_scene || follow.by_track => {
+                    let c = &c;
                     exempt = Some(c.id);
                     // Where the target's measurement is doubtful, its injection point is
                     // the trusted frames' (the plan's).
+                    let inj = injection_point(c, &cfg);
+                    if follow.by_track && c.trusted {
+                        // On its way to a tracked cell: the legs not yet begun move with the
+                        // cell, frame by frame (it drifts by a few µm a second; the path is
+                        // checked again below), instead of a halt and a new plan each time
+                        // the drift adds up.
+                        let d = [0, 1, 2].map(|k| inj[k] - job.plan.end[k]);
+                        let off = dist(inj, job.plan.end);
+                        if off > FOLLOW_TOLERANCE_UM && off <= self.cfg.replan_tolerance {
+                            // The leg under way too: its end is moved and, once it lies
+                            // RETARGET_UM off where the device is going, the device is sent
+                            // there instead.
+                            let from = job.next.max(1);
+                            for w in job.plan.waypoints.iter_mut().skip(from) {
+                                *w = [w[0] + d[0], w[1] + d[1], w[2] + d[2]];
+                            }
+                            if job.next >= 1 {
+                                job.stale += off;
+                                job.retarget = job.stale > RETARGET_UM;
+                            }
+                            job.plan.end = inj;
+                        }
+                    }
                     moved = !committed
                         && c.trusted
-                        && dist(injection_point(c, &cfg), job.plan.end) > self.cfg.replan_tolerance;
+                        && dist(inj, job.plan.end) > self.cfg.replan_tolerance;
                     scene = follow.trusted_in(scene);
                 }
+                Some(_) => unreachable!("found outside the scene only by track"),
                 None => match follow.find(&touched, self.cfg.track_radius) {
                     Some(c) => exempt = Some(c.id),
                     None => lost = Some(before),

@@ -692,10 +692,19 @@ impl RosTrack {
             "tentative" => TrackState::Tentative,
             "confirmed" => TrackState::Confirmed,
             "lost" => TrackState::Lost,
-            other => return Err(format!("track {}: state '{other}' is not one of ours", self.id)),
+            other => {
+                return Err(format!(
+                    "track {}: state '{other}' is not one of ours",
+                    self.id
+                ));
+            }
         };
         if self.cell.len() > 1 {
-            return Err(format!("track {}: {} cells in one frame", self.id, self.cell.len()));
+            return Err(format!(
+                "track {}: {} cells in one frame",
+                self.id,
+                self.cell.len()
+            ));
         }
         Ok(Track {
             id: self.id,
@@ -711,7 +720,12 @@ impl RosTrack {
             volume: self.volume,
             volume_std: self.volume_std,
             trusted: self.trusted,
-            cell: self.cell.into_iter().next().map(RosCell3::into_cell3).transpose()?,
+            cell: self
+                .cell
+                .into_iter()
+                .next()
+                .map(RosCell3::into_cell3)
+                .transpose()?,
         })
     }
 }

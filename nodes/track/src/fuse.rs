@@ -73,7 +73,13 @@ pub fn fuse_heights(obs: &[Observation]) -> Option<Fused> {
     }
     let mid = median(&mut usable.iter().map(|o| o.height).collect::<Vec<_>>());
     let typical = median(&mut usable.iter().map(|o| o.std).collect::<Vec<_>>());
-    let spread = 1.4826 * median(&mut usable.iter().map(|o| (o.height - mid).abs()).collect::<Vec<_>>());
+    let spread = 1.4826
+        * median(
+            &mut usable
+                .iter()
+                .map(|o| (o.height - mid).abs())
+                .collect::<Vec<_>>(),
+        );
     let kept: Vec<&&Observation> = usable
         .iter()
         .filter(|o| {
@@ -102,7 +108,11 @@ pub fn fuse_heights(obs: &[Observation]) -> Option<Fused> {
     let n = kept.len() as f64;
     let mean_err2 = 1.0 / sw;
     let scatter2 = if kept.len() > 1 {
-        kept.iter().map(|o| w(o) * (o.height - height).powi(2)).sum::<f64>() / sw / (n - 1.0)
+        kept.iter()
+            .map(|o| w(o) * (o.height - height).powi(2))
+            .sum::<f64>()
+            / sw
+            / (n - 1.0)
     } else {
         0.0
     };
@@ -200,7 +210,9 @@ mod tests {
 
     #[test]
     fn a_real_change_is_found_after_its_frames_and_noise_is_not() {
-        let mut v: Vec<_> = (0..10).map(|i| ob(i, 10.0 + 0.1 * ((i % 3) as f64 - 1.0), 0.3)).collect();
+        let mut v: Vec<_> = (0..10)
+            .map(|i| ob(i, 10.0 + 0.1 * ((i % 3) as f64 - 1.0), 0.3))
+            .collect();
         assert_eq!(change_point(&v, 3), None);
         v.push(ob(10, 13.0, 0.3));
         v.push(ob(11, 13.1, 0.3));

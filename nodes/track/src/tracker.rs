@@ -236,9 +236,17 @@ impl Tracker {
 
     /// The common shift of every cell since the last frame that explains more cells than
     /// no shift does (a stage move), or zero.
-    fn stage_shift(&self, preds: &[[f64; 3]], gates: &[f64], dets: &[[f64; 3]], k: f64) -> [f64; 3] {
+    fn stage_shift(
+        &self,
+        preds: &[[f64; 3]],
+        gates: &[f64],
+        dets: &[[f64; 3]],
+        k: f64,
+    ) -> [f64; 3] {
         let reference: Vec<usize> = (0..self.tracks.len())
-            .filter(|&i| self.tracks[i].state != TrackState::Tentative && self.tracks[i].missed <= 1)
+            .filter(|&i| {
+                self.tracks[i].state != TrackState::Tentative && self.tracks[i].missed <= 1
+            })
             .collect();
         if reference.len() < 2 || dets.len() < 2 {
             return [0.0; 3];
@@ -337,14 +345,18 @@ impl Tracker {
                 // Seen again after a gap: the speed it had is doubtful.
                 tr.vel = tr.vel.map(|v| v * 0.5);
             } else {
-                for a in 0..3 {
-                    tr.vel[a] += BETA * r[a] / seen_dt;
+                for (v, r) in tr.vel.iter_mut().zip(r) {
+                    *v += BETA * r / seen_dt;
                 }
             }
             tr.surprise2 = 0.8 * tr.surprise2 + 0.2 * xy2(r);
             let rad = footprint_radius(c);
             if rad > 0.0 {
-                tr.radius = if tr.radius > 0.0 { 0.7 * tr.radius + 0.3 * rad } else { rad };
+                tr.radius = if tr.radius > 0.0 {
+                    0.7 * tr.radius + 0.3 * rad
+                } else {
+                    rad
+                };
             }
             tr.hits += 1;
             tr.missed = 0;
@@ -458,7 +470,8 @@ impl Tracker {
                     velocity: tr.vel,
                     height: f.map(|f| f.height),
                     height_std: f.map(|f| f.std),
-                    volume: f.map_or_else(|| tr.cell.as_ref().map_or(0.0, |c| c.volume), |f| f.volume),
+                    volume: f
+                        .map_or_else(|| tr.cell.as_ref().map_or(0.0, |c| c.volume), |f| f.volume),
                     volume_std: f.map_or(0.0, |f| f.volume_std),
                     trusted: f.is_some_and(|f| {
                         f.height > 0.0
@@ -466,7 +479,11 @@ impl Tracker {
                             && f.trusted_used > 0
                             && f.std <= 0.025 * f.height
                     }),
-                    cell: if tr.missed == 0 { tr.cell.clone() } else { None },
+                    cell: if tr.missed == 0 {
+                        tr.cell.clone()
+                    } else {
+                        None
+                    },
                 }
             })
             .collect();

@@ -167,11 +167,39 @@ fn scene(n: usize, seed: u64) -> Vec<Truth> {
 fn drifting_cells_keep_their_ids_through_crossing_rows_and_a_close_pass() {
     let mut cells = scene(12, 3);
     // Two cells 1.5 diameters apart at their closest, passing each other.
-    cells.push(Truth { x: 300.0, y: 250.0, r: 15.0, h: 12.0, vx: 8.0, vy: 0.0 });
-    cells.push(Truth { x: 460.0, y: 295.0, r: 15.0, h: 9.0, vx: -8.0, vy: 0.0 });
+    cells.push(Truth {
+        x: 300.0,
+        y: 250.0,
+        r: 15.0,
+        h: 12.0,
+        vx: 8.0,
+        vy: 0.0,
+    });
+    cells.push(Truth {
+        x: 460.0,
+        y: 295.0,
+        r: 15.0,
+        h: 9.0,
+        vx: -8.0,
+        vy: 0.0,
+    });
     // Two crossing each other's rows (their raster order swaps).
-    cells.push(Truth { x: 100.0, y: 120.0, r: 12.0, h: 10.0, vx: 0.0, vy: 5.0 });
-    cells.push(Truth { x: 560.0, y: 180.0, r: 12.0, h: 10.0, vx: 0.0, vy: -5.0 });
+    cells.push(Truth {
+        x: 100.0,
+        y: 120.0,
+        r: 12.0,
+        h: 10.0,
+        vx: 0.0,
+        vy: 5.0,
+    });
+    cells.push(Truth {
+        x: 560.0,
+        y: 180.0,
+        r: 12.0,
+        h: 10.0,
+        vx: 0.0,
+        vy: -5.0,
+    });
     let o = run(&cells, 600, 1, |_, _, _| true, |_| [0.0; 2]);
     assert_one_id_each(&o, cells.len());
 }
@@ -180,7 +208,14 @@ fn drifting_cells_keep_their_ids_through_crossing_rows_and_a_close_pass() {
 fn a_covered_cell_and_a_cell_leaving_the_view_get_their_ids_back() {
     let mut cells = scene(10, 5);
     // Leaves through the right edge and comes back: it turns round outside the view.
-    cells.push(Truth { x: 600.0, y: 400.0, r: 12.0, h: 10.0, vx: 20.0, vy: 0.0 });
+    cells.push(Truth {
+        x: 600.0,
+        y: 400.0,
+        r: 12.0,
+        h: 10.0,
+        vx: 20.0,
+        vy: 0.0,
+    });
     let n = cells.len();
     let leaver = n - 1;
     let visible = move |i: usize, f: usize, _p: [f64; 2]| {
@@ -195,9 +230,30 @@ fn a_covered_cell_and_a_cell_leaving_the_view_get_their_ids_back() {
 
     // One that steps out of view for 1 s and back.
     let cells = vec![
-        Truth { x: 630.0, y: 100.0, r: 10.0, h: 8.0, vx: 0.0, vy: 0.0 },
-        Truth { x: 300.0, y: 300.0, r: 20.0, h: 12.0, vx: 3.0, vy: -2.0 },
-        Truth { x: 150.0, y: 350.0, r: 18.0, h: 11.0, vx: -2.0, vy: 1.0 },
+        Truth {
+            x: 630.0,
+            y: 100.0,
+            r: 10.0,
+            h: 8.0,
+            vx: 0.0,
+            vy: 0.0,
+        },
+        Truth {
+            x: 300.0,
+            y: 300.0,
+            r: 20.0,
+            h: 12.0,
+            vx: 3.0,
+            vy: -2.0,
+        },
+        Truth {
+            x: 150.0,
+            y: 350.0,
+            r: 18.0,
+            h: 11.0,
+            vx: -2.0,
+            vy: 1.0,
+        },
     ];
     let o = run(
         &cells,
@@ -257,7 +313,10 @@ fn ids_are_never_reused_and_fused_heights_beat_one_frame() {
         let t = tracker.update(&targets).unwrap();
         let now: BTreeSet<u32> = t.tracks.iter().map(|t| t.id).collect();
         for id in &now {
-            assert!(!ended.contains(id), "id {id} came back after its track ended");
+            assert!(
+                !ended.contains(id),
+                "id {id} came back after its track ended"
+            );
         }
         for id in &seen_ids {
             if !now.contains(id) {

@@ -387,10 +387,7 @@ impl Sink {
     /// label, and a trail of its last tops; tracks that ended lose their trail.
     fn log_tracks(&mut self, edge: &str, t: &Tracks, m: f64) -> Result<String, String> {
         let top = |tr: &schemas::Track| {
-            let base = tr
-                .cell
-                .as_ref()
-                .map_or(tr.position[2], |c| c.substrate_z);
+            let base = tr.cell.as_ref().map_or(tr.position[2], |c| c.substrate_z);
             [
                 (tr.position[0] * m) as f32,
                 (tr.position[1] * m) as f32,
@@ -452,7 +449,10 @@ impl Sink {
             .iter()
             .filter(|tr| tr.state == schemas::TrackState::Confirmed)
             .count();
-        Ok(format!("{} track(s), {confirmed} confirmed", t.tracks.len()))
+        Ok(format!(
+            "{} track(s), {confirmed} confirmed",
+            t.tracks.len()
+        ))
     }
 
     fn log_image(&mut self, path: &str, img: &Image) -> Result<(), String> {
