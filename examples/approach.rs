@@ -12,7 +12,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         match (ev["event"].as_str(), ev["plan"]["goal"].as_str()) {
             (Some("scene"), _) if !sent && ev["cells"][0]["id"].is_u64() => {
                 // Tracks where a track node feeds the bridge, else the frame's index.
-                let key = if ev["ids"] == "track" { "track" } else { "cell" };
+                let key = if ev["ids"] == "track" {
+                    "track"
+                } else {
+                    "cell"
+                };
                 writeln!(
                     out,
                     r#"{{"cmd":"approach","{key}":{}}}"#,

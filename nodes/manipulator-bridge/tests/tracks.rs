@@ -124,7 +124,11 @@ fn drifter(t: f64) -> [f64; 2] {
 /// track 9 stands; their per-frame ids swap every frame.
 fn scene(frame: u64, t: f64, latency: f64, now_ns: u64) -> Tracks {
     let a = drifter(t - latency);
-    let (ia, ib) = if frame % 2 == 0 { (1, 2) } else { (2, 1) };
+    let (ia, ib) = if frame.is_multiple_of(2) {
+        (1, 2)
+    } else {
+        (2, 1)
+    };
     Tracks {
         frame,
         capture_ns: now_ns - (latency * 1e9) as u64,
