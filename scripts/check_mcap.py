@@ -63,6 +63,15 @@ def check(path):
                     problems.append(f"{channel.topic}: capture_ns {ros.capture_ns} or tip {list(ros.tip)}")
                 if len(ros.trajectory) % 4 or len(ros.plan_waypoints) % 3:
                     problems.append(f"{channel.topic}: trajectory or waypoints not whole points")
+            elif schema.name == "microstereo_msgs/msg/Tracks":
+                if ros.capture_ns != message.publish_time:
+                    problems.append(f"{channel.topic}: capture_ns {ros.capture_ns} ≠ publish time")
+                ids = [t.id for t in ros.tracks]
+                if len(set(ids)) != len(ids):
+                    problems.append(f"{channel.topic}: a track id twice in one frame")
+                for t in ros.tracks:
+                    if t.state not in ("tentative", "confirmed", "lost") or len(t.cell) > 1:
+                        problems.append(f"{channel.topic}: track {t.id} state {t.state!r}, {len(t.cell)} cells")
             else:
                 problems.append(f"{channel.topic}: unexpected type {schema.name}")
     total = sum(counts.values())
