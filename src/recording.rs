@@ -385,9 +385,10 @@ pub fn test_node(
         })
         .map_err(|e| e.to_string())
     });
+    let connected: Vec<String> = spec.inputs.iter().map(|i| i.port.clone()).collect();
     let (mut node, extra) = if bridge {
-        let (node, served) =
-            manipulator_bridge::testing::under_test(&spec.params).map_err(CliError::Other)?;
+        let (node, served) = manipulator_bridge::testing::under_test(&spec.params, &connected)
+            .map_err(CliError::Other)?;
         (node, Some(("TCP lines".to_string(), served)))
     } else {
         let node = crate::registry::builtin()

@@ -187,3 +187,54 @@ fn a_corrupt_chunk_is_reported() {
         assert!(line.contains("msg/"), "untyped channel: {line}");
     }
 }
+
+/// A recording of the default graph (tracks between triangulate and the bridge), made now
+/// on a small scene: the track node reproduces every recorded frame's tracks exactly, and
+/// the bridge on tracks serves each frame's tracks.
+#[test]
+fn the_track_node_and_the_bridge_on_tracks_reproduce_a_recording_of_the_default_graph() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("launch.toml"))
+        .unwrap()
+        .replace(
+            "width = 1280, height = 1024, cells = 10, seed = 1, repeat = 30, fps = 30 }",
+            "width = 320, height = 256, cells = 4, seed = 1, repeat = 30 }",
+        )
+        .replace("127.0.0.1:7878", "127.0.0.1:0");
+    assert!(text.contains("cells = 4") && text.contains("127.0.0.1:0"));
+    let launch = dir.path().join("default.toml");
+    std::fs::write(&launch, text).unwrap();
+    let rec = dir.path().join("default.mcap");
+    let instance = format!("tracksrec{}", std::process::id());
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_microstereo"))
+        .args([
+            "run",
+            "--quiet",
+            "--instance",
+            &instance,
+            "--frames",
+            "12",
+            "--record",
+        ])
+        .arg(&rec)
+        .arg(&launch)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let c = test_node(&rec, None, "track", 0.0).unwrap();
+    assert_eq!(c.outputs.len(), 1);
+    let o = &c.outputs[0];
+    assert_eq!(o.edge, "track/tracks");
+    assert!(o.compared >= 3, "{c:?}");
+    assert_eq!(o.identical, o.compared, "{:?}", o.first_difference);
+    assert!(c.passed());
+    let c = test_node(&rec, None, "manipulator-bridge", 0.0).unwrap();
+    let o = &c.outputs[0];
+    assert_eq!(o.edge, "TCP lines");
+    assert!(o.compared >= 3, "{c:?}");
+    assert!(c.passed(), "{:?}", o.first_difference);
+}
