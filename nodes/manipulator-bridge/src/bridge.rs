@@ -1277,18 +1277,7 @@ impl Controller {
             if let Err(e) = self.halt() {
                 return self.fail(e);
             }
-            if self.stopped_since(epoch) {
-                return;
-            }
-            let speed = speed * self.cfg.registration.least_stretch();
-            let r = self
-                .device
-                .as_mut()
-                .expect("device")
-                .start_move(self.cfg.device_for(to), speed);
-            if let Err(e) = r {
-                return self.fail(e);
-            }
+            self.start_leg(to, speed, epoch);
             return;
         }
         let job = self.job.as_mut().expect("job");
@@ -1316,24 +1305,8 @@ impl Controller {
                 ));
                 return;
             }
-            let to = job.plan.waypoints[job.next];
-            let epoch = job.epoch;
-            // In device units: no scene direction moves faster than `speed`.
-            let speed = job.speed * self.cfg.registration.least_stretch();
-            if self.stopped_since(epoch) {
-                return;
-            }
-            let r = self
-                .device
-                .as_mut()
-                .expect("device")
-                .start_move(self.cfg.device_for(to), speed);
-            if let Err(e) = r {
-                return self.fail(e);
-            }
-            // A stop that came while the move was going out: it may have reached the device
-            // first, so the move is stopped again.
-            if self.stopped_since(epoch) {
+            let (to, speed, epoch) = (job.plan.waypoints[job.next], job.speed, job.epoch);
+            if !self.start_leg(to, speed, epoch) {
                 return;
             }
         }
@@ -1350,6 +1323,28 @@ impl Controller {
             );
             self.broadcast(&line);
         }
+    }
+
+    /// Sends the device to `to` at `speed` µm/s unless a stop came since `epoch`; `false`
+    /// when it did not move on (a stop, or a fault, said).
+    fn start_leg(&mut self, to: P3, speed: f64, epoch: u64) -> bool {
+        if self.stopped_since(epoch) {
+            return false;
+        }
+        // In device units: no scene direction moves faster than `speed`.
+        let speed = speed * self.cfg.registration.least_stretch();
+        let r = self
+            .device
+            .as_mut()
+            .expect("device")
+            .start_move(self.cfg.device_for(to), speed);
+        if let Err(e) = r {
+            self.fail(e);
+            return false;
+        }
+        // A stop that came while the move was going out: it may have reached the device
+        // first, so the move is stopped again.
+        !self.stopped_since(epoch)
     }
 
     /// Where the injection point of an approach's tracked cell is now, when it lies
@@ -1405,14 +1400,12 @@ impl Controller {
             let before = *follow;
             // A tracked target touching the pipette is still followed by its track.
             let found = match follow.find(&scene, self.cfg.track_radius) {
-                Some(c) => Some((c.clone(), true)),
-                None if follow.by_track => follow
-                    .find(&touched, self.cfg.track_radius)
-                    .map(|c| (c.clone(), false)),
+                Some(c) => Some(c.clone()),
+                None if follow.by_track => follow.find(&touched, self.cfg.track_radius).cloned(),
                 None => None,
             };
             match found {
-                Some((c, in_scene)) if in_scene || follow.by_track => {
+                Some(c) => {
                     let c = &c;
                     exempt = Some(c.id);
                     // Where the target's measurement is doubtful, its injection point is
@@ -1445,7 +1438,6 @@ impl Controller {
                         && dist(inj, job.plan.end) > self.cfg.replan_tolerance;
                     scene = follow.trusted_in(scene);
                 }
-                Some(_) => unreachable!("found outside the scene only by track"),
                 None => match follow.find(&touched, self.cfg.track_radius) {
                     Some(c) => exempt = Some(c.id),
                     None => lost = Some(before),

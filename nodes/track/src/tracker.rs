@@ -366,19 +366,12 @@ impl Tracker {
             } else {
                 tr.state
             };
-            if let (Some(h), Some(s)) = (c.height, c.quality.height_std) {
-                tr.obs.push_back(Observation {
-                    frame: t.frame,
-                    height: h,
-                    std: s,
-                    trusted: c.quality.trusted,
-                    volume: c.volume,
-                });
+            if let Some(o) = observation(t.frame, c) {
+                tr.obs.push_back(o);
                 while tr.obs.len() > p.window as usize {
                     tr.obs.pop_front();
                 }
-                let obs: Vec<Observation> = tr.obs.iter().copied().collect();
-                if let Some(at) = change_point(&obs, p.change_frames as usize) {
+                if let Some(at) = change_point(tr.obs.make_contiguous(), p.change_frames as usize) {
                     tr.obs.drain(..at);
                 }
             }
@@ -441,23 +434,14 @@ impl Tracker {
                 cell: Some((*c).clone()),
                 obs: VecDeque::new(),
             };
-            if let (Some(h), Some(s)) = (c.height, c.quality.height_std) {
-                tr.obs.push_back(Observation {
-                    frame: t.frame,
-                    height: h,
-                    std: s,
-                    trusted: c.quality.trusted,
-                    volume: c.volume,
-                });
-            }
+            tr.obs.extend(observation(t.frame, c));
             self.tracks.push(tr);
         }
         let tracks = self
             .tracks
-            .iter()
+            .iter_mut()
             .map(|tr| {
-                let obs: Vec<Observation> = tr.obs.iter().copied().collect();
-                let f = fuse_heights(&obs);
+                let f = fuse_heights(tr.obs.make_contiguous());
                 let pos_std = (tr.surprise2 * ALPHA / (2.0 - ALPHA)).sqrt();
                 Track {
                     id: tr.id,
@@ -496,11 +480,17 @@ impl Tracker {
             substrate: t.substrate,
         })
     }
+}
 
-    /// The last cell seen of track `id` and its track's state (for tests and tools).
-    pub fn live(&self) -> impl Iterator<Item = (u32, TrackState)> + '_ {
-        self.tracks.iter().map(|t| (t.id, t.state))
-    }
+/// A frame's measurement of a cell's height, where it has one with an error.
+fn observation(frame: u64, c: &Cell3) -> Option<Observation> {
+    Some(Observation {
+        frame,
+        height: c.height?,
+        std: c.quality.height_std?,
+        trusted: c.quality.trusted,
+        volume: c.volume,
+    })
 }
 
 /// Pairs tracks with cells: the least total cost of squared 3D distances (depth weighed

@@ -207,7 +207,7 @@ fn drifting_cells_keep_their_ids_through_crossing_rows_and_a_close_pass() {
 #[test]
 fn a_covered_cell_and_a_cell_leaving_the_view_get_their_ids_back() {
     let mut cells = scene(10, 5);
-    // Leaves through the right edge and comes back: it turns round outside the view.
+    // Leaves through the right edge for good: its id must never go to another cell.
     cells.push(Truth {
         x: 600.0,
         y: 400.0,
@@ -224,8 +224,7 @@ fn a_covered_cell_and_a_cell_leaving_the_view_get_their_ids_back() {
     };
     let mut o = run(&cells, 300, 2, visible, |_| [0.0; 2]);
     assert_one_id_each(&o, n);
-    // The leaver: out at x ≥ 640 after 2 s; it is gone for good (no turn), so its id is
-    // only never given to another cell.
+    // The leaver is out at x ≥ 640 after 2 s.
     assert!(o.ids.remove(&leaver).is_some());
 
     // One that steps out of view for 1 s and back.
