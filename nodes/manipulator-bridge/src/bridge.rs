@@ -302,8 +302,12 @@ enum Ids {
     },
 }
 
-/// The longest a scene's cells are led by their velocity, s: an older frame is stale.
-const MAX_LEAD_S: f64 = 1.0;
+/// The longest a scene's cells are led by their velocity, s: about the loop's latency at
+/// camera rate (65–130 ms measured). A frame older than that (a loaded machine) is led no
+/// further: a cell that reversed meanwhile (the synthetic scene's cells turn every second)
+/// was thrown up to 24 µm off by a full second's lead, and every frame replanned the
+/// approach, which never arrived.
+const MAX_LEAD_S: f64 = 0.15;
 
 /// Ended tracks remembered to say why they are refused.
 const ENDED_KEPT: usize = 100_000;
@@ -1398,27 +1402,23 @@ impl Controller {
         let mut scene = scene;
         if let Some(follow) = job.target.as_mut() {
             let before = *follow;
-            // A tracked target touching the pipette is still followed by its track.
-            let found = match follow.find(&scene, self.cfg.track_radius) {
-                Some(c) => Some(c.clone()),
-                None if follow.by_track => follow.find(&touched, self.cfg.track_radius).cloned(),
-                None => None,
-            };
-            match found {
+            match follow.find(&scene, self.cfg.track_radius) {
                 Some(c) => {
-                    let c = &c;
                     exempt = Some(c.id);
                     // Where the target's measurement is doubtful, its injection point is
                     // the trusted frames' (the plan's).
                     let inj = injection_point(c, &cfg);
                     if follow.by_track && c.trusted {
-                        // On its way to a tracked cell: the legs not yet begun move with the
-                        // cell, frame by frame (it drifts by a few µm a second; the path is
-                        // checked again below), instead of a halt and a new plan each time
-                        // the drift adds up.
+                        // On its way to a tracked cell: the path moves with the cell, scene
+                        // by scene (its track says it is the same cell, however far it went
+                        // within `track_radius`; the path is checked again below), instead
+                        // of a halt and a new plan each time it has moved more than
+                        // `replan_tolerance`: on a loaded machine scenes come 5 a second and
+                        // a cell at 30 µm/s moved that far in every one, so each scene
+                        // replanned and the approach never arrived.
                         let d = [0, 1, 2].map(|k| inj[k] - job.plan.end[k]);
                         let off = dist(inj, job.plan.end);
-                        if off > FOLLOW_TOLERANCE_UM && off <= self.cfg.replan_tolerance {
+                        if off > FOLLOW_TOLERANCE_UM && off <= self.cfg.track_radius {
                             // The leg under way too: its end is moved and, once it lies
                             // RETARGET_UM off where the device is going, the device is sent
                             // there instead.

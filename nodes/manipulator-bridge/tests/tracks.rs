@@ -172,7 +172,7 @@ fn an_approach_names_a_track_and_reaches_its_drifting_cell_though_frame_ids_swap
             "arrived {err:.2} µm from the drifting cell's injection point ({to_other:.0} µm from the other)"
         );
         assert!(to_other > 100.0);
-        // Measured 1.4–1.96 µm (two CPU hogs): the last short legs each lag the cell by
+        // Measured 1.2–1.5 µm (two CPU hogs or none): the last short legs each lag the cell by
         // what it drifts while they run. The instrument's goal is 2 µm; the bound here
         // leaves room for a loaded machine until the last leg leads the cell by its velocity.
         assert!(
