@@ -569,6 +569,17 @@ pub fn run_node(
                 start += held.elapsed();
                 node.resumed();
             }
+            // A paced source more than a frame behind its schedule (a loaded machine) starts
+            // a new one from now instead of sending what it missed back to back: a camera
+            // skips the frames it could not deliver. Catching up sent 29.7 frames/s for a
+            // while at fps = 20 under two CPU hogs.
+            if let Some(p) = period
+                && let Some(t) = due(start, p, seq - first)
+                && let Some(late) = Instant::now().checked_duration_since(t)
+                && late > p
+            {
+                start += late;
+            }
             // Also the place where a stop request is noticed between frames.
             let wait = period.map_or(Duration::ZERO, |p| {
                 due(start, p, seq - first)
