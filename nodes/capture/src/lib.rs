@@ -72,6 +72,14 @@ impl Params for CaptureParams {
                 if p.cells > 10_000 {
                     return Err(format!("cells {} is out of range: use 0..=10000", p.cells));
                 }
+                if p.motion == synthetic::Motion::Tour
+                    && (!(6..=40).contains(&p.cells) || !(300..=100_000).contains(&p.tour_frames))
+                {
+                    return Err(format!(
+                        "motion = \"tour\" takes 6..=40 cells and tour_frames 300..=100000 (got cells = {}, tour_frames = {})",
+                        p.cells, p.tour_frames
+                    ));
+                }
                 if !(0.0..=100.0).contains(&p.drift) {
                     return Err(format!(
                         "drift {} is out of range: use 0..=100 µm per frame",
@@ -195,8 +203,18 @@ impl Source for Capture {
     }
 
     fn produce(&mut self, seq: u64) -> Result<Option<(u64, CaptureOut)>, NodeError> {
+        // A synthetic frame shows the scene at its frame's time, stamped before it is
+        // rendered (a pipette's frame takes 10 times a plain one's to render).
+        let exposed = now_ns();
         let frame = match &mut self.device {
-            Device::Synthetic(s) => Some(s.frame(seq)),
+            Device::Synthetic(s) => {
+                return Ok(Some((
+                    exposed,
+                    CaptureOut {
+                        frame: s.frame(seq),
+                    },
+                )));
+            }
             Device::Files(f) => f.frame(seq)?,
             #[cfg(feature = "v4l")]
             Device::V4l(c) => Some(c.next_frame()?),

@@ -5,6 +5,7 @@
 
 use schemas::{ManipulatorState, StereoFrame};
 use serde::Deserialize;
+use synth::tour::{Tour, TourSpec};
 use synth::{Backdrop, CellSpec, Look, NoiseTable, Optics, Pipette, Scene};
 
 /// `params` of a `capture` node with `source = "synthetic"`.
@@ -44,6 +45,45 @@ pub struct SyntheticParams {
     /// rendered without it, and while the pipette follows a manipulator.
     #[serde(default)]
     pub repeat: Option<usize>,
+    /// How the cells move: `"drift"` (each its own steady drift, the pipette advancing) or
+    /// `"tour"` ([`synth::tour`]: drift, crossing rows, a close pass, a cell leaving the view
+    /// and coming back, one covered by the pipette for 10 frames, a 100 µm stage move;
+    /// `frames` long, then played backwards), what a tracker is measured on.
+    #[serde(default)]
+    pub motion: Motion,
+    /// The tour's length, frames (at least 300).
+    #[serde(default = "default_tour_frames")]
+    pub tour_frames: usize,
+    /// The microscope's look: `"default"` (textured cells on a faintly textured substrate)
+    /// or `"brightfield"` (textureless substrate, gradient, vignetting, dark membrane rims).
+    #[serde(default)]
+    pub look: LookName,
+}
+
+/// How a synthetic scene's cells move.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Motion {
+    /// Each cell drifts at its own steady velocity.
+    #[default]
+    Drift,
+    /// The choreographed tour of [`synth::tour::Tour`].
+    Tour,
+}
+
+/// A synthetic microscope's look.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LookName {
+    /// [`Look::default`].
+    #[default]
+    Default,
+    /// [`Look::brightfield`].
+    Brightfield,
+}
+
+fn default_tour_frames() -> usize {
+    600
 }
 
 fn synthetic() -> String {
@@ -96,6 +136,8 @@ impl SyntheticParams {
 #[derive(Debug)]
 pub struct SyntheticCapture {
     scene: Scene,
+    /// With `motion = "tour"`, the choreography.
+    tour: Option<Tour>,
     drift: f64,
     step: f64,
     /// The pipette where the manipulator last said it was.
@@ -121,21 +163,43 @@ impl SyntheticCapture {
             count: p.cells,
             ..CellSpec::default()
         };
-        let mut scene = Scene::random(optics, Look::default(), &spec, p.seed);
-        if let Some(why) = synth::shortfall(&scene, &spec) {
+        let look = match p.look {
+            LookName::Default => Look::default(),
+            LookName::Brightfield => Look::brightfield(),
+        };
+        let tour = (p.motion == Motion::Tour).then(|| {
+            let spec = TourSpec {
+                cells: p.cells,
+                frames: p.tour_frames,
+                ..TourSpec::default()
+            };
+            Tour::new(optics, look.clone(), &spec, p.seed)
+        });
+        let mut scene = match &tour {
+            Some(t) => t.at(0),
+            None => Scene::random(optics, look, &spec, p.seed),
+        };
+        if tour.is_none()
+            && let Some(why) = synth::shortfall(&scene, &spec)
+        {
             runtime::errln!("warning: {why}");
         }
         let s = optics.um_per_px();
-        scene.pipette = p.pipette.map(|h| Pipette {
-            tip: [-0.5 * p.width as f64 * s + 20.0 * s, 0.0],
-            height: h,
-            tip_radius: 1.5,
-            taper: 0.08,
-            elevation: 0.0,
-            azimuth: 0.0,
-        });
+        if tour.is_some() {
+            scene.pipette = None;
+        } else {
+            scene.pipette = p.pipette.map(|h| Pipette {
+                tip: [-0.5 * p.width as f64 * s + 20.0 * s, 0.0],
+                height: h,
+                tip_radius: 1.5,
+                taper: 0.08,
+                elevation: 0.0,
+                azimuth: 0.0,
+            });
+        }
         Self {
             scene,
+            tour,
             drift: p.drift,
             step: 4.0 * s,
             manipulated: None,
@@ -143,6 +207,11 @@ impl SyntheticCapture {
             noise: None,
             played: vec![None; p.repeat.unwrap_or(0)],
         }
+    }
+
+    /// The tour the cells follow, with `motion = "tour"`: each frame's truth.
+    pub fn tour(&self) -> Option<&Tour> {
+        self.tour.as_ref()
     }
 
     /// The calibration that triangulates the frames.
@@ -236,7 +305,10 @@ impl SyntheticCapture {
 
     /// Renders frame `seq`.
     fn render(&mut self, seq: u64) -> StereoFrame {
-        let mut scene = self.scene.at_frame(seq as usize, self.drift, self.step);
+        let mut scene = match &self.tour {
+            Some(t) => t.at(seq),
+            None => self.scene.at_frame(seq as usize, self.drift, self.step),
+        };
         if self.manipulated.is_some() {
             scene.pipette = self.manipulated;
         }

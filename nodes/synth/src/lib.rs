@@ -18,6 +18,7 @@
 //! and per cell its centroid, area, height, volume and 3D centroid.
 
 pub mod layers;
+pub mod tour;
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -185,7 +186,7 @@ impl CellShape {
     }
 
     /// Largest footprint radius, µm.
-    fn reach(&self) -> f64 {
+    pub fn reach(&self) -> f64 {
         let o = &self.outline;
         self.semi_axes[0].max(self.semi_axes[1]) * (1.0 + o[0].abs() + o[1].abs() + o[2].abs())
     }

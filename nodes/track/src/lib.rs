@@ -7,6 +7,7 @@
 
 pub mod fuse;
 pub mod node;
+pub mod score;
 pub mod tracker;
 
 pub use fuse::{Fused, Observation, fuse_heights};

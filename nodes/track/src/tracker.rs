@@ -251,9 +251,11 @@ impl Tracker {
         if reference.len() < 2 || dets.len() < 2 {
             return [0.0; 3];
         }
-        let explained = |shift: [f64; 3]| -> (usize, [f64; 3]) {
-            let mut n = 0;
-            let mut sum = [0.0; 3];
+        // How many reference tracks a shift explains (a cell within the gate of the
+        // shifted prediction), their squared residuals' sum, and the residuals' median:
+        // what is left of the common motion after the shift.
+        let explained = |shift: [f64; 3]| -> (usize, f64, [f64; 3]) {
+            let mut rs: Vec<[f64; 3]> = Vec::new();
             for &i in &reference {
                 let p = add(preds[i], shift);
                 let best = dets
@@ -261,39 +263,50 @@ impl Tracker {
                     .map(|d| sub(*d, p))
                     .filter(|r| xy2(*r) <= gates[i] * gates[i])
                     .min_by(|a, b| xy2(*a).total_cmp(&xy2(*b)));
-                if let Some(r) = best {
-                    n += 1;
-                    sum = add(sum, r);
-                }
+                rs.extend(best);
             }
-            let m = n.max(1) as f64;
-            (n, [sum[0] / m, sum[1] / m, sum[2] / m])
+            let cost = rs.iter().map(|r| xy2(*r)).sum();
+            (rs.len(), cost, median3(&rs))
         };
-        let (still, _) = explained([0.0; 3]);
+        let (still, still_cost, still_mid) = explained([0.0; 3]);
+        // Explained without a jump: the stage may still move (a smooth move starts and
+        // ends slowly), and what every cell shares is its motion, not theirs: left in the
+        // residuals, the tracks' velocities took it up and overshot by 5 µm a frame after
+        // a 100 µm move stopped.
+        let common = |n: usize, mid: [f64; 3]| {
+            if n >= 2 && 2 * n >= reference.len() {
+                mid
+            } else {
+                [0.0; 3]
+            }
+        };
         if still == reference.len() {
-            return [0.0; 3];
+            return common(still, still_mid);
         }
         let reach = self.params.max_shift_um / k;
         let mut best: Option<(usize, f64, [f64; 3])> = None;
         for &i in &reference {
             for d in dets {
                 let s = sub(*d, preds[i]);
-                let len = xy2(s);
-                if len > reach * reach {
+                if xy2(s) > reach * reach {
                     continue;
                 }
-                let (n, _) = explained(s);
-                if best.is_none_or(|(bn, bl, _)| n > bn || (n == bn && len < bl)) {
-                    best = Some((n, len, s));
+                let (n, cost, _) = explained(s);
+                if best.is_none_or(|(bn, bc, _)| n > bn || (n == bn && cost < bc)) {
+                    best = Some((n, cost, s));
                 }
             }
         }
         match best {
-            Some((n, _, s)) if n > still && 2 * n >= reference.len() && n >= 2 => {
-                let (_, mean) = explained(s);
-                add(s, mean)
+            Some((n, cost, s))
+                if (n > still || (n == still && cost < still_cost))
+                    && 2 * n >= reference.len()
+                    && n >= 2 =>
+            {
+                let (n, _, mid) = explained(s);
+                add(s, common(n, mid))
             }
-            _ => [0.0; 3],
+            _ => common(still, still_mid),
         }
     }
 
@@ -379,13 +392,7 @@ impl Tracker {
         }
         // The common motion of the cells seen this frame moves the unseen ones too.
         let common = if residuals.len() >= 3 {
-            let mut m = [0.0; 3];
-            for (a, v) in m.iter_mut().enumerate() {
-                let mut r: Vec<f64> = residuals.iter().map(|r| r[a]).collect();
-                r.sort_by(f64::total_cmp);
-                *v = r[r.len() / 2];
-            }
-            m
+            median3(&residuals)
         } else {
             [0.0; 3]
         };
@@ -480,6 +487,25 @@ impl Tracker {
             substrate: t.substrate,
         })
     }
+}
+
+/// The per-axis median of `rs` (zero for none).
+fn median3(rs: &[[f64; 3]]) -> [f64; 3] {
+    if rs.is_empty() {
+        return [0.0; 3];
+    }
+    let mut m = [0.0; 3];
+    for (a, v) in m.iter_mut().enumerate() {
+        let mut x: Vec<f64> = rs.iter().map(|r| r[a]).collect();
+        x.sort_by(f64::total_cmp);
+        let h = x.len() / 2;
+        *v = if x.len() % 2 == 0 {
+            0.5 * (x[h - 1] + x[h])
+        } else {
+            x[h]
+        };
+    }
+    m
 }
 
 /// A frame's measurement of a cell's height, where it has one with an error.

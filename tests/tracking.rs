@@ -1,0 +1,168 @@
+//! Tracks through the process graph: examples/tour.toml (a 600-frame choreographed tour of a
+//! brightfield dish: drift, crossing rows, a close pass, a cell leaving the view and coming
+//! back, one covered by the pipette for 10 frames, a 100 µm stage move within a second)
+//! run as processes, its `track/tracks` edge recorded, every frame's tracks scored against
+//! the tour's truth.
+
+use capture::synthetic::{SyntheticCapture, SyntheticParams};
+use recorder::file::EdgeReader;
+use schemas::{Message, Tracks};
+use std::path::{Path, PathBuf};
+use track::score::{TruthCell, score};
+
+fn tour_graph() -> (String, SyntheticCapture) {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/tour.toml");
+    let text = std::fs::read_to_string(path).unwrap();
+    let launch: toml::Table = text.parse().unwrap();
+    let capture = launch["node"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|n| n["id"].as_str() == Some("capture"))
+        .unwrap();
+    let params = SyntheticParams::from_table(capture["params"].as_table().unwrap()).unwrap();
+    (text, SyntheticCapture::new(&params))
+}
+
+/// Runs the tour graph for `frames` frames, recording its tracks; `MICROSTEREO_TOUR_MCAP`
+/// names a recording to score instead (to look at one run again).
+fn run_tour(frames: u64, dir: &Path) -> PathBuf {
+    if let Ok(p) = std::env::var("MICROSTEREO_TOUR_MCAP") {
+        return p.into();
+    }
+    let rec = dir.join("tour.mcap");
+    let instance = format!("tour{}", std::process::id());
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_microstereo"))
+        .arg("run")
+        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/tour.toml"))
+        .args(["--quiet", "--instance", &instance, "--frames"])
+        .arg(frames.to_string())
+        .arg("--record")
+        .arg(&rec)
+        .args(["--edges", "track/tracks"])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    eprintln!("{}", String::from_utf8_lossy(&out.stderr));
+    rec
+}
+
+fn read_tracks(rec: &Path) -> Vec<Tracks> {
+    EdgeReader::open(rec, Some(vec!["track/tracks".into()]))
+        .unwrap()
+        .map(|m| {
+            let m = m.unwrap();
+            Tracks::decode(&m.header, &m.payload).unwrap()
+        })
+        .collect()
+}
+
+#[test]
+fn every_cell_of_a_600_frame_tour_keeps_one_track_id_through_the_process_graph() {
+    let (_, capture) = tour_graph();
+    let tour = capture
+        .tour()
+        .expect("the tour graph's capture plays a tour");
+    let dir = tempfile::tempdir().unwrap();
+    let rec = run_tour(600, dir.path());
+    let runs = read_tracks(&rec);
+    let truth = |f: u64| -> Vec<TruthCell> {
+        tour.truth(f)
+            .into_iter()
+            .map(|c| TruthCell {
+                id: c.cell,
+                centre: c.centre,
+                radius: c.reach,
+                visible: c.visible,
+            })
+            .collect()
+    };
+    let s = score(&runs, truth, 5);
+    // MICROSTEREO_TOUR_DEBUG=CELL prints every track near that cell, frame by frame.
+    if let Some(cell) = std::env::var("MICROSTEREO_TOUR_DEBUG")
+        .ok()
+        .and_then(|v| v.parse::<usize>().ok())
+    {
+        for t in &runs {
+            let c = tour.truth(t.frame)[cell];
+            let near: Vec<String> = t
+                .tracks
+                .iter()
+                .filter(|tr| {
+                    (tr.position[0] - c.centre[0]).hypot(tr.position[1] - c.centre[1]) < 80.0
+                })
+                .map(|tr| {
+                    format!(
+                        "{} {:?} pos {:.1},{:.1} cell {:?}",
+                        tr.id,
+                        tr.state,
+                        tr.position[0] - c.centre[0],
+                        tr.position[1] - c.centre[1],
+                        tr.cell
+                            .as_ref()
+                            .map(|x| [x.centroid[0] - c.centre[0], x.centroid[1] - c.centre[1]])
+                    )
+                })
+                .collect();
+            let ids: Vec<u32> = t.tracks.iter().map(|tr| tr.id).collect();
+            let r = tour.roles.covered;
+            let moved = |f: u64| tour.truth(f)[r].centre[0];
+            let prev = runs
+                .iter()
+                .take_while(|x| x.frame < t.frame)
+                .last()
+                .map_or(t.frame, |x| x.frame);
+            eprintln!(
+                "{} vis {} stage moved {:.1} shift {:?}: {near:?} all {ids:?}",
+                t.frame,
+                c.visible,
+                moved(t.frame) - moved(prev),
+                t.shift
+            );
+        }
+    }
+    eprintln!(
+        "tour: {} frames scored (last {}), {} of {} visible cells on a confirmed track, {} ids, longest wait {} frames, {} strays; switches {:?}; shared {:?}; reused {:?}; late {:?}",
+        s.frames,
+        runs.last().map_or(0, |t| t.frame),
+        s.matched,
+        s.visible,
+        s.ids,
+        s.longest_wait,
+        s.strays,
+        s.switches,
+        s.shared,
+        s.reused,
+        s.late
+    );
+    // The frames let in span the tour; under load the entrance lets fewer in.
+    assert!(s.frames >= 150, "{} frames", s.frames);
+    assert!(runs.last().unwrap().frame >= 590);
+    assert!(s.clean(), "{s:?}");
+    // Every part was played and seen: the covered cell and the leaver were tracked again.
+    let roles = tour.roles;
+    for cell in [
+        roles.covered,
+        roles.leaver,
+        roles.crossing[0],
+        roles.close[0],
+    ] {
+        let seen_after = runs.iter().rev().take(20).any(|t| {
+            t.tracks.iter().any(|tr| {
+                tr.cell.is_some() && {
+                    let c = tour.truth(t.frame)[cell];
+                    let p = tr.cell.as_ref().unwrap().centroid;
+                    (p[0] - c.centre[0]).hypot(p[1] - c.centre[1]) < 0.5 * c.reach
+                }
+            })
+        });
+        assert!(seen_after || !tour.truth(599)[cell].visible, "cell {cell}");
+    }
+    // Nearly every visible cell is on a confirmed track (the rest wait for confirmation or
+    // are cut by the view's edge).
+    assert!(s.matched as f64 >= 0.95 * s.visible as f64, "{s:?}");
+}
