@@ -114,7 +114,7 @@ pub struct SynthArgs {
     /// Darkening of the membrane rim where cells meet the substrate, grey levels (0..170).
     #[arg(long)]
     pub rim: Option<f64>,
-    /// Cell height profile: dome (ellipsoid), cap (paraboloid) or spread (flat top).
+    /// Cell height profile: dome (ellipsoid), cap (paraboloid), spread (flattened), flat (a plateau) or fried-egg (a raised nucleus on a thin spread cytoplasm).
     #[arg(long, value_enum, default_value_t = ProfileArg::Dome)]
     pub profile: ProfileArg,
     /// Outline irregularity: the largest amplitude of each of the radius's 2nd–4th
@@ -155,6 +155,10 @@ pub enum ProfileArg {
     Cap,
     /// Flattened spread cell.
     Spread,
+    /// Flat-topped spread cell (a plateau, steep at the margin).
+    Flat,
+    /// Fried egg: a thin spread cytoplasm under a raised nucleus.
+    FriedEgg,
 }
 
 /// What truth.json holds.
@@ -495,6 +499,8 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
             ProfileArg::Dome => synth::Profile::Dome,
             ProfileArg::Cap => synth::Profile::Cap,
             ProfileArg::Spread => synth::Profile::Spread,
+            ProfileArg::Flat => synth::Profile::Flat,
+            ProfileArg::FriedEgg => synth::Profile::FriedEgg,
         },
         irregular: a.irregular,
         ..CellSpec::default()

@@ -25,6 +25,9 @@ struct Condition {
     cells: usize,
     pipette: bool,
     size: (usize, usize),
+    elongation: f64,
+    /// The optics, where not the default's (a short working distance: strong perspective).
+    optics: Option<Optics>,
 }
 
 impl Condition {
@@ -41,6 +44,8 @@ impl Condition {
             cells: 5,
             pipette: false,
             size: (640, 480),
+            elongation: 0.0,
+            optics: None,
         }
     }
 
@@ -48,12 +53,13 @@ impl Condition {
         let optics = Optics {
             width: self.size.0,
             height: self.size.1,
-            ..Optics::default()
+            ..self.optics.unwrap_or_default()
         };
         let spec = CellSpec {
             count: self.cells,
             profile: self.profile,
             irregular: self.irregular,
+            elongation: self.elongation,
             ..CellSpec::default()
         };
         let mut s = Scene::random(optics, self.look.clone(), &spec, seed)
@@ -75,15 +81,19 @@ impl Condition {
     }
 }
 
+/// One cell's height: relative error (None: no height reported), whether it was
+/// flagged, its stated standard error relative to the true height.
+type Height = (Option<f64>, bool, Option<f64>);
+
 /// What one scene gave, cell by cell.
 #[derive(Default)]
 struct Outcome {
     cells: usize,
     found: usize,
     worst_centroid_px: f64,
-    /// Per found cell: relative height error (None: no height reported) and whether the
-    /// cell was flagged.
-    heights: Vec<(Option<f64>, bool)>,
+    /// Per found cell: relative height error (None: no height reported), whether the
+    /// cell was flagged, and its stated standard error relative to the true height.
+    heights: Vec<Height>,
     negative: usize,
     /// With `HEIGHTS_BOUND` set, per found cell: the Cramér–Rao bound on its relative
     /// height error's standard deviation (see [`height_bound`]).
@@ -290,8 +300,11 @@ fn evaluate(c: &Condition, seed: u64) -> Outcome {
             o.best.push(b);
         }
         o.worst_centroid_px = o.worst_centroid_px.max(near(&m));
-        o.heights
-            .push((m.height.map(|h| h / t.height - 1.0), !m.quality.trusted));
+        o.heights.push((
+            m.height.map(|h| h / t.height - 1.0),
+            !m.quality.trusted,
+            m.quality.height_std.map(|s| s / t.height),
+        ));
         if std::env::var_os("HEIGHTS_DETAIL").is_some() {
             let cal = &r.calibration;
             let base = cal.baseline * cal.focal_px / m.substrate_z - (cal.cx_right - cal.cx);
@@ -420,6 +433,46 @@ fn matrix() -> Vec<(Condition, std::ops::RangeInclusive<u64>)> {
         textured("faint texture, at +8 of −16..16", 1.0, 8.0, (-16, 16)),
         1..=6,
     );
+    // Shapes the dome does not describe: flat-topped spread cells, fried eggs (a raised
+    // nucleus on a thin cytoplasm), elongated and irregular cells.
+    let mut t = bright("textureless, flat-topped cells", 8.0, (0, 24));
+    t.profile = Profile::Flat;
+    add(t, 1..=10);
+    let mut t = textured("faint texture, flat-topped cells", 1.0, 8.0, (0, 24));
+    t.profile = Profile::Flat;
+    add(t, 1..=8);
+    let mut t = bright("textureless, fried eggs", 8.0, (0, 24));
+    t.profile = Profile::FriedEgg;
+    add(t, 1..=10);
+    let mut t = textured("faint texture, fried eggs", 1.0, 8.0, (0, 24));
+    t.profile = Profile::FriedEgg;
+    add(t, 1..=8);
+    let mut t = textured(
+        "faint texture, elongated irregular cells",
+        1.0,
+        8.0,
+        (0, 24),
+    );
+    t.elongation = 1.5;
+    t.irregular = 0.1;
+    add(t, 1..=8);
+    // A short working distance (400 µm; the same 0.3 px of disparity per µm of height):
+    // a 20 µm cell spans 5 % of the depth, so depth varies strongly across it.
+    let mut t = textured("faint texture, strong perspective", 1.0, 8.0, (0, 24));
+    t.optics = Some(Optics {
+        f_eff: 2_000.0,
+        baseline: 120.0,
+        ..Optics::default()
+    });
+    add(t, 1..=8);
+    let mut t = bright("textureless, strong perspective, flat-topped", 8.0, (0, 24));
+    t.profile = Profile::Flat;
+    t.optics = Some(Optics {
+        f_eff: 2_000.0,
+        baseline: 120.0,
+        ..Optics::default()
+    });
+    add(t, 1..=6);
     let mut t = bright("1280×1024 textureless", 8.0, (0, 24));
     t.size = (1280, 1024);
     t.cells = 10;
@@ -436,7 +489,7 @@ fn matrix() -> Vec<(Condition, std::ops::RangeInclusive<u64>)> {
 /// centroid error and the cells not found, with the per-condition table printed.
 struct Figures {
     scenes: usize,
-    all: Vec<(Option<f64>, bool)>,
+    all: Vec<Height>,
     cells: usize,
     worst_centroid: f64,
     negatives: usize,
@@ -448,7 +501,7 @@ fn run_matrix() -> Figures {
     let (mut worst_centroid, mut negatives, mut missing) = (0.0f64, 0, Vec::new());
     let mut total_cells = 0;
     let mut table = String::from(
-        "| condition | scenes | cells | found | worst centroid px | median abs height err % | worst % | <= 5 % | flagged | unflagged > 5 % | best possible <= 5 % (median CRLB σ) |\n|---|---|---|---|---|---|---|---|---|---|---|\n",
+        "| condition | scenes | cells | found | worst centroid px | median abs height err % | worst % | <= 5 % | flagged | unflagged > 5 % | within 2σ | best possible <= 5 % (median CRLB σ) |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     let only = std::env::var("HEIGHTS_ONLY").ok();
     let mut all_best: Vec<f64> = Vec::new();
@@ -457,7 +510,7 @@ fn run_matrix() -> Figures {
             continue;
         }
         let (mut n, mut cells, mut found, mut worst_c) = (0, 0, 0, 0.0f64);
-        let mut hs: Vec<(Option<f64>, bool)> = Vec::new();
+        let mut hs: Vec<Height> = Vec::new();
         let mut best: Vec<f64> = Vec::new();
         for seed in seeds {
             let o = evaluate(&c, seed);
@@ -473,9 +526,10 @@ fn run_matrix() -> Figures {
             for (k, h) in o.heights.iter().enumerate() {
                 if !h.0.is_some_and(|e| e.abs() <= 0.05) {
                     eprintln!(
-                        "    {} seed {seed} cell {k}: height error {:?} %, flagged {}",
+                        "    {} seed {seed} cell {k}: height error {:?} % (σ {:?} %), flagged {}",
                         c.name,
                         h.0.map(|e| (1000.0 * e).round() / 10.0),
+                        h.2.map(|e| (1000.0 * e).round() / 10.0),
                         h.1
                     );
                 }
@@ -497,11 +551,12 @@ fn run_matrix() -> Figures {
             .filter(|h| !h.1 && !h.0.is_some_and(|e| e.abs() <= 0.05))
             .count();
         let row = format!(
-            "| {} | {n} | {cells} | {found} | {worst_c:.2} | {:.1} | {:.1} | {:.1} % | {flagged} | {bad} | {} |\n",
+            "| {} | {n} | {cells} | {found} | {worst_c:.2} | {:.1} | {:.1} | {:.1} % | {flagged} | {bad} | {:.1} % | {} |\n",
             c.name,
             100.0 * abs.get(abs.len() / 2).copied().unwrap_or(f64::NAN),
             100.0 * abs.last().copied().unwrap_or(f64::NAN),
             100.0 * within as f64 / abs.len().max(1) as f64,
+            100.0 * covered(&hs, 2.0),
             if best.is_empty() {
                 "–".to_string()
             } else {
@@ -536,7 +591,16 @@ fn run_matrix() -> Figures {
     }
 }
 
-fn share_within(all: &[(Option<f64>, bool)], bound: f64) -> f64 {
+/// The share of cells whose true height lies within `k` stated standard errors.
+fn covered(all: &[Height], k: f64) -> f64 {
+    let n = all
+        .iter()
+        .filter(|h| matches!((h.0, h.2), (Some(e), Some(s)) if e.abs() <= k * s))
+        .count();
+    n as f64 / all.len().max(1) as f64
+}
+
+fn share_within(all: &[Height], bound: f64) -> f64 {
     let n = all
         .iter()
         .filter(|h| h.0.is_some_and(|e| e.abs() <= bound))
@@ -552,11 +616,12 @@ fn heights_are_never_negative_and_large_errors_are_flagged() {
     let f = run_matrix();
     let share = share_within(&f.all, 0.05);
     eprintln!(
-        "{} scenes, {} cells, {} found: {:.1} % within 5 %, worst centroid {:.2} px",
+        "{} scenes, {} cells, {} found: {:.1} % within 5 %, {:.1} % within 2σ, worst centroid {:.2} px",
         f.scenes,
         f.cells,
         f.all.len(),
         100.0 * share,
+        100.0 * covered(&f.all, 2.0),
         f.worst_centroid
     );
     assert!(f.scenes >= 200, "{} scenes", f.scenes);
@@ -583,7 +648,9 @@ fn heights_are_never_negative_and_large_errors_are_flagged() {
     );
 }
 
-/// The issue's acceptance bars (issue 18), not all met yet: run with `--ignored`.
+/// The acceptance bars of the cells-over-time issue (46) for one pair, not all met yet: run
+/// with `--ignored`. ≥ 95 % within 5 %, no trusted cell beyond 5 %, the true height within
+/// 2 stated standard errors for ≥ 90 % of cells.
 #[test]
 #[ignore]
 fn heights_meet_the_acceptance_bars() {
@@ -592,22 +659,18 @@ fn heights_meet_the_acceptance_bars() {
     assert_eq!(f.negatives, 0, "negative heights reported");
     let share = share_within(&f.all, 0.05);
     assert!(
-        share >= 0.98,
+        share >= 0.95,
         "{:.1} % of heights within 5 %",
         100.0 * share
     );
-    let over10 = f
-        .all
-        .iter()
-        .filter(|h| h.0.is_some_and(|e| e.abs() > 0.10))
-        .count();
-    assert_eq!(over10, 0, "heights off by more than 10 %");
     let unflagged = f
         .all
         .iter()
         .filter(|h| !h.1 && !h.0.is_some_and(|e| e.abs() <= 0.05))
         .count();
     assert_eq!(unflagged, 0, "heights off by more than 5 % without a flag");
+    let cover = covered(&f.all, 2.0);
+    assert!(cover >= 0.90, "{:.1} % within 2σ", 100.0 * cover);
     assert!(
         f.worst_centroid <= 1.0,
         "centroid error {} px",

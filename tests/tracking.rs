@@ -20,7 +20,15 @@ fn tour_graph() -> (String, SyntheticCapture) {
         .iter()
         .find(|n| n["id"].as_str() == Some("capture"))
         .unwrap();
-    let params = SyntheticParams::from_table(capture["params"].as_table().unwrap()).unwrap();
+    let mut params = SyntheticParams::from_table(capture["params"].as_table().unwrap()).unwrap();
+    // With MICROSTEREO_TOUR_MCAP, the seed and cells that recording was run with.
+    let env = |name: &str| std::env::var(name).ok().and_then(|s| s.parse().ok());
+    if let Some(seed) = env("MICROSTEREO_TOUR_SEED") {
+        params.seed = seed as u64;
+    }
+    if let Some(cells) = env("MICROSTEREO_TOUR_CELLS") {
+        params.cells = cells;
+    }
     (text, SyntheticCapture::new(&params))
 }
 
@@ -52,6 +60,19 @@ fn run_tour(frames: u64, dir: &Path) -> PathBuf {
 }
 
 fn read_tracks(rec: &Path) -> Vec<Tracks> {
+    // MICROSTEREO_TOUR_RETRACK: the recording's targets tracked again by this build's
+    // tracker (a recording made with `--edges track/tracks triangulate/targets`).
+    if std::env::var_os("MICROSTEREO_TOUR_RETRACK").is_some() {
+        let mut tracker = track::Tracker::new(track::TrackerParams::default());
+        return EdgeReader::open(rec, Some(vec!["triangulate/targets".into()]))
+            .unwrap()
+            .map(|m| {
+                let m = m.unwrap();
+                let t = schemas::Targets::decode(&m.header, &m.payload).unwrap();
+                tracker.update(&t).unwrap()
+            })
+            .collect();
+    }
     EdgeReader::open(rec, Some(vec!["track/tracks".into()]))
         .unwrap()
         .map(|m| {
@@ -109,15 +130,38 @@ fn every_cell_of_a_600_frame_tour_keeps_one_track_id_through_the_process_graph()
                 })
                 .collect();
             let ids: Vec<u32> = t.tracks.iter().map(|tr| tr.id).collect();
+            // Each confirmed track's cell against the true cell nearest it: the measurement's
+            // own error, and its velocity.
+            let truth_now = tour.truth(t.frame);
+            let errs: Vec<String> = t
+                .tracks
+                .iter()
+                .filter_map(|tr| {
+                    let p = tr.cell.as_ref()?.centroid;
+                    let c = truth_now.iter().min_by(|a, b| {
+                        let d = |c: &&synth::tour::TourCell| {
+                            (p[0] - c.centre[0]).hypot(p[1] - c.centre[1])
+                        };
+                        d(a).total_cmp(&d(b))
+                    })?;
+                    Some(format!(
+                        "{}:{:+.1},{:+.1} v{:+.0},{:+.0}",
+                        tr.id,
+                        p[0] - c.centre[0],
+                        p[1] - c.centre[1],
+                        tr.velocity[0],
+                        tr.velocity[1]
+                    ))
+                })
+                .collect();
+            eprintln!("  {errs:?}");
             let r = tour.roles.covered;
             let moved = |f: u64| tour.truth(f)[r].centre[0];
-            let prev = runs
-                .iter()
-                .take_while(|x| x.frame < t.frame)
-                .last()
-                .map_or(t.frame, |x| x.frame);
+            let before = runs.iter().take_while(|x| x.frame < t.frame).last();
+            let prev = before.map_or(t.frame, |x| x.frame);
+            let dt_ms = before.map_or(0.0, |x| (t.capture_ns as f64 - x.capture_ns as f64) / 1e6);
             eprintln!(
-                "{} vis {} stage moved {:.1} shift {:?}: {near:?} all {ids:?}",
+                "{} dt {dt_ms:.1} ms vis {} stage moved {:.1} shift {:?}: {near:?} all {ids:?}",
                 t.frame,
                 c.visible,
                 moved(t.frame) - moved(prev),

@@ -569,24 +569,16 @@ pub fn run_node(
                 start += held.elapsed();
                 node.resumed();
             }
-            // A paced source more than a frame behind its schedule (a loaded machine, a slow
-            // render) skips the frames whose time has passed, as a camera's frame counter
-            // goes on while the frames it could not deliver are dropped: frame `seq` is
-            // always the one due at `seq` periods, so what it shows and when agree (a
-            // synthetic scene moves by its frame number; a tracker by the capture times).
-            // Catching up sent 29.7 frames/s for a while at fps = 20 under two CPU hogs; a
-            // new schedule from now (December 2026) made a scene rendered at 3 frames/s
-            // move at a tenth of its speed in the capture times.
+            // A paced source more than a frame behind its schedule (a loaded machine) starts
+            // a new one from now instead of sending what it missed back to back: a camera
+            // skips the frames it could not deliver. Catching up sent 29.7 frames/s for a
+            // while at fps = 20 under two CPU hogs.
             if let Some(p) = period
                 && let Some(t) = due(start, p, seq - first)
                 && let Some(late) = Instant::now().checked_duration_since(t)
                 && late > p
             {
-                seq += (late.as_secs_f64() / p.as_secs_f64()).floor() as u64;
-                if let Some(n) = frames.filter(|n| seq >= *n) {
-                    seq = n;
-                    break;
-                }
+                start += late;
             }
             // Also the place where a stop request is noticed between frames.
             let wait = period.map_or(Duration::ZERO, |p| {

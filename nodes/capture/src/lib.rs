@@ -203,13 +203,11 @@ impl Source for Capture {
     }
 
     fn produce(&mut self, seq: u64) -> Result<Option<(u64, CaptureOut)>, NodeError> {
-        // A synthetic frame shows the scene at its frame's time, stamped before it is
-        // rendered (a pipette's frame takes 10 times a plain one's to render).
-        let exposed = now_ns();
         let frame = match &mut self.device {
             Device::Synthetic(s) => {
+                let at = s.stamp(seq, self.fps);
                 return Ok(Some((
-                    exposed,
+                    at,
                     CaptureOut {
                         frame: s.frame(seq),
                     },

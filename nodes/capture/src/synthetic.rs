@@ -149,6 +149,9 @@ pub struct SyntheticCapture {
     noise: Option<NoiseTable>,
     /// With `repeat`, the loop's frames rendered so far.
     played: Vec<Option<StereoFrame>>,
+    /// With `fps`, the time of frame 0, ns since the epoch: frame `k` shows the scene at
+    /// `k / fps` after it.
+    epoch_ns: Option<u64>,
 }
 
 impl SyntheticCapture {
@@ -206,6 +209,7 @@ impl SyntheticCapture {
             backdrop: None,
             noise: None,
             played: vec![None; p.repeat.unwrap_or(0)],
+            epoch_ns: None,
         }
     }
 
@@ -257,6 +261,23 @@ pub fn pipette_from(tip: [f64; 3], elevation_deg: f64, azimuth_deg: f64, z0: f64
 }
 
 impl SyntheticCapture {
+    /// The capture time of frame `seq`: paced at `fps`, the time its scene shows (frame 0's
+    /// time, the first frame's wall-clock time less its frames, plus `seq / fps`), so that
+    /// what a frame shows and when agree even where the renderer is slower than the camera
+    /// (a pipette's frame takes ten times a plain one's: stamped when made, a tracker saw
+    /// a cell covered for 10 frames stay covered 3 s and its track end); then the stamps
+    /// fall behind the wall clock, and the graph's latencies show by how much. Unpaced,
+    /// the wall clock.
+    pub fn stamp(&mut self, seq: u64, fps: Option<f64>) -> u64 {
+        let now = runtime::process::now_ns();
+        let Some(fps) = fps else { return now };
+        let after = |k: u64| (k as f64 / fps * 1e9) as u64;
+        let epoch = *self
+            .epoch_ns
+            .get_or_insert_with(|| now.saturating_sub(after(seq)));
+        epoch.saturating_add(after(seq))
+    }
+
     /// Draws the pipette where the manipulator says its tip is from now on.
     pub fn set_tip(&mut self, m: &ManipulatorState) {
         self.manipulated = Some(pipette_at(m, self.scene.optics.working_distance()));

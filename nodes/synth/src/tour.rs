@@ -196,10 +196,10 @@ impl Tour {
             rest + COVER_FRAMES + 8.0,
         ];
         let tip = Pipette {
-            tip: [cc[0] - 0.5 * dd - 25.0, cc[1]],
+            tip: [cc[0] - 0.5 * dd - 80.0, cc[1]],
             height: 30.0,
             tip_radius: 1.5,
-            taper: 0.3,
+            taper: 0.15,
             elevation: 0.08,
             azimuth: std::f64::consts::PI,
         };

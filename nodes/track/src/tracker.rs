@@ -32,9 +32,13 @@ pub struct TrackerParams {
     /// The gate as a share of the cell's footprint radius, where that is more.
     #[serde(default = "d_gate_share")]
     pub gate_share: f64,
-    /// Fastest a cell moves on its own while unseen, µm/s: a lost track's gate grows by it.
+    /// Fastest a cell moves on its own while unseen, µm/s: a lost track's gate grows by
+    /// twice its own last speed plus `drift_um_s`, at most this.
     #[serde(default = "d_speed")]
     pub max_speed_um_s: f64,
+    /// How fast an unseen cell that was still may have started to move, µm/s.
+    #[serde(default = "d_drift")]
+    pub drift_um_s: f64,
     /// Largest common shift between two frames (a stage move), µm.
     #[serde(default = "d_shift")]
     pub max_shift_um: f64,
@@ -65,6 +69,9 @@ fn d_gate_share() -> f64 {
 fn d_speed() -> f64 {
     40.0
 }
+fn d_drift() -> f64 {
+    10.0
+}
 fn d_shift() -> f64 {
     300.0
 }
@@ -86,6 +93,7 @@ impl Default for TrackerParams {
             gate_um: d_gate(),
             gate_share: d_gate_share(),
             max_speed_um_s: d_speed(),
+            drift_um_s: d_drift(),
             max_shift_um: d_shift(),
             window: d_window(),
             change_frames: d_change(),
@@ -108,6 +116,7 @@ impl TrackerParams {
         pos(self.gate_um, "gate_um", 1e4)?;
         pos(self.gate_share, "gate_share", 10.0)?;
         pos(self.max_speed_um_s, "max_speed_um_s", 1e5)?;
+        pos(self.drift_um_s, "drift_um_s", 1e5)?;
         pos(self.max_shift_um, "max_shift_um", 1e5)?;
         pos(self.fps, "fps", 10000.0)?;
         if !(1..=100).contains(&self.confirm_frames) {
@@ -228,7 +237,11 @@ impl Tracker {
     fn gate(&self, t: &Live, k: f64) -> f64 {
         let p = &self.params;
         let base = (p.gate_um / k).max(p.gate_share * t.radius);
-        let grown = base + p.max_speed_um_s / k * t.unseen_s;
+        // A still cell covered by the pipette stays where it was: with every lost gate
+        // growing at the fastest speed a cell has, a covered cell's track took a fragment
+        // of the retracting pipette 20 µm away, and the cell a new id a frame later.
+        let speed = (2.0 * xy2(t.vel).sqrt() + p.drift_um_s / k).min(p.max_speed_um_s / k);
+        let grown = base + speed * t.unseen_s;
         // An unseen cell is never sought further than its own radius beyond the base gate:
         // farther away lies another cell's ground.
         grown.min(base + t.radius.max(p.gate_um / k))
@@ -499,7 +512,7 @@ fn median3(rs: &[[f64; 3]]) -> [f64; 3] {
         let mut x: Vec<f64> = rs.iter().map(|r| r[a]).collect();
         x.sort_by(f64::total_cmp);
         let h = x.len() / 2;
-        *v = if x.len() % 2 == 0 {
+        *v = if x.len().is_multiple_of(2) {
             0.5 * (x[h - 1] + x[h])
         } else {
             x[h]
@@ -520,9 +533,12 @@ fn observation(frame: u64, c: &Cell3) -> Option<Observation> {
 }
 
 /// Pairs tracks with cells: the least total cost of squared 3D distances (depth weighed
-/// down) within each track's gate; a track beyond every gate, or better left unpaired,
-/// gets `None`. Confirmed tracks are preferred to tentative and lost ones at equal
-/// distance.
+/// down), each over its track's gate squared, within each track's gate; a track beyond
+/// every gate, or better left unpaired, gets `None`. Confirmed tracks are preferred to
+/// tentative and lost ones at equal distance. In units of each track's own gate, leaving
+/// any track unpaired costs the same: in µm², a lost track with a wide gate (a pipette's
+/// fragment, coasting) cost so much to leave unpaired that it took a cell 12 µm away from
+/// the confirmed track 0.1 µm from it.
 fn assign(
     tracks: &[Live],
     preds: &[[f64; 3]],
@@ -533,28 +549,27 @@ fn assign(
     if n == 0 || m == 0 {
         return vec![None; n];
     }
-    // Costs in units of the largest gate², scaled to integers: the assignment is exact
-    // on integers and the same on every machine.
-    let scale = gates.iter().copied().fold(0.0f64, f64::max).max(1e-12);
-    let q = |c: f64| (c / (scale * scale) * 1e6).round() as i64;
+    // Costs scaled to integers: the assignment is exact on integers and the same on every
+    // machine.
+    let q = |c: f64| (c * 1e6).round() as i64;
     let far = i64::MAX / ((n + m) as i64 * 4);
     let mut w = Matrix::new(n, m + n, far);
     for i in 0..n {
-        let g2 = gates[i] * gates[i];
+        let g2 = (gates[i] * gates[i]).max(1e-12);
         let penalty = if tracks[i].state == TrackState::Confirmed {
             0.0
         } else {
-            0.25 * g2
+            0.25
         };
         for j in 0..m {
             let d = sub(dets[j], preds[i]);
             let xy = xy2(d);
             if xy <= g2 {
-                w[(i, j)] = q(xy + (Z_WEIGHT * d[2] * d[2]).min(g2) + penalty);
+                w[(i, j)] = q(xy / g2 + (Z_WEIGHT * d[2] * d[2] / g2).min(1.0) + penalty);
             }
         }
         // Left unpaired: worse than any pairing within the gate.
-        w[(i, m + i)] = q(2.25 * g2) + 1;
+        w[(i, m + i)] = q(2.25) + 1;
     }
     let (_, cols) = kuhn_munkres_min(&w);
     cols.into_iter()
