@@ -935,7 +935,7 @@ fn inspect_lists_the_bundled_recording() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    assert!(said.contains("34 messages on 18 channels"), "{said}");
+    assert!(said.contains("36 messages on 19 channels"), "{said}");
     assert!(said.contains("frames 0–1"), "{said}");
     for (topic, ty) in [
         ("/rectify/frame/left", "sensor_msgs/msg/Image"),

@@ -28,6 +28,9 @@ struct Condition {
     elongation: f64,
     /// The optics, where not the default's (a short working distance: strong perspective).
     optics: Option<Optics>,
+    /// A condition the method does not meet yet (the cells-over-time issue's new shapes and
+    /// geometry): in the table and the acceptance bars, not in the bars that must hold.
+    open: bool,
 }
 
 impl Condition {
@@ -46,6 +49,7 @@ impl Condition {
             size: (640, 480),
             elongation: 0.0,
             optics: None,
+            open: false,
         }
     }
 
@@ -437,15 +441,19 @@ fn matrix() -> Vec<(Condition, std::ops::RangeInclusive<u64>)> {
     // nucleus on a thin cytoplasm), elongated and irregular cells.
     let mut t = bright("textureless, flat-topped cells", 8.0, (0, 24));
     t.profile = Profile::Flat;
+    t.open = true;
     add(t, 1..=10);
     let mut t = textured("faint texture, flat-topped cells", 1.0, 8.0, (0, 24));
     t.profile = Profile::Flat;
+    t.open = true;
     add(t, 1..=8);
     let mut t = bright("textureless, fried eggs", 8.0, (0, 24));
     t.profile = Profile::FriedEgg;
+    t.open = true;
     add(t, 1..=10);
     let mut t = textured("faint texture, fried eggs", 1.0, 8.0, (0, 24));
     t.profile = Profile::FriedEgg;
+    t.open = true;
     add(t, 1..=8);
     let mut t = textured(
         "faint texture, elongated irregular cells",
@@ -455,6 +463,7 @@ fn matrix() -> Vec<(Condition, std::ops::RangeInclusive<u64>)> {
     );
     t.elongation = 1.5;
     t.irregular = 0.1;
+    t.open = true;
     add(t, 1..=8);
     // A short working distance (400 µm; the same 0.3 px of disparity per µm of height):
     // a 20 µm cell spans 5 % of the depth, so depth varies strongly across it.
@@ -464,6 +473,7 @@ fn matrix() -> Vec<(Condition, std::ops::RangeInclusive<u64>)> {
         baseline: 120.0,
         ..Optics::default()
     });
+    t.open = true;
     add(t, 1..=8);
     let mut t = bright("textureless, strong perspective, flat-topped", 8.0, (0, 24));
     t.profile = Profile::Flat;
@@ -472,6 +482,7 @@ fn matrix() -> Vec<(Condition, std::ops::RangeInclusive<u64>)> {
         baseline: 120.0,
         ..Optics::default()
     });
+    t.open = true;
     add(t, 1..=6);
     let mut t = bright("1280×1024 textureless", 8.0, (0, 24));
     t.size = (1280, 1024);
@@ -489,7 +500,13 @@ fn matrix() -> Vec<(Condition, std::ops::RangeInclusive<u64>)> {
 /// centroid error and the cells not found, with the per-condition table printed.
 struct Figures {
     scenes: usize,
+    /// The conditions that must hold.
     all: Vec<Height>,
+    /// Every condition, the open ones too.
+    every: Vec<Height>,
+    /// The open conditions' cells not found and worst centroid error.
+    open_missing: Vec<String>,
+    open_worst: f64,
     cells: usize,
     worst_centroid: f64,
     negatives: usize,
@@ -497,7 +514,8 @@ struct Figures {
 }
 
 fn run_matrix() -> Figures {
-    let (mut scenes, mut all) = (0, Vec::new());
+    let (mut scenes, mut all, mut every) = (0, Vec::new(), Vec::new());
+    let (mut open_missing, mut open_worst, mut open_negatives) = (Vec::new(), 0.0f64, 0);
     let (mut worst_centroid, mut negatives, mut missing) = (0.0f64, 0, Vec::new());
     let mut total_cells = 0;
     let mut table = String::from(
@@ -520,8 +538,14 @@ fn run_matrix() -> Figures {
             found += o.found;
             worst_c = worst_c.max(o.worst_centroid_px);
             negatives += o.negative;
+            open_negatives += usize::from(c.open) * o.negative;
             if o.found != o.cells {
-                missing.push(format!("{} seed {seed}: {}/{}", c.name, o.found, o.cells));
+                let m = format!("{} seed {seed}: {}/{}", c.name, o.found, o.cells);
+                if c.open {
+                    open_missing.push(m);
+                } else {
+                    missing.push(m);
+                }
             }
             for (k, h) in o.heights.iter().enumerate() {
                 if !h.0.is_some_and(|e| e.abs() <= 0.05) {
@@ -538,7 +562,11 @@ fn run_matrix() -> Figures {
             best.extend(o.best);
         }
         scenes += n;
-        worst_centroid = worst_centroid.max(worst_c);
+        if c.open {
+            open_worst = open_worst.max(worst_c);
+        } else {
+            worst_centroid = worst_centroid.max(worst_c);
+        }
         let mut abs: Vec<f64> = hs
             .iter()
             .map(|h| h.0.map_or(f64::INFINITY, f64::abs))
@@ -572,7 +600,10 @@ fn run_matrix() -> Figures {
         all_best.extend(&best);
         eprint!("{row}");
         table += &row;
-        all.extend(hs);
+        every.extend(hs.iter().copied());
+        if !c.open {
+            all.extend(hs);
+        }
     }
     eprintln!("{table}");
     if !all_best.is_empty() {
@@ -581,9 +612,15 @@ fn run_matrix() -> Figures {
             100.0 * share_within_bound(&all_best)
         );
     }
+    eprintln!(
+        "open conditions: cells not found {open_missing:?}, worst centroid {open_worst:.2} px, {open_negatives} negative heights"
+    );
     Figures {
         scenes,
         all,
+        every,
+        open_missing,
+        open_worst,
         cells: total_cells,
         worst_centroid,
         negatives,
@@ -616,13 +653,16 @@ fn heights_are_never_negative_and_large_errors_are_flagged() {
     let f = run_matrix();
     let share = share_within(&f.all, 0.05);
     eprintln!(
-        "{} scenes, {} cells, {} found: {:.1} % within 5 %, {:.1} % within 2σ, worst centroid {:.2} px",
+        "{} scenes, {} cells, {} found: {:.1} % within 5 %, {:.1} % within 2σ, worst centroid {:.2} px; conditions that hold: {} cells, {:.1} % within 5 %, {:.1} % within 2σ",
         f.scenes,
         f.cells,
+        f.every.len(),
+        100.0 * share_within(&f.every, 0.05),
+        100.0 * covered(&f.every, 2.0),
+        f.worst_centroid.max(f.open_worst),
         f.all.len(),
         100.0 * share,
         100.0 * covered(&f.all, 2.0),
-        f.worst_centroid
     );
     assert!(f.scenes >= 200, "{} scenes", f.scenes);
     assert_eq!(f.negatives, 0, "negative heights reported");
@@ -656,24 +696,25 @@ fn heights_are_never_negative_and_large_errors_are_flagged() {
 fn heights_meet_the_acceptance_bars() {
     let f = run_matrix();
     assert!(f.missing.is_empty(), "cells not found: {:?}", f.missing);
+    assert!(f.open_missing.is_empty(), "cells not found: {:?}", f.open_missing);
     assert_eq!(f.negatives, 0, "negative heights reported");
-    let share = share_within(&f.all, 0.05);
+    let share = share_within(&f.every, 0.05);
     assert!(
         share >= 0.95,
         "{:.1} % of heights within 5 %",
         100.0 * share
     );
     let unflagged = f
-        .all
+        .every
         .iter()
         .filter(|h| !h.1 && !h.0.is_some_and(|e| e.abs() <= 0.05))
         .count();
     assert_eq!(unflagged, 0, "heights off by more than 5 % without a flag");
-    let cover = covered(&f.all, 2.0);
+    let cover = covered(&f.every, 2.0);
     assert!(cover >= 0.90, "{:.1} % within 2σ", 100.0 * cover);
     assert!(
-        f.worst_centroid <= 1.0,
+        f.worst_centroid.max(f.open_worst) <= 1.0,
         "centroid error {} px",
-        f.worst_centroid
+        f.worst_centroid.max(f.open_worst)
     );
 }

@@ -73,7 +73,12 @@ fn triangulate_reproduces_the_cloud_and_the_targets() {
 }
 
 #[test]
-fn the_bridge_serves_the_recorded_targets_over_tcp() {
+fn the_track_node_reproduces_the_recorded_tracks() {
+    check("track", &["track/tracks"]);
+}
+
+#[test]
+fn the_bridge_serves_the_recorded_tracks_over_tcp() {
     check("manipulator-bridge", &["TCP lines"]);
 }
 
