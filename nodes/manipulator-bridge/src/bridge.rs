@@ -1380,8 +1380,7 @@ impl Controller {
         }
         let inj = injection_point(c, &self.cfg.planner);
         let off = dist(inj, tip);
-        if !(off > FOLLOW_TOLERANCE_UM
-            && off <= self.cfg.replan_tolerance.max(FOLLOW_TOLERANCE_UM))
+        if !(off > FOLLOW_TOLERANCE_UM && off <= self.cfg.replan_tolerance.max(FOLLOW_TOLERANCE_UM))
         {
             return None;
         }
