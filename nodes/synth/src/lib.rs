@@ -640,67 +640,6 @@ impl Scene {
     }
 }
 
-/// Where the spheres of a pipette's chain sit along its axis: `step` apart while their
-/// radius is under four steps, then each a quarter of its radius beyond the last (a
-/// geometric series), so the same spheres make the body for every ray.
-#[derive(Clone, Copy, Debug)]
-struct SphereChain {
-    step: f64,
-    taper: f64,
-    /// Where the spacing turns geometric, its index there and the radius there.
-    t1: f64,
-    k1: u64,
-    r1: f64,
-    /// The ratio of one sphere's radius to the last one's, beyond `t1`.
-    q: f64,
-}
-
-impl SphereChain {
-    fn new(tip_radius: f64, taper: f64, step: f64) -> Self {
-        let (t1, k1) = if taper > 0.0 {
-            let t = ((4.0 * step - tip_radius) / taper).max(0.0);
-            let k = (t / step).ceil();
-            (k * step, k as u64)
-        } else {
-            (f64::INFINITY, u64::MAX)
-        };
-        Self {
-            step,
-            taper,
-            t1,
-            k1,
-            r1: tip_radius + taper * t1,
-            q: 1.0 + 0.25 * taper,
-        }
-    }
-
-    /// Position of sphere `k` along the axis.
-    fn at(&self, k: u64) -> f64 {
-        if k <= self.k1 {
-            return k as f64 * self.step;
-        }
-        let j = (k - self.k1) as i32;
-        self.t1 + self.r1 * (self.q.powi(j) - 1.0) / self.taper
-    }
-
-    /// The last sphere at or before `t` (0 for `t` ≤ 0).
-    fn first_at_or_before(&self, t: f64) -> u64 {
-        if t <= 0.0 {
-            return 0;
-        }
-        if t <= self.t1 {
-            return (t / self.step).floor() as u64;
-        }
-        let j = ((1.0 + self.taper * (t - self.t1) / self.r1).ln() / self.q.ln()).floor();
-        let mut k = self.k1 + j.max(0.0) as u64;
-        // Rounding: step back until the sphere is at or before `t`.
-        while k > 0 && self.at(k) > t {
-            k -= 1;
-        }
-        k
-    }
-}
-
 /// Gaussian sensor noise for a live source, drawn once and read from a new place for every
 /// frame: a frame's noise costs an addition per pixel instead of a logarithm and a cosine
 /// (30 of the 53 ms a 1280×1024 frame over a [`Backdrop`] took). Each view has its own
@@ -1018,17 +957,9 @@ impl Scene {
             } else {
                 len
             };
-            // Spheres `step` apart near the tip, then a quarter of their radius apart (a
-            // bump of r/128: nothing a pixel shows), the same for every ray: a widely
-            // tapered pipette's body, 180 µm across where it leaves the view, took 330 ms
-            // a 640×480 frame to render at 0.75 µm spacing.
-            let chain = SphereChain::new(p.tip_radius, p.taper, step);
-            let mut k = chain.first_at_or_before(t_lo);
-            loop {
-                let t = chain.at(k);
-                if t >= t_hi {
-                    break;
-                }
+            let mut k = (t_lo / step).floor().max(0.0) as u64;
+            while (k as f64) * step < t_hi {
+                let t = k as f64 * step;
                 k += 1;
                 let r = p.tip_radius + p.taper * t;
                 let (ccx, ccy, ccs) = (tip[0] - t * ce, tip[1], p.height + t * se);

@@ -56,8 +56,8 @@ impl TrackScore {
 }
 
 /// Scores `runs` (the tracks of consecutive frames, in order) against `truth` (every true
-/// cell of a frame). A confirmed track seen this frame is on the nearest visible true cell
-/// within half its radius. A cell that becomes visible must be on a confirmed track within
+/// cell of a frame). A confirmed track seen this frame is on the nearest true cell within
+/// half its radius; ids are followed over the frames where a cell is visible whole. A cell that becomes visible must be on a confirmed track within
 /// `wait` frames (counted in the frames given).
 pub fn score(runs: &[Tracks], truth: impl Fn(u64) -> Vec<TruthCell>, wait: usize) -> TrackScore {
     let mut s = TrackScore {
@@ -124,7 +124,11 @@ pub fn score(runs: &[Tracks], truth: impl Fn(u64) -> Vec<TruthCell>, wait: usize
             .count();
         for c in &cells {
             let id = on.get(&c.id).copied();
-            if let Some(id) = id {
+            // Only where the cell is seen whole: one entering the view, cut by its edge,
+            // may be taken up by a new track as it comes in (its cut centroid moves as its
+            // visible part grows); a change between two whole sightings is a switch, gaps
+            // between them included.
+            if let Some(id) = id.filter(|_| c.visible) {
                 owners.entry(id).or_default().insert(c.id);
                 if let Some(old) = last_id.insert(c.id, id)
                     && old != id
@@ -301,5 +305,30 @@ mod tests {
         let s = score(&runs, two_cells, 5);
         assert_eq!((s.strays, s.matched, s.ids), (1, 1, 1));
         assert!(s.clean());
+        // A cell cut by the view's edge taken up by a new track as it comes in whole: no
+        // switch; a change between two whole sightings across a gap: one.
+        let entering = |f: u64| {
+            vec![TruthCell {
+                id: 0,
+                centre: [0.0, 0.0],
+                radius: 10.0,
+                visible: !(1..=2).contains(&f),
+            }]
+        };
+        let runs = vec![
+            frame(1, vec![track(3, C, Some([1.0, 0.0]))]),
+            frame(2, vec![track(4, C, Some([0.5, 0.0]))]),
+            frame(3, vec![track(4, C, Some([0.0, 0.0]))]),
+        ];
+        assert!(score(&runs, entering, 5).switches.is_empty());
+        let runs = vec![
+            frame(0, vec![track(3, C, Some([0.0, 0.0]))]),
+            frame(1, vec![track(3, C, Some([1.0, 0.0]))]),
+            frame(3, vec![track(4, C, Some([0.0, 0.0]))]),
+        ];
+        assert_eq!(
+            score(&runs, entering, 5).switches,
+            vec!["frame 3: cell 0: id 3 → 4"]
+        );
     }
 }

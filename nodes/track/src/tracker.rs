@@ -148,6 +148,8 @@ const LOST_DAMPING: f64 = 0.9;
 const Z_WEIGHT: f64 = 0.25;
 /// Frames a tentative track may miss before it is dropped as noise.
 const TENTATIVE_MISSES: u32 = 1;
+/// The change of a cell's footprint radius between frames beyond which it counts as cut.
+const CUT_SHARE: f64 = 0.1;
 
 /// Micrometres per unit of a targets' unit symbol.
 pub fn um_per_unit(unit: &str) -> Result<f64, String> {
@@ -179,6 +181,9 @@ struct Live {
     surprise2: f64,
     /// Footprint radius, unit.
     radius: f64,
+    /// Whether its last sighting was cut (its footprint changing fast: the view's edge, the
+    /// pipette): where the whole cell is, is then known only to its radius.
+    cut: bool,
     cell: Option<Cell3>,
     obs: VecDeque<Observation>,
 }
@@ -241,7 +246,14 @@ impl Tracker {
         // growing at the fastest speed a cell has, a covered cell's track took a fragment
         // of the retracting pipette 20 µm away, and the cell a new id a frame later.
         let speed = (2.0 * xy2(t.vel).sqrt() + p.drift_um_s / k).min(p.max_speed_um_s / k);
-        let grown = base + speed * t.unseen_s;
+        let grown = if t.cut && t.missed > 0 {
+            // Lost while cut (leaving the view): the whole cell lies within its radius of
+            // the part last seen. Grown at its speed only, the leaver's track missed it
+            // coming back (its cut centroid had moved with its visible part).
+            f64::INFINITY
+        } else {
+            base + speed * t.unseen_s
+        };
         // An unseen cell is never sought further than its own radius beyond the base gate:
         // farther away lies another cell's ground.
         grown.min(base + t.radius.max(p.gate_um / k))
@@ -363,8 +375,25 @@ impl Tracker {
                 residuals.push(r);
             }
             let seen_dt = tr.unseen_s.max(1e-3);
-            tr.pos = add(preds[i], r.map(|v| v * ALPHA));
-            if tr.hits == 1 && tr.missed == 0 {
+            // Seen again after a gap, its prediction is stale: it is where it is seen (a
+            // leaver's track, re-found 6 µm from its prediction and put 4 µm short of its
+            // cell, lost it the next frame).
+            tr.pos = if tr.missed > 0 {
+                dets[j]
+            } else {
+                add(preds[i], r.map(|v| v * ALPHA))
+            };
+            // A cell whose footprint grew or shrank by more than CUT_SHARE since the last
+            // frames is being cut (by the view's edge as it comes in, by the pipette): its
+            // centroid moves with its visible part, not with it, so its speed is not taken
+            // from this frame. Taken, a cell coming into view during a stage move gave its
+            // track a speed it did not have, and the track overshot it when the move ended.
+            let rad = footprint_radius(c);
+            let cut =
+                tr.radius > 0.0 && rad > 0.0 && (rad - tr.radius).abs() > CUT_SHARE * tr.radius;
+            if cut {
+                // Its speed stays what it was.
+            } else if tr.hits == 1 && tr.missed == 0 {
                 // Its second sighting: the first measure of its speed.
                 tr.vel = r.map(|v| v / seen_dt);
             } else if tr.missed > 0 {
@@ -376,10 +405,16 @@ impl Tracker {
                 }
             }
             tr.surprise2 = 0.8 * tr.surprise2 + 0.2 * xy2(r);
-            let rad = footprint_radius(c);
+            tr.cut = cut;
             if rad > 0.0 {
+                // A cell's footprint grows as it comes into view and never shrinks fast: a
+                // smaller one is a cut (leaving the view, under the pipette), so the radius
+                // that sets the gate follows a shrinking footprint slowly. Followed at the
+                // same pace both ways, the leaver's gate shrank with its visible part and its
+                // track missed it coming back 19 µm away.
+                let follow = if rad < tr.radius { 0.05 } else { 0.3 };
                 tr.radius = if tr.radius > 0.0 {
-                    0.7 * tr.radius + 0.3 * rad
+                    (1.0 - follow) * tr.radius + follow * rad
                 } else {
                     rad
                 };
@@ -451,6 +486,7 @@ impl Tracker {
                 vel: [0.0; 3],
                 surprise2: (p.gate_um / k / 2.0).powi(2),
                 radius: footprint_radius(c),
+                cut: false,
                 cell: Some((*c).clone()),
                 obs: VecDeque::new(),
             };

@@ -636,9 +636,9 @@ mod tests {
         let mut sink = Sink::new(rec);
         let path =
             std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../recordings/default.mcap");
-        // 34 MCAP messages: the stereo frames and label pairs are one edge message each, and
-        // the CameraInfo is not an edge: 13 edges, 2 frames.
-        assert_eq!(log_recording(&mut sink, &path).unwrap(), 26);
+        // 36 MCAP messages: the stereo frames and label pairs are one edge message each, and
+        // the CameraInfo is not an edge: 14 edges (the tracks among them), 2 frames.
+        assert_eq!(log_recording(&mut sink, &path).unwrap(), 28);
         // Closing a memory stream moves what it holds to the next sink: take it first.
         sink.stream().flush_blocking().unwrap();
         let msgs = storage.take();

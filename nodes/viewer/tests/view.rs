@@ -20,7 +20,7 @@ fn a_recording_becomes_an_rrd_file() {
         .unwrap();
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{err}");
-    assert!(err.contains("26 message(s)"), "{err}");
+    assert!(err.contains("28 message(s)"), "{err}");
     let b = std::fs::read(&out).unwrap();
     assert!(
         b.len() > 1_000_000 && b.starts_with(b"RRF2"),
