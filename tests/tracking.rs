@@ -4,6 +4,8 @@
 //! run as processes, its `track/tracks` edge recorded, every frame's tracks scored against
 //! the tour's truth.
 
+mod common;
+
 use capture::synthetic::{SyntheticCapture, SyntheticParams};
 use recorder::file::EdgeReader;
 use schemas::{Message, Tracks};
@@ -40,16 +42,21 @@ fn run_tour(frames: u64, dir: &Path) -> PathBuf {
     }
     let rec = dir.join("tour.mcap");
     let instance = format!("tour{}", std::process::id());
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_microstereo"))
-        .arg("run")
-        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/tour.toml"))
-        .args(["--quiet", "--instance", &instance, "--frames"])
-        .arg(frames.to_string())
-        .arg("--record")
-        .arg(&rec)
-        .args(["--edges", "track/tracks"])
-        .output()
-        .unwrap();
+    let launch = Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/tour.toml");
+    let frames = frames.to_string();
+    let out = common::run(&[
+        "run",
+        common::s(&launch),
+        "--quiet",
+        "--instance",
+        &instance,
+        "--frames",
+        &frames,
+        "--record",
+        common::s(&rec),
+        "--edges",
+        "track/tracks",
+    ]);
     assert!(
         out.status.success(),
         "{}",

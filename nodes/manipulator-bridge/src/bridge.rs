@@ -1370,8 +1370,16 @@ impl Controller {
             return None;
         };
         let (scene, _) = self.fresh_scene().ok()?;
-        // The pipette at its end touches the cell: it is then among the touching ones.
-        let touching = self.shared.lock().expect("shared").touching.clone();
+        // The pipette at its end touches the cell: it is then among the touching ones. The
+        // track's velocity leads the leg (below).
+        let (touching, v) = {
+            let sh = self.shared.lock().expect("shared");
+            let v = match &sh.ids {
+                Ids::Tracks { live, .. } => live.get(&f.id).map_or([0.0; 2], |l| l.2),
+                Ids::Cells => [0.0; 2],
+            };
+            (sh.touching.clone(), v)
+        };
         let c = scene
             .cell(f.id)
             .or_else(|| touching.iter().find(|o| o.id == f.id))?;
@@ -1386,10 +1394,6 @@ impl Controller {
         }
         // Led by the track's velocity over the leg's own time: a short leg lagged the cell
         // by what it drifted while the leg ran (arrivals 1.2–1.5 µm off a cell at 20 µm/s).
-        let v = match &self.shared.lock().expect("shared").ids {
-            Ids::Tracks { live, .. } => live.get(&f.id).map_or([0.0; 2], |l| l.2),
-            Ids::Cells => [0.0; 2],
-        };
         let speed = job.speed.max(1e-6);
         let mut to = inj;
         for _ in 0..3 {

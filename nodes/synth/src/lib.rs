@@ -542,6 +542,11 @@ impl Scene {
             grid.entry(key(c)).or_default().push(cells.len());
             cells.push(cell);
         }
+        Self::with_cells(optics, look, cells, seed)
+    }
+
+    /// A level substrate holding `cells`, nothing else, at its first frame.
+    pub fn with_cells(optics: Optics, look: Look, cells: Vec<CellShape>, seed: u64) -> Self {
         Self {
             optics,
             look,

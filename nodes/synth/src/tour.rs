@@ -265,18 +265,7 @@ impl Tour {
                 paths.push(path);
             }
         }
-        let base = Scene {
-            optics,
-            look,
-            cells,
-            pipette: None,
-            stage: 0.0,
-            target: false,
-            tilt: [0.0; 2],
-            debris: Vec::new(),
-            seed,
-            frame: 0,
-        };
+        let base = Scene::with_cells(optics, look, cells, seed);
         Self {
             base,
             paths,

@@ -391,17 +391,17 @@ impl Tracker {
             let rad = footprint_radius(c);
             let cut =
                 tr.radius > 0.0 && rad > 0.0 && (rad - tr.radius).abs() > CUT_SHARE * tr.radius;
-            if cut {
-                // Its speed stays what it was.
-            } else if tr.hits == 1 && tr.missed == 0 {
-                // Its second sighting: the first measure of its speed.
-                tr.vel = r.map(|v| v / seen_dt);
-            } else if tr.missed > 0 {
-                // Seen again after a gap: the speed it had is doubtful.
-                tr.vel = tr.vel.map(|v| v * 0.5);
-            } else {
-                for (v, r) in tr.vel.iter_mut().zip(r) {
-                    *v += BETA * r / seen_dt;
+            if !cut {
+                if tr.hits == 1 && tr.missed == 0 {
+                    // Its second sighting: the first measure of its speed.
+                    tr.vel = r.map(|v| v / seen_dt);
+                } else if tr.missed > 0 {
+                    // Seen again after a gap: the speed it had is doubtful.
+                    tr.vel = tr.vel.map(|v| v * 0.5);
+                } else {
+                    for (v, r) in tr.vel.iter_mut().zip(r) {
+                        *v += BETA * r / seen_dt;
+                    }
                 }
             }
             tr.surprise2 = 0.8 * tr.surprise2 + 0.2 * xy2(r);
