@@ -2,6 +2,11 @@
 //! conditions a real rig shows (textureless or textured substrate anywhere in the search
 //! range, tilted, unevenly lit; rounded, capped, spread and irregular cells; debris and a
 //! pipette), every cell compared with its exact truth.
+//!
+//! Environment: `HEIGHTS_ONLY=text` runs the conditions whose name holds it,
+//! `HEIGHTS_DETAIL` prints every cell, `HEIGHTS_BOUND` adds the Cramér–Rao column,
+//! `HEIGHTS_SAVE=dir` writes each scene's views there as PNG (to segment or reconstruct
+//! them by hand).
 
 mod common;
 
@@ -277,6 +282,21 @@ fn erf(x: f64) -> f64 {
 fn evaluate(c: &Condition, seed: u64) -> Outcome {
     let scene = c.scene(seed);
     let r = scene.render();
+    if let Some(dir) = std::env::var_os("HEIGHTS_SAVE") {
+        let dir = std::path::Path::new(&dir);
+        std::fs::create_dir_all(dir).unwrap();
+        for (view, p) in [("left", &r.left), ("right", &r.right)] {
+            let name: String = c
+                .name
+                .chars()
+                .filter(|ch| ch.is_ascii_alphanumeric())
+                .collect();
+            image::GrayImage::from_raw(p.width as u32, p.height as u32, p.data.clone())
+                .unwrap()
+                .save(dir.join(format!("{name}-{seed}-{view}.png")))
+                .unwrap();
+        }
+    }
     let (targets, _) = cell_targets(&r.left, &r.right, &r.calibration, c.range);
     let mut o = Outcome {
         cells: r.cells.len(),
