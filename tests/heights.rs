@@ -459,22 +459,30 @@ fn matrix() -> Vec<(Condition, std::ops::RangeInclusive<u64>)> {
     );
     // Shapes the dome does not describe: flat-topped spread cells, fried eggs (a raised
     // nucleus on a thin cytoplasm), elongated and irregular cells.
-    let mut t = bright("textureless, flat-topped cells", 8.0, (0, 24));
-    t.profile = Profile::Flat;
-    t.open = true;
-    add(t, 1..=10);
-    let mut t = textured("faint texture, flat-topped cells", 1.0, 8.0, (0, 24));
-    t.profile = Profile::Flat;
-    t.open = true;
-    add(t, 1..=8);
-    let mut t = bright("textureless, fried eggs", 8.0, (0, 24));
-    t.profile = Profile::FriedEgg;
-    t.open = true;
-    add(t, 1..=10);
-    let mut t = textured("faint texture, fried eggs", 1.0, 8.0, (0, 24));
-    t.profile = Profile::FriedEgg;
-    t.open = true;
-    add(t, 1..=8);
+    let open_shape = |mut c: Condition, profile: Profile| {
+        c.profile = profile;
+        c.open = true;
+        c
+    };
+    for (name, profile) in [
+        ("flat-topped cells", Profile::Flat),
+        ("fried eggs", Profile::FriedEgg),
+    ] {
+        add(
+            open_shape(
+                bright(&format!("textureless, {name}"), 8.0, (0, 24)),
+                profile,
+            ),
+            1..=10,
+        );
+        add(
+            open_shape(
+                textured(&format!("faint texture, {name}"), 1.0, 8.0, (0, 24)),
+                profile,
+            ),
+            1..=8,
+        );
+    }
     let mut t = textured(
         "faint texture, elongated irregular cells",
         1.0,

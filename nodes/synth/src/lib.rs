@@ -415,6 +415,23 @@ pub struct CellSpec {
     pub elongation: f64,
 }
 
+impl CellSpec {
+    /// Draws `cell`'s outline irregularity and elongation (nothing for a regular spec, so
+    /// that regular scenes draw no more numbers than they did).
+    fn roughen(&self, cell: &mut CellShape, rng: &mut ChaCha8Rng) {
+        if self.irregular > 0.0 {
+            for k in 0..3 {
+                cell.outline[k] = rng.random_range(0.0..=self.irregular);
+                cell.outline[k + 3] = rng.random_range(0.0..std::f64::consts::TAU);
+            }
+        }
+        if self.elongation > 0.0 {
+            cell.semi_axes[1] = cell.semi_axes[0] / (1.0 + rng.random_range(0.0..=self.elongation));
+            cell.height = cell.height.min(1.6 * cell.semi_axes[1]);
+        }
+    }
+}
+
 impl Default for CellSpec {
     fn default() -> Self {
         Self {
@@ -529,16 +546,7 @@ impl Scene {
                 outline: [0.0; 6],
             };
             // Drawn after the rest, so that regular scenes stay what they were.
-            if spec.irregular > 0.0 {
-                for k in 0..3 {
-                    cell.outline[k] = rng.random_range(0.0..=spec.irregular);
-                    cell.outline[k + 3] = rng.random_range(0.0..std::f64::consts::TAU);
-                }
-            }
-            if spec.elongation > 0.0 {
-                cell.semi_axes[1] = a / (1.0 + rng.random_range(0.0..=spec.elongation));
-                cell.height = cell.height.min(1.6 * cell.semi_axes[1]);
-            }
+            spec.roughen(&mut cell, &mut rng);
             grid.entry(key(c)).or_default().push(cells.len());
             cells.push(cell);
         }
@@ -986,8 +994,8 @@ impl Scene {
 
     /// How much of the pipette's body back from its tip can show: as far back along its
     /// axis as the farthest corner of the view's ground (with 10 % to spare for the rays'
-    /// spread), at most twice the view's size. A widely tapered body rendered to twice the view's size made every
-    /// pixel of a frame a candidate (210 against 26 ms at 640×480).
+    /// spread), at most twice the view's size. A widely tapered body rendered to twice the
+    /// view's size made every pixel of a frame a candidate (210 against 26 ms at 640×480).
     fn pipette_length(&self, p: &Pipette) -> f64 {
         let um = self.optics.um_per_px();
         let (hw, hh) = (
@@ -1595,16 +1603,7 @@ mod tests {
                 profile: spec.profile,
                 outline: [0.0; 6],
             };
-            if spec.irregular > 0.0 {
-                for k in 0..3 {
-                    cell.outline[k] = rng.random_range(0.0..=spec.irregular);
-                    cell.outline[k + 3] = rng.random_range(0.0..std::f64::consts::TAU);
-                }
-            }
-            if spec.elongation > 0.0 {
-                cell.semi_axes[1] = a / (1.0 + rng.random_range(0.0..=spec.elongation));
-                cell.height = cell.height.min(1.6 * cell.semi_axes[1]);
-            }
+            spec.roughen(&mut cell, &mut rng);
             cells.push(cell);
         }
         cells

@@ -57,8 +57,9 @@ impl TrackScore {
 
 /// Scores `runs` (the tracks of consecutive frames, in order) against `truth` (every true
 /// cell of a frame). A confirmed track seen this frame is on the nearest true cell within
-/// half its radius; ids are followed over the frames where a cell is visible whole. A cell that becomes visible must be on a confirmed track within
-/// `wait` frames (counted in the frames given).
+/// half its radius; ids are followed over the frames where a cell is visible whole. A cell
+/// that becomes visible must be on a confirmed track within `wait` frames (counted in the
+/// frames given).
 pub fn score(runs: &[Tracks], truth: impl Fn(u64) -> Vec<TruthCell>, wait: usize) -> TrackScore {
     let mut s = TrackScore {
         frames: runs.len(),
