@@ -116,7 +116,7 @@ fn main() {
                 line += &format!(
                     " {f}: {:+.3} (plateau {:.2})",
                     e,
-                    fitted.map_or(f64::NAN, |p| p.plateau_share)
+                    fitted.map_or(f64::NAN, |p| p.level_share)
                 );
             }
             if env("X_VERBOSE").is_some() {

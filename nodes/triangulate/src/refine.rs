@@ -828,9 +828,14 @@ pub struct PeakFit {
     /// is singular). On synthetic truth the real error of a well-fitted top is about half
     /// of it, and a wrong fit shows it several times larger.
     pub std: f64,
-    /// With [`TopModel::Plateau`], the share of the pixels that see the plateau (0 for the
-    /// other models): a flat top holds most of its upper part, a dome's noise a small cap.
-    pub plateau_share: f64,
+    /// With [`TopModel::Plateau`] or [`TopModel::Nucleus`], the share of the pixels that
+    /// see the level (0 for the other models): a flat top's plateau holds most of its upper
+    /// part, a dome's noise a small cap; a fried egg's cytoplasm about half of the disc
+    /// round its nucleus, a dome's foot a thin ring.
+    pub level_share: f64,
+    /// With [`TopModel::Plateau`] or [`TopModel::Nucleus`], the level that cuts the dome
+    /// (px above the base; 0 for the other models).
+    pub level: f64,
 }
 
 /// Fewest pixels a quadratic top is fitted on.
@@ -853,6 +858,19 @@ pub enum TopModel {
     /// (`d = base + min(P, √Q)`): a flat-topped cell, its top the plateau; a dome where
     /// the plateau lies above its apex.
     Plateau,
+    /// Six terms: the footprint-shaped dome of [`TopModel::Footprint`] standing on a
+    /// level pedestal `C` px above the base (`d = base + max(C, √Q)`): a fried egg, its
+    /// nucleus the dome and its spread cytoplasm the pedestal.
+    Nucleus([f64; 3]),
+}
+
+/// A level that cuts a top fit's dome ([`TopModel::Plateau`], [`TopModel::Nucleus`]).
+#[derive(Clone, Copy, PartialEq)]
+enum Cut {
+    /// The surface is the lower of the dome and the level.
+    Plateau,
+    /// The surface is the higher of the dome and the level.
+    Pedestal,
 }
 
 /// The first `N − 2` monomials of `(u, v)` up to fourth order, in the order the coefficients
@@ -987,15 +1005,39 @@ pub fn refine_top(
 ) -> Option<PeakFit> {
     let quartic = match model {
         TopModel::Footprint(shape) => {
-            return fit_top::<6>(left, right, pixels, init, base, None, Some(shape)).map(|f| f.0);
+            return fit_top::<6>(left, right, pixels, init, base, None, Some(shape), None)
+                .map(|f| f.0);
+        }
+        TopModel::Nucleus(shape) => {
+            return fit_top::<7>(
+                left,
+                right,
+                pixels,
+                init,
+                base,
+                None,
+                Some(shape),
+                Some(Cut::Pedestal),
+            )
+            .map(|f| f.0);
         }
         TopModel::Plateau => {
-            return fit_top::<9>(left, right, pixels, init, base, None, None).map(|f| f.0);
+            return fit_top::<9>(
+                left,
+                right,
+                pixels,
+                init,
+                base,
+                None,
+                None,
+                Some(Cut::Plateau),
+            )
+            .map(|f| f.0);
         }
         TopModel::Quadratic => false,
         TopModel::Quartic => true,
     };
-    let (dome, p, rays) = fit_top::<8>(left, right, pixels, init, base, None, None)?;
+    let (dome, p, rays) = fit_top::<8>(left, right, pixels, init, base, None, None, None)?;
     match quartic {
         false => Some(dome),
         // The quartic starts from the quadratic (a good fit it only refines: from the
@@ -1013,6 +1055,7 @@ pub fn refine_top(
                 init,
                 base,
                 Some((&p[..6], [p[6], p[7]], dome.at, &rays)),
+                None,
                 None,
             )
             .map_or(dome, |q| q.0),
@@ -1056,13 +1099,6 @@ const LM_TRIES_ONCE_MOVED: usize = 2;
 /// thread; heights moved by about 10⁻⁶ of themselves (where the fit's path stayed the
 /// same) and the heights matrix kept every figure.
 const RAY_STEP_DONE: f64 = 1e-3;
-
-/// Parameters of a [`TopModel::Plateau`] fit: six terms, the plateau, gain and offset (no
-/// other model has nine, so [`fit_top`] knows a plateau fit by its size).
-const PLATEAU_N: usize = 9;
-
-/// Where a plateau fit keeps its level among its parameters.
-const PLATEAU: usize = 6;
 
 /// Smallest height (px) a pixel's ray may meet a dome at: outside its foot `Q` is negative.
 const DOME_FLOOR: f64 = 1e-3;
@@ -1122,8 +1158,9 @@ fn ray_foot<T: Real>(x: T, y: T, t: T, ray: Option<(f64, [f64; 2])>) -> ([T; 2],
     }
 }
 
-/// [`refine_top`] with `N` parameters: the polynomial's `N − 2` terms, then a gain and an
-/// offset between the views.
+/// [`refine_top`] with `N` parameters: the polynomial's `N − 2` terms (with a `cut`, the
+/// last of them its level), then a gain and an offset between the views.
+#[allow(clippy::too_many_arguments)]
 fn fit_top<const N: usize>(
     left: &Plane<u8>,
     right: &Plane<u8>,
@@ -1132,8 +1169,11 @@ fn fit_top<const N: usize>(
     base: Option<Ground>,
     start: Option<Start>,
     footprint: Option<[f64; 3]>,
+    cut: Option<Cut>,
 ) -> Option<(PeakFit, [f64; N], Vec<f64>)> {
     let k = N - 2;
+    // Where a cut keeps its level: the last shape term.
+    let lv = k - 1;
     if pixels.len() < PEAK_MIN_PIXELS.max(3 * N) || pixels.len() != init.len() {
         return None;
     }
@@ -1149,12 +1189,11 @@ fn fit_top<const N: usize>(
     // With a footprint, the terms are 1, u, v and the footprint's own quadratic form (in
     // the patch's units): the curvature's shape is the outline's, only its size is free.
     let form = footprint.map(|[a, b, c]| [a, b, c].map(|x| x * radius * radius));
-    // With a plateau, the last shape term is its level, not a monomial.
-    let plateau = N == PLATEAU_N;
+    // With a cut, the last shape term is its level, not a monomial.
     let mono = |u: f64, v: f64| -> [f64; N] {
         let mut f = top_basis(u, v, form);
-        if plateau {
-            f[PLATEAU] = 0.0;
+        if cut.is_some() {
+            f[lv] = 0.0;
         }
         f
     };
@@ -1232,8 +1271,8 @@ fn fit_top<const N: usize>(
             );
             let mut fl: [Lanes; N] = top_basis(u, v, form);
             let (mut fu, mut fv): ([Lanes; N], [Lanes; N]) = top_basis_gradients(u, v, form);
-            if plateau {
-                (fl[PLATEAU], fu[PLATEAU], fv[PLATEAU]) = (c(0.0), c(0.0), c(0.0));
+            if cut.is_some() {
+                (fl[lv], fu[lv], fv[lv]) = (c(0.0), c(0.0), c(0.0));
             }
             // The three sums in `value`'s order (`sum` starts from −0.0).
             let (mut gu, mut gv, mut q) = (c(-0.0), c(-0.0), c(-0.0));
@@ -1273,11 +1312,17 @@ fn fit_top<const N: usize>(
                 1.0 / slope[l].max(2.0 * DOME_FLOOR)
             };
             // A ray that meets the dome above the plateau meets the plateau first (inside
-            // the dome at its level): it sees the plateau, which only its level moves.
-            if plateau && t[l] >= p[PLATEAU] {
+            // the dome at its level), one that meets it below a pedestal (or misses it) the
+            // pedestal: it sees the level, which only the level moves.
+            let on_level = match cut {
+                Some(Cut::Plateau) => t[l] >= p[lv],
+                Some(Cut::Pedestal) => t[l] <= p[lv] || dq == 0.0,
+                None => false,
+            };
+            if on_level {
                 let mut on = [0.0; N];
-                on[PLATEAU] = 1.0;
-                out[l] = (on, g.d + p[PLATEAU], 1.0);
+                on[lv] = 1.0;
+                out[l] = (on, g.d + p[lv], 1.0);
                 continue;
             }
             out[l] = (f[l], g.d + t[l], dq);
@@ -1311,16 +1356,26 @@ fn fit_top<const N: usize>(
             return None;
         }
         let (a, b) = normal_equations(&known, f64::INFINITY);
-        let kk = if plateau { PLATEAU } else { k };
+        let kk = if cut.is_some() { lv } else { k };
         let c0 = a.view((0, 0), (kk, kk)).lu().solve(&(-b.rows(0, kk)))?;
         p[..kk].copy_from_slice(c0.as_slice());
-        if plateau {
-            // Just under the dome's apex over the patch: the topmost pixels start on it.
-            let apex = pixels
-                .iter()
-                .map(|q| value(&p, &basis(q[0] as f64, q[1] as f64)))
-                .fold(0.0, f64::max);
-            p[PLATEAU] = 0.98 * apex.max(0.0).sqrt();
+        match cut {
+            Some(Cut::Plateau) => {
+                // Just under the dome's apex over the patch: the topmost pixels start on it.
+                let apex = pixels
+                    .iter()
+                    .map(|q| value(&p, &basis(q[0] as f64, q[1] as f64)))
+                    .fold(0.0, f64::max);
+                p[lv] = 0.98 * apex.max(0.0).sqrt();
+            }
+            Some(Cut::Pedestal) => {
+                // The lower quarter of the matched heights: the pixels off the nucleus
+                // start on the pedestal.
+                let mut t: Vec<f64> = known.iter().map(|(e, _)| (-e).sqrt()).collect();
+                t.sort_by(f64::total_cmp);
+                p[lv] = t[t.len() / 4];
+            }
+            None => {}
         }
     }
     // Sized for every pixel up front: grown by doubling, the terms (up to 144 bytes each)
@@ -1381,9 +1436,9 @@ fn fit_top<const N: usize>(
             for i in 0..N {
                 damped[(i, i)] *= 1.0 + lambda;
             }
-            // A plateau above every ray has no say: held where it is.
-            if plateau && damped[(PLATEAU, PLATEAU)] <= 0.0 {
-                damped[(PLATEAU, PLATEAU)] = 1.0;
+            // A level no ray sees has no say: held where it is.
+            if cut.is_some() && damped[(lv, lv)] <= 0.0 {
+                damped[(lv, lv)] = 1.0;
             }
             let Some(step) = damped.lu().solve(&(-&jte)) else {
                 lambda *= 10.0;
@@ -1429,7 +1484,11 @@ fn fit_top<const N: usize>(
             break;
         }
     }
-    let (jtj, _) = normal_equations(&terms, 1.5 * scale);
+    let (mut jtj, _) = normal_equations(&terms, 1.5 * scale);
+    // A level no ray sees is no unknown of the surface they see.
+    if cut.is_some() && jtj[(lv, lv)] <= 0.0 {
+        jtj[(lv, lv)] = 1.0;
+    }
     let cov = jtj.try_inverse();
     let poly = |u: f64, v: f64| value(&p, &mono(u, v));
     let (u, v) = match start.map(|s| s.2) {
@@ -1443,10 +1502,15 @@ fn fit_top<const N: usize>(
         None => (q, 1.0),
         Some(g) => {
             let r = q.max(DOME_FLOOR * DOME_FLOOR).sqrt();
-            if plateau && p[PLATEAU] < r {
+            let level = match cut {
+                Some(Cut::Plateau) => p[lv] < r,
+                Some(Cut::Pedestal) => p[lv] > r,
+                None => false,
+            };
+            if level {
                 f = [0.0; N];
-                f[PLATEAU] = 1.0;
-                (g.d + p[PLATEAU], 1.0)
+                f[lv] = 1.0;
+                (g.d + p[lv], 1.0)
             } else {
                 (g.d + r, 0.5 / r)
             }
@@ -1459,15 +1523,20 @@ fn fit_top<const N: usize>(
             .sum();
         scale * dq * var.max(0.0).sqrt()
     });
-    let plateau_share = if plateau {
-        // The rays where the fit ended (its last pass may have tried a step it rejected).
-        terms_at(&p);
-        warm.iter().filter(|t| t.get() >= p[PLATEAU]).count() as f64 / n
-    } else {
-        0.0
+    let level_share = match cut {
+        Some(c) => {
+            // The rays where the fit ended (its last pass may have tried a step it rejected).
+            terms_at(&p);
+            warm.iter()
+                .filter(|t| (t.get() >= p[lv]) == (c == Cut::Plateau))
+                .count() as f64
+                / n
+        }
+        None => 0.0,
     };
     let fit = PeakFit {
-        plateau_share,
+        level_share,
+        level: if cut.is_some() { p[lv] } else { 0.0 },
         peak: d,
         at: [centre[0] + u * radius, centre[1] + v * radius],
         residual: scale,
@@ -2144,16 +2213,16 @@ mod tests {
         assert!((p.peak - (base + top)).abs() < 0.05, "{}", p.peak);
         // The plateau (ρ² ≤ 0.36) over the upper 70 % (ρ² ≤ 1 − (0.3/1.25)² = 0.9424).
         assert!(
-            (p.plateau_share - 0.36 / 0.9424).abs() < 0.03,
+            (p.level_share - 0.36 / 0.9424).abs() < 0.03,
             "{}",
-            p.plateau_share
+            p.level_share
         );
         // A flat-topped cell (1 − ρ⁸): the plateau within 2 % of the top (1.2 % low when
         // this was written), the quartic further off (2.7 % low).
         let flat_top = |r2: f64| (1.0 - (r2 * r2) * (r2 * r2)).max(0.0);
         let p = fit(&flat_top, TopModel::Plateau);
         assert!((p.peak - (base + top)).abs() < 0.02 * top, "{}", p.peak);
-        assert!(p.plateau_share >= 0.35, "{}", p.plateau_share);
+        assert!(p.level_share >= 0.35, "{}", p.level_share);
         let q = fit(&flat_top, TopModel::Quartic);
         assert!(
             (q.peak - (base + top)).abs() > 1.5 * (p.peak - (base + top)).abs(),
@@ -2164,10 +2233,52 @@ mod tests {
         // A dome: hardly any plateau, the top where the dome's is.
         let dome = |r2: f64| (1.0 - r2).max(0.0).sqrt();
         let p = fit(&dome, TopModel::Plateau);
-        assert!(p.plateau_share < 0.2, "{}", p.plateau_share);
+        assert!(p.level_share < 0.2, "{}", p.level_share);
         assert!((p.peak - (base + top)).abs() < 0.05 * top, "{}", p.peak);
         // The other models leave it at 0.
-        assert_eq!(fit(&dome, TopModel::Quadratic).plateau_share, 0.0);
+        assert_eq!(fit(&dome, TopModel::Quadratic).level_share, 0.0);
+    }
+
+    #[test]
+    fn a_nucleus_on_its_pedestal_is_the_top_of_a_fried_egg() {
+        // A small cell (36 × 30 px), as the matched map smooths its nucleus away.
+        let (cx, cy, a, b, top, base) = (60.0, 50.0, 18.0, 15.0, 5.0, 0.6);
+        let rho2 = move |x: f64, y: f64| ((x - cx) / a).powi(2) + ((y - cy) / b).powi(2);
+        let form = [1.0 / (a * a), 0.0, 1.0 / (b * b)];
+        let t = texture(17, 30.0);
+        let fit = |shape: &dyn Fn(f64) -> f64| {
+            let d = |x: f64, y: f64| base + top * shape(rho2(x, y));
+            let (l, r) = pair(120, 100, &t, &d, 1.5, 4);
+            // The disc within 0.6 of the footprint's radius, started at half the height.
+            let (pixels, init) = patch(
+                |x, y| rho2(x, y) <= 0.36,
+                |x, y| base + 0.5 * (d(x, y) - base),
+            );
+            refine_top(&l, &r, &pixels, &init, flat(base), TopModel::Nucleus(form)).expect("a fit")
+        };
+        // `synth`'s fried egg: a dome over 0.45 of the radius on a cytoplasm at 0.3.
+        let egg = |r2: f64| {
+            let nucleus = (1.0 - r2 / (0.45 * 0.45)).max(0.0).sqrt();
+            (0.3 * (1.0 - r2 * r2).max(0.0)).max(nucleus)
+        };
+        let p = fit(&egg);
+        assert!((p.peak - (base + top)).abs() < 0.03 * top, "{}", p.peak);
+        assert!((p.level - 0.3 * top).abs() < 0.05 * top, "{}", p.level);
+        // The cytoplasm holds 1 − (0.45/0.6)² of the disc (a little less: the nucleus' foot
+        // rises above 0.3 before its edge).
+        assert!((p.level_share - 0.4375).abs() < 0.08, "{}", p.level_share);
+        // A dome: its pedestal, if any, is a thin ring high on its flank, and the top the
+        // dome's.
+        let dome = |r2: f64| (1.0 - r2).max(0.0).sqrt();
+        let p = fit(&dome);
+        assert!((p.peak - (base + top)).abs() < 0.03 * top, "{}", p.peak);
+        assert!(p.std < 0.05, "{}", p.std);
+        assert!(
+            p.level_share < 0.4 || p.level > 0.4 * (p.peak - base),
+            "share {} level {}",
+            p.level_share,
+            p.level
+        );
     }
 
     #[test]
