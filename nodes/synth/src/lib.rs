@@ -124,6 +124,15 @@ pub struct CellShape {
     /// harmonics, then their phases (radians). All zero: an ellipse.
     #[serde(default)]
     pub outline: [f64; 6],
+    /// A fried egg's nucleus: its radius over the footprint's, then its centre's offset
+    /// `[u, v]` from the footprint's (in footprint semi-axes, the cell's frame).
+    #[serde(default = "centred_nucleus")]
+    pub nucleus: [f64; 3],
+}
+
+/// A nucleus over the inner [`NUCLEUS`] of the footprint's radius, at its centre.
+pub fn centred_nucleus() -> [f64; 3] {
+    [NUCLEUS, 0.0, 0.0]
 }
 
 /// How a cell's height falls from its top (`h`) to its edge, over the normalised footprint
@@ -142,11 +151,12 @@ pub enum Profile {
     /// falling steeply at the margin (osteoblasts spread flat on the dish).
     Flat,
     /// A fried egg: a thin spread cytoplasm, `0.3·h·(1 − ρ⁴)`, under a raised nucleus (a
-    /// dome over the inner 45 % of the footprint's radius) whose top is the height.
+    /// dome over 30–55 % of the footprint's radius, up to 0.3 of it off centre:
+    /// [`CellShape::nucleus`]) whose top is the height.
     FriedEgg,
 }
 
-/// A fried egg's nucleus radius over its footprint's.
+/// A fried egg's nucleus radius over its footprint's, where no other is drawn.
 pub const NUCLEUS: f64 = 0.45;
 
 impl Profile {
@@ -159,8 +169,9 @@ impl Profile {
         Profile::FriedEgg,
     ];
 
-    /// Height over the top's, at normalised radius `rho` (< 1).
-    fn at(self, rho2: f64) -> f64 {
+    /// Height over the top's, at squared normalised radius `rho2` (< 1); `nucleus2`: the
+    /// squared distance from a fried egg's nucleus centre over its radius'.
+    fn at(self, rho2: f64, nucleus2: f64) -> f64 {
         match self {
             Profile::Dome => (1.0 - rho2).max(0.0).sqrt(),
             Profile::Cap => (1.0 - rho2).max(0.0),
@@ -168,7 +179,7 @@ impl Profile {
             Profile::Flat => (1.0 - (rho2 * rho2) * (rho2 * rho2)).max(0.0),
             Profile::FriedEgg => {
                 let cytoplasm = 0.3 * (1.0 - rho2 * rho2).max(0.0);
-                let nucleus = (1.0 - rho2 / (NUCLEUS * NUCLEUS)).max(0.0).sqrt();
+                let nucleus = (1.0 - nucleus2).max(0.0).sqrt();
                 cytoplasm.max(nucleus)
             }
         }
@@ -203,7 +214,17 @@ impl CellShape {
     /// outside the footprint.
     fn surface(&self, px: f64, py: f64) -> Option<f64> {
         let r2 = self.rho2(px, py);
-        (r2 < 1.0).then(|| self.height * self.profile.at(r2))
+        (r2 < 1.0).then(|| {
+            let (u, v) = (px / self.semi_axes[0], py / self.semi_axes[1]);
+            self.height * self.profile.at(r2, self.nucleus2(u, v))
+        })
+    }
+
+    /// Squared distance of `(u, v)` (in footprint semi-axes) from the nucleus' centre, over
+    /// its radius'.
+    fn nucleus2(&self, u: f64, v: f64) -> f64 {
+        let [r, ou, ov] = self.nucleus;
+        ((u - ou).powi(2) + (v - ov).powi(2)) / (r * r).max(1e-12)
     }
 
     /// Largest footprint radius, µm.
@@ -226,7 +247,8 @@ impl CellShape {
             let big = self.outline_at(phi);
             for i in 0..nr {
                 let r = (i as f64 + 0.5) / nr as f64 * big;
-                let z = self.height * self.profile.at((r / big).powi(2));
+                let n2 = self.nucleus2(r * phi.cos(), r * phi.sin());
+                let z = self.height * self.profile.at((r / big).powi(2), n2);
                 let da = self.semi_axes[0] * self.semi_axes[1] * r * big / nr as f64
                     * std::f64::consts::TAU
                     / nphi as f64;
@@ -416,8 +438,9 @@ pub struct CellSpec {
 }
 
 impl CellSpec {
-    /// Draws `cell`'s outline irregularity and elongation (nothing for a regular spec, so
-    /// that regular scenes draw no more numbers than they did).
+    /// Draws `cell`'s outline irregularity and elongation and a fried egg's nucleus
+    /// (nothing for a regular spec, so that regular scenes draw no more numbers than they
+    /// did).
     fn roughen(&self, cell: &mut CellShape, rng: &mut ChaCha8Rng) {
         if self.irregular > 0.0 {
             for k in 0..3 {
@@ -428,6 +451,13 @@ impl CellSpec {
         if self.elongation > 0.0 {
             cell.semi_axes[1] = cell.semi_axes[0] / (1.0 + rng.random_range(0.0..=self.elongation));
             cell.height = cell.height.min(1.6 * cell.semi_axes[1]);
+        }
+        // Nuclei differ in size and rarely sit at the centre.
+        if cell.profile == Profile::FriedEgg {
+            let r = rng.random_range(0.3..=0.55);
+            let off = rng.random_range(0.0..=0.3);
+            let phi = rng.random_range(0.0..std::f64::consts::TAU);
+            cell.nucleus = [r, off * phi.cos(), off * phi.sin()];
         }
     }
 }
@@ -544,6 +574,7 @@ impl Scene {
                 brightness: rng.random_range(-15.0..15.0),
                 profile: spec.profile,
                 outline: [0.0; 6],
+                nucleus: centred_nucleus(),
             };
             // Drawn after the rest, so that regular scenes stay what they were.
             spec.roughen(&mut cell, &mut rng);
@@ -1602,6 +1633,7 @@ mod tests {
                 brightness: rng.random_range(-15.0..15.0),
                 profile: spec.profile,
                 outline: [0.0; 6],
+                nucleus: centred_nucleus(),
             };
             spec.roughen(&mut cell, &mut rng);
             cells.push(cell);
@@ -1610,6 +1642,42 @@ mod tests {
             .iter()
             .map(|c| [c.centre[0], c.centre[1], c.semi_axes[0], c.height])
             .collect()
+    }
+
+    #[test]
+    fn a_fried_egg_s_nucleus_off_centre_is_its_top_and_its_volume_is_the_surface_s() {
+        let cell = CellShape {
+            centre: [0.0, 0.0],
+            semi_axes: [30.0, 24.0],
+            angle: 0.3,
+            height: 12.0,
+            texture_offset: [0.0; 2],
+            brightness: 0.0,
+            profile: Profile::FriedEgg,
+            outline: [0.0; 6],
+            nucleus: [0.35, 0.2, -0.15],
+        };
+        // The top is the nucleus' centre, at the cell's height; off the nucleus lies the
+        // cytoplasm, 0.3·h·(1 − ρ⁴).
+        let (nx, ny) = (0.2 * 30.0, -0.15 * 24.0);
+        assert!((cell.surface(nx, ny).unwrap() - 12.0).abs() < 1e-9);
+        let rho2: f64 = 0.5 * 0.5 + 0.3 * 0.3;
+        let cytoplasm = 0.3 * 12.0 * (1.0 - rho2 * rho2);
+        assert!((cell.surface(-0.5 * 30.0, 0.3 * 24.0).unwrap() - cytoplasm).abs() < 1e-9);
+        // The volume integrated on the polar grid is the surface's, summed on a fine grid.
+        let (v, _) = cell.volume_and_centroid_height();
+        let step = 0.05;
+        let mut sum = 0.0;
+        for i in 0..(60.0 / step) as usize {
+            for j in 0..(48.0 / step) as usize {
+                let (x, y) = (
+                    -30.0 + (i as f64 + 0.5) * step,
+                    -24.0 + (j as f64 + 0.5) * step,
+                );
+                sum += cell.surface(x, y).unwrap_or(0.0) * step * step;
+            }
+        }
+        assert!((v / sum - 1.0).abs() < 2e-3, "polar {v} grid {sum}");
     }
 
     #[test]

@@ -139,6 +139,7 @@ impl Tour {
                 brightness: rng.random_range(-15.0..15.0),
                 profile: CellSpec::default().profile,
                 outline: [0.0; 6],
+                nucleus: crate::centred_nucleus(),
             }
         };
         // The parts, placed in the view's inner region (left of its middle for the rows

@@ -400,21 +400,25 @@ const MIN_VALID_SHARE: f64 = 0.2;
 const PLATEAU_SHARE: f64 = 0.35;
 
 /// Reach of a cell's nucleus fit ([`TopModel::Nucleus`]) round its top, in units of its
-/// footprint's radius. A fried egg's nucleus spans 0.45 of its footprint's radius and the
-/// segmented outline lies outside the true one (the variance window): 0.6 takes the
-/// nucleus and a ring of its cytoplasm. Over the fried eggs of the heights matrix, 0.5
-/// and 0.7 put fewer tops within 5 % (74 and 70 of 88 against 75).
+/// footprint's radius. A fried egg's nucleus spans 0.3–0.55 of its footprint's radius and
+/// the segmented outline lies outside the true one (the variance window): 0.6 takes the
+/// nucleus and a ring of its cytoplasm. Over centred nuclei of 0.45 (the heights matrix's
+/// fried eggs before their nuclei varied), 0.5 and 0.7 put fewer tops within 5 % (74 and
+/// 70 of 88 against 75).
 const NUCLEUS_REACH: f64 = 0.6;
 
 /// Least share of the nucleus fit's pixels on its pedestal for the cell to be a fried egg.
-/// Over the heights matrix, fried eggs' pedestals held 0.50–0.62 of the disc, the
-/// pedestals fitted to domes, caps and spread cells at most 0.31 (mostly under 0.2).
+/// Over the heights matrix (centred nuclei), fried eggs' pedestals held 0.50–0.62 of the
+/// disc, the pedestals fitted to domes, caps and spread cells at most 0.31 (mostly under
+/// 0.2); any share from 0.35 to 0.45 gave the same tops.
 const PEDESTAL_SHARE: f64 = 0.4;
 
 /// Highest pedestal, relative to the nucleus' top, for the cell to be a fried egg: fitted
-/// fried eggs' cytoplasm lay at 0.23–0.32 of the top (0.3 in `synth`), the pedestals fitted
-/// to domes at 0.4–0.8.
-const PEDESTAL_MAX: f64 = 0.4;
+/// fried eggs' cytoplasm lay at 0.23–0.32 of the top (0.3 at the centre in `synth`, less
+/// round a nucleus off it), the pedestals fitted to domes at 0.4–0.8; nucleus fits that
+/// had slid 40–50 % low, at 0.39–0.40 (0.4 → 0.35: textureless fried eggs with varied
+/// nuclei 66 → 68 % within 5 %).
+const PEDESTAL_MAX: f64 = 0.35;
 
 /// Largest standard error of a trusted height, relative to the height (2σ = 5 %).
 const HEIGHT_MAX_REL_STD: f64 = 0.025;
@@ -478,17 +482,18 @@ fn top_of_cell(
     // disc round the top, sees it. Where most of the disc lies on the pedestal and that is
     // low under the top, the cell is one. A larger cell's quartic follows its nucleus
     // (over the heights matrix, fitting them too gained no top within 5 %).
+    let matched_top = place_of(inside.iter().filter(|(_, d)| *d >= level(0.7)));
     if n7 < STEADY_TOP_PIXELS
-        && let Some(shape) = shape
+        && let (Some(shape), Some(at)) = (shape, matched_top)
         && let Some(nucleus) = fit(
-            &disc(&inside, shape, level(0.7), NUCLEUS_REACH),
+            &disc(&inside, shape, at, NUCLEUS_REACH),
             TopModel::Nucleus(shape),
         )
         && nucleus.level_share >= PEDESTAL_SHARE
         && nucleus.level <= PEDESTAL_MAX * (nucleus.peak - base)
     {
         let other = fit(
-            &disc(&inside, shape, level(0.7), NUCLEUS_REACH - 0.1),
+            &disc(&inside, shape, at, NUCLEUS_REACH - 0.1),
             TopModel::Nucleus(shape),
         );
         // Only the pixels on the nucleus say where its top is: they, not the disc, are what
@@ -540,25 +545,25 @@ fn top_of_cell(
     rounded
 }
 
-/// The pixels of `inside` (with their matched disparities) within `reach` footprint radii
-/// (`shape`: the footprint's normalised quadratic form) of the centre of those at or above
-/// `top` (the place of the matched top).
-fn disc(
-    inside: &[([usize; 2], f32)],
-    [a, b, c]: [f64; 3],
-    top: f32,
-    reach: f64,
-) -> (Vec<[usize; 2]>, Vec<f32>) {
+/// The mean place of `pixels`; `None` for none.
+fn place_of<'a>(pixels: impl Iterator<Item = &'a ([usize; 2], f32)>) -> Option<[f64; 2]> {
     let (mut n, mut sx, mut sy) = (0.0, 0.0, 0.0);
-    for ([x, y], _) in inside.iter().filter(|(_, d)| *d >= top) {
+    for ([x, y], _) in pixels {
         n += 1.0;
         sx += *x as f64;
         sy += *y as f64;
     }
-    if n == 0.0 {
-        return (Vec::new(), Vec::new());
-    }
-    let (cx, cy) = (sx / n, sy / n);
+    (n > 0.0).then(|| [sx / n, sy / n])
+}
+
+/// The pixels of `inside` (with their matched disparities) within `reach` footprint radii
+/// of `[cx, cy]` (`shape`: the footprint's normalised quadratic form).
+fn disc(
+    inside: &[([usize; 2], f32)],
+    [a, b, c]: [f64; 3],
+    [cx, cy]: [f64; 2],
+    reach: f64,
+) -> (Vec<[usize; 2]>, Vec<f32>) {
     inside
         .iter()
         .filter(|([x, y], _)| {
