@@ -823,6 +823,19 @@ fn run_tracked(seeds: u64) -> (Vec<Height>, Vec<Height>) {
                     !tr.trusted,
                     tr.height_std.map(|s| s / t.height),
                 ));
+                if std::env::var_os("HEIGHTS_DETAIL").is_some() {
+                    let pct = |v: Option<f64>| v.map(|v| (1000.0 * v / t.height).round() / 10.0);
+                    eprintln!(
+                        "      tracked seed {seed} cell {} {:?} area {}: fused {:?} % (σ {:?} %, trusted {}), frames used {}",
+                        t.id,
+                        t.shape.profile,
+                        t.area_px,
+                        pct(tr.height.map(|h| h - t.height)),
+                        pct(tr.height_std),
+                        tr.trusted,
+                        tr.frames_used,
+                    );
+                }
             }
         }
         let bad = hs
