@@ -334,9 +334,11 @@ fn evaluate(c: &Condition, seed: u64) -> Outcome {
             let base = cal.baseline * cal.focal_px / m.substrate_z - (cal.cx_right - cal.cx);
             let [tb, tt] = t.disparity_base_top;
             eprintln!(
-                "      seed {seed} cell {} {:?} area {} (found {}, centroid off {:.2} px) true base {tb:.2} top {tt:.2} | base {:+.3} top {:+.3} | err {:?} % {:?} {:?}",
+                "      seed {seed} cell {} {:?} at ({:.0}, {:.0}) area {} (found {}, centroid off {:.2} px) true base {tb:.2} top {tt:.2} | base {:+.3} top {:+.3} | err {:?} % {:?} {:?}",
                 t.id,
                 t.shape.profile,
+                t.centroid_px[0],
+                t.centroid_px[1],
                 t.area_px,
                 m.area_px,
                 near(&m),
