@@ -514,6 +514,17 @@ fn matrix() -> Vec<(Condition, std::ops::RangeInclusive<u64>)> {
     });
     t.open = true;
     add(t, 1..=6);
+    // The open shapes on a large sensor: cells of the same size in µm, farther from the
+    // principal point (stronger parallax at the edges).
+    for (name, profile) in [
+        ("1280×1024 textureless, fried eggs", Profile::FriedEgg),
+        ("1280×1024 textureless, flat-topped", Profile::Flat),
+    ] {
+        let mut t = open_shape(bright(name, 8.0, (0, 24)), profile);
+        t.size = (1280, 1024);
+        t.cells = 10;
+        add(t, 1..=4);
+    }
     let mut t = bright("1280×1024 textureless", 8.0, (0, 24));
     t.size = (1280, 1024);
     t.cells = 10;
