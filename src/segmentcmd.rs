@@ -55,7 +55,7 @@ pub struct SegmentOpts {
     #[arg(long)]
     no_peel: bool,
     /// Keep thin arcs around a larger object (an embryo's zona pellucida) as objects of
-    /// their own instead of joining them to it.
+    /// their own instead of joining them to it, and a rim open on one side open.
     #[arg(long)]
     no_absorb_rings: bool,
 }

@@ -7,7 +7,8 @@
 //! 3. clean-up: optional [`open`]/[`close`], [`fill_holes`], [`peel_edges`] (the skirt
 //!    the variance window adds around a cell goes back to the background), [`remove_small`];
 //! 4. [`label`]: 8-connected components; [`absorb_rings`]: thin arcs around a larger object
-//!    (an embryo's zona pellucida) join it;
+//!    (an embryo's zona pellucida) join it, an arc round nothing that follows an ellipse
+//!    (a flat cell's rim seen at a slant) is closed;
 //! 5. [`trace_boundary`]: chain-code boundary following with the paper's search-start rule;
 //! 6. per cell: id, area, centroid, bounding box, contour and perimeter ([`schemas::Cell`]).
 //!
@@ -58,7 +59,8 @@ pub struct SegmentParams {
     /// (within 2.25 robust standard deviations of it, over a `(8M+9)²` window).
     pub peel_edges: bool,
     /// Join thin arcs (solidity ≤ 0.35) to the object at least twice their size that their
-    /// hull reaches into: an embryo's zona pellucida breaks into arcs around it.
+    /// hull reaches into: an embryo's zona pellucida breaks into arcs around it; close an
+    /// arc that reaches into none into the ellipse it follows round at least 240°.
     pub absorb_rings: bool,
 }
 

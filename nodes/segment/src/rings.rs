@@ -20,14 +20,272 @@ struct Component {
 }
 
 /// Relabels, in place, every thin arc of `labels` (`1..=n`) whose convex hull reaches into a
-/// component at least twice its size with that component's id, and renumbers the labels
+/// component at least twice its size with that component's id, closes every arc that
+/// reaches into none and follows an ellipse round most of its turn (a cell's rim open on
+/// one side, [`close_open_ring`]), and renumbers the labels
 /// `1..=m` in their old order. Returns `m` and, per new id, where its boundary trace starts
 /// (the raster-first pixel of its largest piece, so that an absorbed arc does not become
 /// the contour).
 pub fn absorb_rings(labels: &mut Plane<u32>, n: u32) -> (u32, Vec<[u32; 2]>) {
-    let comps = components(labels, n);
+    let mut comps = components(labels, n);
     let into = hosts(&comps, |b, hull| reaches(labels, b as u32, hull));
+    for (a, c) in comps.iter_mut().enumerate() {
+        if into[a] == a as u32
+            && let Some(c) = c
+        {
+            close_open_ring(labels, a as u32, c);
+        }
+    }
     renumber(labels, &comps, &into)
+}
+
+/// Largest solidity of a hostless component that may be an open ring (a cell's rim whose
+/// near side fell under the variance threshold).
+const OPEN_RING_SOLIDITY: f64 = 0.5;
+
+/// Least turn (of 36 ten-degree sectors round the fitted ellipse's centre) an open ring's
+/// pixels must cover: a crescent, not a hook or a bar. The crescents of flat-topped cells
+/// seen at a slant (the heights matrix's strong perspective and 1280×1024 views) covered
+/// 24–33; a thin 143° arc of 98 px, whose conic bends in on it, 23.
+const OPEN_RING_SECTORS: usize = 24;
+
+/// Fewest pixels of an open ring: the variance band round a cell of 20 px across (thin
+/// short arcs fit conics that bend in on them).
+const OPEN_RING_PIXELS: u64 = 200;
+
+/// Largest share of an open ring's pixels off its fitted ellipse by more than a third of
+/// its radius.
+const OPEN_RING_OFF: f64 = 0.1;
+
+/// Fills, with label `id`, the background inside the ellipse that the hostless arc `c`
+/// follows, where it is one: a flat-topped cell seen at a slant shows its rim on the far
+/// side only (the plateau hides the near flank), and the variance threshold keeps a
+/// crescent whose gap is too wide to close ([`crate::fill_broken_outlines`]). The ellipse
+/// is a least-squares conic through the arc's pixels; it must cover at least 240° of turn,
+/// fit them within a third of its radius, stay within the arc's box grown by a quarter and
+/// cover no other label's pixels (beyond 2 %). Updates `c`'s area and first pixel.
+fn close_open_ring(labels: &mut Plane<u32>, id: u32, c: &mut Component) {
+    let solidity = c.area as f64 / (c.hull_area + 0.5 * perimeter(&c.hull) + 1.0);
+    if solidity > OPEN_RING_SOLIDITY || c.hull.len() < 3 || c.area < OPEN_RING_PIXELS {
+        return;
+    }
+    let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+    for q in &c.hull {
+        for k in 0..2 {
+            lo[k] = lo[k].min(q[k]);
+            hi[k] = hi[k].max(q[k]);
+        }
+    }
+    let (x0, x1) = (
+        lo[0].max(0.0) as usize,
+        (hi[0] as usize).min(labels.width - 1),
+    );
+    let (y0, y1) = (
+        lo[1].max(0.0) as usize,
+        (hi[1] as usize).min(labels.height - 1),
+    );
+    let mut pts = Vec::new();
+    for y in y0..=y1 {
+        for (i, &l) in labels.row(y)[x0..=x1].iter().enumerate() {
+            if l == id {
+                pts.push([(x0 + i) as f64, y as f64]);
+            }
+        }
+    }
+    let Some(e) = Ellipse::fit(&pts) else {
+        return;
+    };
+    // A rim encloses far more than itself; an ellipse fitted inside a short thick arc
+    // does not.
+    if e.area() < 2.0 * pts.len() as f64 {
+        return;
+    }
+    // Normalised radius of each arc pixel, and the sectors of turn they cover.
+    let mut sectors = [false; 36];
+    let mut off = 0usize;
+    let mut rho: Vec<f64> = Vec::with_capacity(pts.len());
+    for &p in &pts {
+        let (r, angle) = e.polar(p);
+        rho.push(r);
+        if (r - 1.0).abs() > 1.0 / 3.0 {
+            off += 1;
+        }
+        let k = ((angle + std::f64::consts::PI) / std::f64::consts::TAU * 36.0) as usize;
+        sectors[k.min(35)] = true;
+    }
+    if sectors.iter().filter(|s| **s).count() < OPEN_RING_SECTORS
+        || off as f64 > OPEN_RING_OFF * pts.len() as f64
+    {
+        return;
+    }
+    // Out to the arc's own outer edge (its 95th percentile radius).
+    rho.sort_by(f64::total_cmp);
+    let outer = rho[(rho.len() - 1) * 95 / 100];
+    let [bx0, by0, bx1, by1] = e.bounds(outer);
+    let grow = [0.25 * (hi[0] - lo[0]), 0.25 * (hi[1] - lo[1])];
+    if bx0 < lo[0] - grow[0]
+        || bx1 > hi[0] + grow[0]
+        || by0 < lo[1] - grow[1]
+        || by1 > hi[1] + grow[1]
+    {
+        return;
+    }
+    let (fx0, fx1) = (
+        bx0.floor().max(0.0) as usize,
+        (bx1.ceil() as usize).min(labels.width - 1),
+    );
+    let (fy0, fy1) = (
+        by0.floor().max(0.0) as usize,
+        (by1.ceil() as usize).min(labels.height - 1),
+    );
+    let (mut fill, mut other) = (Vec::new(), 0usize);
+    for y in fy0..=fy1 {
+        for x in fx0..=fx1 {
+            if e.polar([x as f64, y as f64]).0 <= outer {
+                match *labels.get(x, y) {
+                    0 => fill.push((x, y)),
+                    l if l != id => other += 1,
+                    _ => {}
+                }
+            }
+        }
+    }
+    if other as f64 > 0.02 * (fill.len() + other + pts.len()) as f64 {
+        return;
+    }
+    for &(x, y) in &fill {
+        *labels.get_mut(x, y) = id;
+        if (y as u32, x as u32) < (c.first[1], c.first[0]) {
+            c.first = [x as u32, y as u32];
+        }
+    }
+    c.area += fill.len() as u64;
+}
+
+/// An ellipse `(p − c)ᵀ·M·(p − c) = 1`.
+struct Ellipse {
+    centre: [f64; 2],
+    /// `M` as `[m00, m01, m11]`.
+    m: [f64; 3],
+}
+
+impl Ellipse {
+    /// The least-squares conic `A·x² + B·x·y + C·y² + D·x + E·y + F = 0` with `A + C = 1`
+    /// through `pts` (centred and scaled for its conditioning), if it is an ellipse no
+    /// more than three times as long as it is wide.
+    fn fit(pts: &[[f64; 2]]) -> Option<Self> {
+        if pts.len() < 10 {
+            return None;
+        }
+        let n = pts.len() as f64;
+        let mean = pts
+            .iter()
+            .fold([0.0, 0.0], |a, p| [a[0] + p[0] / n, a[1] + p[1] / n]);
+        let scale = (pts
+            .iter()
+            .map(|p| (p[0] - mean[0]).powi(2) + (p[1] - mean[1]).powi(2))
+            .sum::<f64>()
+            / n)
+            .sqrt()
+            .max(1e-9);
+        // With C = 1 − A: A·(x² − y²) + B·x·y + D·x + E·y + F = −y².
+        let mut ata = [[0.0f64; 5]; 5];
+        let mut atb = [0.0f64; 5];
+        for p in pts {
+            let (x, y) = ((p[0] - mean[0]) / scale, (p[1] - mean[1]) / scale);
+            let row = [x * x - y * y, x * y, x, y, 1.0];
+            for i in 0..5 {
+                for j in 0..5 {
+                    ata[i][j] += row[i] * row[j];
+                }
+                atb[i] += row[i] * (-y * y);
+            }
+        }
+        let [a, b, d, e, f] = solve5(ata, atb)?;
+        let c = 1.0 - a;
+        let det = 4.0 * a * c - b * b;
+        if det <= 0.0 {
+            return None;
+        }
+        // Centre: ∇ = 0.
+        let cx = (b * e - 2.0 * c * d) / det;
+        let cy = (b * d - 2.0 * a * e) / det;
+        let f0 = f + 0.5 * (d * cx + e * cy);
+        if f0 >= 0.0 {
+            return None;
+        }
+        let m = [-a / f0, -0.5 * b / f0, -c / f0];
+        // Eigenvalues of M: the inverse squared semi-axes.
+        let (tr, dm) = (m[0] + m[2], m[0] * m[2] - m[1] * m[1]);
+        let disc = (0.25 * tr * tr - dm).max(0.0).sqrt();
+        let (l1, l2) = (0.5 * tr + disc, 0.5 * tr - disc);
+        if l2 <= 0.0 || l1 / l2 > 9.0 {
+            return None;
+        }
+        let s2 = scale * scale;
+        Some(Self {
+            centre: [mean[0] + cx * scale, mean[1] + cy * scale],
+            m: [m[0] / s2, m[1] / s2, m[2] / s2],
+        })
+    }
+
+    /// Normalised radius (1 on the ellipse) and angle in its normalised frame of `p`.
+    fn polar(&self, p: [f64; 2]) -> (f64, f64) {
+        let (dx, dy) = (p[0] - self.centre[0], p[1] - self.centre[1]);
+        let q = self.m[0] * dx * dx + 2.0 * self.m[1] * dx * dy + self.m[2] * dy * dy;
+        // The angle in a frame where the ellipse is a circle: M's square root applied.
+        let (u, v) = (
+            self.m[0].sqrt() * dx + self.m[1] / self.m[0].sqrt() * dy,
+            (self.m[2] - self.m[1] * self.m[1] / self.m[0])
+                .max(0.0)
+                .sqrt()
+                * dy,
+        );
+        (q.max(0.0).sqrt(), v.atan2(u))
+    }
+
+    /// Area (px²).
+    fn area(&self) -> f64 {
+        std::f64::consts::PI / (self.m[0] * self.m[2] - self.m[1] * self.m[1]).sqrt()
+    }
+
+    /// The box `[x0, y0, x1, y1]` of the ellipse scaled by `r`.
+    fn bounds(&self, r: f64) -> [f64; 4] {
+        // Half extents of {q ≤ r²}: r·√(M⁻¹ diagonal).
+        let det = self.m[0] * self.m[2] - self.m[1] * self.m[1];
+        let (hx, hy) = (r * (self.m[2] / det).sqrt(), r * (self.m[0] / det).sqrt());
+        [
+            self.centre[0] - hx,
+            self.centre[1] - hy,
+            self.centre[0] + hx,
+            self.centre[1] + hy,
+        ]
+    }
+}
+
+/// `x` with `a·x = b` (Gaussian elimination with partial pivoting); `None` when singular.
+fn solve5(mut a: [[f64; 5]; 5], mut b: [f64; 5]) -> Option<[f64; 5]> {
+    for col in 0..5 {
+        let piv = (col..5).max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))?;
+        if a[piv][col].abs() < 1e-12 {
+            return None;
+        }
+        a.swap(col, piv);
+        b.swap(col, piv);
+        for r in col + 1..5 {
+            let f = a[r][col] / a[col][col];
+            for k in col..5 {
+                a[r][k] -= f * a[col][k];
+            }
+            b[r] -= f * b[col];
+        }
+    }
+    let mut x = [0.0; 5];
+    for r in (0..5).rev() {
+        let s: f64 = (r + 1..5).map(|k| a[r][k] * x[k]).sum();
+        x[r] = (b[r] - s) / a[r][r];
+    }
+    Some(x)
 }
 
 /// Per label `0..=n` of `labels`, in one pass: its area, its raster-first pixel and the
@@ -335,6 +593,59 @@ mod tests {
             absorbed += (n - fast.0) as usize;
         }
         assert!(absorbed > 20, "{absorbed} labels absorbed or missing");
+    }
+
+    /// A band `r0..r1` round `c` between angles `a0..a1` (radians), label 1, in 160×140.
+    fn band(c: [f64; 2], (r0, r1): (f64, f64), (a0, a1): (f64, f64)) -> Plane<u32> {
+        let mut p = Plane::filled(160, 140, 0u32);
+        for y in 0..140usize {
+            for x in 0..160usize {
+                let (dx, dy) = (x as f64 - c[0], (y as f64 - c[1]) * 1.25);
+                let (d, a) = (dx.hypot(dy), dy.atan2(dx));
+                if d >= r0 && d <= r1 && a >= a0 && a <= a1 {
+                    *p.get_mut(x, y) = 1;
+                }
+            }
+        }
+        p
+    }
+
+    #[test]
+    fn a_rim_open_on_one_side_is_closed_and_a_short_arc_is_not() {
+        // A flat-topped cell's rim seen at a slant: 270° of a 7 px band round an ellipse of
+        // semi-axes 40 and 32 px.
+        let mut p = band([80.0, 70.0], (33.0, 40.0), (-2.4, 2.4));
+        let arc = p.data.iter().filter(|&&l| l == 1).count();
+        let (n, starts) = absorb_rings(&mut p, 1);
+        assert_eq!(n, 1);
+        let (mut area, mut sx, mut sy) = (0.0, 0.0, 0.0);
+        for y in 0..p.height {
+            for x in 0..p.width {
+                if *p.get(x, y) == 1 {
+                    area += 1.0;
+                    sx += x as f64;
+                    sy += y as f64;
+                }
+            }
+        }
+        // The ellipse to the band's outer edge: π·40·32 px.
+        let disc = std::f64::consts::PI * 40.0 * 32.0;
+        assert!(
+            (area / disc - 1.0).abs() < 0.08,
+            "{area} of {disc} ({arc} in the arc)"
+        );
+        assert!((sx / area - 80.0).hypot(sy / area - 70.0) < 1.0);
+        // The trace starts on the filled region's first raster pixel.
+        let first = (0..p.height)
+            .flat_map(|y| (0..p.width).map(move |x| (x, y)))
+            .find(|&(x, y)| *p.get(x, y) == 1)
+            .unwrap();
+        assert_eq!(starts[1], [first.0 as u32, first.1 as u32]);
+        // 150° of the same band: a hook, left as it is.
+        let mut q = band([80.0, 70.0], (33.0, 40.0), (-1.3, 1.3));
+        let before = q.clone();
+        absorb_rings(&mut q, 1);
+        assert_eq!(q, before);
     }
 
     #[test]
