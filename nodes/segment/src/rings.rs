@@ -272,10 +272,11 @@ fn solve5(mut a: [[f64; 5]; 5], mut b: [f64; 5]) -> Option<[f64; 5]> {
         }
         a.swap(col, piv);
         b.swap(col, piv);
+        let pivot = a[col];
         for r in col + 1..5 {
-            let f = a[r][col] / a[col][col];
-            for k in col..5 {
-                a[r][k] -= f * a[col][k];
+            let f = a[r][col] / pivot[col];
+            for (v, p) in a[r][col..].iter_mut().zip(&pivot[col..]) {
+                *v -= f * p;
             }
             b[r] -= f * b[col];
         }
