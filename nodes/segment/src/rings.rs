@@ -69,21 +69,8 @@ fn close_open_ring(labels: &mut Plane<u32>, id: u32, c: &mut Component) {
     if solidity > OPEN_RING_SOLIDITY || c.hull.len() < 3 || c.area < OPEN_RING_PIXELS {
         return;
     }
-    let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
-    for q in &c.hull {
-        for k in 0..2 {
-            lo[k] = lo[k].min(q[k]);
-            hi[k] = hi[k].max(q[k]);
-        }
-    }
-    let (x0, x1) = (
-        lo[0].max(0.0) as usize,
-        (hi[0] as usize).min(labels.width - 1),
-    );
-    let (y0, y1) = (
-        lo[1].max(0.0) as usize,
-        (hi[1] as usize).min(labels.height - 1),
-    );
+    let (lo, hi) = hull_box(&c.hull);
+    let [x0, y0, x1, y1] = pixel_box(labels, lo, hi);
     let mut pts = Vec::new();
     for y in y0..=y1 {
         for (i, &l) in labels.row(y)[x0..=x1].iter().enumerate() {
@@ -342,9 +329,8 @@ impl Component {
     }
 }
 
-/// Whether a pixel of label `b` lies strictly inside `hull`: only the hull's box can hold
-/// one.
-fn reaches(labels: &Plane<u32>, b: u32, hull: &[[f64; 2]]) -> bool {
+/// The corners `(lo, hi)` of `hull`'s box.
+fn hull_box(hull: &[[f64; 2]]) -> ([f64; 2], [f64; 2]) {
     let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
     for q in hull {
         for k in 0..2 {
@@ -352,14 +338,24 @@ fn reaches(labels: &Plane<u32>, b: u32, hull: &[[f64; 2]]) -> bool {
             hi[k] = hi[k].max(q[k]);
         }
     }
-    let (x0, x1) = (
+    (lo, hi)
+}
+
+/// The pixels `[x0, y0, x1, y1]` (inclusive) of the box `lo..hi` that lie in `labels`.
+fn pixel_box(labels: &Plane<u32>, lo: [f64; 2], hi: [f64; 2]) -> [usize; 4] {
+    [
         lo[0].max(0.0) as usize,
-        (hi[0] as usize).min(labels.width - 1),
-    );
-    let (y0, y1) = (
         lo[1].max(0.0) as usize,
+        (hi[0] as usize).min(labels.width - 1),
         (hi[1] as usize).min(labels.height - 1),
-    );
+    ]
+}
+
+/// Whether a pixel of label `b` lies strictly inside `hull`: only the hull's box can hold
+/// one.
+fn reaches(labels: &Plane<u32>, b: u32, hull: &[[f64; 2]]) -> bool {
+    let (lo, hi) = hull_box(hull);
+    let [x0, y0, x1, y1] = pixel_box(labels, lo, hi);
     (y0..=y1).any(|y| {
         labels.row(y)[x0..=x1]
             .iter()

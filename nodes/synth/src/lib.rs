@@ -220,9 +220,13 @@ impl CellShape {
         })
     }
 
-    /// Squared distance of `(u, v)` (in footprint semi-axes) from the nucleus' centre, over
-    /// its radius'.
+    /// Squared distance of `(u, v)` (in footprint semi-axes) from a fried egg's nucleus'
+    /// centre, over its radius' (0 for the other profiles, which have none: the ray march
+    /// asks for the surface dozens of times per pixel).
     fn nucleus2(&self, u: f64, v: f64) -> f64 {
+        if self.profile != Profile::FriedEgg {
+            return 0.0;
+        }
         let [r, ou, ov] = self.nucleus;
         ((u - ou).powi(2) + (v - ov).powi(2)) / (r * r).max(1e-12)
     }

@@ -482,9 +482,9 @@ fn top_of_cell(
     // disc round the top, sees it. Where most of the disc lies on the pedestal and that is
     // low under the top, the cell is one. A larger cell's quartic follows its nucleus
     // (over the heights matrix, fitting them too gained no top within 5 %).
-    let matched_top = place_of(inside.iter().filter(|(_, d)| *d >= level(0.7)));
     if n7 < STEADY_TOP_PIXELS
-        && let (Some(shape), Some(at)) = (shape, matched_top)
+        && let Some(shape) = shape
+        && let Some(at) = place_of(inside.iter().filter(|(_, d)| *d >= level(0.7)))
         && let Some(nucleus) = fit(
             &disc(&inside, shape, at, NUCLEUS_REACH),
             TopModel::Nucleus(shape),
