@@ -6,8 +6,8 @@
 //! the rest ([`compose`], [`cell_heights`], [`measure`]).
 
 use crate::refine::{
-    BandPassed, DisparityPlane, Ground, Parallax, PeakFit, PlaneTrack, TopModel, refine_top,
-    slide_rows, track_disparity_plane,
+    BandPassed, DisparityPlane, Ground, Parallax, PeakFit, PlaneTrack, TopModel, refine_nucleus,
+    refine_top, slide_rows, track_disparity_plane,
 };
 use crate::substrate::{self, Base, RimFit};
 use rayon::prelude::*;
@@ -420,6 +420,12 @@ const PEDESTAL_SHARE: f64 = 0.4;
 /// nuclei 66 → 68 % within 5 %).
 const PEDESTAL_MAX: f64 = 0.35;
 
+/// Highest pedestal, relative to the matched map's top, for the cell to be a fried egg:
+/// the map smooths a small nucleus but still shows it standing over its cytoplasm. Over
+/// the heights matrix fried eggs' pedestals lay at 0.2–0.6 of the map's top; a nucleus
+/// fit started tall on a small dome (a spike on its flanks, +160 %) at 0.87.
+const PEDESTAL_UNDER_MAP: f64 = 0.7;
+
 /// Largest standard error of a trusted height, relative to the height (2σ = 5 %).
 const HEIGHT_MAX_REL_STD: f64 = 0.025;
 
@@ -485,12 +491,12 @@ fn top_of_cell(
     if n7 < STEADY_TOP_PIXELS
         && let Some(shape) = shape
         && let Some(at) = place_of(inside.iter().filter(|(_, d)| *d >= level(0.7)))
-        && let Some(nucleus) = fit(
-            &disc(&inside, shape, at, NUCLEUS_REACH),
-            TopModel::Nucleus(shape),
-        )
+        && let round = disc(&inside, shape, at, NUCLEUS_REACH)
+        && let Some((nucleus, _)) =
+            refine_nucleus(left, right, &round.0, &round.1, Some(ground), shape)
         && nucleus.level_share >= PEDESTAL_SHARE
         && nucleus.level <= PEDESTAL_MAX * (nucleus.peak - base)
+        && nucleus.level <= PEDESTAL_UNDER_MAP * (top - base)
     {
         let other = fit(
             &disc(&inside, shape, at, NUCLEUS_REACH - 0.1),
