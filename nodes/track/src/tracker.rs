@@ -142,8 +142,12 @@ impl TrackerParams {
 const ALPHA: f64 = 0.7;
 /// Velocity gain of the α-β filter.
 const BETA: f64 = 0.15;
-/// A lost track's velocity kept per frame: an unseen cell is not assumed to drift on.
+/// A lost track's velocity kept per [`LOST_DAMPING_STEP_S`]: an unseen cell is not assumed
+/// to drift on.
 const LOST_DAMPING: f64 = 0.9;
+/// The time over which a lost track keeps [`LOST_DAMPING`] of its velocity: a frame at
+/// 30 frames a second.
+const LOST_DAMPING_STEP_S: f64 = 1.0 / 30.0;
 /// Weight of the depth in the pairing distance: a centroid's Z is the noisiest axis.
 const Z_WEIGHT: f64 = 0.25;
 /// Frames a tentative track may miss before it is dropped as noise.
@@ -450,9 +454,24 @@ impl Tracker {
                 continue;
             }
             let tr = &mut self.tracks[i];
-            tr.pos = add(preds[i], common);
+            tr.pos = match (&tr.cell, tr.cut && tr.missed == 0) {
+                // Lost while cut, its prediction went on at its visible part's speed: it
+                // waits where that was last seen (moved with the stage and the others).
+                (Some(c), true) => add(add(c.centroid, shift), common),
+                _ => add(preds[i], common),
+            };
             tr.missed += 1;
-            tr.vel = tr.vel.map(|v| v * LOST_DAMPING);
+            // Lost while cut (leaving the view, under the pipette), its speed was its visible
+            // part's: where the cell went is unknown, and the gate spans it. Coasting on, a
+            // leaver's track drifted 25 µm beyond where its cell was last seen and missed it
+            // coming back. Otherwise the speed decays with time, not with the frames let in:
+            // per frame, a loaded graph's lost tracks coasted two to four times as far.
+            tr.vel = if tr.cut {
+                [0.0; 3]
+            } else {
+                tr.vel
+                    .map(|v| v * LOST_DAMPING.powf(dt / LOST_DAMPING_STEP_S))
+            };
             if tr.state == TrackState::Confirmed {
                 tr.state = TrackState::Lost;
             }
