@@ -1132,7 +1132,8 @@ pub fn refine_nucleus(
     let nan = vec![f64::NAN; pixels.len()];
     // Only where the first fit already stands a nucleus over a low pedestal: over the
     // heights matrix this kept every fried egg whose nucleus the cells step took and let
-    // in 4 % of the other cells (the starts cost 13 % of the default frame's triangulate).
+    // in 69 of the 814 other cells it ran on; without it, the starts made the default
+    // frame's triangulate 13 % slower.
     if first.as_ref().is_none_or(|(f, _)| {
         f.level_share < NUCLEUS_SEEN_SHARE || f.level > NUCLEUS_SEEN_LEVEL * top
     }) {
