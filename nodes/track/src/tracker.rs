@@ -455,14 +455,15 @@ impl Tracker {
             }
             let tr = &mut self.tracks[i];
             tr.pos = match (&tr.cell, tr.cut && tr.missed == 0) {
-                // Lost while cut, its prediction went on at its visible part's speed: it
-                // waits where that was last seen (moved with the stage and the others).
+                // Lost while cut, its prediction went on at the speed it had before the cut:
+                // it waits where its visible part was last seen (moved with the stage and
+                // the others).
                 (Some(c), true) => add(add(c.centroid, shift), common),
                 _ => add(preds[i], common),
             };
             tr.missed += 1;
-            // Lost while cut (leaving the view, under the pipette), its speed was its visible
-            // part's: where the cell went is unknown, and the gate spans it. Coasting on, a
+            // Lost while cut (leaving the view, under the pipette), its speed is the one it
+            // had before the cut: where the cell went is unknown, and the gate spans it. Coasting on, a
             // leaver's track drifted 25 µm beyond where its cell was last seen and missed it
             // coming back. Otherwise the speed decays with time, not with the frames let in:
             // per frame, a loaded graph's lost tracks coasted two to four times as far.

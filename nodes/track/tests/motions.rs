@@ -485,7 +485,8 @@ fn a_lost_track_coasts_as_far_in_time_whatever_the_frame_rate() {
         last - at_loss.unwrap()
     };
     let (each, third) = (coast(1), coast(3));
-    // 15 µm/s at the loss, kept 0.9 a thirtieth of a second: 0.3·15·0.9/0.1 µm ≈ 4.5 µm.
+    // 15 µm/s at the loss, kept 0.9 a thirtieth of a second: (1/30 s)·15 µm/s/(1 − 0.9) ≈
+    // 5 µm (the first step before the loss is known is not damped).
     assert!(each > 2.0 && each < 8.0, "{each:.2} µm with every frame");
     assert!(
         (third - each).abs() < 0.25 * each,

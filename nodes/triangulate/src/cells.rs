@@ -492,8 +492,7 @@ fn top_of_cell(
         && let Some(shape) = shape
         && let Some(at) = place_of(inside.iter().filter(|(_, d)| *d >= level(0.7)))
         && let round = disc(&inside, shape, at, NUCLEUS_REACH)
-        && let Some((nucleus, _)) =
-            refine_nucleus(left, right, &round.0, &round.1, Some(ground), shape)
+        && let Some(nucleus) = refine_nucleus(left, right, &round.0, &round.1, Some(ground), shape)
         && nucleus.level_share >= PEDESTAL_SHARE
         && nucleus.level <= PEDESTAL_MAX * (nucleus.peak - base)
         && nucleus.level <= PEDESTAL_UNDER_MAP * (top - base)

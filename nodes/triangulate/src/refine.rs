@@ -860,7 +860,9 @@ pub enum TopModel {
     Plateau,
     /// Six terms: the footprint-shaped dome of [`TopModel::Footprint`] standing on a
     /// level pedestal `C` px above the base (`d = base + max(C, √Q)`): a fried egg, its
-    /// nucleus the dome and its spread cytoplasm the pedestal.
+    /// nucleus the dome and its spread cytoplasm the pedestal. Its starts' nuclei are sized
+    /// in footprint radii: the form must be 1 on the footprint's ellipse, as
+    /// [`crate::cells::footprint_form`] gives it.
     Nucleus([f64; 3]),
 }
 
@@ -1009,7 +1011,7 @@ pub fn refine_top(
                 .map(|f| f.0);
         }
         TopModel::Nucleus(shape) => {
-            return refine_nucleus(left, right, pixels, init, base, shape).map(|f| f.0);
+            return refine_nucleus(left, right, pixels, init, base, shape);
         }
         TopModel::Plateau => {
             return fit_top::<9>(
@@ -1027,7 +1029,7 @@ pub fn refine_top(
         TopModel::Quadratic => false,
         TopModel::Quartic => true,
     };
-    let (dome, p, rays) = fit_top::<8>(left, right, pixels, init, base, None, None, None)?;
+    let (dome, p, rays, _) = fit_top::<8>(left, right, pixels, init, base, None, None, None)?;
     match quartic {
         false => Some(dome),
         // The quartic starts from the quadratic (a good fit it only refines: from the
@@ -1074,10 +1076,11 @@ const NUCLEUS_SEEN_SHARE: f64 = 0.1;
 /// nucleus was taken; other cells' median 0.75).
 const NUCLEUS_SEEN_LEVEL: f64 = 0.65;
 
-/// A nucleus on its pedestal ([`TopModel::Nucleus`]), fitted from the matcher's map and
-/// from nuclei of several sizes and heights round the matched top; the fit whose
-/// residual is least, with each pixel's height on it (px above the base). The matched map
-/// smooths a small nucleus away, and a fit started there stays low.
+/// A nucleus on its pedestal ([`TopModel::Nucleus`]), fitted from the matcher's map and,
+/// where that fit already shows a nucleus, from nuclei of several sizes and heights round
+/// the matched top: the fit whose intensity residuals cost least (Huber, at one threshold
+/// for all). The matched map smooths a small nucleus away, and a fit started there stays
+/// low.
 pub fn refine_nucleus(
     left: &Plane<u8>,
     right: &Plane<u8>,
@@ -1085,7 +1088,7 @@ pub fn refine_nucleus(
     init: &[f32],
     base: Option<Ground>,
     shape: [f64; 3],
-) -> Option<(PeakFit, Vec<f64>)> {
+) -> Option<PeakFit> {
     let fit = |start: Option<Start>| {
         fit_top::<7>(
             left,
@@ -1097,49 +1100,67 @@ pub fn refine_nucleus(
             Some(shape),
             Some(Cut::Pedestal),
         )
-        .map(|(f, _, rays)| (f, rays))
+        .map(|(f, _, _, e)| (f, e))
     };
     let first = fit(None);
-    let (Some(g), false) = (base, pixels.is_empty()) else {
-        return first;
+    let (Some(g), Some((f0, _))) = (base, &first) else {
+        return first.map(|f| f.0);
     };
     let heights: Vec<f64> = init
         .iter()
         .filter(|d| d.is_finite())
         .map(|&d| d as f64 - g.d)
-        .collect();
-    let Some(top) = heights
-        .iter()
-        .copied()
-        .reduce(f64::max)
         .filter(|t| *t > 0.0)
-    else {
-        return first;
+        .collect();
+    let Some(top) = heights.iter().copied().reduce(f64::max) else {
+        return first.map(|f| f.0);
     };
+    // Only where the first fit already stands a nucleus over a low pedestal: over the
+    // heights matrix this kept every fried egg whose nucleus the cells step took and let
+    // in 69 of the 814 other cells it ran on; without it, the starts made the default
+    // frame's triangulate 13 % slower.
+    if f0.level_share < NUCLEUS_SEEN_SHARE || f0.level > NUCLEUS_SEEN_LEVEL * top {
+        return first.map(|f| f.0);
+    }
     let ([cx, cy], radius) = patch_frame(pixels);
-    // The nucleus centred where the matched map is highest, in the patch's units.
+    // The nucleus centred where the matched map is highest: on the ground under it, where
+    // the fit's terms are taken (`ray_foot`), in the patch's units.
+    let ray = g
+        .parallax
+        .map(|p| (g.d + p.offset, p.centre))
+        .filter(|&(total, _)| total > 0.0);
     let (ux, uy) = pixels
         .iter()
         .zip(init)
         .filter(|(_, d)| d.is_finite())
         .max_by(|a, b| a.1.total_cmp(b.1))
-        .map(|(q, _)| ((q[0] as f64 - cx) / radius, (q[1] as f64 - cy) / radius))?;
+        .map(|(q, _)| {
+            let ([x, y], _) = ray_foot(q[0] as f64, q[1] as f64, top, ray);
+            ((x - cx) / radius, (y - cy) / radius)
+        })?;
     let [a, b, c] = shape.map(|x| x * radius * radius);
     let rho2 = a * ux * ux + b * ux * uy + c * uy * uy;
-    let mut pedestal = heights.clone();
+    let mut pedestal = heights;
     pedestal.sort_by(f64::total_cmp);
     let level = pedestal[pedestal.len() / 4];
     let nan = vec![f64::NAN; pixels.len()];
-    // Only where the first fit already stands a nucleus over a low pedestal: over the
-    // heights matrix this kept every fried egg whose nucleus the cells step took and let
-    // in 69 of the 814 other cells it ran on; without it, the starts made the default
-    // frame's triangulate 13 % slower.
-    if first.as_ref().is_none_or(|(f, _)| {
-        f.level_share < NUCLEUS_SEEN_SHARE || f.level > NUCLEUS_SEEN_LEVEL * top
-    }) {
-        return first;
-    }
-    let mut best = first;
+    // One Huber threshold for every start: the first fit's, whose residual's robust
+    // scale (a median) hardly sees the nucleus where most of the disc is pedestal.
+    let h = 1.5 * f0.residual;
+    let cost = |e: &[f64]| -> f64 {
+        e.iter()
+            .map(|e| {
+                let a = e.abs();
+                if a <= h {
+                    0.5 * a * a
+                } else {
+                    h * (a - 0.5 * h)
+                }
+            })
+            .sum::<f64>()
+            / e.len().max(1) as f64
+    };
+    let mut best = first.map(|(f, e)| (f, cost(&e)));
     for (lift, r) in NUCLEUS_STARTS {
         let h2 = (lift * top).powi(2);
         let c3 = h2 / (r * r);
@@ -1151,13 +1172,14 @@ pub fn refine_nucleus(
             level,
         ];
         let far = [f64::INFINITY; 2];
-        if let Some(f) = fit(Some((&terms, [1.0, 0.0], far, &nan)))
-            && best.as_ref().is_none_or(|b| f.0.residual < b.0.residual)
-        {
-            best = Some(f);
+        if let Some((f, e)) = fit(Some((&terms, [1.0, 0.0], far, &nan))) {
+            let k = cost(&e);
+            if best.as_ref().is_none_or(|b| k < b.1) {
+                best = Some((f, k));
+            }
         }
     }
-    best
+    best.map(|b| b.0)
 }
 
 /// The centre and radius a top fit's patch coordinates are taken in: `u = (x − cx)/radius`.
@@ -1172,6 +1194,10 @@ fn patch_frame(pixels: &[[usize; 2]]) -> ([f64; 2], f64) {
         .fold(1.0, f64::max);
     (centre, radius)
 }
+
+/// A top fit's outcome: the fit, its parameters, each pixel's height on its surface (px
+/// above the base) and the intensity residuals of the pixels it kept, at the end.
+type TopFit<const N: usize> = (PeakFit, [f64; N], Vec<f64>, Vec<f64>);
 
 /// A fit to start from: its polynomial's terms, its gain and offset, where to read the
 /// result, and each pixel's height on its surface (px above the base; NaN: unknown).
@@ -1280,7 +1306,7 @@ fn fit_top<const N: usize>(
     start: Option<Start>,
     footprint: Option<[f64; 3]>,
     cut: Option<Cut>,
-) -> Option<(PeakFit, [f64; N], Vec<f64>)> {
+) -> Option<TopFit<N>> {
     let k = N - 2;
     // Where a cut keeps its level: the last shape term.
     let lv = k - 1;
@@ -1589,6 +1615,7 @@ fn fit_top<const N: usize>(
         }
     }
     let (mut jtj, _) = normal_equations(&terms, 1.5 * scale);
+    let residuals: Vec<f64> = terms.iter().map(|t| t.0).collect();
     // A level no ray sees is no unknown of the surface they see.
     if cut.is_some() && jtj[(lv, lv)] <= 0.0 {
         jtj[(lv, lv)] = 1.0;
@@ -1651,6 +1678,7 @@ fn fit_top<const N: usize>(
         fit,
         p,
         warm.into_iter().map(std::cell::Cell::into_inner).collect(),
+        residuals,
     ))
 }
 
