@@ -56,6 +56,17 @@ fn cell(id: u32, x: f64, y: f64, r: f64, h: f64, rng: &mut ChaCha8Rng) -> Cell3 
     }
 }
 
+/// Frame `f`'s cells as the triangulate node sends them, captured at 30 frames a second.
+fn frame_targets(f: usize, cells: Vec<Cell3>) -> Targets {
+    Targets {
+        frame: f as u64,
+        capture_ns: 1_000_000_000 + (f as f64 / FPS * 1e9) as u64,
+        unit: "µm".into(),
+        cells,
+        substrate: None,
+    }
+}
+
 struct Outcome {
     /// Per truth cell, the track ids its detections were given once confirmed.
     ids: BTreeMap<usize, BTreeSet<u32>>,
@@ -95,17 +106,14 @@ fn run(
         }
         // Segmentation numbers cells in raster order of their first pixel.
         shown.sort_by(|a, b| (a.2 - a.3.r).total_cmp(&(b.2 - b.3.r)));
-        let targets = Targets {
-            frame: f as u64,
-            capture_ns: 1_000_000_000 + (t * 1e9) as u64,
-            unit: "µm".into(),
-            cells: shown
+        let targets = frame_targets(
+            f,
+            shown
                 .iter()
                 .enumerate()
                 .map(|(k, (_, x, y, c))| cell(k as u32 + 1, *x, *y, c.r, c.h, &mut rng))
                 .collect(),
-            substrate: None,
-        };
+        );
         let tracks = tracker.update(&targets).unwrap();
         for (k, (i, ..)) in shown.iter().enumerate() {
             first_seen.entry(*i).or_insert(f);
@@ -410,13 +418,7 @@ fn a_cell_that_leaves_through_the_edge_and_comes_back_keeps_its_id_when_frames_d
             let x = at(f as f64);
             let mut cells = vec![cell(1, still.x, still.y, still.r, still.h, &mut rng)];
             cells.extend(cut_at_right_edge(2, x, 300.0, r, &mut rng));
-            let targets = Targets {
-                frame: f as u64,
-                capture_ns: 1_000_000_000 + (f as f64 / FPS * 1e9) as u64,
-                unit: "µm".into(),
-                cells,
-                substrate: None,
-            };
+            let targets = frame_targets(f, cells);
             let det = targets
                 .cells
                 .iter()
@@ -468,13 +470,7 @@ fn a_lost_track_coasts_as_far_in_time_whatever_the_frame_rate() {
             } else {
                 Vec::new()
             };
-            let targets = Targets {
-                frame: f as u64,
-                capture_ns: 1_000_000_000 + (f as f64 / FPS * 1e9) as u64,
-                unit: "µm".into(),
-                cells,
-                substrate: None,
-            };
+            let targets = frame_targets(f, cells);
             let t = tracker.update(&targets).unwrap();
             let p = t.tracks[0].position[0];
             if f < 45 {

@@ -168,6 +168,20 @@ pub(crate) fn huber(e: f64, k: f64) -> f64 {
     if e.abs() <= k { 1.0 } else { k / e.abs() }
 }
 
+/// The mean Huber loss at `h` of `n` residuals `e` (0 for none).
+fn huber_cost(e: impl Iterator<Item = f64>, n: usize, h: f64) -> f64 {
+    e.map(|e| {
+        let a = e.abs();
+        if a <= h {
+            0.5 * a * a
+        } else {
+            h * (a - 0.5 * h)
+        }
+    })
+    .sum::<f64>()
+        / n.max(1) as f64
+}
+
 /// Tukey's biweight at `c`: near 1 for small residuals, 0 beyond `c`.
 fn tukey(e: f64, c: f64) -> f64 {
     let t = e / c;
@@ -1147,19 +1161,7 @@ pub fn refine_nucleus(
     // One Huber threshold for every start: the first fit's, whose residual's robust
     // scale (a median) hardly sees the nucleus where most of the disc is pedestal.
     let h = 1.5 * f0.residual;
-    let cost = |e: &[f64]| -> f64 {
-        e.iter()
-            .map(|e| {
-                let a = e.abs();
-                if a <= h {
-                    0.5 * a * a
-                } else {
-                    h * (a - 0.5 * h)
-                }
-            })
-            .sum::<f64>()
-            / e.len().max(1) as f64
-    };
+    let cost = |e: &[f64]| huber_cost(e.iter().copied(), e.len(), h);
     let mut best = first.map(|(f, e)| (f, cost(&e)));
     for (lift, r) in NUCLEUS_STARTS {
         let h2 = (lift * top).powi(2);
@@ -1534,19 +1536,7 @@ fn fit_top<const N: usize>(
         }
         terms
     };
-    let cost = |t: &[(f64, [f64; N])], h: f64| -> f64 {
-        t.iter()
-            .map(|(e, _)| {
-                let a = e.abs();
-                if a <= h {
-                    0.5 * a * a
-                } else {
-                    h * (a - 0.5 * h)
-                }
-            })
-            .sum::<f64>()
-            / t.len().max(1) as f64
-    };
+    let cost = |t: &[(f64, [f64; N])], h: f64| huber_cost(t.iter().map(|t| t.0), t.len(), h);
     let mut lambda = 1e-3;
     let mut moved = false;
     let mut terms = terms_at(&p);
