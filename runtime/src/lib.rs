@@ -1,7 +1,7 @@
 //! The runtime of microstereo: the node contract, the transport, the graph and how it runs.
 //!
-//! - [`node`]: one small trait per node role ([`node::Source`], [`node::Task`],
-//!   [`node::Sink`]) with typed ports ([`ports!`]) and a params type;
+//! - [`node`]: the node contract of the `node-api` crate (one small trait per node role,
+//!   typed ports, a params type), re-exported;
 //! - [`registry`]: the node kinds a binary knows, built from those types;
 //! - [`edge`]: queue settings of an edge and the frame clock; [`stats`]: what a node
 //!   reports when it ends;
@@ -16,26 +16,7 @@
 //! - [`harness`]: a node fed recorded inputs, its outputs compared with the recording;
 //! - [`hop`]: the transport benchmark.
 
-/// `println!` for what the graph commands print on stdout: a reader that went away (`| head
-/// -1`) is not an error of the run. The graph commands keep SIGPIPE ignored (a node's pipe
-/// closing must not kill the supervisor), so `println!` would panic on the closed stdout.
-#[macro_export]
-macro_rules! outln {
-    ($($t:tt)*) => {{
-        use std::io::Write as _;
-        let _ = writeln!(std::io::stdout(), $($t)*);
-    }};
-}
-
-/// `eprintln!` that never panics: a full disk (`2>/dev/full`), a closed terminal or a pipe
-/// whose reader left must not kill a supervisor or a node in the middle of its clean-up.
-#[macro_export]
-macro_rules! errln {
-    ($($t:tt)*) => {{
-        use std::io::Write as _;
-        let _ = writeln!(std::io::stderr(), $($t)*);
-    }};
-}
+pub use node_api::{errln, outln, ports};
 
 pub mod edge;
 pub mod exec;

@@ -14,7 +14,7 @@
 
 use crate::launch::{Catalog, Graph, KindSpec, NodeSpec, Port};
 use crate::node::{
-    GraphNode, Params, PortDecl, PortSet, Sink, SinkNode, Source, SourceNode, Task, TaskNode, slots,
+    GraphNode, Params, PortDecl, PortSet, Sink, Source, Task, sink_node, source_node, task_node,
 };
 use crate::stats::NodeStats;
 
@@ -120,10 +120,7 @@ impl Registry {
                 let p = parse_params::<S::Params>(&spec.params)?;
                 let node = S::new(p).map_err(|e| e.to_string())?;
                 let all: Vec<String> = spec.inputs.iter().map(|i| i.port.clone()).collect();
-                Ok(Box::new(SourceNode {
-                    node,
-                    feedback: slots(S::Feedback::PORTS, &all),
-                }) as Box<dyn GraphNode>)
+                Ok(source_node(node, &all))
             })),
             launchable: true,
         })
@@ -145,10 +142,7 @@ impl Registry {
             how: How::Build(Box::new(|spec: &NodeSpec| {
                 let p = parse_params::<T::Params>(&spec.params)?;
                 let node = T::new(p).map_err(|e| e.to_string())?;
-                Ok(Box::new(TaskNode {
-                    node,
-                    inputs: slots(T::Input::PORTS, &joined(spec)),
-                }) as Box<dyn GraphNode>)
+                Ok(task_node(node, &joined(spec)))
             })),
             launchable: true,
         })
@@ -167,10 +161,7 @@ impl Registry {
             how: How::Build(Box::new(|spec: &NodeSpec| {
                 let p = parse_params::<K::Params>(&spec.params)?;
                 let node = K::new(p).map_err(|e| e.to_string())?;
-                Ok(Box::new(SinkNode {
-                    node,
-                    inputs: slots(K::Input::PORTS, &joined(spec)),
-                }) as Box<dyn GraphNode>)
+                Ok(sink_node(node, &joined(spec)))
             })),
             launchable: true,
         })

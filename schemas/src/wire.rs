@@ -3,6 +3,7 @@
 //! payload ([`PixelFormat`], [`MessageKind`]); images travel row by row, `stride` bytes per
 //! row, little-endian for multi-byte pixels.
 
+#[cfg(feature = "iceoryx2")]
 use iceoryx2::prelude::ZeroCopySend;
 use serde::{Deserialize, Serialize};
 
@@ -136,7 +137,9 @@ impl MessageKind {
 
 /// The header in front of every payload on an edge.
 #[repr(C)]
-#[derive(Clone, Copy, Debug, PartialEq, Eq, ZeroCopySend)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+// The transport sends it as iceoryx2's user header; the algorithm crates need no transport.
+#[cfg_attr(feature = "iceoryx2", derive(ZeroCopySend))]
 pub struct FrameHeader {
     /// Frame number from the capture node; every derived message keeps its frame's number.
     pub sequence: u64,

@@ -1,4 +1,4 @@
-//! A custom node, written against the runtime alone: it inverts the grey levels of each
+//! A custom node, written against the node API alone: it inverts the grey levels of each
 //! stereo frame. A new node kind is this one [`Task`] impl plus one registry line, either
 //! in a program of its own (`src/main.rs`, an `exec` node in a launch file) or in a binary
 //! that embeds the built-in kinds (`microstereo::registry::builtin().task::<Invert>()`).
@@ -11,7 +11,7 @@
 //! params = { level = 255 }
 //! ```
 
-use runtime::node::{NodeError, Params, Stamp, Task};
+use node_api::{NodeError, Params, Stamp, Task};
 use schemas::StereoFrame;
 use serde::Deserialize;
 
@@ -37,7 +37,7 @@ impl Params for InvertParams {
     }
 }
 
-runtime::ports! {
+node_api::ports! {
     /// What the invert node reads and sends.
     pub struct Frame {
         /// A stereo pair.

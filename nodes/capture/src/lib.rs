@@ -17,7 +17,7 @@ pub mod files;
 pub mod image;
 pub mod synthetic;
 
-use runtime::node::{NoPorts, NodeError, Params, Source};
+use node_api::{NoPorts, NodeError, Params, Source};
 use runtime::process::now_ns;
 use schemas::{Image, ManipulatorState, StereoFrame};
 use serde::Deserialize;
@@ -144,7 +144,7 @@ impl CaptureParams {
     }
 }
 
-runtime::ports! {
+node_api::ports! {
     /// What a capture node sends.
     pub struct CaptureOut {
         /// The stereo pair.
@@ -152,7 +152,7 @@ runtime::ports! {
     }
 }
 
-runtime::ports! {
+node_api::ports! {
     /// What a capture node takes when it comes.
     pub struct CaptureFeedback {
         /// The manipulator's state: a synthetic scene draws the pipette there.
@@ -258,7 +258,7 @@ impl Params for ImagePairParams {
     }
 }
 
-runtime::ports! {
+node_api::ports! {
     /// What an image-pair node sends.
     pub struct ImagePairOut {
         /// The grey pair.

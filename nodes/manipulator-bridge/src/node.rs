@@ -8,7 +8,7 @@ use crate::plan::{Entry, PipetteGeometry, PlannerConfig};
 use crate::registration::Registration;
 use crate::scene::Workspace;
 use crate::scientifica::Scientifica;
-use runtime::node::{NodeError, Params, Stamp, Task};
+use node_api::{NodeError, Params, Stamp, Task};
 use schemas::{ManipulatorState, Targets, Tracks};
 use serde::Deserialize;
 use std::time::Duration;
@@ -338,7 +338,7 @@ impl BridgeNode {
     }
 }
 
-runtime::ports! {
+node_api::ports! {
     /// What the bridge reads.
     pub struct BridgeIn {
         /// The frame's cells in 3D, addressed by their per-frame ids (no track node).
@@ -348,7 +348,7 @@ runtime::ports! {
     }
 }
 
-runtime::ports! {
+node_api::ports! {
     /// What the bridge sends.
     pub struct BridgeOut {
         /// Where the pipette is and what it does.

@@ -3,7 +3,7 @@
 
 use crate::node::{BridgeNode, BridgeParams};
 use runtime::harness::{ExtraCheck, Recorded};
-use runtime::node::GraphNode;
+use node_api::GraphNode;
 use std::io::BufRead;
 use std::time::{Duration, Instant};
 
@@ -34,7 +34,7 @@ pub fn under_test(
         std::thread::sleep(Duration::from_millis(1));
     }
     let on_tracks = connected.iter().any(|p| p == "tracks");
-    let node = runtime::node::task_node(b, connected);
+    let node = node_api::task_node(b, connected);
     let check = Box::new(move |_seq: u64, inputs: &[Recorded]| -> Option<String> {
         let want = &inputs[0].1;
         let mut line = String::new();

@@ -13,7 +13,7 @@
 
 use crate::{Directions, InputError, Mode, PaperParams, QualityParams, QualityWorkspace, Weights};
 use rayon::prelude::*;
-use runtime::node::{NodeError, Params, Stamp, Task};
+use node_api::{NodeError, Params, Stamp, Task};
 use schemas::{
     CellLists, DisparityMap, DisparityRange, DisparityTile, DisparityTiles, Plane, Side,
     StereoFrame,
@@ -225,7 +225,7 @@ impl Params for MatchParams {
     }
 }
 
-runtime::ports! {
+node_api::ports! {
     /// What a match node reads.
     pub struct MatchIn {
         /// The rectified pair.
@@ -235,7 +235,7 @@ runtime::ports! {
     }
 }
 
-runtime::ports! {
+node_api::ports! {
     /// What `match` sends.
     pub struct BothOut {
         /// Left-based tiles.
@@ -245,7 +245,7 @@ runtime::ports! {
     }
 }
 
-runtime::ports! {
+node_api::ports! {
     /// What `match-lr` sends.
     pub struct LeftOut {
         /// Left-based tiles.
@@ -253,7 +253,7 @@ runtime::ports! {
     }
 }
 
-runtime::ports! {
+node_api::ports! {
     /// What `match-rl` sends.
     pub struct RightOut {
         /// Right-based tiles.
@@ -404,7 +404,7 @@ fn cells_of<'a>(
 }
 
 /// What a match kind sends: which directions it matches and how its outputs hold them.
-pub trait Directed: runtime::node::PortSet + 'static {
+pub trait Directed: node_api::PortSet + 'static {
     /// The kind's name in launch files.
     const KIND: &'static str;
     /// The directions it matches.

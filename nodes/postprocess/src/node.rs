@@ -3,7 +3,7 @@
 
 use crate::{PostParams, postprocess};
 use rayon::prelude::*;
-use runtime::node::{NodeError, Params, Stamp, Task};
+use node_api::{NodeError, Params, Stamp, Task};
 use schemas::{DisparityTiles, Side};
 
 impl Params for PostParams {
@@ -34,7 +34,7 @@ impl Params for PostParams {
     }
 }
 
-runtime::ports! {
+node_api::ports! {
     /// What the postprocess node reads and sends.
     pub struct Tiles {
         /// Left-based disparity tiles.

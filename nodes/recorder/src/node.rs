@@ -3,7 +3,7 @@
 
 use crate::file::{EdgeMessage, FrameReader, RecordingError, RecordingWriter};
 use runtime::launch::{Graph, NodeSpec};
-use runtime::node::{GraphNode, Outputs};
+use node_api::{GraphNode, Outputs};
 use runtime::process::{NodeStats, now_ns};
 use schemas::{FrameHeader, MessageKind};
 use serde::Deserialize;

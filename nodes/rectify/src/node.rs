@@ -2,7 +2,7 @@
 //! calibration is given: the input is already rectified).
 
 use crate::{Rectification, RemapLut, read_stereo};
-use runtime::node::{NodeError, Params, Stamp, Task};
+use node_api::{NodeError, Params, Stamp, Task};
 use schemas::StereoFrame;
 use serde::Deserialize;
 
@@ -42,7 +42,7 @@ impl Params for RectifyParams {
     }
 }
 
-runtime::ports! {
+node_api::ports! {
     /// What the rectify node reads and sends.
     pub struct Frame {
         /// The stereo pair.

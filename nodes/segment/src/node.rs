@@ -1,7 +1,7 @@
 //! The segment node: a stereo frame in; both views' label images and cell lists out.
 
 use crate::{SegmentParams, segment};
-use runtime::node::{NodeError, Params, Stamp, Task};
+use node_api::{NodeError, Params, Stamp, Task};
 use schemas::{CellLists, Labels, StereoFrame};
 
 impl Params for SegmentParams {
@@ -33,7 +33,7 @@ impl Params for SegmentParams {
     }
 }
 
-runtime::ports! {
+node_api::ports! {
     /// What the segment node reads.
     pub struct SegmentIn {
         /// The rectified pair.
@@ -41,7 +41,7 @@ runtime::ports! {
     }
 }
 
-runtime::ports! {
+node_api::ports! {
     /// What the segment node sends.
     pub struct SegmentOut {
         /// Both views' label images.

@@ -1,7 +1,7 @@
 //! The track node: each frame's cells in, the tracks out.
 
 use crate::tracker::{Tracker, TrackerParams};
-use runtime::node::{NodeError, Params, Stamp, Task};
+use node_api::{NodeError, Params, Stamp, Task};
 use schemas::{Targets, Tracks};
 
 impl Params for TrackerParams {
@@ -10,7 +10,7 @@ impl Params for TrackerParams {
     }
 }
 
-runtime::ports! {
+node_api::ports! {
     /// What the track node reads.
     pub struct TrackIn {
         /// The frame's cells in 3D.
@@ -18,7 +18,7 @@ runtime::ports! {
     }
 }
 
-runtime::ports! {
+node_api::ports! {
     /// What the track node sends.
     pub struct TrackOut {
         /// Every live track, with this frame's cell where it was seen.

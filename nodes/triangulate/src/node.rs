@@ -4,7 +4,7 @@
 use crate::calibration::Geometry;
 use crate::cells::{Background, cell_heights, compose, lone_cells, mask_of, measure};
 use crate::refine::{BandPassed, PlaneTrack};
-use runtime::node::{NodeError, Params, Stamp, Task};
+use node_api::{NodeError, Params, Stamp, Task};
 use schemas::{
     Calibration, CellLists, Cloud, Disparity, DisparityRange, DisparityTiles, Image, Labels,
     StereoFrame, Targets,
@@ -60,7 +60,7 @@ impl Params for TriangulateParams {
 /// The largest `cloud_step`: a point every 64 rows and columns is a sketch already.
 const MAX_CLOUD_STEP: usize = 64;
 
-runtime::ports! {
+node_api::ports! {
     /// What the triangulate node reads.
     pub struct TriangulateIn {
         /// The rectified pair (the views the cells' tops are fitted in; grey point colours).
@@ -78,7 +78,7 @@ runtime::ports! {
     }
 }
 
-runtime::ports! {
+node_api::ports! {
     /// What the triangulate node sends.
     pub struct TriangulateOut {
         /// Every valid pixel of the final map, in the calibration's unit.
@@ -219,7 +219,7 @@ impl Task for Triangulate {
                 let beyond = crate::cells::beyond_infinity(&bases, &calib);
                 if beyond > 0 && !self.told_infinity {
                     self.told_infinity = true;
-                    runtime::errln!("{}", infinity_warning(beyond, &calib));
+                    node_api::errln!("{}", infinity_warning(beyond, &calib));
                 }
                 let lone = lone_cells(
                     (left, right),

@@ -2,7 +2,7 @@
 //! tile by tile (the LR consistency check) out, the left tiles with the paper's figures.
 
 use rayon::prelude::*;
-use runtime::node::{NodeError, Params, Stamp, Task};
+use node_api::{NodeError, Params, Stamp, Task};
 use schemas::{DisparityTile, DisparityTiles, Side};
 use serde::{Deserialize, Serialize};
 
@@ -40,7 +40,7 @@ impl Params for ValidateParams {
     }
 }
 
-runtime::ports! {
+node_api::ports! {
     /// What the validate node reads.
     pub struct ValidateIn {
         /// Left-based tiles (left → right matches).
@@ -50,7 +50,7 @@ runtime::ports! {
     }
 }
 
-runtime::ports! {
+node_api::ports! {
     /// What the validate node sends.
     pub struct ValidateOut {
         /// The left tiles, inconsistent pixels invalid, each with the paper's figures.
