@@ -39,7 +39,7 @@
 //! the nucleus' pixels, fits the pedestal on a disc round the matched top.
 
 use synth::{CellSpec, Look, Optics, Profile, Scene};
-use triangulate::cells::footprint_form;
+use triangulate::measure::footprint_form;
 use triangulate::refine::{Ground, Parallax, TopModel, refine_top};
 
 fn main() {

@@ -209,7 +209,7 @@ pub struct ReconstructArgs {
     #[arg(long)]
     cells: bool,
     /// Pixels around each cell that are matched too: the substrate ring for its height.
-    #[arg(long, default_value_t = triangulate::cells::DEFAULT_MARGIN)]
+    #[arg(long, default_value_t = cells::DEFAULT_MARGIN)]
     cell_margin: u8,
     #[command(flatten)]
     seg: SegmentOpts,
@@ -664,8 +664,8 @@ fn write_cells(
     let targets: Targets = f.decode(ids::TRIANGULATE, "targets")?;
     let cloud: Cloud = f.decode(ids::TRIANGULATE, "cloud")?;
     let disparity: Disparity = f.decode(ids::TRIANGULATE, "disparity")?;
-    let composed = triangulate::cells::compose(
-        (&labels.left, &triangulate::cells::mask_of(&labels.left)),
+    let composed = cells::compose(
+        (&labels.left, &cells::mask_of(&labels.left)),
         (&lists.left, &lists.right),
         &post,
         &tiles,

@@ -90,5 +90,5 @@ pub fn cell_targets(
     let f = run_once(&preset).unwrap();
     let targets: Targets = f.decode(ids::TRIANGULATE, "targets").unwrap();
     let labels: Labels = f.decode(ids::SEGMENT, "labels").unwrap();
-    (targets, triangulate::cells::mask_of(&labels.left))
+    (targets, cells::mask_of(&labels.left))
 }

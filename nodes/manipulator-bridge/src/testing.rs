@@ -2,8 +2,8 @@
 //! wall clock), so it is checked by what it serves a controller over TCP.
 
 use crate::node::{BridgeNode, BridgeParams};
-use runtime::harness::{ExtraCheck, Recorded};
 use node_api::GraphNode;
+use runtime::harness::{ExtraCheck, Recorded};
 use std::io::BufRead;
 use std::time::{Duration, Instant};
 

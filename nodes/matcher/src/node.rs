@@ -12,14 +12,14 @@
 //! range. `region = "frame"` matches the whole frame as one tile (ordinary stereo pairs).
 
 use crate::{Directions, InputError, Mode, PaperParams, QualityParams, QualityWorkspace, Weights};
-use rayon::prelude::*;
+use cells::{DEFAULT_MARGIN, PAIRING_SLACK, crop, crop_of, pair_cells};
 use node_api::{NodeError, Params, Stamp, Task};
+use rayon::prelude::*;
 use schemas::{
     CellLists, DisparityMap, DisparityRange, DisparityTile, DisparityTiles, Plane, Side,
     StereoFrame,
 };
 use serde::{Deserialize, Serialize};
-use triangulate::cells::{DEFAULT_MARGIN, PAIRING_SLACK, crop, crop_of, pair_cells};
 
 /// What a match node matches.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]

@@ -2,8 +2,8 @@
 //! its own: a cell's crop is filled and smoothed within itself).
 
 use crate::{PostParams, postprocess};
-use rayon::prelude::*;
 use node_api::{NodeError, Params, Stamp, Task};
+use rayon::prelude::*;
 use schemas::{DisparityTiles, Side};
 
 impl Params for PostParams {

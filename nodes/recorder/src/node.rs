@@ -2,8 +2,8 @@
 //! source (recorded edges sent again in place of the node that made them).
 
 use crate::file::{EdgeMessage, FrameReader, RecordingError, RecordingWriter};
-use runtime::launch::{Graph, NodeSpec};
 use node_api::{GraphNode, Outputs};
+use runtime::launch::{Graph, NodeSpec};
 use runtime::process::{NodeStats, now_ns};
 use schemas::{FrameHeader, MessageKind};
 use serde::Deserialize;

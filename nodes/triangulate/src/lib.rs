@@ -11,14 +11,14 @@
 //! unit. Only pixels with a finite disparity and a positive `d'` (in front of the cameras)
 //! become points; each carries the left image's colour.
 //!
-//! The crate also holds what the method measures per cell ([`cells`]: pairing, the
-//! cell-only maps, substrate and tops by photometric fits in [`refine`], heights, volumes,
-//! 3D centroids), the calibration file format ([`calibration`]) and the triangulate node
+//! The crate also holds what the method measures per cell ([`measure`]: substrate and
+//! tops by photometric fits in [`refine`], heights, volumes, 3D centroids, on the cell-only
+//! maps the `cells` crate composes), the calibration file format ([`calibration`]) and the triangulate node
 //! ([`node`]).
 
 pub mod calibration;
-pub mod cells;
 mod lanes;
+pub mod measure;
 pub mod node;
 pub mod refine;
 pub mod substrate;

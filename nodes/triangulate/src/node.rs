@@ -2,8 +2,9 @@
 //! in 3D (when given the segmentation) and the final full-frame map out.
 
 use crate::calibration::Geometry;
-use crate::cells::{Background, cell_heights, compose, lone_cells, mask_of, measure};
+use crate::measure::{Background, cell_heights, lone_cells, measure};
 use crate::refine::{BandPassed, PlaneTrack};
+use cells::{compose, mask_of};
 use node_api::{NodeError, Params, Stamp, Task};
 use schemas::{
     Calibration, CellLists, Cloud, Disparity, DisparityRange, DisparityTiles, Image, Labels,
@@ -216,7 +217,7 @@ impl Task for Triangulate {
                     }),
                     &calib,
                 );
-                let beyond = crate::cells::beyond_infinity(&bases, &calib);
+                let beyond = crate::measure::beyond_infinity(&bases, &calib);
                 if beyond > 0 && !self.told_infinity {
                     self.told_infinity = true;
                     node_api::errln!("{}", infinity_warning(beyond, &calib));

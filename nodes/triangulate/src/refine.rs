@@ -876,7 +876,7 @@ pub enum TopModel {
     /// level pedestal `C` px above the base (`d = base + max(C, √Q)`): a fried egg, its
     /// nucleus the dome and its spread cytoplasm the pedestal. Its starts' nuclei are sized
     /// in footprint radii: the form must be 1 on the footprint's ellipse, as
-    /// [`crate::cells::footprint_form`] gives it.
+    /// [`crate::measure::footprint_form`] gives it.
     Nucleus([f64; 3]),
 }
 

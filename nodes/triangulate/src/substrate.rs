@@ -60,7 +60,7 @@ fn rim_band(labels: &Plane<u32>, cell: &Cell) -> Vec<[usize; 2]> {
     );
     let x1 = (b.x1 as usize + m + 1).min(labels.width);
     let y1 = (b.y1 as usize + m + 1).min(labels.height);
-    let dist = crate::cells::distance_to_cell(labels, cell.id, (x0, y0), (x1, y1));
+    let dist = cells::distance_to_cell(labels, cell.id, (x0, y0), (x1, y1));
     let inside = {
         let outside = image::GrayImage::from_fn((x1 - x0) as u32, (y1 - y0) as u32, |x, y| {
             image::Luma([u8::from(

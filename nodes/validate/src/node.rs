@@ -1,8 +1,8 @@
 //! The validate node: the left- and right-based tiles in; both checked against each other
 //! tile by tile (the LR consistency check) out, the left tiles with the paper's figures.
 
-use rayon::prelude::*;
 use node_api::{NodeError, Params, Stamp, Task};
+use rayon::prelude::*;
 use schemas::{DisparityTile, DisparityTiles, Side};
 use serde::{Deserialize, Serialize};
 
