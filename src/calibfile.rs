@@ -9,11 +9,11 @@
 
 use crate::error::CliError;
 use crate::reconstruct::UnitArg;
+use calibration::file::{CalibrationFile, read_file, write_file};
+use calibration::stereo::{Rectification, StereoCalibration};
 use clap::{Args, Subcommand};
 use nalgebra::Matrix3;
-use rectify::{Rectification, StereoCalibration};
 use std::path::{Path, PathBuf};
-use triangulate::calibration::{CalibrationFile, read_file, write_file};
 
 /// Arguments of `microstereo calibration`.
 #[derive(Args, Debug)]
@@ -108,7 +108,7 @@ fn import(a: ImportArgs) -> Result<(), CliError> {
         "give -o another file",
     )?;
     // Checked as any file is when read.
-    let table = rectify::StereoTable::from(&cal);
+    let table = calibration::stereo::StereoTable::from(&cal);
     table.calibration().map_err(CliError::Other)?;
     let file = CalibrationFile::from_stereo(&cal, a.unit.unit(), None);
     let from = inputs

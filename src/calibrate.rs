@@ -1,6 +1,6 @@
 //! `microstereo calibrate-depth`: the microscope's b·f_eff and disparity offset from a
 //! z-stack — each pair through the stereo graph, the target's disparity fitted against its
-//! stage height (`triangulate::calibration::fit_depth`).
+//! stage height (`calibration::file::fit_depth`).
 
 use crate::error::CliError;
 use crate::presets::{Stereo, ids};
@@ -182,7 +182,7 @@ pub fn calibrate_depth(a: CalibrateArgs) -> Result<(), CliError> {
     // `--into` replaces the file it names, by request; it is read first, and checked
     // against the stack like any output.
     let into = match &a.into {
-        Some(p) => Some(triangulate::calibration::read_file(p).map_err(CliError::Other)?),
+        Some(p) => Some(calibration::file::read_file(p).map_err(CliError::Other)?),
         None => None,
     };
     check_output(&out, &a.dir, &stack, a.overwrite || into.is_some())?;
@@ -214,7 +214,7 @@ pub fn calibrate_depth(a: CalibrateArgs) -> Result<(), CliError> {
         z.push(*zi);
         d.push(di);
     }
-    let fit = triangulate::calibration::fit_depth(&z, &d, a.working_distance);
+    let fit = calibration::file::fit_depth(&z, &d, a.working_distance);
     let (w, h) = size.unwrap_or((0, 0));
     let f_px = fit.b_f / a.baseline;
     let cx = (w as f64 - 1.0) / 2.0;
@@ -236,21 +236,21 @@ pub fn calibrate_depth(a: CalibrateArgs) -> Result<(), CliError> {
                 t.t = t.t.map(|v| v * scale);
                 t
             });
-            let file = triangulate::calibration::CalibrationFile {
+            let file = calibration::file::CalibrationFile {
                 stereo,
-                ..triangulate::calibration::CalibrationFile::from_calibration(
+                ..calibration::file::CalibrationFile::from_calibration(
                     &cal,
                     a.pixel_pitch.unwrap_or(1.0),
                 )
             };
-            triangulate::calibration::write_file(
+            calibration::file::write_file(
                 &out,
                 &file,
                 &format!("Geometry fitted by microstereo calibrate-depth from the z-stack in '{}'; [stereo] kept.", a.dir.display()),
             )
             .map_err(CliError::Other)?;
         }
-        None => triangulate::calibration::write(&out, &cal, a.pixel_pitch.unwrap_or(1.0))?,
+        None => calibration::file::write(&out, &cal, a.pixel_pitch.unwrap_or(1.0))?,
     }
     runtime::outln!("{:>10} {:>12} {:>12}", "z (µm)", "d (px)", "resid (px)");
     for ((zi, di), ri) in z.iter().zip(&d).zip(&fit.residuals) {

@@ -5,8 +5,8 @@
 
 use crate::error::CliError;
 use crate::reconstruct::UnitArg;
-use camera_calibration::board::{Board, find_board};
-use camera_calibration::calibrate::{Corners, Stereo, calibrate_stereo};
+use calibration::board::{Board, find_board};
+use calibration::calibrate::{Corners, Stereo, calibrate_stereo};
 use clap::Args;
 use image::{Rgb, RgbImage};
 use imageproc::drawing::{draw_hollow_circle_mut, draw_line_segment_mut};
@@ -245,16 +245,16 @@ pub fn calibrate_stereo_cmd(a: CalibrateStereoArgs) -> Result<(), CliError> {
     };
 
     let cal = stereo.calibration(size);
-    let rect = rectify::Rectification::bouguet(&cal);
+    let rect = calibration::stereo::Rectification::bouguet(&cal);
     // The rectification's own check: each board row's mean rectified row in both views.
-    let boards: Vec<camera_calibration::calibrate::PairView> = used
+    let boards: Vec<calibration::calibrate::PairView> = used
         .iter()
         .map(|&i| {
             let (lb, rb) = results[i].boards.as_ref().expect("used");
             (&lb.corners[..], &rb.corners[..])
         })
         .collect();
-    let worst_row = camera_calibration::calibrate::row_gap(&rect, &boards, cols);
+    let worst_row = calibration::calibrate::row_gap(&rect, &boards, cols);
     std::fs::create_dir_all(a.output.join("corners")).map_err(|e| {
         CliError::Other(format!(
             "cannot create '{}': {e}",
@@ -271,8 +271,8 @@ pub fn calibrate_stereo_cmd(a: CalibrateStereoArgs) -> Result<(), CliError> {
         formats::write_color_png(png, &img)?;
     }
     let unit = a.unit.unit();
-    let file = triangulate::calibration::CalibrationFile::from_stereo(&cal, unit, Some(stereo.rms));
-    triangulate::calibration::write_file(
+    let file = calibration::file::CalibrationFile::from_stereo(&cal, unit, Some(stereo.rms));
+    calibration::file::write_file(
         &outputs[0],
         &file,
         &format!(

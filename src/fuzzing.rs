@@ -42,22 +42,22 @@ pub fn calibration(data: &[u8]) {
     };
     let rect = match pick % 4 {
         0 => {
-            if let Ok(f) = toml::from_str::<triangulate::calibration::CalibrationFile>(text) {
+            if let Ok(f) = toml::from_str::<calibration::file::CalibrationFile>(text) {
                 let _ = f.resolve(640, 480, "fuzz");
             }
             return;
         }
         1 => {
-            if let Ok(f) = serde_json::from_str::<triangulate::calibration::CalibrationFile>(text) {
+            if let Ok(f) = serde_json::from_str::<calibration::file::CalibrationFile>(text) {
                 let _ = f.resolve(640, 480, "fuzz");
             }
             return;
         }
-        2 => rectify::StereoCalibration::from_opencv_yaml(text)
-            .map(|c| rectify::Rectification::bouguet(&c)),
+        2 => calibration::stereo::StereoCalibration::from_opencv_yaml(text)
+            .map(|c| calibration::stereo::Rectification::bouguet(&c)),
         _ => {
             let (l, r) = text.split_once('\0').unwrap_or((text, ""));
-            rectify::Rectification::from_camera_info(l, r)
+            calibration::stereo::Rectification::from_camera_info(l, r)
         }
     };
     if let Ok(rect) = rect {

@@ -11,7 +11,7 @@ use runtime::launch::{Graph, LaunchFile};
 use schemas::DisparityRange;
 use segment::SegmentParams;
 use std::path::{Path, PathBuf};
-use triangulate::calibration::Geometry;
+use triangulate::geometry::Geometry;
 use validate::node::ValidateParams;
 
 /// A stereo pair through the method's chain: image pair → (segment →) match → validate

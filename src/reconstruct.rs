@@ -4,6 +4,7 @@
 use crate::error::CliError;
 use crate::presets::{Stereo, ids};
 use crate::segmentcmd::SegmentOpts;
+use calibration::file::CalibrationFile;
 use clap::{Args, ValueEnum};
 use formats as io;
 use matcher::node::{MatchParams, Region};
@@ -17,7 +18,7 @@ use schemas::{
 use serde::Serialize;
 use std::path::PathBuf;
 use std::time::Instant;
-use triangulate::calibration::{CalibrationFile, Geometry};
+use triangulate::geometry::Geometry;
 use validate::node::ValidateParams;
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -297,7 +298,7 @@ impl ReconstructArgs {
         let Some(p) = self.calibration.as_ref().filter(|_| !self.rectified) else {
             return Ok(None);
         };
-        let file = triangulate::calibration::read_file(p).map_err(CliError::Other)?;
+        let file = calibration::file::read_file(p).map_err(CliError::Other)?;
         Ok(file.stereo.is_some().then(|| p.display().to_string()))
     }
 

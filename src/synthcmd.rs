@@ -463,7 +463,7 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
         ))
     })?;
     let cal = optics.calibration();
-    triangulate::calibration::write(&a.output.join("calibration.toml"), &cal, optics.pixel_pitch)?;
+    calibration::file::write(&a.output.join("calibration.toml"), &cal, optics.pixel_pitch)?;
     let scenes = match (&a.stage_heights, a.frames.unwrap_or(0)) {
         (Some(zs), _) => zs.len(),
         (None, n) => n.max(1),

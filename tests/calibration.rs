@@ -4,7 +4,7 @@
 
 mod common;
 
-use camera_calibration::board::find_board;
+use calibration::board::find_board;
 use common::{assert_clean_failure, run, s};
 use matcher::{Mode, node::Region};
 use microstereo::presets::{Stereo, ids};
@@ -79,7 +79,7 @@ fn calibrate_stereo_matches_opencv_and_its_file_rectifies_the_pairs() {
     }
     // The file: the rectified geometry for triangulate, the raw cameras for rectify.
     let cal = out.join("calibration.toml");
-    let file = triangulate::calibration::read_file(&cal).unwrap();
+    let file = calibration::file::read_file(&cal).unwrap();
     assert!((file.baseline / OPENCV_BASELINE - 1.0).abs() <= 0.005);
     assert!(file.stereo.is_some());
     // A second run keeps the first one's outputs unless told.
@@ -303,10 +303,11 @@ fn calibrations_import_and_export_opencv_yaml_and_camera_info_unchanged() {
         }
     }
     // The exported camera_info rectify exactly as the file's own cameras do.
-    let a = triangulate::calibration::read_file(&p("a.toml")).unwrap();
-    let ours = rectify::Rectification::bouguet(&a.cameras("a").unwrap().unwrap());
+    let a = calibration::file::read_file(&p("a.toml")).unwrap();
+    let ours = calibration::stereo::Rectification::bouguet(&a.cameras("a").unwrap().unwrap());
     let theirs =
-        rectify::Rectification::from_camera_info(&text("l.yaml"), &text("r.yaml")).unwrap();
+        calibration::stereo::Rectification::from_camera_info(&text("l.yaml"), &text("r.yaml"))
+            .unwrap();
     for (x, y) in [(10.0, 20.0), (320.0, 240.0), (600.0, 450.0)] {
         for right in [false, true] {
             let (u, v) = (ours.point(right, x, y), theirs.point(right, x, y));
@@ -317,9 +318,10 @@ fn calibrations_import_and_export_opencv_yaml_and_camera_info_unchanged() {
         }
     }
     // OpenCV's own result: the same cameras (only its rectification's scale differs).
-    let cv =
-        rectify::StereoCalibration::from_opencv_yaml(&std::fs::read_to_string(&fixture).unwrap())
-            .unwrap();
+    let cv = calibration::stereo::StereoCalibration::from_opencv_yaml(
+        &std::fs::read_to_string(&fixture).unwrap(),
+    )
+    .unwrap();
     assert!((a.baseline - cv.t.norm()).abs() < 0.05 * cv.t.norm());
     // Nothing to export, an input as the output, a file that is not a calibration.
     let synthetic = p("geometry.toml");
@@ -397,7 +399,7 @@ fn calibrate_depth_writes_into_a_calibration_file_and_keeps_its_cameras() {
         .status
         .success()
     );
-    let before = triangulate::calibration::read_file(&file).unwrap();
+    let before = calibration::file::read_file(&file).unwrap();
     let o = run(&[
         "calibrate-depth",
         s(&st),
@@ -411,7 +413,7 @@ fn calibrate_depth_writes_into_a_calibration_file_and_keeps_its_cameras() {
         s(&file),
     ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let after = triangulate::calibration::read_file(&file).unwrap();
+    let after = calibration::file::read_file(&file).unwrap();
     let f_eff = after.f_eff.unwrap();
     assert!((f_eff / 18000.0 - 1.0).abs() < 0.01, "f_eff {f_eff}");
     assert_eq!(after.unit, Some(schemas::LengthUnit::Um));
@@ -452,8 +454,7 @@ fn calibrate_manipulator_registers_a_mounted_sim_and_the_bridge_reads_it() {
     )
     .unwrap();
     let r = params.registration().unwrap();
-    let truth =
-        microstereo::calibmanip::mount(&[30.0, 1.1, -1.0, 0.9, 1200.0, -300.0, 5000.0]).unwrap();
+    let truth = registration::mount(&[30.0, 1.1, -1.0, 0.9, 1200.0, -300.0, 5000.0]).unwrap();
     for (a, b) in r.matrix.iter().zip(&truth.matrix) {
         assert!(
             (a - b).abs() < 0.015,

@@ -58,12 +58,12 @@ fn the_seeds_read_whole() {
         let d = std::fs::read(&p).unwrap();
         let text = std::str::from_utf8(&d[1..]).unwrap();
         let ok = match d[0] {
-            0 => toml::from_str::<triangulate::calibration::CalibrationFile>(text).is_ok(),
-            1 => serde_json::from_str::<triangulate::calibration::CalibrationFile>(text).is_ok(),
-            2 => rectify::StereoCalibration::from_opencv_yaml(text).is_ok(),
+            0 => toml::from_str::<calibration::file::CalibrationFile>(text).is_ok(),
+            1 => serde_json::from_str::<calibration::file::CalibrationFile>(text).is_ok(),
+            2 => calibration::stereo::StereoCalibration::from_opencv_yaml(text).is_ok(),
             _ => {
                 let (l, r) = text.split_once('\0').unwrap();
-                rectify::Rectification::from_camera_info(l, r).is_ok()
+                calibration::stereo::Rectification::from_camera_info(l, r).is_ok()
             }
         };
         assert!(ok, "{}", p.display());

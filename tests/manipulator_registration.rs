@@ -11,7 +11,7 @@ use manipulator_bridge::device::{Device, SimDevice, wall_clock};
 use manipulator_bridge::geom::P3;
 use manipulator_bridge::node::BridgeParams;
 use manipulator_bridge::scene::Scene;
-use microstereo::calibmanip::{Optics, SimMicroscope, grid_stops, mount, register};
+use registration::{Optics, SimMicroscope, grid_stops, mount, register};
 use schemas::DisparityRange;
 use std::io::{BufRead, Write};
 use std::time::{Duration, Instant};
@@ -45,7 +45,7 @@ fn after_calibrate_manipulator_an_approach_reaches_the_injection_point_within_2_
     assert!(fit.refuse(3.0).is_none(), "{:?}", fit.refuse(3.0));
     // Where the glass's front truly is with the device at `d`, camera frame.
     let front = |micro: &SimMicroscope, d: P3| {
-        let p = capture::synthetic::pipette_from(
+        let p = synth::Pipette::from_tip(
             truth.to_scene(d),
             micro.pipette_deg.0,
             micro.pipette_deg.1,

@@ -6,8 +6,8 @@
 
 use crate::board::homography;
 use crate::lm::minimise;
+use crate::stereo::StereoCalibration;
 use nalgebra::{Matrix3, Rotation3, Vector3};
-use rectify::StereoCalibration;
 
 /// One camera: `[fx, fy, cx, cy, k1, k2, p1, p2, k3]`.
 pub type Intrinsics = [f64; 9];
@@ -25,7 +25,7 @@ pub type Pose = [f64; 6];
 pub fn project(cam: &[f64], pose: &[f64], x: [f64; 3]) -> [f64; 2] {
     let r = Rotation3::new(Vector3::new(pose[0], pose[1], pose[2]));
     let p = r * Vector3::new(x[0], x[1], x[2]) + Vector3::new(pose[3], pose[4], pose[5]);
-    let (xd, yd) = rectify::distort(&cam[4..9], p.x / p.z, p.y / p.z);
+    let (xd, yd) = crate::stereo::distort(&cam[4..9], p.x / p.z, p.y / p.z);
     [cam[0] * xd + cam[2], cam[1] * yd + cam[3]]
 }
 
@@ -313,7 +313,7 @@ pub fn calibrate_stereo(
 /// How well `rect` puts a board's rows on image rows: the largest difference, over every
 /// row of `cols` corners of every pair of views, between the row's mean rectified image
 /// row in the left view and in the right.
-pub fn row_gap(rect: &rectify::Rectification, pairs: &[PairView], cols: usize) -> f64 {
+pub fn row_gap(rect: &crate::stereo::Rectification, pairs: &[PairView], cols: usize) -> f64 {
     let mut worst: f64 = 0.0;
     for (l, r) in pairs {
         for b in 0..l.len() / cols {

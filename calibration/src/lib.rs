@@ -1,18 +1,20 @@
-//! Chessboard corners and camera and stereo calibration for microstereo's
-//! `calibrate-stereo`: [`board::find_board`] finds a board's inner corners in an image,
-//! [`calibrate::calibrate_stereo`] fits both cameras and their relative pose to pairs of
-//! views, and the result is a [`rectify::StereoCalibration`], the model the rectifier and
-//! the calibration file hold.
+//! Calibration in microstereo, in one place: the rig's model and its rectification
+//! ([`stereo`]: [`stereo::StereoCalibration`], [`stereo::Rectification`]), the calibration
+//! file the rectifier, the triangulate node, `reconstruct` and the calibrate commands share
+//! ([`file`]), chessboard corners ([`board::find_board`]), both cameras and their relative
+//! pose fitted to pairs of views ([`calibrate::calibrate_stereo`]) and the microscope's
+//! depth from a z-stack ([`file::fit_depth`]).
 
 pub mod board;
 pub mod calibrate;
+pub mod file;
 pub mod lm;
-pub mod pipette;
+pub mod stereo;
 
 use schemas::Plane;
 
 /// Bilinear sample of `p` at `(x, y)`; `None` outside the pixel centres' span.
-pub(crate) fn bilinear<T: Copy + Into<f64>>(p: &Plane<T>, x: f64, y: f64) -> Option<f64> {
+pub fn bilinear<T: Copy + Into<f64>>(p: &Plane<T>, x: f64, y: f64) -> Option<f64> {
     if !(x >= 0.0 && y >= 0.0 && x <= (p.width - 1) as f64 && y <= (p.height - 1) as f64) {
         return None;
     }

@@ -2,9 +2,9 @@
 //! corners of 25 mm) against OpenCV's own calibration of them
 //! (scripts/stereo_calibration_fixture.py: RMS 0.215 px, baseline 83.18 mm).
 
-use camera_calibration::board::{Board, find_board};
-use camera_calibration::calibrate::{Corners, calibrate_stereo, row_gap};
-use rectify::Rectification;
+use calibration::board::{Board, find_board};
+use calibration::calibrate::{Corners, calibrate_stereo, row_gap};
+use calibration::stereo::Rectification;
 use schemas::Plane;
 use std::path::PathBuf;
 
@@ -47,11 +47,7 @@ const OPENCV_BASELINE: f64 = 83.176;
 
 /// Calibrates the pairs and checks the baseline against OpenCV's and the rectified board
 /// rows (within 0.5 px); the fit.
-fn calibrate_and_check(
-    l: &[Corners],
-    r: &[Corners],
-    what: &str,
-) -> camera_calibration::calibrate::Stereo {
+fn calibrate_and_check(l: &[Corners], r: &[Corners], what: &str) -> calibration::calibrate::Stereo {
     let s = calibrate_stereo(l, r, &object(), (640, 480)).unwrap();
     let baseline = s.t.norm();
     eprintln!(
@@ -63,7 +59,7 @@ fn calibrate_and_check(
         "baseline {baseline}"
     );
     let rect = Rectification::bouguet(&s.calibration((640, 480)));
-    let both: Vec<camera_calibration::calibrate::PairView> =
+    let both: Vec<calibration::calibrate::PairView> =
         l.iter().zip(r).map(|(a, b)| (&a[..], &b[..])).collect();
     let worst = row_gap(&rect, &both, 9);
     eprintln!("worst board row difference after rectification {worst:.3} px");

@@ -1,5 +1,6 @@
 //! What the synthetic-scene tests share: the method's cell graph on a rendered pair.
 
+use calibration::file::CalibrationFile;
 use matcher::Mode;
 use matcher::node::{MatchParams, Region};
 use microstereo::presets::{Stereo, ids};
@@ -9,7 +10,7 @@ use schemas::{Calibration, Cell3, DisparityRange, Labels, Mask, Plane, Targets};
 use segment::SegmentParams;
 use std::path::Path;
 use std::process::{Command, Output};
-use triangulate::calibration::{CalibrationFile, Geometry};
+use triangulate::geometry::Geometry;
 
 /// The `microstereo` binary run with `args`, to its end.
 #[allow(dead_code)]

@@ -242,22 +242,7 @@ pub const LOOP_RENDER_BUDGET: std::time::Duration = std::time::Duration::from_se
 /// The pipette a manipulator state describes in a scene whose substrate lies at depth `z0`
 /// (the state's positions are in the camera frame, its third coordinate the depth, µm).
 pub fn pipette_at(m: &ManipulatorState, z0: f64) -> Pipette {
-    pipette_from(m.tip, m.elevation_deg, m.azimuth_deg, z0)
-}
-
-/// The pipette with its tip at camera-frame point `tip` (`[X, Y, Z]` µm), its body rising at
-/// `elevation_deg` towards `azimuth_deg` (the bridge's convention), over a substrate at
-/// depth `z0`.
-pub fn pipette_from(tip: [f64; 3], elevation_deg: f64, azimuth_deg: f64, z0: f64) -> Pipette {
-    Pipette {
-        tip: [tip[0], tip[1]],
-        height: z0 - tip[2],
-        tip_radius: 1.5,
-        taper: 0.08,
-        elevation: elevation_deg.to_radians(),
-        // The state names where the body goes; the renderer where the tip points.
-        azimuth: (azimuth_deg + 180.0).rem_euclid(360.0).to_radians(),
-    }
+    Pipette::from_tip(m.tip, m.elevation_deg, m.azimuth_deg, z0)
 }
 
 impl SyntheticCapture {

@@ -1,7 +1,8 @@
 //! The rectify node: a stereo frame in, the rectified frame out (the same frame when no
 //! calibration is given: the input is already rectified).
 
-use crate::{Rectification, RemapLut, read_stereo};
+use crate::{RemapLut, luts};
+use calibration::stereo::{Rectification, read_stereo};
 use node_api::{NodeError, Params, Stamp, Task};
 use schemas::StereoFrame;
 use serde::Deserialize;
@@ -65,7 +66,7 @@ impl Task for Rectify {
 
     fn new(p: RectifyParams) -> Result<Self, NodeError> {
         let luts = p.rectification()?.map(|rect| {
-            let (l, r) = rect.luts();
+            let (l, r) = luts(&rect);
             (l, r, rect.size())
         });
         Ok(Self { luts })

@@ -2,7 +2,7 @@
 //! scripts/stereo_calibration_fixture.py): the rotations agree with OpenCV's, and the corners
 //! of every pair land on the same rows.
 
-use rectify::{Rectification, StereoCalibration};
+use calibration::stereo::{Rectification, StereoCalibration};
 
 fn data(name: &str) -> String {
     std::fs::read_to_string(format!(

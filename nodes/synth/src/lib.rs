@@ -297,6 +297,21 @@ pub struct Pipette {
 }
 
 impl Pipette {
+    /// The pipette with its tip at camera-frame point `tip` (`[X, Y, Z]` µm), its body
+    /// rising at `elevation_deg` towards `azimuth_deg` (the manipulator bridge's
+    /// convention), over a substrate at depth `z0`.
+    pub fn from_tip(tip: [f64; 3], elevation_deg: f64, azimuth_deg: f64, z0: f64) -> Pipette {
+        Pipette {
+            tip: [tip[0], tip[1]],
+            height: z0 - tip[2],
+            tip_radius: 1.5,
+            taper: 0.08,
+            elevation: elevation_deg.to_radians(),
+            // The bridge names where the body goes; the renderer where the tip points.
+            azimuth: (azimuth_deg + 180.0).rem_euclid(360.0).to_radians(),
+        }
+    }
+
     /// The tip's front: the glass's farthest point along the pipette's axis (which points
     /// down at `elevation` towards the tip), `[x, y, height]` µm.
     pub fn front(&self) -> [f64; 3] {

@@ -13,10 +13,10 @@
 //!
 //! The crate also holds what the method measures per cell ([`measure`]: substrate and
 //! tops by photometric fits in [`refine`], heights, volumes, 3D centroids, on the cell-only
-//! maps the `cells` crate composes), the calibration file format ([`calibration`]) and the triangulate node
+//! maps the `cells` crate composes) and the triangulate node
 //! ([`node`]).
 
-pub mod calibration;
+pub mod geometry;
 mod lanes;
 pub mod measure;
 pub mod node;

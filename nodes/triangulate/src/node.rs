@@ -1,7 +1,7 @@
 //! The triangulate node: the final disparity tiles in; the point cloud, the frame's cells
 //! in 3D (when given the segmentation) and the final full-frame map out.
 
-use crate::calibration::Geometry;
+use crate::geometry::Geometry;
 use crate::measure::{Background, cell_heights, lone_cells, measure};
 use crate::refine::{BandPassed, PlaneTrack};
 use cells::{compose, mask_of};

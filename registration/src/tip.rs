@@ -10,8 +10,8 @@
 //! of a cone ending in a round cap, blurred by a Gaussian, fitted to that profile, puts the
 //! front where the glass ends, whatever the blur.
 
-use crate::bilinear;
-use crate::lm::minimise;
+use calibration::bilinear;
+use calibration::lm::minimise;
 use schemas::Plane;
 use segment::{Connectivity, components_where};
 

@@ -1,7 +1,7 @@
 //! The pipette's tip found in synthetic stereo-microscope views (`synth`) at any azimuth,
 //! in focus and out of it, against the renderer's truth: in each image and in 3D.
 
-use camera_calibration::pipette::find_tip;
+use registration::tip::find_tip;
 use synth::{CellSpec, Look, Optics, Pipette, Scene};
 
 /// Per scene: the worst image error of both views (px) and the 3D error (µm).
