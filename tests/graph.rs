@@ -1632,6 +1632,68 @@ inputs = { frame = "invert/frame" }
     );
 }
 
+#[test]
+fn a_second_node_kind_is_one_crate_and_one_registry_line() {
+    // examples/cell-filter-node depends on node-api, schemas and serde only; one line adds
+    // its kind, and the launch validator checks its ports' kinds with their lines.
+    let kinds = microstereo::registry::builtin().task::<cell_filter_node::CellFilter>();
+    let text = r#"
+[[node]]
+id = "capture"
+kind = "capture"
+params = { width = 320, height = 240, cells = 6, seed = 5 }
+
+[[node]]
+id = "segment"
+kind = "segment"
+inputs = { frame = "capture/frame" }
+
+[[node]]
+id = "filter"
+kind = "cell-filter"
+inputs = { cells = "segment/cells" }
+params = { min_area = 400, max_area = 2500 }
+"#;
+    let graph = runtime::launch::LaunchFile::parse(Path::new("custom.toml"), text)
+        .unwrap()
+        .validate(&kinds)
+        .unwrap();
+    let log = InProcess::new(&graph, &kinds).unwrap().run(2).unwrap();
+    let key = |n: &str, p: &str| (n.to_string(), p.to_string());
+    let (mut kept, mut dropped) = (0, 0);
+    for (c, f) in log[&key("segment", "cells")]
+        .iter()
+        .zip(&log[&key("filter", "cells")])
+    {
+        let (c, f): (schemas::CellLists, schemas::CellLists) = (
+            schemas::Message::decode(&c.0, &c.1).unwrap(),
+            schemas::Message::decode(&f.0, &f.1).unwrap(),
+        );
+        for (all, some) in [(&c.left, &f.left), (&c.right, &f.right)] {
+            let want: Vec<&schemas::Cell> = all
+                .iter()
+                .filter(|c| (400..=2500).contains(&c.area))
+                .collect();
+            assert_eq!(some.iter().collect::<Vec<_>>(), want);
+            kept += some.len();
+            dropped += all.len() - some.len();
+        }
+    }
+    // The scene's cells span the range's both sides: the filter has work to do.
+    assert!(kept > 0 && dropped > 0, "kept {kept}, dropped {dropped}");
+    // A port fed the wrong message is refused with its line.
+    let bad = text.replace("segment/cells", "segment/labels");
+    let e = runtime::launch::LaunchFile::parse(Path::new("custom.toml"), &bad)
+        .unwrap()
+        .validate(&kinds)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("custom.toml:15: node 'filter' reads 'segment/labels', which carries Labels, but expects CellList"),
+        "{e}"
+    );
+}
+
 /// A node stopped from outside with SIGTERM (it ends cleanly, or fails on its way out) ends
 /// a run without a restart policy with the summary and the reason; it used to leave the
 /// graph waiting for that node's frames for ever (issue 19 #2).
