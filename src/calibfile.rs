@@ -12,7 +12,6 @@ use crate::reconstruct::UnitArg;
 use calibration::file::{CalibrationFile, read_file, write_file};
 use calibration::stereo::{Rectification, StereoCalibration};
 use clap::{Args, Subcommand};
-use nalgebra::Matrix3;
 use std::path::{Path, PathBuf};
 
 /// Arguments of `microstereo calibration`.
@@ -127,39 +126,6 @@ fn import(a: ImportArgs) -> Result<(), CliError> {
     Ok(())
 }
 
-fn matrix(name: &str, rows: usize, cols: usize, v: &[f64]) -> String {
-    let data: Vec<String> = v.iter().map(|x| format!("{x:?}")).collect();
-    format!(
-        "{name}: !!opencv-matrix\n   rows: {rows}\n   cols: {cols}\n   dt: d\n   data: [ {} ]\n",
-        data.join(", ")
-    )
-}
-
-fn rows(m: &Matrix3<f64>) -> Vec<f64> {
-    (0..9).map(|i| m[(i / 3, i % 3)]).collect()
-}
-
-/// The projection matrices of the rectified views (the right one's fourth column `−f·b`).
-fn projections(rect: &Rectification) -> (Vec<f64>, Vec<f64>) {
-    let (f, [cx, cy]) = (rect.f, rect.c);
-    let p1 = vec![f, 0.0, cx, 0.0, 0.0, f, cy, 0.0, 0.0, 0.0, 1.0, 0.0];
-    let p2 = vec![
-        f,
-        0.0,
-        rect.cx_right,
-        -f * rect.baseline,
-        0.0,
-        f,
-        cy,
-        0.0,
-        0.0,
-        0.0,
-        1.0,
-        0.0,
-    ];
-    (p1, p2)
-}
-
 fn export(a: ExportArgs) -> Result<(), CliError> {
     let file = read_file(&a.file).map_err(CliError::Other)?;
     let source = format!("'{}'", a.file.display());
@@ -177,48 +143,13 @@ fn export(a: ExportArgs) -> Result<(), CliError> {
         "give other output paths",
     )?;
     let rect = Rectification::bouguet(&cal);
-    let (p1, p2) = projections(&rect);
     if let Some(p) = &a.opencv {
-        let mut text = String::from("%YAML:1.0\n---\n");
-        text += &format!(
-            "image_width: {}\nimage_height: {}\n",
-            cal.size.0, cal.size.1
-        );
-        text += &matrix("K1", 3, 3, &rows(&cal.k1));
-        text += &matrix("D1", 1, cal.d1.len(), &cal.d1);
-        text += &matrix("K2", 3, 3, &rows(&cal.k2));
-        text += &matrix("D2", 1, cal.d2.len(), &cal.d2);
-        text += &matrix("R", 3, 3, &rows(&cal.r));
-        text += &matrix("T", 3, 1, cal.t.as_slice());
-        text += &matrix("R1", 3, 3, &rows(&rect.r1));
-        text += &matrix("R2", 3, 3, &rows(&rect.r2));
-        text += &matrix("P1", 3, 4, &p1);
-        text += &matrix("P2", 3, 4, &p2);
-        formats::atomic::write_bytes(p, text.as_bytes())
+        formats::atomic::write_bytes(p, rect.to_opencv_yaml().as_bytes())
             .map_err(|e| CliError::Other(e.to_string()))?;
         runtime::outln!("OpenCV stereo YAML written to {}", p.display());
     }
     if let Some(ci) = &a.camera_info {
-        let data = |v: &[f64]| {
-            v.iter()
-                .map(|x| format!("{x:?}"))
-                .collect::<Vec<_>>()
-                .join(", ")
-        };
-        for (path, (side, k, d, r, p)) in ci.iter().zip([
-            ("left", &cal.k1, &cal.d1, &rect.r1, &p1),
-            ("right", &cal.k2, &cal.d2, &rect.r2, &p2),
-        ]) {
-            let text = format!(
-                "image_width: {}\nimage_height: {}\ncamera_name: {side}\ncamera_matrix:\n  rows: 3\n  cols: 3\n  data: [{}]\ndistortion_model: plumb_bob\ndistortion_coefficients:\n  rows: 1\n  cols: {}\n  data: [{}]\nrectification_matrix:\n  rows: 3\n  cols: 3\n  data: [{}]\nprojection_matrix:\n  rows: 3\n  cols: 4\n  data: [{}]\n",
-                cal.size.0,
-                cal.size.1,
-                data(&rows(k)),
-                d.len(),
-                data(d),
-                data(&rows(r)),
-                data(p)
-            );
+        for ((path, side), text) in ci.iter().zip(["left", "right"]).zip(rect.to_camera_info()) {
             formats::atomic::write_bytes(path, text.as_bytes())
                 .map_err(|e| CliError::Other(e.to_string()))?;
             runtime::outln!("{side} camera_info written to {}", path.display());

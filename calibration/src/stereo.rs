@@ -413,6 +413,96 @@ impl Rectification {
     }
 }
 
+/// `name` as an OpenCV `FileStorage` matrix of `rows × cols` doubles.
+fn opencv_text(name: &str, rows: usize, cols: usize, v: &[f64]) -> String {
+    let data: Vec<String> = v.iter().map(|x| format!("{x:?}")).collect();
+    format!(
+        "{name}: !!opencv-matrix\n   rows: {rows}\n   cols: {cols}\n   dt: d\n   data: [ {} ]\n",
+        data.join(", ")
+    )
+}
+
+/// The entries of `m`, row by row.
+fn row_major(m: &Matrix3<f64>) -> Vec<f64> {
+    (0..9).map(|i| m[(i / 3, i % 3)]).collect()
+}
+
+impl Rectification {
+    /// The projection matrices of the rectified views (the right one's fourth column `−f·b`).
+    pub fn projections(&self) -> (Vec<f64>, Vec<f64>) {
+        let (f, [cx, cy]) = (self.f, self.c);
+        let p1 = vec![f, 0.0, cx, 0.0, 0.0, f, cy, 0.0, 0.0, 0.0, 1.0, 0.0];
+        let p2 = vec![
+            f,
+            0.0,
+            self.cx_right,
+            -f * self.baseline,
+            0.0,
+            f,
+            cy,
+            0.0,
+            0.0,
+            0.0,
+            1.0,
+            0.0,
+        ];
+        (p1, p2)
+    }
+
+    /// The raw cameras and this rectification as OpenCV's stereo YAML (`stereoCalibrate`'s
+    /// K1, D1, K2, D2, R, T and `stereoRectify`'s R1, R2, P1, P2), what
+    /// [`StereoCalibration::from_opencv_yaml`] reads back.
+    pub fn to_opencv_yaml(&self) -> String {
+        let cal = &self.calib;
+        let (p1, p2) = self.projections();
+        let mut text = String::from("%YAML:1.0\n---\n");
+        text += &format!(
+            "image_width: {}\nimage_height: {}\n",
+            cal.size.0, cal.size.1
+        );
+        text += &opencv_text("K1", 3, 3, &row_major(&cal.k1));
+        text += &opencv_text("D1", 1, cal.d1.len(), &cal.d1);
+        text += &opencv_text("K2", 3, 3, &row_major(&cal.k2));
+        text += &opencv_text("D2", 1, cal.d2.len(), &cal.d2);
+        text += &opencv_text("R", 3, 3, &row_major(&cal.r));
+        text += &opencv_text("T", 3, 1, cal.t.as_slice());
+        text += &opencv_text("R1", 3, 3, &row_major(&self.r1));
+        text += &opencv_text("R2", 3, 3, &row_major(&self.r2));
+        text += &opencv_text("P1", 3, 4, &p1);
+        text += &opencv_text("P2", 3, 4, &p2);
+        text
+    }
+
+    /// The left and right views as ROS `camera_info` YAML (plumb_bob), what
+    /// [`Rectification::from_camera_info`] reads back.
+    pub fn to_camera_info(&self) -> [String; 2] {
+        let cal = &self.calib;
+        let (p1, p2) = self.projections();
+        let data = |v: &[f64]| {
+            v.iter()
+                .map(|x| format!("{x:?}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        };
+        [
+            ("left", &cal.k1, &cal.d1, &self.r1, &p1),
+            ("right", &cal.k2, &cal.d2, &self.r2, &p2),
+        ]
+        .map(|(side, k, d, r, p)| {
+            format!(
+                "image_width: {}\nimage_height: {}\ncamera_name: {side}\ncamera_matrix:\n  rows: 3\n  cols: 3\n  data: [{}]\ndistortion_model: plumb_bob\ndistortion_coefficients:\n  rows: 1\n  cols: {}\n  data: [{}]\nrectification_matrix:\n  rows: 3\n  cols: 3\n  data: [{}]\nprojection_matrix:\n  rows: 3\n  cols: 4\n  data: [{}]\n",
+                cal.size.0,
+                cal.size.1,
+                data(&row_major(k)),
+                d.len(),
+                data(d),
+                data(&row_major(r)),
+                data(p)
+            )
+        })
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
