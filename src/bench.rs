@@ -124,10 +124,11 @@ fn bench_pairs(a: &BenchArgs, pairs: &[(String, PathBuf, PathBuf)]) -> Result<()
                 preset.matching.paths = p;
             }
             let (_, mut run) = preset.start(&[])?;
+            let matched = preset.outs().matched;
             let mut runs: Vec<Vec<(String, f64)>> = Vec::new();
             let (mut evals, mut size) = (0, (0, 0));
             while let Some(f) = run.step()? {
-                let tiles: DisparityTiles = f.decode(ids::MATCH, "left")?;
+                let tiles: DisparityTiles = f.read(&matched)?;
                 evals = tiles.evaluations();
                 size = (tiles.width, tiles.height);
                 runs.push(f.ms.into_iter().filter(|(n, _)| n != ids::PAIR).collect());

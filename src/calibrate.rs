@@ -3,7 +3,7 @@
 //! stage height (`calibration::file::fit_depth`).
 
 use crate::error::CliError;
-use crate::presets::{Stereo, ids};
+use crate::presets::Stereo;
 use clap::Args;
 use matcher::Mode;
 use schemas::{Calibration, DisparityRange, LengthUnit};
@@ -135,9 +135,7 @@ fn target_disparity(
     let f = run
         .step()?
         .ok_or_else(|| CliError::Other(format!("'{}' gave no frame", l.display())))?;
-    let checked = f
-        .decode::<schemas::DisparityTiles>(ids::VALIDATE, "left")?
-        .paste();
+    let checked = f.read(&preset.outs().checked)?.paste();
     let (w, h) = (checked.width, checked.height);
     let mut v: Vec<f32> = (h / 4..3 * h / 4)
         .flat_map(|y| checked.row(y)[w / 4..3 * w / 4].to_vec())

@@ -3,16 +3,24 @@
 //! in-process executor on the same node values as `microstereo run`.
 
 use crate::error::CliError;
+use capture::ImagePairOut;
 use matcher::Mode;
+use matcher::node::{BothOut, MatchIn};
 use matcher::node::{MatchParams, Region};
 use postprocess::PostParams;
-use runtime::exec::InProcess;
+use postprocess::node::Tiles;
+use runtime::build::{GraphBuilder, Out, params_of};
+use runtime::exec::{Frame, InProcess};
 use runtime::launch::{Graph, LaunchFile};
 use schemas::DisparityRange;
+use schemas::{CellLists, Cloud, Disparity, DisparityTiles, Image, Labels, StereoFrame, Targets};
 use segment::SegmentParams;
+use segment::node::{SegmentIn, SegmentOut};
 use std::path::{Path, PathBuf};
 use triangulate::geometry::Geometry;
+use triangulate::node::{TriangulateIn, TriangulateOut};
 use validate::node::ValidateParams;
+use validate::node::{ValidateIn, ValidateOut};
 
 /// A stereo pair through the method's chain: image pair → (segment →) match → validate
 /// (→ post-process → triangulate).
@@ -57,28 +65,42 @@ pub mod ids {
     pub const TRIANGULATE: &str = "triangulate";
 }
 
-fn table<T: serde::Serialize>(v: &T) -> toml::Table {
-    match toml::Value::try_from(v) {
-        Ok(toml::Value::Table(t)) => t,
-        _ => toml::Table::new(),
-    }
+/// The outputs of a [`Stereo`] graph a command reads, typed (`None`: the node is not in
+/// this graph).
+#[derive(Clone, Debug)]
+pub struct StereoOuts {
+    /// The left view in colour, as read.
+    pub colour: Out<Image>,
+    /// The views every later node reads: rectified, or as read.
+    pub frame: Out<StereoFrame>,
+    /// The cells' label images.
+    pub labels: Option<Out<Labels>>,
+    /// Both views' cells.
+    pub cells: Option<Out<CellLists>>,
+    /// The left-based matches.
+    pub matched: Out<DisparityTiles>,
+    /// The right-based matches.
+    pub matched_right: Out<DisparityTiles>,
+    /// The left-based map after the LR check.
+    pub checked: Out<DisparityTiles>,
+    /// The right-based map after the LR check.
+    pub checked_right: Out<DisparityTiles>,
+    /// The post-processed map.
+    pub post: Option<Out<DisparityTiles>>,
+    /// The final map in frame coordinates.
+    pub disparity: Option<Out<Disparity>>,
+    /// The point cloud.
+    pub cloud: Option<Out<Cloud>>,
+    /// The cells in 3D.
+    pub targets: Option<Out<Targets>>,
 }
 
-fn node(id: &str, kind: &str, inputs: &[(&str, &str)], params: toml::Table) -> toml::Value {
-    let mut n = toml::Table::new();
-    n.insert("id".into(), id.into());
-    n.insert("kind".into(), kind.into());
-    if !inputs.is_empty() {
-        let i: toml::Table = inputs
-            .iter()
-            .map(|(p, from)| (p.to_string(), toml::Value::from(*from)))
-            .collect();
-        n.insert("inputs".into(), toml::Value::Table(i));
-    }
-    if !params.is_empty() {
-        n.insert("params".into(), toml::Value::Table(params));
-    }
-    toml::Value::Table(n)
+/// The message on `o` this frame, where this graph has that output.
+pub fn got<M: schemas::msg::Message>(f: &Frame, o: &Option<Out<M>>) -> Result<M, CliError> {
+    let o = o
+        .as_ref()
+        .ok_or_else(|| CliError::Other("this graph has no such output".into()))?;
+    Ok(f.read(o)?)
 }
 
 impl Stereo {
@@ -98,34 +120,38 @@ impl Stereo {
         }
     }
 
-    /// The graph as launch-file text.
-    pub fn launch_text(&self) -> String {
+    /// The graph built from its node types, and the outputs a command reads.
+    pub fn build(&self) -> (GraphBuilder, StereoOuts) {
         use ids::*;
-        let mut nodes = vec![node(
+        let mut g = GraphBuilder::new();
+        let pair = g.source::<capture::ImagePair>(
             PAIR,
-            "image-pair",
-            &[],
-            table(&capture::ImagePairParams {
+            params_of(&capture::ImagePairParams {
                 left: self.left.clone(),
                 right: self.right.clone(),
                 frames: self.frames,
             }),
-        )];
+        );
+        let colour = pair.out(ImagePairOut::colour);
         // A raw pair is rectified first; every later node reads the rectified views (and
         // the points go grey: the colour view is not rectified).
-        let frame = if let Some(cal) = &self.rectify {
-            nodes.push(node(
-                RECTIFY,
-                "rectify",
-                &[("frame", "pair/frame")],
-                toml::Table::from_iter([(
-                    "calibration".to_string(),
-                    toml::Value::from(cal.as_str()),
-                )]),
-            ));
-            "rectify/frame"
-        } else {
-            "pair/frame"
+        let frame = match &self.rectify {
+            Some(cal) => {
+                let r = g.task::<rectify::node::Rectify>(
+                    RECTIFY,
+                    toml::Table::from_iter([(
+                        "calibration".to_string(),
+                        toml::Value::from(cal.as_str()),
+                    )]),
+                );
+                g.connect(
+                    &r,
+                    rectify::node::Frame::frame,
+                    &pair.out(ImagePairOut::frame),
+                );
+                r.out(rectify::node::Frame::frame)
+            }
+            None => pair.out(ImagePairOut::frame),
         };
         let mut matching = self.matching.clone();
         matching.region = if self.segment.is_some() {
@@ -133,46 +159,71 @@ impl Stereo {
         } else {
             Region::Frame
         };
-        let mut match_in = vec![("frame", frame)];
-        if let Some(s) = &self.segment {
-            nodes.push(node(SEGMENT, "segment", &[("frame", frame)], table(s)));
-            match_in.push(("cells", "segment/cells"));
+        let seg = self.segment.as_ref().map(|s| {
+            let seg = g.task::<segment::node::Segment>(SEGMENT, params_of(s));
+            g.connect(&seg, SegmentIn::frame, &frame);
+            seg
+        });
+        let m = g.task::<matcher::node::Match>(MATCH, params_of(&matching));
+        g.connect(&m, MatchIn::frame, &frame);
+        if let Some(seg) = &seg {
+            g.connect(&m, MatchIn::cells, &seg.out(SegmentOut::cells));
         }
-        nodes.push(node(MATCH, "match", &match_in, table(&matching)));
-        nodes.push(node(
-            VALIDATE,
-            "validate",
-            &[("left", "match/left"), ("right", "match/right")],
-            table(&self.validate),
-        ));
+        let v = g.task::<validate::node::Validate>(VALIDATE, params_of(&self.validate));
+        g.connect(&v, ValidateIn::left, &m.out(BothOut::left));
+        g.connect(&v, ValidateIn::right, &m.out(BothOut::right));
+        let mut outs = StereoOuts {
+            colour,
+            frame: frame.clone(),
+            labels: seg.as_ref().map(|s| s.out(SegmentOut::labels)),
+            cells: seg.as_ref().map(|s| s.out(SegmentOut::cells)),
+            matched: m.out(BothOut::left),
+            matched_right: m.out(BothOut::right),
+            checked: v.out(ValidateOut::left),
+            checked_right: v.out(ValidateOut::right),
+            post: None,
+            disparity: None,
+            cloud: None,
+            targets: None,
+        };
         if let Some(p) = &self.post {
-            nodes.push(node(
-                POSTPROCESS,
-                "postprocess",
-                &[("disparity", "validate/left")],
-                table(p),
-            ));
-            if let Some(g) = &self.geometry {
-                let mut inputs = vec![("frame", frame), ("disparity", "postprocess/disparity")];
+            let post = g.task::<postprocess::node::Postprocess>(POSTPROCESS, params_of(p));
+            g.connect(&post, Tiles::disparity, &outs.checked);
+            outs.post = Some(post.out(Tiles::disparity));
+            if let Some(geometry) = &self.geometry {
+                let t = g.task::<triangulate::node::Triangulate>(
+                    TRIANGULATE,
+                    toml::Table::from_iter([(
+                        "calibration".to_string(),
+                        toml::Value::from(geometry.clone()),
+                    )]),
+                );
+                g.connect(&t, TriangulateIn::frame, &frame);
+                g.connect(&t, TriangulateIn::disparity, &post.out(Tiles::disparity));
                 if self.rectify.is_none() {
-                    inputs.push(("colour", "pair/colour"));
+                    g.connect(&t, TriangulateIn::colour, &outs.colour);
                 }
-                if self.segment.is_some() {
-                    inputs.extend([
-                        ("checked", "validate/left"),
-                        ("labels", "segment/labels"),
-                        ("cells", "segment/cells"),
-                    ]);
+                if let Some(seg) = &seg {
+                    g.connect(&t, TriangulateIn::checked, &outs.checked);
+                    g.connect(&t, TriangulateIn::labels, &seg.out(SegmentOut::labels));
+                    g.connect(&t, TriangulateIn::cells, &seg.out(SegmentOut::cells));
                 }
-                let params = toml::Table::from_iter([(
-                    "calibration".to_string(),
-                    toml::Value::from(g.clone()),
-                )]);
-                nodes.push(node(TRIANGULATE, "triangulate", &inputs, params));
+                outs.disparity = Some(t.out(TriangulateOut::disparity));
+                outs.cloud = Some(t.out(TriangulateOut::cloud));
+                outs.targets = Some(t.out(TriangulateOut::targets));
             }
         }
-        let doc = toml::Table::from_iter([("node".to_string(), toml::Value::Array(nodes))]);
-        toml::to_string(&doc).expect("a launch table serialises")
+        (g, outs)
+    }
+
+    /// The graph as launch-file text.
+    pub fn launch_text(&self) -> String {
+        self.build().0.launch_text()
+    }
+
+    /// The outputs a command reads.
+    pub fn outs(&self) -> StereoOuts {
+        self.build().1
     }
 
     /// The graph, validated against the built-in kinds (`flags` name the parameters in

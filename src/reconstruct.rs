@@ -2,7 +2,7 @@
 //! `--cells`: only the cells), its outputs written to a folder.
 
 use crate::error::CliError;
-use crate::presets::{Stereo, ids};
+use crate::presets::{Stereo, got};
 use crate::segmentcmd::SegmentOpts;
 use calibration::file::CalibrationFile;
 use clap::{Args, ValueEnum};
@@ -11,10 +11,7 @@ use matcher::node::{MatchParams, Region};
 use matcher::{Mode, PaperParams, QualityParams, Weights};
 use postprocess::{Fill, PostParams};
 use runtime::exec::Frame;
-use schemas::{
-    CellLists, Cloud, Disparity, DisparityMap, DisparityRange, DisparityTiles, Labels, LengthUnit,
-    Mask, Plane, Targets,
-};
+use schemas::{Cloud, DisparityMap, DisparityRange, LengthUnit, Mask, Plane, Targets};
 use serde::Serialize;
 use std::path::PathBuf;
 use std::time::Instant;
@@ -401,7 +398,7 @@ pub fn auto_range(
         preset.matching.min_disparity = range.min;
         preset.matching.max_disparity = range.max;
         let f = run_once(&preset)?;
-        let checked: DisparityTiles = f.decode(ids::VALIDATE, "left")?;
+        let checked = f.read(&preset.outs().checked)?;
         curve.push(RangeScore {
             range,
             consistency_ratio: validate::consistency_ratio(&checked.paste(), range),
@@ -529,16 +526,14 @@ pub fn reconstruct(a: ReconstructArgs) -> Result<(), CliError> {
     if a.cells {
         return write_cells(&a, &preset, &f, times, t0);
     }
-    let checked: DisparityTiles = f.decode(ids::VALIDATE, "left")?;
-    let checked_right: DisparityTiles = f.decode(ids::VALIDATE, "right")?;
-    let post: DisparityTiles = f.decode(ids::POSTPROCESS, "disparity")?;
+    let outs = preset.outs();
+    let checked = f.read(&outs.checked)?;
+    let checked_right = f.read(&outs.checked_right)?;
+    let post = got(&f, &outs.post)?;
     let raw = checked.paste();
     let disparity = post.paste();
     let cloud: Option<(Cloud, Targets)> = match preset.geometry {
-        Some(_) => Some((
-            f.decode(ids::TRIANGULATE, "cloud")?,
-            f.decode(ids::TRIANGULATE, "targets")?,
-        )),
+        Some(_) => Some((got(&f, &outs.cloud)?, got(&f, &outs.targets)?)),
         None => None,
     };
     let unit = cloud.as_ref().map(|(_, t)| unit_of(&t.unit));
@@ -658,20 +653,21 @@ fn write_cells(
     mut times: serde_json::Map<String, serde_json::Value>,
     t0: Instant,
 ) -> Result<(), CliError> {
-    let labels: Labels = f.decode(ids::SEGMENT, "labels")?;
-    let lists: CellLists = f.decode(ids::SEGMENT, "cells")?;
-    let tiles: DisparityTiles = f.decode(ids::VALIDATE, "left")?;
-    let post: DisparityTiles = f.decode(ids::POSTPROCESS, "disparity")?;
-    let targets: Targets = f.decode(ids::TRIANGULATE, "targets")?;
-    let cloud: Cloud = f.decode(ids::TRIANGULATE, "cloud")?;
-    let disparity: Disparity = f.decode(ids::TRIANGULATE, "disparity")?;
+    let outs = preset.outs();
+    let labels = got(f, &outs.labels)?;
+    let lists = got(f, &outs.cells)?;
+    let tiles = f.read(&outs.checked)?;
+    let post = got(f, &outs.post)?;
+    let targets = got(f, &outs.targets)?;
+    let cloud = got(f, &outs.cloud)?;
+    let disparity = got(f, &outs.disparity)?;
     let composed = cells::compose(
         (&labels.left, &cells::mask_of(&labels.left)),
         (&lists.left, &lists.right),
         &post,
         &tiles,
     )?;
-    let colour: schemas::Image = f.decode(ids::PAIR, "colour")?;
+    let colour = f.read(&outs.colour)?;
     let unit = unit_of(&targets.unit);
     let o = &a.output;
     mkdir(o)?;

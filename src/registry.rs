@@ -30,7 +30,10 @@ pub fn builtin() -> Registry {
 /// recorder writes as the cameras' CameraInfo.
 pub fn cameras(graph: &Graph) -> Option<recorder::node::Cameras> {
     let of_kind = |kind: &str| graph.nodes.iter().find(|n| n.kind() == Some(kind));
-    let (tri, cap) = (of_kind("triangulate")?, of_kind("capture")?);
+    let (tri, cap) = (
+        of_kind(<triangulate::node::Triangulate as runtime::node::Task>::KIND)?,
+        of_kind(<capture::Capture as runtime::node::Source>::KIND)?,
+    );
     let cap: capture::CaptureParams = runtime::registry::parse_params(&cap.params).ok()?;
     let (width, height) = cap.frame_size()?;
     let tri: triangulate::node::TriangulateParams =

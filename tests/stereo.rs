@@ -2,9 +2,9 @@
 //! match → validate → post-process preset, run in-process).
 
 use matcher::Mode;
-use microstereo::presets::{Stereo, ids};
+use microstereo::presets::Stereo;
 use microstereo::reconstruct::{RangeKind, auto_range, candidate_ranges, run_once};
-use schemas::{DisparityMap, DisparityRange, DisparityTiles, Plane};
+use schemas::{DisparityMap, DisparityRange, Plane};
 use std::path::{Path, PathBuf};
 use synth::layers::standard_scene;
 
@@ -31,9 +31,7 @@ fn preset(left: PathBuf, right: PathBuf, mode: Mode, range: DisparityRange) -> S
 /// The final map of `p`.
 fn final_map(p: &Stereo) -> DisparityMap {
     let f = run_once(p).unwrap();
-    f.decode::<DisparityTiles>(ids::POSTPROCESS, "disparity")
-        .unwrap()
-        .paste()
+    f.read(p.outs().post.as_ref().unwrap()).unwrap().paste()
 }
 
 /// Share of non-occluded pixels (per the GT cross-check) whose disparity rounds to the GT.
@@ -148,17 +146,15 @@ fn left_and_right_directions_agree_on_a_plain_shift() {
         save(dir.path(), "r.png", &s.right),
     );
     for mode in [Mode::Paper, Mode::Quality] {
-        let f = run_once(&preset(
-            l.clone(),
-            r.clone(),
-            mode,
-            DisparityRange::new(0, 12),
-        ))
-        .unwrap();
+        let p = preset(l.clone(), r.clone(), mode, DisparityRange::new(0, 12));
+        let (f, outs) = (run_once(&p).unwrap(), p.outs());
         let map = |port| {
-            f.decode::<DisparityTiles>(ids::MATCH, port)
-                .unwrap()
-                .paste()
+            let o = if port == "left" {
+                &outs.matched
+            } else {
+                &outs.matched_right
+            };
+            f.read(o).unwrap().paste()
         };
         let check = |m: &Plane<f32>, skip_left: usize, skip_right: usize| {
             for y in 8..82 {

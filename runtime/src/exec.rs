@@ -63,6 +63,11 @@ impl Frame {
             })
     }
 
+    /// The message a built graph's output `o` sent this frame, as its own type.
+    pub fn read<M: schemas::msg::Message>(&self, o: &crate::build::Out<M>) -> Result<M, String> {
+        self.decode(o.node(), o.port())
+    }
+
     /// That message decoded as `M`.
     pub fn decode<M: schemas::msg::Message>(&self, id: &str, port: &str) -> Result<M, String> {
         let m = self

@@ -3,6 +3,7 @@
 //! - [`node`]: the node contract of the `node-api` crate (one small trait per node role,
 //!   typed ports, a params type), re-exported;
 //! - [`registry`]: the node kinds a binary knows, built from those types;
+//! - [`build`]: graphs built in code from node types and their typed ports;
 //! - [`edge`]: queue settings of an edge and the frame clock; [`stats`]: what a node
 //!   reports when it ends;
 //! - [`launch`]: `launch.toml`, checked against the registry, and the graph rewrites
@@ -18,6 +19,7 @@
 
 pub use node_api::{errln, outln, ports};
 
+pub mod build;
 pub mod edge;
 pub mod exec;
 pub mod harness;

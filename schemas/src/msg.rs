@@ -82,6 +82,8 @@ pub trait Message: Sized {
 /// What a node's port holds: a message (a required port) or `Option` of one (an optional
 /// port, absent when nothing is connected to it or nothing was sent on it).
 pub trait Slot: Sized {
+    /// The message the port carries (`M` for both `M` and `Option<M>`).
+    type Msg: Message;
     /// The message kind of the port.
     const PORT_KIND: MessageKind;
     /// Whether the port may stay unconnected (inputs) or unsent (outputs).
@@ -93,6 +95,7 @@ pub trait Slot: Sized {
 }
 
 impl<T: Message> Slot for T {
+    type Msg = T;
     const PORT_KIND: MessageKind = T::KIND;
     const OPTIONAL: bool = false;
     fn take(msg: Option<(&FrameHeader, &[u8])>) -> Result<Self, WireError> {
@@ -110,6 +113,7 @@ impl<T: Message> Slot for T {
 }
 
 impl<T: Message> Slot for Option<T> {
+    type Msg = T;
     const PORT_KIND: MessageKind = T::KIND;
     const OPTIONAL: bool = true;
     fn take(msg: Option<(&FrameHeader, &[u8])>) -> Result<Self, WireError> {

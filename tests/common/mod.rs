@@ -3,7 +3,7 @@
 use calibration::file::CalibrationFile;
 use matcher::Mode;
 use matcher::node::{MatchParams, Region};
-use microstereo::presets::{Stereo, ids};
+use microstereo::presets::Stereo;
 use microstereo::reconstruct::run_once;
 use postprocess::PostParams;
 use schemas::{Calibration, Cell3, DisparityRange, Labels, Mask, Plane, Targets};
@@ -89,7 +89,8 @@ pub fn cell_targets(
         rectify: None,
     };
     let f = run_once(&preset).unwrap();
-    let targets: Targets = f.decode(ids::TRIANGULATE, "targets").unwrap();
-    let labels: Labels = f.decode(ids::SEGMENT, "labels").unwrap();
+    let outs = preset.outs();
+    let targets: Targets = f.read(outs.targets.as_ref().unwrap()).unwrap();
+    let labels: Labels = f.read(outs.labels.as_ref().unwrap()).unwrap();
     (targets, cells::mask_of(&labels.left))
 }
