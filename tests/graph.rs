@@ -1567,6 +1567,15 @@ fn the_default_graph_measures_the_cells_of_reconstruct_cells_bit_for_bit() {
     assert!(bits(&d.data) == bits(&g.map.data));
 }
 
+/// `text` read as the launch file `custom.toml` and checked against `kinds`: the graph, or
+/// the validator's errors as one text.
+fn custom(text: &str, kinds: &runtime::Registry) -> Result<runtime::launch::Graph, String> {
+    runtime::launch::LaunchFile::parse(Path::new("custom.toml"), text)
+        .unwrap()
+        .validate(kinds)
+        .map_err(|e| e.to_string())
+}
+
 #[test]
 fn a_node_kind_from_outside_the_built_in_crates_runs_in_a_graph() {
     // One registry line adds the example's kind to the built-in ones; the launch file names
@@ -1589,10 +1598,7 @@ id = "segment"
 kind = "segment"
 inputs = { frame = "invert/frame" }
 "#;
-    let graph = runtime::launch::LaunchFile::parse(Path::new("custom.toml"), text)
-        .unwrap()
-        .validate(&kinds)
-        .unwrap();
+    let graph = custom(text, &kinds).unwrap();
     let log = InProcess::new(&graph, &kinds).unwrap().run(2).unwrap();
     let key = |n: &str, p: &str| (n.to_string(), p.to_string());
     for (c, i) in log[&key("capture", "frame")]
@@ -1621,11 +1627,7 @@ inputs = { frame = "invert/frame" }
     assert_eq!(log[&key("segment", "cells")].len(), 2);
     // Its params are checked like a built-in node's.
     let bad = text.replace("level = 200", "level = 0, colour = true");
-    let e = runtime::launch::LaunchFile::parse(Path::new("custom.toml"), &bad)
-        .unwrap()
-        .validate(&kinds)
-        .unwrap_err()
-        .to_string();
+    let e = custom(&bad, &kinds).unwrap_err();
     assert!(
         e.contains("custom.toml:11: node 'invert': bad params: unknown field `colour`"),
         "{e}"
@@ -1654,10 +1656,7 @@ kind = "cell-filter"
 inputs = { cells = "segment/cells" }
 params = { min_area = 400, max_area = 2500 }
 "#;
-    let graph = runtime::launch::LaunchFile::parse(Path::new("custom.toml"), text)
-        .unwrap()
-        .validate(&kinds)
-        .unwrap();
+    let graph = custom(text, &kinds).unwrap();
     let log = InProcess::new(&graph, &kinds).unwrap().run(2).unwrap();
     let key = |n: &str, p: &str| (n.to_string(), p.to_string());
     let (mut kept, mut dropped) = (0, 0);
@@ -1683,11 +1682,7 @@ params = { min_area = 400, max_area = 2500 }
     assert!(kept > 0 && dropped > 0, "kept {kept}, dropped {dropped}");
     // A port fed the wrong message is refused with its line.
     let bad = text.replace("segment/cells", "segment/labels");
-    let e = runtime::launch::LaunchFile::parse(Path::new("custom.toml"), &bad)
-        .unwrap()
-        .validate(&kinds)
-        .unwrap_err()
-        .to_string();
+    let e = custom(&bad, &kinds).unwrap_err();
     assert!(
         e.contains("custom.toml:15: node 'filter' reads 'segment/labels', which carries Labels, but expects CellList"),
         "{e}"

@@ -1,11 +1,13 @@
 //! Calibration in microstereo, in one place: the rig's model and its rectification
 //! ([`stereo`]: [`stereo::StereoCalibration`], [`stereo::Rectification`]), the calibration
 //! file the rectifier, the triangulate node, `reconstruct` and the calibrate commands share
-//! ([`file`]), chessboard corners ([`board::find_board`]), both cameras and their relative
-//! pose fitted to pairs of views ([`calibrate::calibrate_stereo`]) and the microscope's
-//! depth from a z-stack ([`file::fit_depth`]).
+//! ([`file`]), chessboard corners (`board::find_board`), both cameras and their relative
+//! pose fitted to pairs of views (`calibrate::calibrate_stereo`; these two under the
+//! default feature `boards`) and the microscope's depth from a z-stack ([`file::fit_depth`]).
 
+#[cfg(feature = "boards")]
 pub mod board;
+#[cfg(feature = "boards")]
 pub mod calibrate;
 pub mod file;
 pub mod lm;
