@@ -786,511 +786,34 @@ impl LaunchFile {
     }
 
     /// Checks the whole graph against the node kinds of `catalog`; every problem is
-    /// reported.
+    /// reported. The checks run as passes: each node alone, then the in-flight outputs,
+    /// the edges' kinds, the order (no cycle), the hosts and the edges' readers.
     pub fn validate(&self, catalog: &dyn Catalog) -> Result<Graph, LaunchErrors> {
-        let mut errs = Vec::new();
-        let file = self.path.display().to_string();
-        let err = |errs: &mut Vec<LaunchError>, at: usize, message: String| {
-            errs.push(LaunchError {
-                file: file.clone(),
-                line: line_of(&self.text, at),
-                message,
-            })
+        let mut f = Findings {
+            file: self.path.display().to_string(),
+            text: &self.text,
+            errs: Vec::new(),
         };
-        let mut nodes: Vec<(NodeSpec, Wanted)> = Vec::new();
         let mut seen: HashMap<String, usize> = HashMap::new();
-        for n in &self.decl.node {
-            let at = n.span().start;
-            let n = n.get_ref();
-            let id = n.id.get_ref().clone();
-            let id_at = n.id.span().start;
-            if id.is_empty()
-                || id.len() > 64
-                || !id
-                    .chars()
-                    .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_')
-            {
-                err(
-                    &mut errs,
-                    id_at,
-                    format!(
-                        "node id '{}' must be 1 to 64 letters, digits, '-' or '_'",
-                        // A runaway id is shown by its start, not repeated whole.
-                        match id.char_indices().nth(40) {
-                            Some((i, _)) =>
-                                format!("{}… ({} characters)", &id[..i], id.chars().count()),
-                            None => id.clone(),
-                        }
-                    ),
-                );
-            }
-            if let Some(first) = seen.insert(id.clone(), id_at) {
-                err(
-                    &mut errs,
-                    id_at,
-                    format!(
-                        "duplicate node id '{id}' (first at line {}); give every node its own id",
-                        line_of(&self.text, first)
-                    ),
-                );
-                continue;
-            }
-            let params = n
-                .params
-                .as_ref()
-                .map(|p| p.get_ref().clone())
-                .unwrap_or_default();
-            let params_at = n.params.as_ref().map_or(at, |p| p.span().start);
-            let connected: Vec<&str> = n.inputs.keys().map(String::as_str).collect();
-            let (runner, spec) = match (&n.kind, &n.exec) {
-                (Some(k), None) => match catalog.spec(k.get_ref()) {
-                    Some(spec) => {
-                        if let Err(m) = catalog.check(k.get_ref(), &params, &connected) {
-                            err(
-                                &mut errs,
-                                params_at,
-                                format!("node '{id}': bad params: {m}"),
-                            );
-                        }
-                        (Runner::Builtin(k.get_ref().clone()), spec)
-                    }
-                    None => {
-                        err(
-                            &mut errs,
-                            k.span().start,
-                            format!(
-                                "node '{id}': unknown kind '{}'; known kinds: {}, or use exec = \"path\"",
-                                k.get_ref(),
-                                catalog.kinds().join(", ")
-                            ),
-                        );
-                        continue;
-                    }
-                },
-                (None, Some(e)) => {
-                    let program = PathBuf::from(e.get_ref());
-                    let spec = match catalog.exec(&program, &params, &connected) {
-                        Ok(spec) => spec,
-                        Err(m) => {
-                            err(&mut errs, e.span().start, format!("node '{id}': {m}"));
-                            continue;
-                        }
-                    };
-                    // Ports written in the launch file must be the ones the program declares.
-                    if let Some(p) = &n.ports {
-                        let said = p.get_ref();
-                        let of = |v: &[Port]| -> BTreeMap<String, MessageKind> {
-                            v.iter().map(|p| (p.name.clone(), p.kind)).collect()
-                        };
-                        let inputs: BTreeMap<String, MessageKind> = of(&spec.inputs)
-                            .into_iter()
-                            .chain(of(&spec.feedback))
-                            .collect();
-                        for (what, written, declared) in [
-                            ("inputs", &said.inputs, inputs),
-                            ("outputs", &said.outputs, of(&spec.outputs)),
-                        ] {
-                            if *written != declared {
-                                let show = |m: &BTreeMap<String, MessageKind>| {
-                                    m.iter()
-                                        .map(|(k, v)| format!("{k} = \"{}\"", v.name()))
-                                        .collect::<Vec<_>>()
-                                        .join(", ")
-                                };
-                                err(
-                                    &mut errs,
-                                    p.span().start,
-                                    format!(
-                                        "node '{id}': ports say {what} {{ {} }} but {} declares {{ {} }}; fix or remove ports",
-                                        show(written),
-                                        program.display(),
-                                        show(&declared)
-                                    ),
-                                );
-                            }
-                        }
-                    }
-                    (Runner::Exec(program), spec)
-                }
-                _ => {
-                    err(
-                        &mut errs,
-                        at,
-                        format!("node '{id}': give exactly one of kind = \"…\" or exec = \"…\""),
-                    );
-                    continue;
-                }
-            };
-            let mut inputs = Vec::new();
-            let mut wanted = Vec::new();
-            for (port, decl) in &n.inputs {
-                let iat = decl.span().start;
-                let is_feedback = spec.feedback.iter().any(|p| p.name == *port);
-                let Some(declared) = spec
-                    .inputs
-                    .iter()
-                    .chain(&spec.feedback)
-                    .find(|p| p.name == *port)
-                else {
-                    let all: Vec<&Port> = spec.inputs.iter().chain(&spec.feedback).collect();
-                    err(
-                        &mut errs,
-                        iat,
-                        format!(
-                            "node '{id}' has no input '{port}'; its inputs: {}",
-                            port_names(&all)
-                        ),
-                    );
-                    continue;
-                };
-                let kind = declared.kind;
-                let (from, depth, overflow) = match decl.get_ref() {
-                    InputDecl::Source(s) => (s.clone(), None, None),
-                    InputDecl::Full {
-                        from,
-                        depth,
-                        overflow,
-                    } => (from.clone(), *depth, *overflow),
-                };
-                let Some((src, out)) = from.split_once('/') else {
-                    err(
-                        &mut errs,
-                        iat,
-                        format!("node '{id}' input '{port}': '{from}' must be NODE/OUTPUT"),
-                    );
-                    continue;
-                };
-                let mut edge = EdgeConfig::default();
-                if let Some(d) = depth {
-                    if d == 0 || d > 64 {
-                        err(
-                            &mut errs,
-                            iat,
-                            format!("node '{id}' input '{port}': depth {d} must be 1..=64"),
-                        );
-                    }
-                    edge.depth = d;
-                }
-                if let Some(o) = overflow {
-                    edge.overflow = o;
-                }
-                if is_feedback {
-                    if depth.is_some_and(|d| d != 1) || overflow == Some(Overflow::Block) {
-                        err(
-                            &mut errs,
-                            iat,
-                            format!(
-                                "node '{id}' input '{port}' is a feedback input: it always takes the newest message (depth 1, drop-oldest); remove depth and overflow"
-                            ),
-                        );
-                    }
-                    edge = EdgeConfig {
-                        depth: 1,
-                        overflow: Overflow::DropOldest,
-                    };
-                }
-                wanted.push((format!("{src}/{out}"), kind, iat));
-                inputs.push(Input {
-                    port: port.clone(),
-                    node: src.into(),
-                    output: out.into(),
-                    edge,
-                    feedback: is_feedback,
-                });
-            }
-            // A node reads its inputs in the order its kind declares them: joined inputs
-            // first, then feedback inputs.
-            inputs.sort_by_key(|i| {
-                spec.inputs
-                    .iter()
-                    .chain(&spec.feedback)
-                    .position(|p| p.name == i.port)
-            });
-            // A node whose inputs are all optional must still read one of them.
-            if !spec.inputs.is_empty()
-                && spec.inputs.iter().all(|p| p.optional)
-                && n.inputs
-                    .keys()
-                    .all(|k| spec.feedback.iter().any(|f| f.name == *k))
-            {
-                err(
-                    &mut errs,
-                    at,
-                    format!(
-                        "node '{id}' reads nothing; connect at least one of its inputs: {}",
-                        port_names(&spec.inputs.iter().collect::<Vec<_>>())
-                    ),
-                );
-            }
-            for p in spec.inputs.iter().filter(|p| !p.optional) {
-                if !n.inputs.contains_key(&p.name) {
-                    err(
-                        &mut errs,
-                        at,
-                        format!(
-                            "node '{id}': input '{}' is not connected; add inputs = {{ {} = \"NODE/OUTPUT\" }}",
-                            p.name, p.name
-                        ),
-                    );
-                }
-            }
-            if let Some(r) = &n.restart
-                && r.get_ref().backoff_ms > MAX_BACKOFF_MS
-            {
-                err(
-                    &mut errs,
-                    r.span().start,
-                    format!(
-                        "node '{id}': backoff_ms = {} is out of range; give 0 to {MAX_BACKOFF_MS} (it doubles while a node keeps failing)",
-                        r.get_ref().backoff_ms
-                    ),
-                );
-            }
-            if let Some(r) = &n.restart
-                && let Some(h) = r.get_ref().heartbeat_ms
-                && !(MIN_HEARTBEAT_MS..=86_400_000).contains(&h)
-            {
-                err(
-                    &mut errs,
-                    r.span().start,
-                    format!(
-                        "node '{id}': heartbeat_ms = {h} is out of range; give {MIN_HEARTBEAT_MS} to 86400000 (a node reports every 500 ms while it waits)"
-                    ),
-                );
-            }
-            if let Some(f) = &n.in_flight {
-                let (at, f) = (f.span().start, f.get_ref());
-                if inputs.iter().any(|i| !i.feedback) {
-                    err(
-                        &mut errs,
-                        at,
-                        format!(
-                            "node '{id}': in_flight is for sources (nodes that read no frames); give it to the node whose frames enter the graph"
-                        ),
-                    );
-                }
-                if !(1..=MAX_IN_FLIGHT).contains(&f.frames) {
-                    err(
-                        &mut errs,
-                        at,
-                        format!(
-                            "node '{id}': in_flight.frames = {} is out of range; give 1 to {MAX_IN_FLIGHT}",
-                            f.frames
-                        ),
-                    );
-                }
-                if f.output().is_none() {
-                    err(
-                        &mut errs,
-                        at,
-                        format!(
-                            "node '{id}': in_flight.after = \"{}\" is not NODE/OUTPUT; name the output whose frames count as done",
-                            f.after
-                        ),
-                    );
-                }
-            }
-            nodes.push((
-                NodeSpec {
-                    id,
-                    runner,
-                    inputs,
-                    outputs: spec
-                        .outputs
-                        .iter()
-                        .map(|p| (p.name.clone(), p.kind))
-                        .collect(),
-                    params,
-                    restart: n.restart.as_ref().map(|r| *r.get_ref()).unwrap_or_default(),
-                    tap: false,
-                    logs: false,
-                    in_flight: n.in_flight.as_ref().map(|f| f.get_ref().clone()),
-                    host: n.host.as_ref().map(|h| h.get_ref().clone()),
-                },
-                wanted,
-            ));
-        }
-        // A source's in_flight names an existing output.
-        for n in &self.decl.node {
-            let Some(f) = &n.get_ref().in_flight else {
-                continue;
-            };
-            let Some((src, out)) = f.get_ref().output() else {
-                continue;
-            };
-            let exists = nodes
-                .iter()
-                .any(|(p, _)| p.id == src && p.outputs.iter().any(|(o, _)| o == out));
-            if !exists {
-                err(
-                    &mut errs,
-                    f.span().start,
-                    format!(
-                        "node '{}': in_flight.after = \"{src}/{out}\" is no node's output; name the output whose frames count as done",
-                        n.get_ref().id.get_ref()
-                    ),
-                );
-            }
-        }
-        // Every input names an existing output of the right message type.
-        for (node, wanted) in &nodes {
-            for (from, kind, iat) in wanted {
-                let (src, out) = from.split_once('/').expect("checked");
-                let Some((producer, _)) = nodes.iter().find(|(n, _)| n.id == src) else {
-                    err(
-                        &mut errs,
-                        *iat,
-                        format!(
-                            "node '{}' reads '{from}' but there is no node '{src}'",
-                            node.id
-                        ),
-                    );
-                    continue;
-                };
-                match producer.outputs.iter().find(|(p, _)| p == out) {
-                    None => err(
-                        &mut errs,
-                        *iat,
-                        format!(
-                            "node '{}' reads '{from}' but '{src}' has no output '{out}'; its outputs: {}",
-                            node.id,
-                            names(&producer.outputs)
-                        ),
-                    ),
-                    Some((_, m)) if m != kind => err(
-                        &mut errs,
-                        *iat,
-                        format!(
-                            "node '{}' reads '{from}', which carries {m:?}, but expects {kind:?}",
-                            node.id
-                        ),
-                    ),
-                    Some(_) => {}
-                }
-            }
-        }
-        // Producers first; what remains sits on a cycle.
-        let mut order: Vec<usize> = Vec::new();
-        let mut placed = vec![false; nodes.len()];
-        loop {
-            let before = order.len();
-            for (i, (n, _)) in nodes.iter().enumerate() {
-                if !placed[i]
-                    && n.inputs.iter().filter(|i| !i.feedback).all(|inp| {
-                        nodes
-                            .iter()
-                            .position(|(m, _)| m.id == inp.node)
-                            .is_none_or(|j| placed[j])
-                    })
-                {
-                    placed[i] = true;
-                    order.push(i);
-                }
-            }
-            if order.len() == before {
-                break;
-            }
-        }
-        if order.len() < nodes.len() {
-            let on_cycle: Vec<&str> = nodes
-                .iter()
-                .enumerate()
-                .filter(|(i, _)| !placed[*i])
-                .map(|(_, (n, _))| n.id.as_str())
-                .collect();
-            let at = seen.get(on_cycle[0]).copied().unwrap_or(0);
-            err(
-                &mut errs,
-                at,
-                format!(
-                    "the graph has a cycle through {}; an edge must not lead back to its own producer",
-                    on_cycle.join(", ")
-                ),
-            );
-        }
-        // A graph over several hosts: every node on a declared one.
-        for (name, h) in &self.decl.hosts {
-            if name.is_empty()
-                || name.len() > 64
-                || !name
-                    .chars()
-                    .all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
-            {
-                err(
-                    &mut errs,
-                    h.span().start,
-                    format!(
-                        "[hosts.{name}]: a host name is 1 to 64 letters, digits, '-', '_' or '.'"
-                    ),
-                );
-            }
-        }
-        for n in &self.decl.node {
-            let d = n.get_ref();
-            match (&d.host, self.decl.hosts.is_empty()) {
-                (Some(h), true) => err(
-                    &mut errs,
-                    h.span().start,
-                    format!(
-                        "node '{}': host = \"{}\" but the file declares no [hosts]; add [hosts.{}] with its link's listen/connect endpoints",
-                        d.id.get_ref(),
-                        h.get_ref(),
-                        h.get_ref()
-                    ),
-                ),
-                (Some(h), false) if !self.decl.hosts.contains_key(h.get_ref()) => err(
-                    &mut errs,
-                    h.span().start,
-                    format!(
-                        "node '{}': no host '{}' in [hosts]; the hosts: {}",
-                        d.id.get_ref(),
-                        h.get_ref(),
-                        self.decl
-                            .hosts
-                            .keys()
-                            .cloned()
-                            .collect::<Vec<_>>()
-                            .join(", ")
-                    ),
-                ),
-                (None, false) => err(
-                    &mut errs,
-                    n.span().start,
-                    format!(
-                        "node '{}' has no host; in a launch file with [hosts] every node names the host that runs it",
-                        d.id.get_ref()
-                    ),
-                ),
-                _ => {}
-            }
-        }
-        // An edge holds so many readers; the graph leaves room for the ones added to it
-        // (a recorder, a viewer, the link to another host, a watcher such as `topic`).
-        let mut readers: BTreeMap<(&str, &str), usize> = BTreeMap::new();
-        for (n, _) in &nodes {
-            for i in &n.inputs {
-                *readers.entry((&i.node, &i.output)).or_default() += 1;
-            }
-        }
-        for ((node, output), n) in readers {
-            if n > MAX_GRAPH_READERS {
-                err(
-                    &mut errs,
-                    seen.get(node).copied().unwrap_or(0),
-                    format!(
-                        "edge '{node}/{output}' has {n} readers; an edge of a launch file takes at most {MAX_GRAPH_READERS} (iceoryx2 holds {} per edge, with room kept for a recorder, a viewer, the link between hosts and a watcher): let fewer nodes read it, or pass it on through a node",
-                        crate::transport::MAX_READERS
-                    ),
-                );
-            }
-        }
+        let nodes: Vec<(NodeSpec, Wanted)> = self
+            .decl
+            .node
+            .iter()
+            .filter_map(|n| self.node_pass(n, catalog, &mut seen, &mut f))
+            .collect();
+        self.in_flight_pass(&nodes, &mut f);
+        edges_pass(&nodes, &mut f);
+        let order = order_pass(&nodes, &seen, &mut f);
+        self.hosts_pass(&mut f);
+        readers_pass(&nodes, &seen, &mut f);
         if self.decl.node.is_empty() {
-            errs.push(LaunchError {
-                file: file.clone(),
+            f.errs.push(LaunchError {
+                file: f.file.clone(),
                 line: 0,
                 message: "no [[node]] in the launch file".into(),
             });
         }
+        let mut errs = f.errs;
         if !errs.is_empty() {
             errs.sort_by_key(|e| e.line);
             return Err(LaunchErrors(errs));
@@ -1310,6 +833,530 @@ impl LaunchFile {
                 .map(|(k, v)| (k.clone(), v.get_ref().clone()))
                 .collect(),
         })
+    }
+
+    /// One node on its own: its id, its kind or program and parameters, its inputs and its
+    /// limits; `None` where it cannot be a node of the graph.
+    fn node_pass(
+        &self,
+        n: &Spanned<NodeDecl>,
+        catalog: &dyn Catalog,
+        seen: &mut HashMap<String, usize>,
+        f: &mut Findings,
+    ) -> Option<(NodeSpec, Wanted)> {
+        let at = n.span().start;
+        let n = n.get_ref();
+        let id = n.id.get_ref().clone();
+        let id_at = n.id.span().start;
+        if id.is_empty()
+            || id.len() > 64
+            || !id
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_')
+        {
+            f.err(
+                id_at,
+                format!(
+                    "node id '{}' must be 1 to 64 letters, digits, '-' or '_'",
+                    // A runaway id is shown by its start, not repeated whole.
+                    match id.char_indices().nth(40) {
+                        Some((i, _)) =>
+                            format!("{}… ({} characters)", &id[..i], id.chars().count()),
+                        None => id.clone(),
+                    }
+                ),
+            );
+        }
+        if let Some(first) = seen.insert(id.clone(), id_at) {
+            f.err(
+                id_at,
+                format!(
+                    "duplicate node id '{id}' (first at line {}); give every node its own id",
+                    line_of(&self.text, first)
+                ),
+            );
+            return None;
+        }
+        let params = n
+            .params
+            .as_ref()
+            .map(|p| p.get_ref().clone())
+            .unwrap_or_default();
+        let params_at = n.params.as_ref().map_or(at, |p| p.span().start);
+        let connected: Vec<&str> = n.inputs.keys().map(String::as_str).collect();
+        let (runner, spec) = runner_of(n, &id, at, (&params, params_at), &connected, catalog, f)?;
+        let (mut inputs, wanted) = inputs_of(n, &id, &spec, f);
+        // A node reads its inputs in the order its kind declares them: joined inputs
+        // first, then feedback inputs.
+        inputs.sort_by_key(|i| {
+            spec.inputs
+                .iter()
+                .chain(&spec.feedback)
+                .position(|p| p.name == i.port)
+        });
+        // A node whose inputs are all optional must still read one of them.
+        if !spec.inputs.is_empty()
+            && spec.inputs.iter().all(|p| p.optional)
+            && n.inputs
+                .keys()
+                .all(|k| spec.feedback.iter().any(|f| f.name == *k))
+        {
+            f.err(
+                at,
+                format!(
+                    "node '{id}' reads nothing; connect at least one of its inputs: {}",
+                    port_names(&spec.inputs.iter().collect::<Vec<_>>())
+                ),
+            );
+        }
+        for p in spec.inputs.iter().filter(|p| !p.optional) {
+            if !n.inputs.contains_key(&p.name) {
+                f.err(
+                    at,
+                    format!(
+                        "node '{id}': input '{}' is not connected; add inputs = {{ {} = \"NODE/OUTPUT\" }}",
+                        p.name, p.name
+                    ),
+                );
+            }
+        }
+        if let Some(r) = &n.restart
+            && r.get_ref().backoff_ms > MAX_BACKOFF_MS
+        {
+            f.err(
+                r.span().start,
+                format!(
+                    "node '{id}': backoff_ms = {} is out of range; give 0 to {MAX_BACKOFF_MS} (it doubles while a node keeps failing)",
+                    r.get_ref().backoff_ms
+                ),
+            );
+        }
+        if let Some(r) = &n.restart
+            && let Some(h) = r.get_ref().heartbeat_ms
+            && !(MIN_HEARTBEAT_MS..=86_400_000).contains(&h)
+        {
+            f.err(
+                r.span().start,
+                format!(
+                    "node '{id}': heartbeat_ms = {h} is out of range; give {MIN_HEARTBEAT_MS} to 86400000 (a node reports every 500 ms while it waits)"
+                ),
+            );
+        }
+        if let Some(fl) = &n.in_flight {
+            let (at, fl) = (fl.span().start, fl.get_ref());
+            if inputs.iter().any(|i| !i.feedback) {
+                f.err(
+                    at,
+                    format!(
+                        "node '{id}': in_flight is for sources (nodes that read no frames); give it to the node whose frames enter the graph"
+                    ),
+                );
+            }
+            if !(1..=MAX_IN_FLIGHT).contains(&fl.frames) {
+                f.err(
+                    at,
+                    format!(
+                        "node '{id}': in_flight.frames = {} is out of range; give 1 to {MAX_IN_FLIGHT}",
+                        fl.frames
+                    ),
+                );
+            }
+            if fl.output().is_none() {
+                f.err(
+                    at,
+                    format!(
+                        "node '{id}': in_flight.after = \"{}\" is not NODE/OUTPUT; name the output whose frames count as done",
+                        fl.after
+                    ),
+                );
+            }
+        }
+        Some((
+            NodeSpec {
+                id,
+                runner,
+                inputs,
+                outputs: spec
+                    .outputs
+                    .iter()
+                    .map(|p| (p.name.clone(), p.kind))
+                    .collect(),
+                params,
+                restart: n.restart.as_ref().map(|r| *r.get_ref()).unwrap_or_default(),
+                tap: false,
+                logs: false,
+                in_flight: n.in_flight.as_ref().map(|f| f.get_ref().clone()),
+                host: n.host.as_ref().map(|h| h.get_ref().clone()),
+            },
+            wanted,
+        ))
+    }
+
+    /// A source's `in_flight` names an existing output.
+    fn in_flight_pass(&self, nodes: &[(NodeSpec, Wanted)], f: &mut Findings) {
+        for n in &self.decl.node {
+            let Some(fl) = &n.get_ref().in_flight else {
+                continue;
+            };
+            let Some((src, out)) = fl.get_ref().output() else {
+                continue;
+            };
+            let exists = nodes
+                .iter()
+                .any(|(p, _)| p.id == src && p.outputs.iter().any(|(o, _)| o == out));
+            if !exists {
+                f.err(
+                    fl.span().start,
+                    format!(
+                        "node '{}': in_flight.after = \"{src}/{out}\" is no node's output; name the output whose frames count as done",
+                        n.get_ref().id.get_ref()
+                    ),
+                );
+            }
+        }
+    }
+
+    /// Every node on a host the file declares, where it declares any.
+    fn hosts_pass(&self, f: &mut Findings) {
+        for (name, h) in &self.decl.hosts {
+            if name.is_empty()
+                || name.len() > 64
+                || !name
+                    .chars()
+                    .all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
+            {
+                f.err(
+                    h.span().start,
+                    format!(
+                        "[hosts.{name}]: a host name is 1 to 64 letters, digits, '-', '_' or '.'"
+                    ),
+                );
+            }
+        }
+        for n in &self.decl.node {
+            let d = n.get_ref();
+            match (&d.host, self.decl.hosts.is_empty()) {
+                (Some(h), true) => f.err(
+                    h.span().start,
+                    format!(
+                        "node '{}': host = \"{}\" but the file declares no [hosts]; add [hosts.{}] with its link's listen/connect endpoints",
+                        d.id.get_ref(),
+                        h.get_ref(),
+                        h.get_ref()
+                    ),
+                ),
+                (Some(h), false) if !self.decl.hosts.contains_key(h.get_ref()) => f.err(
+                    h.span().start,
+                    format!(
+                        "node '{}': no host '{}' in [hosts]; the hosts: {}",
+                        d.id.get_ref(),
+                        h.get_ref(),
+                        self.decl
+                            .hosts
+                            .keys()
+                            .cloned()
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    ),
+                ),
+                (None, false) => f.err(
+                    n.span().start,
+                    format!(
+                        "node '{}' has no host; in a launch file with [hosts] every node names the host that runs it",
+                        d.id.get_ref()
+                    ),
+                ),
+                _ => {}
+            }
+        }
+    }
+}
+
+/// A launch file's problems as its passes find them, each with its line.
+struct Findings<'a> {
+    file: String,
+    text: &'a str,
+    errs: Vec<LaunchError>,
+}
+
+impl Findings<'_> {
+    /// A problem at byte `at` of the file.
+    fn err(&mut self, at: usize, message: String) {
+        self.errs.push(LaunchError {
+            file: self.file.clone(),
+            line: line_of(self.text, at),
+            message,
+        });
+    }
+}
+
+/// A node's runner and its kind's ports: a built-in kind (its parameters checked) or a
+/// program (asked for its ports, which must agree with any the file writes).
+#[allow(clippy::too_many_arguments)]
+fn runner_of(
+    n: &NodeDecl,
+    id: &str,
+    at: usize,
+    (params, params_at): (&toml::Table, usize),
+    connected: &[&str],
+    catalog: &dyn Catalog,
+    f: &mut Findings,
+) -> Option<(Runner, KindSpec)> {
+    Some(match (&n.kind, &n.exec) {
+        (Some(k), None) => match catalog.spec(k.get_ref()) {
+            Some(spec) => {
+                if let Err(m) = catalog.check(k.get_ref(), params, connected) {
+                    f.err(params_at, format!("node '{id}': bad params: {m}"));
+                }
+                (Runner::Builtin(k.get_ref().clone()), spec)
+            }
+            None => {
+                f.err(
+                    k.span().start,
+                    format!(
+                        "node '{id}': unknown kind '{}'; known kinds: {}, or use exec = \"path\"",
+                        k.get_ref(),
+                        catalog.kinds().join(", ")
+                    ),
+                );
+                return None;
+            }
+        },
+        (None, Some(e)) => {
+            let program = PathBuf::from(e.get_ref());
+            let spec = match catalog.exec(&program, params, connected) {
+                Ok(spec) => spec,
+                Err(m) => {
+                    f.err(e.span().start, format!("node '{id}': {m}"));
+                    return None;
+                }
+            };
+            // Ports written in the launch file must be the ones the program declares.
+            if let Some(p) = &n.ports {
+                let said = p.get_ref();
+                let of = |v: &[Port]| -> BTreeMap<String, MessageKind> {
+                    v.iter().map(|p| (p.name.clone(), p.kind)).collect()
+                };
+                let inputs: BTreeMap<String, MessageKind> = of(&spec.inputs)
+                    .into_iter()
+                    .chain(of(&spec.feedback))
+                    .collect();
+                for (what, written, declared) in [
+                    ("inputs", &said.inputs, inputs),
+                    ("outputs", &said.outputs, of(&spec.outputs)),
+                ] {
+                    if *written != declared {
+                        let show = |m: &BTreeMap<String, MessageKind>| {
+                            m.iter()
+                                .map(|(k, v)| format!("{k} = \"{}\"", v.name()))
+                                .collect::<Vec<_>>()
+                                .join(", ")
+                        };
+                        f.err(
+                            p.span().start,
+                            format!(
+                                "node '{id}': ports say {what} {{ {} }} but {} declares {{ {} }}; fix or remove ports",
+                                show(written),
+                                program.display(),
+                                show(&declared)
+                            ),
+                        );
+                    }
+                }
+            }
+            (Runner::Exec(program), spec)
+        }
+        _ => {
+            f.err(
+                at,
+                format!("node '{id}': give exactly one of kind = \"…\" or exec = \"…\""),
+            );
+            return None;
+        }
+    })
+}
+
+/// A node's inputs as its kind declares them, and the outputs they read (checked once
+/// every node is known).
+fn inputs_of(n: &NodeDecl, id: &str, spec: &KindSpec, f: &mut Findings) -> (Vec<Input>, Wanted) {
+    let mut inputs = Vec::new();
+    let mut wanted = Vec::new();
+    for (port, decl) in &n.inputs {
+        let iat = decl.span().start;
+        let is_feedback = spec.feedback.iter().any(|p| p.name == *port);
+        let Some(declared) = spec
+            .inputs
+            .iter()
+            .chain(&spec.feedback)
+            .find(|p| p.name == *port)
+        else {
+            let all: Vec<&Port> = spec.inputs.iter().chain(&spec.feedback).collect();
+            f.err(
+                iat,
+                format!(
+                    "node '{id}' has no input '{port}'; its inputs: {}",
+                    port_names(&all)
+                ),
+            );
+            continue;
+        };
+        let kind = declared.kind;
+        let (from, depth, overflow) = match decl.get_ref() {
+            InputDecl::Source(s) => (s.clone(), None, None),
+            InputDecl::Full {
+                from,
+                depth,
+                overflow,
+            } => (from.clone(), *depth, *overflow),
+        };
+        let Some((src, out)) = from.split_once('/') else {
+            f.err(
+                iat,
+                format!("node '{id}' input '{port}': '{from}' must be NODE/OUTPUT"),
+            );
+            continue;
+        };
+        let mut edge = EdgeConfig::default();
+        if let Some(d) = depth {
+            if d == 0 || d > 64 {
+                f.err(
+                    iat,
+                    format!("node '{id}' input '{port}': depth {d} must be 1..=64"),
+                );
+            }
+            edge.depth = d;
+        }
+        if let Some(o) = overflow {
+            edge.overflow = o;
+        }
+        if is_feedback {
+            if depth.is_some_and(|d| d != 1) || overflow == Some(Overflow::Block) {
+                f.err(
+                    iat,
+                    format!(
+                        "node '{id}' input '{port}' is a feedback input: it always takes the newest message (depth 1, drop-oldest); remove depth and overflow"
+                    ),
+                );
+            }
+            edge = EdgeConfig {
+                depth: 1,
+                overflow: Overflow::DropOldest,
+            };
+        }
+        wanted.push((format!("{src}/{out}"), kind, iat));
+        inputs.push(Input {
+            port: port.clone(),
+            node: src.into(),
+            output: out.into(),
+            edge,
+            feedback: is_feedback,
+        });
+    }
+    (inputs, wanted)
+}
+
+/// Every input names an existing output of the right message type.
+fn edges_pass(nodes: &[(NodeSpec, Wanted)], f: &mut Findings) {
+    for (node, wanted) in nodes {
+        for (from, kind, iat) in wanted {
+            let (src, out) = from.split_once('/').expect("checked");
+            let Some((producer, _)) = nodes.iter().find(|(n, _)| n.id == src) else {
+                f.err(
+                    *iat,
+                    format!(
+                        "node '{}' reads '{from}' but there is no node '{src}'",
+                        node.id
+                    ),
+                );
+                continue;
+            };
+            match producer.outputs.iter().find(|(p, _)| p == out) {
+                None => f.err(
+                    *iat,
+                    format!(
+                        "node '{}' reads '{from}' but '{src}' has no output '{out}'; its outputs: {}",
+                        node.id,
+                        names(&producer.outputs)
+                    ),
+                ),
+                Some((_, m)) if m != kind => f.err(
+                    *iat,
+                    format!(
+                        "node '{}' reads '{from}', which carries {m:?}, but expects {kind:?}",
+                        node.id
+                    ),
+                ),
+                Some(_) => {}
+            }
+        }
+    }
+}
+
+/// The nodes' order, producers first; what remains sits on a cycle.
+fn order_pass(
+    nodes: &[(NodeSpec, Wanted)],
+    seen: &HashMap<String, usize>,
+    f: &mut Findings,
+) -> Vec<usize> {
+    let mut order: Vec<usize> = Vec::new();
+    let mut placed = vec![false; nodes.len()];
+    loop {
+        let before = order.len();
+        for (i, (n, _)) in nodes.iter().enumerate() {
+            if !placed[i]
+                && n.inputs.iter().filter(|i| !i.feedback).all(|inp| {
+                    nodes
+                        .iter()
+                        .position(|(m, _)| m.id == inp.node)
+                        .is_none_or(|j| placed[j])
+                })
+            {
+                placed[i] = true;
+                order.push(i);
+            }
+        }
+        if order.len() == before {
+            break;
+        }
+    }
+    if order.len() < nodes.len() {
+        let on_cycle: Vec<&str> = nodes
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| !placed[*i])
+            .map(|(_, (n, _))| n.id.as_str())
+            .collect();
+        let at = seen.get(on_cycle[0]).copied().unwrap_or(0);
+        f.err(
+            at,
+            format!(
+                "the graph has a cycle through {}; an edge must not lead back to its own producer",
+                on_cycle.join(", ")
+            ),
+        );
+    }
+    order
+}
+
+/// An edge holds so many readers; the graph leaves room for the ones added to it (a
+/// recorder, a viewer, the link to another host, a watcher such as `topic`).
+fn readers_pass(nodes: &[(NodeSpec, Wanted)], seen: &HashMap<String, usize>, f: &mut Findings) {
+    let mut readers: BTreeMap<(&str, &str), usize> = BTreeMap::new();
+    for (n, _) in nodes {
+        for i in &n.inputs {
+            *readers.entry((&i.node, &i.output)).or_default() += 1;
+        }
+    }
+    for ((node, output), n) in readers {
+        if n > MAX_GRAPH_READERS {
+            f.err(
+                seen.get(node).copied().unwrap_or(0),
+                format!(
+                    "edge '{node}/{output}' has {n} readers; an edge of a launch file takes at most {MAX_GRAPH_READERS} (iceoryx2 holds {} per edge, with room kept for a recorder, a viewer, the link between hosts and a watcher): let fewer nodes read it, or pass it on through a node",
+                    crate::transport::MAX_READERS
+                ),
+            );
+        }
     }
 }
 
