@@ -458,24 +458,6 @@ pub fn run_node(
         .enumerate()
         .map(|(j, s)| (joined + j, s))
         .collect();
-    let feed = |node: &mut dyn GraphNode| -> Result<(), String> {
-        for (k, s) in &feedback {
-            let mut newest = None;
-            while let Some(m) = s.receive().map_err(|e| e.to_string())? {
-                newest = Some(m);
-            }
-            if let Some(m) = newest {
-                node.feedback(
-                    *k,
-                    Msg {
-                        header: *m.user_header(),
-                        payload: m.payload(),
-                    },
-                )?;
-            }
-        }
-        Ok(())
-    };
     // A frame sent before a reader connects never reaches it (edges keep no history): wait
     // until every reader the graph names is there (readers outside the graph, such as a
     // test, do not count). Only at start, so a short sleep is fine.
@@ -533,7 +515,79 @@ pub fn run_node(
         0,
         subs.iter().chain(feedback.iter().map(|(_, s)| s)),
     );
+    let run = NodeLoop {
+        graph,
+        instance,
+        id,
+        spec,
+        transport: &transport,
+        pubs: &pubs,
+        feedback: &feedback,
+        frames,
+        read_in_graph,
+    };
     if subs.is_empty() {
+        run.produce(node, &mut out, &mut tally, fps)?;
+    } else {
+        run.join(node, &subs, &mut out, &mut tally)?;
+    }
+    Ok(tally.stats(
+        id,
+        spec,
+        out.sent,
+        subs.iter().chain(feedback.iter().map(|(_, s)| s)),
+    ))
+}
+
+/// A node's loop once its edges are up: what a source's production and a task's joining
+/// of its inputs share.
+struct NodeLoop<'a> {
+    graph: &'a Graph,
+    instance: &'a str,
+    id: &'a str,
+    spec: &'a crate::launch::NodeSpec,
+    transport: &'a Transport,
+    pubs: &'a [EdgePublisher],
+    /// The feedback inputs, with their index among the node's inputs.
+    feedback: &'a [(usize, EdgeSubscriber)],
+    frames: Option<u64>,
+    read_in_graph: bool,
+}
+
+impl NodeLoop<'_> {
+    /// Gives the node the newest message of each feedback input that brought one.
+    fn feed(&self, node: &mut dyn GraphNode) -> Result<(), String> {
+        for (k, s) in self.feedback {
+            let mut newest = None;
+            while let Some(m) = s.receive().map_err(|e| e.to_string())? {
+                newest = Some(m);
+            }
+            if let Some(m) = newest {
+                node.feedback(
+                    *k,
+                    Msg {
+                        header: *m.user_header(),
+                        payload: m.payload(),
+                    },
+                )?;
+            }
+        }
+        Ok(())
+    }
+
+    /// A source: frames made at its pace (`fps`), held while paused, let in as the graph's
+    /// in-flight limit allows, until it has no more, `frames` are made or it is stopped;
+    /// then its end marker.
+    fn produce(
+        &self,
+        node: &mut dyn GraphNode,
+        out: &mut ShmOutputs,
+        tally: &mut Tally,
+        fps: Option<f64>,
+    ) -> Result<(), String> {
+        let (graph, instance, id, spec) = (self.graph, self.instance, self.id, self.spec);
+        let (transport, pubs, feedback) = (self.transport, self.pubs, self.feedback);
+        let (frames, read_in_graph) = (self.frames, self.read_in_graph);
         // A rate too small for a period (the kinds check their rates) counts as the slowest.
         let period = fps
             .filter(|f| *f > 0.0)
@@ -543,7 +597,7 @@ pub fn run_node(
         let mut seq = first;
         let mut stopped = false;
         let mut in_flight = match &spec.in_flight {
-            Some(f) => Some(InFlightGate::new(&transport, graph, instance, id, f)?),
+            Some(f) => Some(InFlightGate::new(transport, graph, instance, id, f)?),
             None => None,
         };
         let mut start = start;
@@ -585,7 +639,7 @@ pub fn run_node(
                 due(start, p, seq - first)
                     .map_or(p, |t| t.saturating_duration_since(Instant::now()))
             });
-            if !sleep_beating(&transport, wait, || {
+            if !sleep_beating(transport, wait, || {
                 tally.report(id, spec, out.sent, feedback.iter().map(|(_, s)| s))
             }) {
                 stopped = true;
@@ -599,15 +653,15 @@ pub fn run_node(
                         seq += 1;
                         continue;
                     }
-                } else if !gate.wait(&transport)? {
+                } else if !gate.wait(transport)? {
                     stopped = true;
                     break;
                 }
             }
-            feed(node)?;
+            self.feed(node)?;
             tally.claim(seq, id, spec, out.sent, feedback.iter().map(|(_, s)| s));
             let (t, t_ns) = (Instant::now(), now_ns());
-            match node.produce(seq, &mut out) {
+            match node.produce(seq, out) {
                 Ok(true) => {}
                 Ok(false) => break,
                 // A stop request cuts a waiting send short with an error: the stop is what
@@ -631,13 +685,29 @@ pub fn run_node(
         }
         if !stopped {
             let last = seq.checked_sub(1);
-            let mut ends = EndMarkers::new(&pubs, last);
-            linger(&transport, read_in_graph, || {
+            let mut ends = EndMarkers::new(pubs, last);
+            linger(transport, read_in_graph, || {
                 ends.resend();
                 tally.report(id, spec, out.sent, feedback.iter().map(|(_, s)| s))
             });
         }
-    } else {
+        Ok(())
+    }
+
+    /// A task or a sink: its inputs' messages joined by frame number (inputs ahead hold
+    /// theirs, frames passed over or lost upstream let go), one step per complete frame,
+    /// until every input's stream ended, `frames` are done or it is stopped; then its end
+    /// marker.
+    fn join(
+        &self,
+        node: &mut dyn GraphNode,
+        subs: &[EdgeSubscriber],
+        out: &mut ShmOutputs,
+        tally: &mut Tally,
+    ) -> Result<(), String> {
+        let (graph, id, spec) = (self.graph, self.id, self.spec);
+        let (transport, pubs, feedback) = (self.transport, self.pubs, self.feedback);
+        let (frames, read_in_graph) = (self.frames, self.read_in_graph);
         let refs: Vec<&EdgeSubscriber> = subs.iter().collect();
         let mut pending: Vec<Vec<Message>> = subs.iter().map(|_| Vec::new()).collect();
         let seq_of = |m: &Message| m.user_header().sequence;
@@ -679,7 +749,7 @@ pub fn run_node(
                         }
                         Some(Received::Restart { generation, node }) => {
                             for (g, n) in restarts.marker(i, generation, &node) {
-                                for p in &pubs {
+                                for p in pubs {
                                     p.send_restart(g, &n).map_err(|e| e.to_string())?;
                                 }
                             }
@@ -730,9 +800,9 @@ pub fn run_node(
                         }
                     })
                     .collect();
-                feed(node)?;
+                self.feed(node)?;
                 let t = Instant::now();
-                node.step(&msgs, &mut out)?;
+                node.step(&msgs, out)?;
                 tally.step(
                     t.elapsed().as_secs_f64() * 1e3,
                     now_ns().saturating_sub(msgs[0].header.capture_ns) as f64 / 1e6,
@@ -755,7 +825,7 @@ pub fn run_node(
             // Every input's stream has ended: what is still held can never be joined (its
             // partners were lost upstream, near the run's end), and no frame is to come.
             if ended.iter().all(Option::is_some) {
-                for (p, s) in pending.iter_mut().zip(&subs) {
+                for (p, s) in pending.iter_mut().zip(subs) {
                     for _ in p.drain(..) {
                         s.discard();
                     }
@@ -777,8 +847,8 @@ pub fn run_node(
                 .copied()
                 .max()
                 .or(frames.map(|n| n - 1));
-            let mut ends = EndMarkers::new(&pubs, last);
-            linger(&transport, read_in_graph, || {
+            let mut ends = EndMarkers::new(pubs, last);
+            linger(transport, read_in_graph, || {
                 ends.resend();
                 tally.report(
                     id,
@@ -788,13 +858,8 @@ pub fn run_node(
                 )
             });
         }
+        Ok(())
     }
-    Ok(tally.stats(
-        id,
-        spec,
-        out.sent,
-        subs.iter().chain(feedback.iter().map(|(_, s)| s)),
-    ))
 }
 
 /// Runs node `id` of `graph` as a tap (a recorder or a viewer): every message on each of
