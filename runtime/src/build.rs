@@ -48,11 +48,6 @@ pub struct Handle<I, O> {
 }
 
 impl<I, O> Handle<I, O> {
-    /// Its id in the graph.
-    pub fn id(&self) -> &str {
-        &self.id
-    }
-
     /// Its output `port`, to connect or to read a run's result by.
     pub fn out<M>(&self, port: Port<O, M>) -> Out<M> {
         Out {
