@@ -23,7 +23,7 @@ fn main() {
         .unwrap_or(10);
     let file = Path::new(env!("CARGO_MANIFEST_DIR")).join("launch.toml");
     let graph = microstereo::run::load(&file).expect("the default launch file");
-    let log = InProcess::new(&graph, &microstereo::registry::builtin())
+    let log = InProcess::new(&graph, &pipelines::registry::builtin())
         .expect("the default graph")
         .run(2)
         .expect("two frames");

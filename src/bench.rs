@@ -3,11 +3,10 @@
 //! of frames (as a live graph keeps its buffers from frame to frame).
 
 use crate::error::CliError;
-use crate::presets::{Stereo, ids};
 use clap::Args;
 use matcher::Mode;
-use schemas::{DisparityRange, DisparityTiles};
-use serde::Serialize;
+use pipelines::timing::bench_pair;
+use schemas::DisparityRange;
 use std::path::PathBuf;
 
 /// Arguments of `microstereo bench`.
@@ -39,24 +38,6 @@ pub struct BenchArgs {
 
 /// The 1280×1024 pair's files (`--write-pairs`).
 const PAIR_NAMES: [&str; 2] = ["synth1280_left.png", "synth1280_right.png"];
-
-/// One benchmark line.
-#[derive(Serialize)]
-struct BenchLine {
-    pair: String,
-    mode: Mode,
-    width: usize,
-    height: usize,
-    range: DisparityRange,
-    stages_ms: Vec<(String, f64)>,
-    total_ms: f64,
-    mevals_per_s: f64,
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(|a, b| a.total_cmp(b));
-    v[v.len() / 2]
-}
 
 /// The Middlebury cones pair (tests/data/cones, see its README), built in.
 const CONES_LEFT: &[u8] = include_bytes!("../tests/data/cones/im2.png");
@@ -116,43 +97,8 @@ fn bench_pairs(a: &BenchArgs, pairs: &[(String, PathBuf, PathBuf)]) -> Result<()
     let mut lines = Vec::new();
     for (name, left, right) in pairs {
         for mode in [Mode::Paper, Mode::Quality] {
-            let mut preset = Stereo {
-                frames: repeat as u64,
-                ..Stereo::whole_frame(left.clone(), right.clone(), mode, range)
-            };
-            if let Some(p) = a.paths {
-                preset.matching.paths = p;
-            }
-            let (_, mut run) = preset.start(&[])?;
-            let matched = preset.outs().matched;
-            let mut runs: Vec<Vec<(String, f64)>> = Vec::new();
-            let (mut evals, mut size) = (0, (0, 0));
-            while let Some(f) = run.step()? {
-                let tiles: DisparityTiles = f.read(&matched)?;
-                evals = tiles.evaluations();
-                size = (tiles.width, tiles.height);
-                runs.push(f.ms.into_iter().filter(|(n, _)| n != ids::PAIR).collect());
-            }
-            let stages: Vec<(String, f64)> = runs[0]
-                .iter()
-                .enumerate()
-                .map(|(i, (n, _))| (n.clone(), median(runs.iter().map(|r| r[i].1).collect())))
-                .collect();
-            let total = median(runs.iter().map(|r| r.iter().map(|s| s.1).sum()).collect());
-            let match_ms = stages
-                .iter()
-                .find(|(n, _)| n == ids::MATCH)
-                .map_or(total, |s| s.1);
-            let line = BenchLine {
-                pair: name.clone(),
-                mode,
-                width: size.0,
-                height: size.1,
-                range,
-                stages_ms: stages,
-                total_ms: total,
-                mevals_per_s: evals as f64 / (match_ms * 1e3),
-            };
+            let line = bench_pair(name, (left, right), mode, range, repeat, a.paths)
+                .map_err(|e| CliError::with_flags(e, &[]))?;
             let st: Vec<String> = line
                 .stages_ms
                 .iter()
@@ -164,7 +110,7 @@ fn bench_pairs(a: &BenchArgs, pairs: &[(String, PathBuf, PathBuf)]) -> Result<()
                 format!("{mode:?}").to_lowercase(),
                 line.width,
                 line.height,
-                total,
+                line.total_ms,
                 st.join(", "),
                 line.mevals_per_s
             );

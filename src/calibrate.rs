@@ -3,9 +3,7 @@
 //! stage height (`calibration::file::fit_depth`).
 
 use crate::error::CliError;
-use crate::presets::Stereo;
 use clap::Args;
-use matcher::Mode;
 use schemas::{Calibration, DisparityRange, LengthUnit};
 use std::path::{Path, PathBuf};
 
@@ -117,43 +115,6 @@ fn read_stack(dir: &Path) -> Result<Vec<(PathBuf, PathBuf, f64)>, CliError> {
     Ok(out)
 }
 
-/// Median of the valid LR-checked disparities in the central half of the image, and the
-/// image size.
-fn target_disparity(
-    l: &Path,
-    r: &Path,
-    range: DisparityRange,
-) -> Result<(f64, (usize, usize)), CliError> {
-    let preset = Stereo {
-        post: None,
-        ..Stereo::whole_frame(l.to_path_buf(), r.to_path_buf(), Mode::Quality, range)
-    };
-    let (_, mut run) = preset.start(&[
-        ("min_disparity", "--min-disparity"),
-        ("max_disparity", "--max-disparity"),
-    ])?;
-    let f = run
-        .step()?
-        .ok_or_else(|| CliError::Other(format!("'{}' gave no frame", l.display())))?;
-    let checked = f.read(&preset.outs().checked)?.paste();
-    let (w, h) = (checked.width, checked.height);
-    let mut v: Vec<f32> = (h / 4..3 * h / 4)
-        .flat_map(|y| checked.row(y)[w / 4..3 * w / 4].to_vec())
-        .filter(|d| d.is_finite())
-        .collect();
-    if v.len() < 100 {
-        return Err(CliError::Other(format!(
-            "'{}': the target matched at only {} pixels; check the pair and the disparity range {}..{}",
-            l.display(),
-            v.len(),
-            range.min,
-            range.max
-        )));
-    }
-    v.sort_by(|a, b| a.total_cmp(b));
-    Ok((v[v.len() / 2] as f64, (w, h)))
-}
-
 /// Runs `microstereo calibrate-depth`.
 pub fn calibrate_depth(a: CalibrateArgs) -> Result<(), CliError> {
     // Every length in µm, within what optics have (a NaN is inside no range).
@@ -207,7 +168,15 @@ pub fn calibrate_depth(a: CalibrateArgs) -> Result<(), CliError> {
     let mut d = Vec::new();
     let mut size = None;
     for (l, r, zi) in &stack {
-        let (di, dims) = target_disparity(l, r, range)?;
+        let (di, dims) = pipelines::stereo::target_disparity(l, r, range).map_err(|e| {
+            CliError::with_flags(
+                e,
+                &[
+                    ("min_disparity", "--min-disparity"),
+                    ("max_disparity", "--max-disparity"),
+                ],
+            )
+        })?;
         size.get_or_insert(dims);
         z.push(*zi);
         d.push(di);

@@ -139,7 +139,7 @@ impl OutputOpts {
                     toml::Value::Boolean(self.overwrite),
                 ),
             ]);
-            if let Some(c) = crate::registry::cameras(graph) {
+            if let Some(c) = pipelines::registry::cameras(graph) {
                 params.insert(
                     "cameras".into(),
                     toml::Value::try_from(c).map_err(|e| e.to_string())?,

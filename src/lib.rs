@@ -6,8 +6,8 @@
 //!
 //! - [`cli`]: the commands and their dispatch; [`error`]: the one error type; [`outputs`]:
 //!   what a command may write; [`fuzzing`]: the fuzz targets' entry points;
-//! - [`registry`]: the built-in node kinds, one list;
-//! - [`presets`]: the stereo graph of `reconstruct`, `bench` and `calibrate-depth`;
+//! - the built-in node kinds, the default graph and the stereo graph of `reconstruct`,
+//!   `bench` and `calibrate-depth` are the `pipelines` crate's;
 //! - [`reconstruct`], [`bench`], [`segmentcmd`], [`synthcmd`], [`calibrate`]: one-shot
 //!   commands;
 //! - [`run`], [`graphopts`], [`recording`]: the process graph, its taps and replays, and
@@ -24,10 +24,8 @@ pub mod error;
 pub mod fuzzing;
 pub mod graphopts;
 pub mod outputs;
-pub mod presets;
 pub mod reconstruct;
 pub mod recording;
-pub mod registry;
 pub mod run;
 pub mod segmentcmd;
 pub mod synthcmd;

@@ -2,13 +2,14 @@
 //! `--cells`: only the cells), its outputs written to a folder.
 
 use crate::error::CliError;
-use crate::presets::{Stereo, got};
 use crate::segmentcmd::SegmentOpts;
 use calibration::file::CalibrationFile;
 use clap::{Args, ValueEnum};
 use formats as io;
 use matcher::node::{MatchParams, Region};
 use matcher::{Mode, PaperParams, QualityParams, Weights};
+use pipelines::range::{RangeScore, auto_range, candidate_ranges};
+use pipelines::stereo::{Stereo, got};
 use postprocess::{Fill, PostParams};
 use runtime::exec::Frame;
 use schemas::{Cloud, DisparityMap, DisparityRange, LengthUnit, Mask, Plane, Targets};
@@ -60,7 +61,7 @@ impl UnitArg {
 }
 
 /// How the candidate ranges of `--auto-range` are built from the radii.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, ValueEnum)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub enum RangeKind {
     /// `−r..r`: convergent microscope optics.
     Symmetric,
@@ -68,24 +69,14 @@ pub enum RangeKind {
     Positive,
 }
 
-/// The candidate ranges for radii `rs` that fit an image `width` wide.
-pub fn candidate_ranges(kind: RangeKind, rs: &[u32], width: usize) -> Vec<DisparityRange> {
-    rs.iter()
-        .filter(|&&r| r > 0 && (r as usize) < width)
-        .map(|&r| match kind {
-            RangeKind::Symmetric => DisparityRange::new(-(r as i32), r as i32),
-            RangeKind::Positive => DisparityRange::new(0, r as i32),
-        })
-        .collect()
-}
-
-/// One point of the range-selection curve (the paper's Fig. 12).
-#[derive(Clone, Copy, Debug, Serialize, PartialEq)]
-pub struct RangeScore {
-    /// The range tried.
-    pub range: DisparityRange,
-    /// Consistent left pixels (within the LR tolerance) over all pixels with a candidate.
-    pub consistency_ratio: f64,
+impl RangeKind {
+    /// The kind it names.
+    fn kind(self) -> pipelines::range::RangeKind {
+        match self {
+            RangeKind::Symmetric => pipelines::range::RangeKind::Symmetric,
+            RangeKind::Positive => pipelines::range::RangeKind::Positive,
+        }
+    }
 }
 
 /// Arguments of `microstereo reconstruct`.
@@ -264,7 +255,7 @@ impl ReconstructArgs {
             margin: self.cell_margin,
             ..MatchParams::new(mode, range, Region::Frame)
         };
-        let mut post = crate::presets::post_for(mode);
+        let mut post = pipelines::stereo::post_for(mode);
         if let Some(m) = self.min_region {
             post.min_region = m;
         }
@@ -367,51 +358,8 @@ fn check_every_flag(a: &ReconstructArgs) -> Result<(), CliError> {
         )));
     }
     runtime::node::Params::check(&a.seg.params())
-        .map_err(|e| CliError::Other(crate::presets::in_flag_terms(&e, FLAGS)))?;
+        .map_err(|e| CliError::Other(crate::error::in_flag_terms(&e, FLAGS)))?;
     Ok(())
-}
-
-/// Runs one frame of `preset`: its messages and node times.
-pub fn run_once(preset: &Stereo) -> Result<Frame, CliError> {
-    let (_, mut run) = preset.start(FLAGS)?;
-    let f = run
-        .step()
-        .map_err(|e| CliError::Other(crate::presets::in_flag_terms(&e, FLAGS)))?;
-    f.ok_or_else(|| CliError::Other("the image pair sent no frame".into()))
-}
-
-/// The paper's range selection: `base` (matching and its LR check) over each of `ranges`;
-/// the range with the highest consistency ratio (ties: the narrower, listed first), and the
-/// whole curve.
-pub fn auto_range(
-    base: &Stereo,
-    ranges: &[DisparityRange],
-) -> Result<(DisparityRange, Vec<RangeScore>), CliError> {
-    let mut curve = Vec::new();
-    for &range in ranges {
-        let mut preset = Stereo {
-            post: None,
-            geometry: None,
-            segment: None,
-            ..base.clone()
-        };
-        preset.matching.min_disparity = range.min;
-        preset.matching.max_disparity = range.max;
-        let f = run_once(&preset)?;
-        let checked = f.read(&preset.outs().checked)?;
-        curve.push(RangeScore {
-            range,
-            consistency_ratio: validate::consistency_ratio(&checked.paste(), range),
-        });
-    }
-    let best = curve
-        .iter()
-        .fold(None::<RangeScore>, |b, s| match b {
-            Some(b) if b.consistency_ratio >= s.consistency_ratio => Some(b),
-            _ => Some(*s),
-        })
-        .ok_or_else(|| CliError::Other("no range to try".into()))?;
-    Ok((best.range, curve))
 }
 
 /// The preset's parameters as report.json lists them.
@@ -491,7 +439,7 @@ pub fn reconstruct(a: ReconstructArgs) -> Result<(), CliError> {
         (Some(lo), Some(hi)) => (DisparityRange::new(lo, hi), None, None),
         _ if a.auto_range => {
             let (w, _) = size()?;
-            let ranges = candidate_ranges(a.range_kind, &a.range_radii, w);
+            let ranges = candidate_ranges(a.range_kind.kind(), &a.range_radii, w);
             if ranges.is_empty() {
                 return Err(CliError::Other(format!(
                     "--range-radii {:?} has no radius between 1 and the image width {w}",
@@ -501,8 +449,9 @@ pub fn reconstruct(a: ReconstructArgs) -> Result<(), CliError> {
             let t = Instant::now();
             // Check the pair and every flag before the (possibly long) range search.
             let base = a.preset(ranges[0])?;
-            base.graph(FLAGS)?;
-            let (best, c) = auto_range(&base, &ranges)?;
+            base.graph().map_err(|e| CliError::with_flags(e, FLAGS))?;
+            let (best, c) =
+                auto_range(&base, &ranges).map_err(|e| CliError::with_flags(e, FLAGS))?;
             (best, Some(c), Some(t.elapsed().as_secs_f64() * 1e3))
         }
         _ => {
@@ -515,7 +464,9 @@ pub fn reconstruct(a: ReconstructArgs) -> Result<(), CliError> {
         }
     };
     let preset = a.preset(range)?;
-    let f = run_once(&preset)?;
+    let f = preset
+        .run_once()
+        .map_err(|e| CliError::with_flags(e, FLAGS))?;
     let mut times = serde_json::Map::new();
     if let Some(ms) = auto_ms {
         times.insert("auto_range".into(), serde_json::json!(round3(ms)));

@@ -229,7 +229,7 @@ fn launch_of(file: &Path, o: &Overview, launch: Option<&Path>) -> Result<Graph, 
                 ))
             })?;
             LaunchFile::parse(Path::new(from), text)
-                .and_then(|f| f.validate(&crate::registry::builtin()))
+                .and_then(|f| f.validate(&pipelines::registry::builtin()))
                 .map_err(|e| {
                     CliError::Other(format!("the launch file stored in {}: {e}", file.display()))
                 })
@@ -391,7 +391,7 @@ pub fn test_node(
             .map_err(CliError::Other)?;
         (node, Some(("TCP lines".to_string(), served)))
     } else {
-        let node = crate::registry::builtin()
+        let node = pipelines::registry::builtin()
             .build(spec)
             .map_err(CliError::Other)?;
         (node, None)

@@ -4,46 +4,19 @@
 use crate::error::CliError;
 use crate::graphopts::OutputOpts;
 use clap::Args;
-use runtime::launch::{Graph, LaunchFile};
+use runtime::launch::Graph;
 use std::path::{Path, PathBuf};
 
 /// Reads and validates a launch file against the built-in kinds; every problem becomes one
 /// error.
 pub fn load(path: &Path) -> Result<Graph, CliError> {
-    load_with(Some(path), &[])
+    Ok(pipelines::launch::load(path)?)
 }
-
-/// The default graph, built into this program (`run` without a launch file).
-pub const DEFAULT_LAUNCH: &str = include_str!("../launch.toml");
 
 /// Reads and checks a launch file (`None`: the built-in default graph) with `overrides`
 /// (`NODE.PARAM=VALUE`) applied first.
 pub fn load_with(path: Option<&Path>, overrides: &[String]) -> Result<Graph, CliError> {
-    let errors = |e: runtime::launch::LaunchErrors| {
-        CliError::Other(format!(
-            "{e}\n({} problem(s) in the launch file)",
-            e.0.len()
-        ))
-    };
-    let (name, text) = match path {
-        Some(p) => (
-            p.to_path_buf(),
-            std::fs::read_to_string(p).map_err(|e| {
-                CliError::Other(format!("{}: cannot read the launch file: {e}", p.display()))
-            })?,
-        ),
-        None => (
-            PathBuf::from("launch.toml (built in)"),
-            DEFAULT_LAUNCH.to_string(),
-        ),
-    };
-    let text = if overrides.is_empty() {
-        text
-    } else {
-        runtime::launch::with_overrides(&name, &text, overrides).map_err(CliError::Other)?
-    };
-    let file = LaunchFile::parse(&name, &text).map_err(errors)?;
-    file.validate(&crate::registry::builtin()).map_err(errors)
+    Ok(pipelines::launch::load_with(path, overrides)?)
 }
 
 /// Arguments of `microstereo node` (as the supervisor starts it).
@@ -73,7 +46,7 @@ pub fn node_cmd(a: NodeArgs) -> Result<(), CliError> {
         frames: a.frames,
         generation: runtime::process::generation_from_env()?,
     };
-    let stats = runtime::process::run_graph_node(&crate::registry::builtin(), &args)?;
+    let stats = runtime::process::run_graph_node(&pipelines::registry::builtin(), &args)?;
     runtime::process::print_stats(&stats);
     Ok(())
 }
@@ -307,7 +280,7 @@ fn run_in_process(graph: &Graph, frames: u64) -> Result<(f64, Option<f64>), CliE
             "--frames 0 runs nothing: give at least 1".into(),
         ));
     }
-    let mut exec = runtime::exec::InProcess::new(graph, &crate::registry::builtin())
+    let mut exec = runtime::exec::InProcess::new(graph, &pipelines::registry::builtin())
         .map_err(CliError::Other)?;
     let cpu0 = runtime::stats::process_cpu_ms();
     let t0 = std::time::Instant::now();

@@ -105,7 +105,7 @@ pub struct SegmentArgs {
 pub fn segment_cmd(a: SegmentArgs) -> Result<(), CliError> {
     let params = a.opts.params();
     runtime::node::Params::check(&params)
-        .map_err(|e| CliError::Other(crate::presets::in_flag_terms(&e, FLAGS)))?;
+        .map_err(|e| CliError::Other(crate::error::in_flag_terms(&e, FLAGS)))?;
     let inputs: Vec<&Path> = [Some(&a.image), a.truth.as_ref()]
         .into_iter()
         .flatten()

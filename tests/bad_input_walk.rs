@@ -320,7 +320,7 @@ fn every_numeric_launch_parameter_refuses_bad_values() {
         "tests/data/graph/manipulator.toml",
         "recordings/default.toml",
     ];
-    let registry = microstereo::registry::builtin();
+    let registry = pipelines::registry::builtin();
     let mut walked = 0;
     let mut failures = Vec::new();
     for f in files {

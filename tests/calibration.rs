@@ -7,8 +7,7 @@ mod common;
 use calibration::board::find_board;
 use common::{assert_clean_failure, run, s};
 use matcher::{Mode, node::Region};
-use microstereo::presets::Stereo;
-use microstereo::reconstruct::run_once;
+use pipelines::stereo::Stereo;
 use schemas::{DisparityRange, StereoFrame};
 use std::path::{Path, PathBuf};
 use std::process::Output;
@@ -100,7 +99,7 @@ fn calibrate_stereo_matches_opencv_and_its_file_rectifies_the_pairs() {
             )
         };
         assert_eq!(preset.matching.region, Region::Frame);
-        let f = run_once(&preset).unwrap();
+        let f = preset.run_once().unwrap();
         let frame: StereoFrame = f.read(&preset.outs().frame).unwrap();
         let l = find_board(&frame.left, 9, 6).unwrap();
         let mut r = find_board(&frame.right, 9, 6).unwrap();

@@ -40,7 +40,7 @@ fn the_seeds_read_whole() {
     for p in files(&root.join("launch")) {
         let text = std::fs::read_to_string(&p).unwrap();
         runtime::launch::LaunchFile::parse(&p, &text)
-            .and_then(|f| f.validate(&microstereo::registry::builtin()))
+            .and_then(|f| f.validate(&pipelines::registry::builtin()))
             .unwrap_or_else(|e| panic!("{}: {e:?}", p.display()));
     }
     for p in files(&root.join("pfm")) {

@@ -222,7 +222,7 @@ fn graph_of_processes_equals_the_in_process_pipeline_bit_for_bit() {
     assert!(out.status.success(), "{summary}");
     assert!(summary.contains("4 frame(s) of 4"), "{summary}");
     // The same nodes, in this process.
-    let log = InProcess::new(&graph, &microstereo::registry::builtin())
+    let log = InProcess::new(&graph, &pipelines::registry::builtin())
         .unwrap()
         .run(frames)
         .unwrap();
@@ -1580,7 +1580,7 @@ fn custom(text: &str, kinds: &runtime::Registry) -> Result<runtime::launch::Grap
 fn a_node_kind_from_outside_the_built_in_crates_runs_in_a_graph() {
     // One registry line adds the example's kind to the built-in ones; the launch file names
     // it like any other kind, and the validator checks its ports and params.
-    let kinds = microstereo::registry::builtin().task::<invert_node::Invert>();
+    let kinds = pipelines::registry::builtin().task::<invert_node::Invert>();
     let text = r#"
 [[node]]
 id = "capture"
@@ -1638,7 +1638,7 @@ inputs = { frame = "invert/frame" }
 fn a_second_node_kind_is_one_crate_and_one_registry_line() {
     // examples/cell-filter-node depends on node-api, schemas and serde only; one line adds
     // its kind, and the launch validator checks its ports' kinds with their lines.
-    let kinds = microstereo::registry::builtin().task::<cell_filter_node::CellFilter>();
+    let kinds = pipelines::registry::builtin().task::<cell_filter_node::CellFilter>();
     let text = r#"
 [[node]]
 id = "capture"

@@ -2,8 +2,8 @@
 //! match → validate → post-process preset, run in-process).
 
 use matcher::Mode;
-use microstereo::presets::Stereo;
-use microstereo::reconstruct::{RangeKind, auto_range, candidate_ranges, run_once};
+use pipelines::range::{RangeKind, auto_range, candidate_ranges};
+use pipelines::stereo::Stereo;
 use schemas::{DisparityMap, DisparityRange, Plane};
 use std::path::{Path, PathBuf};
 use synth::layers::standard_scene;
@@ -30,7 +30,7 @@ fn preset(left: PathBuf, right: PathBuf, mode: Mode, range: DisparityRange) -> S
 
 /// The final map of `p`.
 fn final_map(p: &Stereo) -> DisparityMap {
-    let f = run_once(p).unwrap();
+    let f = p.run_once().unwrap();
     f.read(p.outs().post.as_ref().unwrap()).unwrap().paste()
 }
 
@@ -147,7 +147,7 @@ fn left_and_right_directions_agree_on_a_plain_shift() {
     );
     for mode in [Mode::Paper, Mode::Quality] {
         let p = preset(l.clone(), r.clone(), mode, DisparityRange::new(0, 12));
-        let (f, outs) = (run_once(&p).unwrap(), p.outs());
+        let (f, outs) = (p.run_once().unwrap(), p.outs());
         let map = |port| {
             let o = if port == "left" {
                 &outs.matched

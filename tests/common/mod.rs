@@ -3,8 +3,7 @@
 use calibration::file::CalibrationFile;
 use matcher::Mode;
 use matcher::node::{MatchParams, Region};
-use microstereo::presets::Stereo;
-use microstereo::reconstruct::run_once;
+use pipelines::stereo::Stereo;
 use postprocess::PostParams;
 use schemas::{Calibration, Cell3, DisparityRange, Labels, Mask, Plane, Targets};
 use segment::SegmentParams;
@@ -88,7 +87,7 @@ pub fn cell_targets(
         })),
         rectify: None,
     };
-    let f = run_once(&preset).unwrap();
+    let f = preset.run_once().unwrap();
     let outs = preset.outs();
     let targets: Targets = f.read(outs.targets.as_ref().unwrap()).unwrap();
     let labels: Labels = f.read(outs.labels.as_ref().unwrap()).unwrap();

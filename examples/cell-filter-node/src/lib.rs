@@ -1,7 +1,7 @@
 //! A second custom node, on the node API alone (no transport, no runtime): it keeps the
 //! cells of both views whose area lies in `min_area..=max_area` pixels, so that debris
 //! and clumps never reach the matcher. A new node kind is this one [`Task`] impl plus one
-//! registry line (`microstereo::registry::builtin().task::<CellFilter>()`); `cargo tree
+//! registry line (`pipelines::registry::builtin().task::<CellFilter>()`); `cargo tree
 //! -p cell-filter-node` holds node-api, schemas and serde.
 //!
 //! ```toml

@@ -1,7 +1,7 @@
 //! A custom node, written against the node API alone: it inverts the grey levels of each
 //! stereo frame. A new node kind is this one [`Task`] impl plus one registry line, either
 //! in a program of its own (`src/main.rs`, an `exec` node in a launch file) or in a binary
-//! that embeds the built-in kinds (`microstereo::registry::builtin().task::<Invert>()`).
+//! that embeds the built-in kinds (`pipelines::registry::builtin().task::<Invert>()`).
 //!
 //! ```toml
 //! [[node]]

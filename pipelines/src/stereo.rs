@@ -1,8 +1,8 @@
-//! The graphs the one-shot commands run: their flags become node parameters of an
+//! The stereo graph the one-shot commands run: their flags become node parameters of an
 //! in-memory launch file, checked by the same validator as any launch file and run by the
 //! in-process executor on the same node values as `microstereo run`.
 
-use crate::error::CliError;
+use crate::Error;
 use capture::ImagePairOut;
 use matcher::Mode;
 use matcher::node::{BothOut, MatchIn};
@@ -96,11 +96,9 @@ pub struct StereoOuts {
 }
 
 /// The message on `o` this frame, where this graph has that output.
-pub fn got<M: schemas::msg::Message>(f: &Frame, o: &Option<Out<M>>) -> Result<M, CliError> {
-    let o = o
-        .as_ref()
-        .ok_or_else(|| CliError::Other("this graph has no such output".into()))?;
-    Ok(f.read(o)?)
+pub fn got<M: schemas::msg::Message>(f: &Frame, o: &Option<Out<M>>) -> Result<M, Error> {
+    f.read(o.as_ref().ok_or(Error::NoSuchOutput)?)
+        .map_err(Error::Node)
 }
 
 impl Stereo {
@@ -226,25 +224,24 @@ impl Stereo {
         self.build().1
     }
 
-    /// The graph, validated against the built-in kinds (`flags` name the parameters in
-    /// errors by the command's flags).
-    pub fn graph(&self, flags: &[(&str, &str)]) -> Result<Graph, CliError> {
+    /// The graph, validated against the built-in kinds.
+    pub fn graph(&self) -> Result<Graph, Error> {
         LaunchFile::parse(Path::new("preset"), &self.launch_text())
             .and_then(|f| f.validate(&crate::registry::builtin()))
-            .map_err(|e| {
-                let lines: Vec<String> =
-                    e.0.iter()
-                        .map(|e| in_flag_terms(&e.message, flags))
-                        .collect();
-                CliError::Other(lines.join("\n"))
-            })
+            .map_err(Error::Invalid)
     }
 
     /// The graph's nodes, built and ready to run in this process.
-    pub fn start(&self, flags: &[(&str, &str)]) -> Result<(Graph, InProcess), CliError> {
-        let g = self.graph(flags)?;
-        let run = InProcess::new(&g, &crate::registry::builtin()).map_err(CliError::Other)?;
+    pub fn start(&self) -> Result<(Graph, InProcess), Error> {
+        let g = self.graph()?;
+        let run = InProcess::new(&g, &crate::registry::builtin()).map_err(Error::Start)?;
         Ok((g, run))
+    }
+
+    /// Runs one frame: its messages and node times.
+    pub fn run_once(&self) -> Result<Frame, Error> {
+        let (_, mut run) = self.start()?;
+        run.step().map_err(Error::Node)?.ok_or(Error::NoFrame)
     }
 }
 
@@ -257,46 +254,36 @@ pub fn post_for(mode: Mode) -> PostParams {
     }
 }
 
-/// A node's message in the terms of a command line: `node 'x': bad params: ` dropped and
-/// each parameter named by its flag.
-pub fn in_flag_terms(message: &str, flags: &[(&str, &str)]) -> String {
-    let m = message
-        .split_once(": bad params: ")
-        .map_or(message, |(_, m)| m);
-    let mut out = String::with_capacity(m.len());
-    let mut word = String::new();
-    let flush = |word: &mut String, out: &mut String| {
-        match flags.iter().find(|(p, _)| *p == word) {
-            Some((_, f)) => out.push_str(f),
-            None => out.push_str(word),
-        }
-        word.clear();
+/// A target's disparity: the median of the valid LR-checked disparities in the central
+/// half of the image (quality matcher, no post-processing), and the image size.
+pub fn target_disparity(
+    l: &Path,
+    r: &Path,
+    range: DisparityRange,
+) -> Result<(f64, (usize, usize)), Error> {
+    let preset = Stereo {
+        post: None,
+        ..Stereo::whole_frame(l.to_path_buf(), r.to_path_buf(), Mode::Quality, range)
     };
-    for c in m.chars() {
-        if c.is_ascii_alphanumeric() || c == '_' {
-            word.push(c);
-        } else {
-            flush(&mut word, &mut out);
-            out.push(c);
-        }
+    let (_, mut run) = preset.start()?;
+    let f = run
+        .step()
+        .map_err(Error::Node)?
+        .ok_or_else(|| Error::Node(format!("'{}' gave no frame", l.display())))?;
+    let checked = f.read(&preset.outs().checked).map_err(Error::Node)?.paste();
+    let (w, h) = (checked.width, checked.height);
+    let mut v: Vec<f32> = (h / 4..3 * h / 4)
+        .flat_map(|y| checked.row(y)[w / 4..3 * w / 4].to_vec())
+        .filter(|d| d.is_finite())
+        .collect();
+    if v.len() < 100 {
+        return Err(Error::TooFewMatches {
+            file: l.display().to_string(),
+            pixels: v.len(),
+            min: range.min,
+            max: range.max,
+        });
     }
-    flush(&mut word, &mut out);
-    out
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn parameters_are_named_by_their_flags() {
-        let flags = [("window", "--window"), ("min_disparity", "--min-disparity")];
-        assert_eq!(
-            in_flag_terms(
-                "node 'match': bad params: window 12 is not allowed; min_disparity_x window",
-                &flags
-            ),
-            "--window 12 is not allowed; min_disparity_x --window"
-        );
-    }
+    v.sort_by(|a, b| a.total_cmp(b));
+    Ok((v[v.len() / 2] as f64, (w, h)))
 }

@@ -1,0 +1,18 @@
+//! microstereo's built-in pipelines, built from the node types.
+//!
+//! - [`registry`]: the node kinds this project runs, one list, and the cameras a graph's
+//!   recorder describes;
+//! - [`launch`]: the default graph and the reading of launch files against those kinds;
+//! - [`stereo`]: the stereo graph the one-shot commands run in-process (`reconstruct`,
+//!   `bench`, `calibrate-depth`), its typed outputs, and what is measured on it (the
+//!   paper's range selection, a target's disparity, the per-node times).
+
+pub mod launch;
+pub mod range;
+pub mod registry;
+pub mod stereo;
+pub mod timing;
+
+mod error;
+
+pub use error::Error;

@@ -1,0 +1,68 @@
+//! The paper's range selection: the disparity range whose matches are most consistent.
+
+use crate::Error;
+use crate::stereo::Stereo;
+use schemas::DisparityRange;
+use serde::Serialize;
+
+/// How the candidate ranges are built from radii.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+pub enum RangeKind {
+    /// `−r..r`: convergent microscope optics.
+    Symmetric,
+    /// `0..r`: parallel rigs.
+    Positive,
+}
+
+/// The candidate ranges for radii `rs` that fit an image `width` wide.
+pub fn candidate_ranges(kind: RangeKind, rs: &[u32], width: usize) -> Vec<DisparityRange> {
+    rs.iter()
+        .filter(|&&r| r > 0 && (r as usize) < width)
+        .map(|&r| match kind {
+            RangeKind::Symmetric => DisparityRange::new(-(r as i32), r as i32),
+            RangeKind::Positive => DisparityRange::new(0, r as i32),
+        })
+        .collect()
+}
+
+/// One point of the range-selection curve (the paper's Fig. 12).
+#[derive(Clone, Copy, Debug, Serialize, PartialEq)]
+pub struct RangeScore {
+    /// The range tried.
+    pub range: DisparityRange,
+    /// Consistent left pixels (within the LR tolerance) over all pixels with a candidate.
+    pub consistency_ratio: f64,
+}
+
+/// `base` (matching and its LR check) over each of `ranges`; the range with the highest
+/// consistency ratio (ties: the narrower, listed first), and the whole curve.
+pub fn auto_range(
+    base: &Stereo,
+    ranges: &[DisparityRange],
+) -> Result<(DisparityRange, Vec<RangeScore>), Error> {
+    let mut curve = Vec::new();
+    for &range in ranges {
+        let mut preset = Stereo {
+            post: None,
+            geometry: None,
+            segment: None,
+            ..base.clone()
+        };
+        preset.matching.min_disparity = range.min;
+        preset.matching.max_disparity = range.max;
+        let f = preset.run_once()?;
+        let checked = f.read(&preset.outs().checked).map_err(Error::Node)?;
+        curve.push(RangeScore {
+            range,
+            consistency_ratio: validate::consistency_ratio(&checked.paste(), range),
+        });
+    }
+    let best = curve
+        .iter()
+        .fold(None::<RangeScore>, |b, s| match b {
+            Some(b) if b.consistency_ratio >= s.consistency_ratio => Some(b),
+            _ => Some(*s),
+        })
+        .ok_or(Error::NoRange)?;
+    Ok((best.range, curve))
+}
