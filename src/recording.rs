@@ -3,12 +3,10 @@
 use crate::error::CliError;
 use crate::graphopts::OutputOpts;
 use clap::Args;
-use recorder::file::{FrameReader, Overview};
+use pipelines::recording::{launch_of, usable};
 use recorder::node::check_channels;
-use runtime::harness::{NodeCheck, Recorded};
-use runtime::launch::{Graph, LaunchFile};
 use schemas::MessageKind;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 /// Arguments of `microstereo view`.
 #[derive(Args, Debug)]
@@ -80,53 +78,6 @@ pub fn view(a: ViewArgs) -> Result<(), CliError> {
     done
 }
 
-/// Reads the channel overview of a recording; a corrupt file, or one with nothing
-/// readable, is an error that says what was read. A file cut short (its writer died, the
-/// disk filled, a copy lost its tail) is used up to its last whole record, the loss said.
-fn readable(path: &Path) -> Result<Overview, CliError> {
-    let o = recorder::overview(path).map_err(|e| CliError::Other(e.to_string()))?;
-    if let Some(why) = stopped(path, &o) {
-        return Err(CliError::Other(format!(
-            "{why}; `microstereo inspect {}` shows what it holds",
-            path.display()
-        )));
-    }
-    let messages: u64 = o.channels.iter().map(|c| c.messages).sum();
-    if messages == 0 {
-        let why: Vec<&str> = o.cut.iter().chain(&o.damaged).map(String::as_str).collect();
-        return Err(CliError::Other(format!(
-            "{}: no message in it can be read{}",
-            path.display(),
-            if why.is_empty() {
-                " (it holds none)".to_string()
-            } else {
-                format!(": {}", why.join("; "))
-            }
-        )));
-    }
-    // Damaged chunks cost their own messages only, a cut its tail: the rest is used, the
-    // loss is said.
-    for d in o.cut.iter().chain(&o.damaged) {
-        runtime::errln!("warning: {}: {d}", path.display());
-    }
-    Ok(o)
-}
-
-/// Why reading `path` stopped before its end, if it did.
-fn stopped(path: &Path, o: &Overview) -> Option<String> {
-    o.error.as_ref().map(|e| {
-        format!(
-            "{}: {e}{}",
-            path.display(),
-            if o.truncated {
-                " (the file is truncated: its recorder did not close it)"
-            } else {
-                ""
-            }
-        )
-    })
-}
-
 /// Arguments of `microstereo inspect`.
 #[derive(Args, Debug)]
 pub struct InspectArgs {
@@ -137,68 +88,11 @@ pub struct InspectArgs {
 /// Lists a recording's channels: type, messages, rate; says when the file is truncated.
 pub fn inspect(a: InspectArgs) -> Result<(), CliError> {
     let o = recorder::overview(&a.file).map_err(|e| CliError::Other(e.to_string()))?;
-    let (first, last) = o.channels.iter().fold((u64::MAX, 0u64), |(f, l), c| {
-        (f.min(c.first_ns), l.max(c.last_ns))
-    });
-    let span = if o.channels.is_empty() {
-        0.0
-    } else {
-        (last - first) as f64 / 1e9
-    };
-    let total: u64 = o.channels.iter().map(|c| c.messages).sum();
-    let bytes: u64 = o.channels.iter().map(|c| c.bytes).sum();
-    runtime::outln!("{}", a.file.display());
-    runtime::outln!(
-        "  {total} messages on {} channels, {:.2} s, frames {}–{}, {:.1} MB of CDR data",
-        o.channels.len(),
-        span,
-        o.first_sequence.map_or("-".into(), |s| s.to_string()),
-        o.last_sequence.map_or("-".into(), |s| s.to_string()),
-        bytes as f64 / 1e6,
-    );
-    if let Some((path, _)) = &o.launch {
-        runtime::outln!("  launch file: {path} (stored in the recording)");
-    }
-    let w = o
-        .channels
-        .iter()
-        .map(|c| c.topic.chars().count())
-        .max()
-        .unwrap_or(5)
-        .max(5);
-    let tw = o
-        .channels
-        .iter()
-        .map(|c| c.schema.chars().count())
-        .max()
-        .unwrap_or(4)
-        .max(4);
-    runtime::outln!(
-        "  {:<w$} {:<tw$} {:>8} {:>9} {:>10}",
-        "topic",
-        "type",
-        "messages",
-        "rate Hz",
-        "MB"
-    );
-    for c in &o.channels {
-        let dt = (c.last_ns - c.first_ns) as f64 / 1e9;
-        let rate = if c.messages > 1 && dt > 0.0 {
-            format!("{:.2}", (c.messages - 1) as f64 / dt)
-        } else {
-            "-".into()
-        };
-        runtime::outln!(
-            "  {:<w$} {:<tw$} {:>8} {:>9} {:>10.2}",
-            c.topic,
-            c.schema,
-            c.messages,
-            rate,
-            c.bytes as f64 / 1e6
-        );
+    for line in o.table(&a.file) {
+        runtime::outln!("{line}");
     }
     let problems: Vec<&String> = o.cut.iter().chain(&o.damaged).collect();
-    match stopped(&a.file, &o) {
+    match o.stopped(&a.file) {
         None if problems.is_empty() => Ok(()),
         None => {
             // Every damaged part but the last on its own line; the last is the error.
@@ -214,26 +108,6 @@ pub fn inspect(a: InspectArgs) -> Result<(), CliError> {
         Some(why) => Err(CliError::Other(format!(
             "{why}; the figures above are what could be read"
         ))),
-    }
-}
-
-/// The launch file a replay or a node test runs: `launch`, or the one the recording holds.
-fn launch_of(file: &Path, o: &Overview, launch: Option<&Path>) -> Result<Graph, CliError> {
-    match launch {
-        Some(l) => crate::run::load(l),
-        None => {
-            let (from, text) = o.launch.as_ref().ok_or_else(|| {
-                CliError::Other(format!(
-                    "{} holds no launch file; give one with --launch",
-                    file.display()
-                ))
-            })?;
-            LaunchFile::parse(Path::new(from), text)
-                .and_then(|f| f.validate(&pipelines::registry::builtin()))
-                .map_err(|e| {
-                    CliError::Other(format!("the launch file stored in {}: {e}", file.display()))
-                })
-        }
     }
 }
 
@@ -287,7 +161,7 @@ pub fn replay(a: ReplayArgs) -> Result<(), CliError> {
             "--duration {d} is out of range: give above 0 to 1e9 seconds"
         )));
     }
-    let o = readable(&a.file)?;
+    let o = usable(&a.file)?;
     crate::graphopts::check_record_target(&a.out)?;
     crate::graphopts::check_viewer_target(&a.out)?;
     let mut graph = launch_of(&a.file, &o, a.launch.as_deref())?;
@@ -337,78 +211,6 @@ pub fn replay(a: ReplayArgs) -> Result<(), CliError> {
     crate::run::run_graph(&graph, frames, &a.supervision, &a.out).map(|_| ())
 }
 
-/// Feeds node `id` of the recording's graph (or of `launch`) its recorded inputs and
-/// compares what it sends with the recorded outputs. A source makes frames 0, 1, … and is
-/// compared without capture times (wall clock); the manipulator bridge is checked by what
-/// it serves a controller over TCP, against the targets it was given.
-pub fn test_node(
-    file: &Path,
-    launch: Option<&Path>,
-    id: &str,
-    tolerance: f32,
-) -> Result<NodeCheck, CliError> {
-    let o = readable(file)?;
-    let graph = launch_of(file, &o, launch)?;
-    let spec = graph.node(id).ok_or_else(|| {
-        CliError::Other(format!(
-            "no node '{id}' in {}; its nodes: {}",
-            graph.file.display(),
-            graph
-                .nodes
-                .iter()
-                .map(|n| n.id.as_str())
-                .collect::<Vec<_>>()
-                .join(", ")
-        ))
-    })?;
-    let Some(kind) = spec.kind() else {
-        return Err(CliError::Other(format!(
-            "node '{id}' is an exec node; test-node runs built-in kinds"
-        )));
-    };
-    let bridge = kind == "manipulator-bridge";
-    // The bridge's state follows the wall clock (device polling): its check is what it
-    // serves over TCP.
-    let (inputs, outputs) = runtime::harness::edges_under_test(&graph, id, &|k| {
-        bridge && k == MessageKind::ManipulatorState
-    });
-    let all: Vec<(String, MessageKind)> = inputs.iter().chain(&outputs).cloned().collect();
-    check_channels(file, &o, &all).map_err(CliError::Other)?;
-    let edges: Vec<String> = all.iter().map(|(e, _)| e.clone()).collect();
-    let mut frames = FrameReader::open(file, edges).map_err(|e| CliError::Other(e.to_string()))?;
-    let names: Vec<String> = outputs.iter().map(|(e, _)| e.clone()).collect();
-    let recorded = frames.by_ref().map(|f| {
-        f.map(|msgs| {
-            msgs.into_iter()
-                .map(|m| (m.header, m.payload))
-                .collect::<Vec<Recorded>>()
-        })
-        .map_err(|e| e.to_string())
-    });
-    let connected: Vec<String> = spec.inputs.iter().map(|i| i.port.clone()).collect();
-    let (mut node, extra) = if bridge {
-        let (node, served) = manipulator_bridge::testing::under_test(&spec.params, &connected)
-            .map_err(CliError::Other)?;
-        (node, Some(("TCP lines".to_string(), served)))
-    } else {
-        let node = pipelines::registry::builtin()
-            .build(spec)
-            .map_err(CliError::Other)?;
-        (node, None)
-    };
-    let mut check = runtime::harness::check_node(
-        id,
-        node.as_mut(),
-        inputs.len(),
-        &names,
-        recorded,
-        tolerance,
-        extra,
-    )?;
-    check.incomplete = frames.incomplete;
-    Ok(check)
-}
-
 /// Arguments of `microstereo test-node`.
 #[derive(Args, Debug)]
 pub struct TestNodeArgs {
@@ -432,7 +234,7 @@ pub fn test_node_cmd(a: TestNodeArgs) -> Result<(), CliError> {
             a.tolerance
         )));
     }
-    let c = test_node(&a.file, a.launch.as_deref(), &a.node, a.tolerance)?;
+    let c = pipelines::recording::test_node(&a.file, a.launch.as_deref(), &a.node, a.tolerance)?;
     runtime::outln!(
         "{}: {} frame(s) stepped on recorded inputs{}",
         c.node,

@@ -180,7 +180,7 @@ pub fn run_graph(
         let kept = out
             .record
             .as_deref()
-            .map(unfinished_recordings)
+            .map(recorder::file::unfinished_parts)
             .unwrap_or_default();
         let kept = if kept.is_empty() {
             String::new()
@@ -215,30 +215,6 @@ pub fn run_graph(
         );
     }
     Ok(rate)
-}
-
-/// The partial files a recorder that did not finish left for `path` (`path.PID.part`).
-fn unfinished_recordings(path: &std::path::Path) -> Vec<String> {
-    let (Some(dir), Some(name)) = (path.parent(), path.file_name()) else {
-        return Vec::new();
-    };
-    let dir = if dir.as_os_str().is_empty() {
-        std::path::Path::new(".")
-    } else {
-        dir
-    };
-    let prefix = format!("{}.", name.to_string_lossy());
-    let mut found: Vec<String> = std::fs::read_dir(dir)
-        .map(|d| {
-            d.filter_map(Result::ok)
-                .map(|e| e.file_name().to_string_lossy().into_owned())
-                .filter(|n| n.starts_with(&prefix) && n.ends_with(".part"))
-                .map(|n| dir.join(n).display().to_string())
-                .collect()
-        })
-        .unwrap_or_default();
-    found.sort();
-    found
 }
 
 /// Runs the graph: one process per node, logs prefixed, restarts, clean stop, summary.
@@ -280,45 +256,8 @@ fn run_in_process(graph: &Graph, frames: u64) -> Result<(f64, Option<f64>), CliE
             "--frames 0 runs nothing: give at least 1".into(),
         ));
     }
-    let mut exec = runtime::exec::InProcess::new(graph, &pipelines::registry::builtin())
-        .map_err(CliError::Other)?;
-    let cpu0 = runtime::stats::process_cpu_ms();
-    let t0 = std::time::Instant::now();
-    let mut times: Vec<(String, Vec<f64>)> = Vec::new();
-    let mut done = 0u64;
-    for _ in 0..frames {
-        let Some(f) = exec.step().map_err(CliError::Other)? else {
-            break;
-        };
-        for (k, (id, ms)) in f.ms.into_iter().enumerate() {
-            match times.get_mut(k) {
-                Some(t) => t.1.push(ms),
-                None => times.push((id, vec![ms])),
-            }
-        }
-        done += 1;
-    }
-    let wall = t0.elapsed().as_secs_f64();
-    let cpu = runtime::stats::process_cpu_ms() - cpu0;
-    runtime::outln!();
-    runtime::outln!(
-        "{:<20} {:>9} {:>10} {:>10}",
-        "node",
-        "frames",
-        "mean ms",
-        "p99 ms"
-    );
-    for (id, mut t) in times {
-        let mean = runtime::stats::mean(&t);
-        let p99 = runtime::stats::percentile(&mut t, 0.99);
-        runtime::outln!("{:<20} {:>9} {:>10.2} {:>10.2}", id, t.len(), mean, p99);
-    }
-    let rate = done as f64 / wall.max(1e-9);
-    runtime::outln!(
-        "{done} frame(s) in one process in {wall:.2} s: {rate:.2} frames/s; CPU {:.0} % of one core",
-        100.0 * cpu / (wall * 1e3).max(1e-9)
-    );
-    Ok((rate, exec.pace()))
+    runtime::exec::run_timed(graph, &pipelines::registry::builtin(), frames)
+        .map_err(CliError::Other)
 }
 
 /// Where `bench-transport` runs the two ends of the edge.
@@ -363,55 +302,6 @@ pub fn bench_transport(a: BenchTransportArgs) -> Result<(), CliError> {
         BenchPlacement::TwoCores => vec![Placement::TwoCores],
         BenchPlacement::All => vec![Placement::OneCore, Placement::TwoCores, Placement::Free],
     };
-    for placement in placements {
-        let (wake50, wake99) =
-            runtime::hop::wake_floor(a.frames, placement).map_err(CliError::Other)?;
-        runtime::outln!(
-            "writer and reader {} (a bare thread wake-up: p50 {wake50:.1} µs, p99 {wake99:.1} µs)",
-            match placement {
-                Placement::OneCore => "on one core",
-                Placement::TwoCores => "on two cores",
-                Placement::Free => "where the scheduler puts them",
-            }
-        );
-        runtime::outln!(
-            "{:<22} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>8} {:>8}",
-            "frame",
-            "shm p50",
-            "shm p99",
-            "shm fps",
-            "uds p50",
-            "uds p99",
-            "uds fps",
-            "p50 ×",
-            "fps ×"
-        );
-        for (name, w, h) in [
-            ("0.3 MP (640×480)", 640usize, 480usize),
-            ("1.3 MP (1280×1024)", 1280, 1024),
-            ("5 MP (2592×1944)", 2592, 1944),
-        ] {
-            let bytes = w * h;
-            let shm =
-                runtime::hop::iceoryx2(bytes, a.frames, placement).map_err(CliError::Other)?;
-            let uds =
-                runtime::hop::unix_socket(bytes, a.frames, placement).map_err(CliError::Other)?;
-            runtime::outln!(
-                "{:<22} {:>9.1} {:>9.1} {:>9.0} {:>9.1} {:>9.1} {:>9.0} {:>8.1} {:>8.1}",
-                name,
-                shm.p50_us,
-                shm.p99_us,
-                shm.fps,
-                uds.p50_us,
-                uds.p99_us,
-                uds.fps,
-                uds.p50_us / shm.p50_us,
-                shm.fps / uds.fps
-            );
-        }
-    }
-    runtime::outln!(
-        "latencies in µs, one frame at a time; fps back to back through a lossless edge of depth 4"
-    );
+    runtime::hop::print_tables(a.frames, &placements).map_err(CliError::Other)?;
     Ok(())
 }

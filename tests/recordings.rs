@@ -1,7 +1,7 @@
 //! Every node on the bundled recording: fed its recorded inputs, it must send exactly the
 //! recorded outputs (recordings/default.mcap, made by recordings/make.sh).
 
-use microstereo::recording::test_node;
+use pipelines::recording::test_node;
 use runtime::harness::NodeCheck;
 use std::path::{Path, PathBuf};
 

@@ -21,6 +21,9 @@ pub enum Error {
     /// A node failed on a frame (its message names the node and the parameter).
     #[error("{0}")]
     Node(String),
+    /// A recording cannot be used as asked (its message says what was read and what to do).
+    #[error("{0}")]
+    Recording(String),
     /// The source ended before the first frame.
     #[error("the image pair sent no frame")]
     NoFrame,

@@ -5,10 +5,12 @@
 //! - [`launch`]: the default graph and the reading of launch files against those kinds;
 //! - [`stereo`]: the stereo graph the one-shot commands run in-process (`reconstruct`,
 //!   `bench`, `calibrate-depth`), its typed outputs, and what is measured on it (the
-//!   paper's range selection, a target's disparity, the per-node times).
+//!   paper's range selection, a target's disparity, the per-node times);
+//! - [`recording`]: the graph a replay or a node test of a recording runs, and that test.
 
 pub mod launch;
 pub mod range;
+pub mod recording;
 pub mod registry;
 pub mod stereo;
 pub mod timing;

@@ -222,6 +222,54 @@ impl InProcess {
     }
 }
 
+/// Runs `graph` in this process for `frames` frames and prints per node the mean and 99th
+/// percentile step time, then the frame rate and the CPU used (`run --in-process`). Returns
+/// the rate and the pace of the graph's paced sources (which this run ignores).
+pub fn run_timed(
+    graph: &Graph,
+    registry: &Registry,
+    frames: u64,
+) -> Result<(f64, Option<f64>), String> {
+    let mut exec = InProcess::new(graph, registry)?;
+    let cpu0 = crate::stats::process_cpu_ms();
+    let t0 = std::time::Instant::now();
+    let mut times: Vec<(String, Vec<f64>)> = Vec::new();
+    let mut done = 0u64;
+    for _ in 0..frames {
+        let Some(f) = exec.step()? else {
+            break;
+        };
+        for (k, (id, ms)) in f.ms.into_iter().enumerate() {
+            match times.get_mut(k) {
+                Some(t) => t.1.push(ms),
+                None => times.push((id, vec![ms])),
+            }
+        }
+        done += 1;
+    }
+    let wall = t0.elapsed().as_secs_f64();
+    let cpu = crate::stats::process_cpu_ms() - cpu0;
+    crate::outln!();
+    crate::outln!(
+        "{:<20} {:>9} {:>10} {:>10}",
+        "node",
+        "frames",
+        "mean ms",
+        "p99 ms"
+    );
+    for (id, mut t) in times {
+        let mean = crate::stats::mean(&t);
+        let p99 = crate::stats::percentile(&mut t, 0.99);
+        crate::outln!("{:<20} {:>9} {:>10.2} {:>10.2}", id, t.len(), mean, p99);
+    }
+    let rate = done as f64 / wall.max(1e-9);
+    crate::outln!(
+        "{done} frame(s) in one process in {wall:.2} s: {rate:.2} frames/s; CPU {:.0} % of one core",
+        100.0 * cpu / (wall * 1e3).max(1e-9)
+    );
+    Ok((rate, exec.pace()))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -325,6 +325,60 @@ pub fn wake_floor(frames: usize, placement: Placement) -> Result<(f64, f64), Str
     })
 }
 
+/// Times one edge over iceoryx2 and over a Unix-domain socket for three frame sizes (0.3,
+/// 1.3 and 5 MP) and prints them side by side with the ratios, one table per placement of
+/// the two ends (`microstereo bench-transport`).
+pub fn print_tables(frames: usize, placements: &[Placement]) -> Result<(), String> {
+    for &placement in placements {
+        let (wake50, wake99) = wake_floor(frames, placement)?;
+        crate::outln!(
+            "writer and reader {} (a bare thread wake-up: p50 {wake50:.1} µs, p99 {wake99:.1} µs)",
+            match placement {
+                Placement::OneCore => "on one core",
+                Placement::TwoCores => "on two cores",
+                Placement::Free => "where the scheduler puts them",
+            }
+        );
+        crate::outln!(
+            "{:<22} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>8} {:>8}",
+            "frame",
+            "shm p50",
+            "shm p99",
+            "shm fps",
+            "uds p50",
+            "uds p99",
+            "uds fps",
+            "p50 ×",
+            "fps ×"
+        );
+        for (name, w, h) in [
+            ("0.3 MP (640×480)", 640usize, 480usize),
+            ("1.3 MP (1280×1024)", 1280, 1024),
+            ("5 MP (2592×1944)", 2592, 1944),
+        ] {
+            let bytes = w * h;
+            let shm = iceoryx2(bytes, frames, placement)?;
+            let uds = unix_socket(bytes, frames, placement)?;
+            crate::outln!(
+                "{:<22} {:>9.1} {:>9.1} {:>9.0} {:>9.1} {:>9.1} {:>9.0} {:>8.1} {:>8.1}",
+                name,
+                shm.p50_us,
+                shm.p99_us,
+                shm.fps,
+                uds.p50_us,
+                uds.p99_us,
+                uds.fps,
+                uds.p50_us / shm.p50_us,
+                shm.fps / uds.fps
+            );
+        }
+    }
+    crate::outln!(
+        "latencies in µs, one frame at a time; fps back to back through a lossless edge of depth 4"
+    );
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -412,6 +412,80 @@ pub struct Overview {
 }
 
 impl Overview {
+    /// What `microstereo inspect` prints for the recording `file`: totals, the stored
+    /// launch file, then one row per channel (type, messages, rate, size).
+    pub fn table(&self, file: &Path) -> Vec<String> {
+        let (first, last) = self.channels.iter().fold((u64::MAX, 0u64), |(f, l), c| {
+            (f.min(c.first_ns), l.max(c.last_ns))
+        });
+        let span = if self.channels.is_empty() {
+            0.0
+        } else {
+            (last - first) as f64 / 1e9
+        };
+        let total: u64 = self.channels.iter().map(|c| c.messages).sum();
+        let bytes: u64 = self.channels.iter().map(|c| c.bytes).sum();
+        let mut out = vec![
+            file.display().to_string(),
+            format!(
+                "  {total} messages on {} channels, {:.2} s, frames {}–{}, {:.1} MB of CDR data",
+                self.channels.len(),
+                span,
+                self.first_sequence.map_or("-".into(), |s| s.to_string()),
+                self.last_sequence.map_or("-".into(), |s| s.to_string()),
+                bytes as f64 / 1e6,
+            ),
+        ];
+        if let Some((path, _)) = &self.launch {
+            out.push(format!("  launch file: {path} (stored in the recording)"));
+        }
+        let width = |f: fn(&ChannelInfo) -> &str, least: usize| {
+            self.channels
+                .iter()
+                .map(|c| f(c).chars().count())
+                .max()
+                .unwrap_or(least)
+                .max(least)
+        };
+        let (w, tw) = (width(|c| &c.topic, 5), width(|c| &c.schema, 4));
+        out.push(format!(
+            "  {:<w$} {:<tw$} {:>8} {:>9} {:>10}",
+            "topic", "type", "messages", "rate Hz", "MB"
+        ));
+        for c in &self.channels {
+            let dt = (c.last_ns - c.first_ns) as f64 / 1e9;
+            let rate = if c.messages > 1 && dt > 0.0 {
+                format!("{:.2}", (c.messages - 1) as f64 / dt)
+            } else {
+                "-".into()
+            };
+            out.push(format!(
+                "  {:<w$} {:<tw$} {:>8} {:>9} {:>10.2}",
+                c.topic,
+                c.schema,
+                c.messages,
+                rate,
+                c.bytes as f64 / 1e6
+            ));
+        }
+        out
+    }
+
+    /// Why reading the recording `file` stopped before its end, if it did.
+    pub fn stopped(&self, file: &Path) -> Option<String> {
+        self.error.as_ref().map(|e| {
+            format!(
+                "{}: {e}{}",
+                file.display(),
+                if self.truncated {
+                    " (the file is truncated: its recorder did not close it)"
+                } else {
+                    ""
+                }
+            )
+        })
+    }
+
     /// The channels that make up `edge`.
     pub fn edge(&self, edge: &str) -> Vec<&ChannelInfo> {
         self.channels
@@ -433,6 +507,30 @@ pub fn part_path(path: &Path, i: usize) -> PathBuf {
         None => format!("{stem}-{i:03}"),
     };
     path.with_file_name(name)
+}
+
+/// The partial files a recorder that did not finish left for `path` (`path.PID.part`).
+pub fn unfinished_parts(path: &Path) -> Vec<String> {
+    let (Some(dir), Some(name)) = (path.parent(), path.file_name()) else {
+        return Vec::new();
+    };
+    let dir = if dir.as_os_str().is_empty() {
+        Path::new(".")
+    } else {
+        dir
+    };
+    let prefix = format!("{}.", name.to_string_lossy());
+    let mut found: Vec<String> = std::fs::read_dir(dir)
+        .map(|d| {
+            d.filter_map(Result::ok)
+                .map(|e| e.file_name().to_string_lossy().into_owned())
+                .filter(|n| n.starts_with(&prefix) && n.ends_with(".part"))
+                .map(|n| dir.join(n).display().to_string())
+                .collect()
+        })
+        .unwrap_or_default();
+    found.sort();
+    found
 }
 
 /// The files of recording `path`: itself, or where it does not exist and it was split,
