@@ -48,7 +48,7 @@ const CONES_RIGHT: &[u8] = include_bytes!("../tests/data/cones/im6.png");
 pub fn bench(a: BenchArgs) -> Result<(), CliError> {
     let mut outputs: Vec<PathBuf> = a.json.iter().cloned().collect();
     if let Some(d) = &a.write_pairs {
-        outputs.extend(crate::outputs::in_dir(d, PAIR_NAMES));
+        outputs.extend(formats::outputs::in_dir(d, PAIR_NAMES));
     }
     let tmp = std::env::temp_dir().join(format!("microstereo-bench-{}", std::process::id()));
     let cones = match &a.cones {
@@ -67,7 +67,7 @@ pub fn bench(a: BenchArgs) -> Result<(), CliError> {
         }
     };
     let (l, r) = (cones.join("im2.png"), cones.join("im6.png"));
-    crate::outputs::check(&outputs, &[&l, &r], a.overwrite, "choose other names")?;
+    formats::outputs::check(&outputs, &[&l, &r], a.overwrite, "choose other names")?;
     let dir = a.write_pairs.clone().unwrap_or_else(|| tmp.clone());
     let mut pairs = vec![("cones".to_string(), l.clone(), r.clone())];
     if !a.cones_only {

@@ -100,7 +100,7 @@ fn import(a: ImportArgs) -> Result<(), CliError> {
         .calibration()
         .clone()
     };
-    crate::outputs::check(
+    formats::outputs::check(
         std::slice::from_ref(&a.output),
         &inputs,
         a.overwrite,
@@ -136,7 +136,7 @@ fn export(a: ExportArgs) -> Result<(), CliError> {
     })?;
     let mut outs: Vec<PathBuf> = a.opencv.iter().cloned().collect();
     outs.extend(a.camera_info.iter().flatten().cloned());
-    crate::outputs::check(
+    formats::outputs::check(
         &outs,
         &[a.file.as_path()],
         a.overwrite,

@@ -148,7 +148,7 @@ pub fn calibrate_manipulator(a: CalibrateManipulatorArgs) -> Result<(), CliError
         .chain(a.offset_only.iter())
         .map(PathBuf::as_path)
         .collect();
-    crate::outputs::check(
+    formats::outputs::check(
         std::slice::from_ref(&a.output),
         &inputs,
         a.overwrite,

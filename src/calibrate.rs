@@ -55,12 +55,13 @@ fn check_output(
         .chain([dir.join("heights.csv"), dir.join("calibration.toml")])
         .collect();
     let inputs: Vec<&Path> = inputs.iter().map(PathBuf::as_path).collect();
-    crate::outputs::check(
+    formats::outputs::check(
         &[out.to_path_buf()],
         &inputs,
         overwrite,
         "give -o another file",
-    )
+    )?;
+    Ok(())
 }
 
 /// The stack's pairs `(left, right, z)`.

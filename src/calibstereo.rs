@@ -144,7 +144,7 @@ pub fn calibrate_stereo_cmd(a: CalibrateStereoArgs) -> Result<(), CliError> {
         .flat_map(|(_, l, r)| [l.as_path(), r.as_path()])
         .collect();
     let all: Vec<PathBuf> = outputs.iter().chain(&pngs).cloned().collect();
-    crate::outputs::check(&all, &inputs, a.overwrite, "give -o another directory")?;
+    formats::outputs::check(&all, &inputs, a.overwrite, "give -o another directory")?;
 
     let (cols, rows) = a.inner;
     let mut size = None;

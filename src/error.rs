@@ -9,6 +9,9 @@ pub enum CliError {
     /// A file problem.
     #[error(transparent)]
     Io(#[from] IoError),
+    /// An output the command may not write.
+    #[error(transparent)]
+    Refused(#[from] formats::outputs::Refused),
     /// Anything else, already phrased for the user.
     #[error("{0}")]
     Other(String),

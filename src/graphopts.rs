@@ -1,38 +1,12 @@
-//! How `run` and `replay` change a launch file's graph: a recorder tap (`--record`), a
-//! Rerun viewer tap (`--viewer`), replay sources in place of recorded nodes; and the
-//! checks, before anything starts, that they can work.
+//! The flags of `run` and `replay` that add taps to a launch file's graph (a recorder,
+//! `--record`; a Rerun viewer, `--viewer`), and the checks, before anything starts, that
+//! they can work.
 
 use crate::error::CliError;
 use clap::Args;
-use recorder::node::{RECORDER_KIND, REPLAY_KIND};
-use runtime::launch::{Graph, Runner};
+use pipelines::taps;
+use runtime::launch::Graph;
 use std::path::{Path, PathBuf};
-
-/// The recorder's node id in a graph run with `--record`.
-pub const RECORDER_ID: &str = "recorder";
-
-/// The Rerun viewer tap's node id in a graph run with `--viewer`.
-pub const VIEWER_ID: &str = "viewer";
-
-/// The viewer binary: next to this program (`cargo build --release -p viewer` builds it;
-/// it alone links rerun).
-pub fn viewer_exe() -> PathBuf {
-    std::env::current_exe()
-        .ok()
-        .and_then(|p| p.parent().map(|d| d.join("microstereo-viewer")))
-        .unwrap_or_else(|| PathBuf::from("microstereo-viewer"))
-}
-
-fn check_viewer_words(w: &[String]) -> Result<(), String> {
-    match w {
-        [m] if m == "spawn" => Ok(()),
-        [m, _] if m == "connect" || m == "save" => Ok(()),
-        _ => Err(format!(
-            "--viewer {}: give spawn, connect HOST:PORT or save FILE.rrd",
-            w.join(" ")
-        )),
-    }
-}
 
 /// Checks, before anything starts, that `--viewer` can work: the viewer binary is built,
 /// a viewer to spawn is installed, a viewer to connect to is listening, a file to save
@@ -41,8 +15,8 @@ pub fn check_viewer_target(opts: &OutputOpts) -> Result<(), CliError> {
     if opts.viewer.is_empty() {
         return Ok(());
     }
-    check_viewer_words(&opts.viewer).map_err(CliError::Other)?;
-    let exe = viewer_exe();
+    taps::check_viewer_words(&opts.viewer).map_err(CliError::Other)?;
+    let exe = taps::viewer_exe();
     if !exe.is_file() {
         return Err(CliError::Other(format!(
             "--viewer needs {}, which is not built; run `cargo build --release -p viewer` (it holds the rerun dependency)",
@@ -107,14 +81,14 @@ pub struct OutputOpts {
     /// every Nth frame number, which counts the camera's frames (repeatable; e.g.
     /// 'rectify/frame=10' keeps the images of one camera frame in ten while the cells and
     /// targets keep every frame).
-    #[arg(long, value_name = "PATTERN=N", value_parser = parse_every, requires = "record")]
+    #[arg(long, value_name = "PATTERN=N", value_parser = taps::parse_every, requires = "record")]
     pub every: Vec<(String, u64)>,
     /// Split the recording into files: a new one once SIZE of messages (before
     /// compression, e.g. 1GiB, 500MB) are in the current one, or every TIME (e.g. 10min,
     /// 30s): NAME-000.mcap, NAME-001.mcap, …;
     /// `replay`, `inspect`, `view` and `test-node` given NAME.mcap read the parts as one.
-    #[arg(long, value_name = "SIZE|TIME", value_parser = parse_split, requires = "record")]
-    pub split: Option<Split>,
+    #[arg(long, value_name = "SIZE|TIME", value_parser = taps::parse_split, requires = "record")]
+    pub split: Option<taps::Split>,
     /// Replace the file given to --record or to --viewer save if it exists.
     #[arg(long)]
     pub overwrite: bool,
@@ -128,171 +102,20 @@ impl OutputOpts {
     /// Adds the recorder and the viewer taps to `graph`.
     pub fn apply(&self, graph: &mut Graph) -> Result<(), String> {
         if let Some(path) = &self.record {
-            let path = std::path::absolute(path).unwrap_or(path.clone());
-            let mut params = toml::Table::from_iter([
-                (
-                    "path".to_string(),
-                    toml::Value::String(path.display().to_string()),
-                ),
-                (
-                    "overwrite".to_string(),
-                    toml::Value::Boolean(self.overwrite),
-                ),
-            ]);
-            if let Some(c) = pipelines::registry::cameras(graph) {
-                params.insert(
-                    "cameras".into(),
-                    toml::Value::try_from(c).map_err(|e| e.to_string())?,
-                );
-            }
-            let every: std::collections::BTreeMap<String, u64> =
-                self.every.iter().cloned().collect();
-            if every.len() != self.every.len() {
-                return Err("--every gives one pattern twice: give each pattern once".into());
-            }
-            params.insert(
-                "every".into(),
-                toml::Value::Table(
-                    every
-                        .iter()
-                        .map(|(k, &n)| (k.clone(), toml::Value::Integer(n as i64)))
-                        .collect(),
-                ),
-            );
-            match self.split {
-                Some(Split::Bytes(b)) => {
-                    params.insert("split_bytes".into(), toml::Value::Integer(b as i64));
-                }
-                Some(Split::Seconds(t)) => {
-                    params.insert("split_seconds".into(), toml::Value::Float(t));
-                }
-                None => {}
-            }
-            graph.add_tap(RECORDER_ID, RECORDER_KIND, &self.edges, params)?;
-            let recorded: Vec<String> = graph
-                .input_edges(RECORDER_ID)
-                .into_iter()
-                .map(|(e, _)| e)
-                .collect();
-            recorder::node::edge_rates(&every, &recorded).map_err(|e| format!("--every: {e}"))?;
+            let r = taps::Recording {
+                path: path.clone(),
+                edges: self.edges.clone(),
+                every: self.every.clone(),
+                split: self.split,
+                overwrite: self.overwrite,
+            };
+            taps::add_recorder(graph, &r)?;
         }
         if !self.viewer.is_empty() {
-            check_viewer_words(&self.viewer)?;
-            let words = self
-                .viewer
-                .iter()
-                .cloned()
-                .map(toml::Value::String)
-                .collect();
-            let params =
-                toml::Table::from_iter([("target".to_string(), toml::Value::Array(words))]);
-            graph.add_tap(VIEWER_ID, "viewer", &[], params)?;
-            let n = graph.nodes.last_mut().expect("added");
-            n.runner = Runner::Exec(viewer_exe());
-            n.logs = true;
+            taps::add_viewer(graph, &self.viewer)?;
         }
         Ok(())
     }
-}
-
-/// Most frames `--every` may skip between two recorded ones.
-const EVERY_MAX: u64 = 1_000_000;
-
-/// Parses `--every PATTERN=N`.
-/// Where a recording is split (`--split`).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum Split {
-    /// Bytes of messages (before compression) per file.
-    Bytes(u64),
-    /// Seconds per file.
-    Seconds(f64),
-}
-
-/// Reads `--split`: a size (`1GiB`, `500MB`, `64MiB`, `100kB`) or a time (`30s`, `10min`,
-/// `2h`).
-pub fn parse_split(s: &str) -> Result<Split, String> {
-    let t = s.trim();
-    let at = t
-        .find(|c: char| !(c.is_ascii_digit() || c == '.'))
-        .unwrap_or(t.len());
-    let (num, unit) = t.split_at(at);
-    let bad = || format!("'{s}' is neither a size (e.g. 1GiB, 500MB) nor a time (e.g. 10min, 30s)");
-    let n: f64 = num.parse().map_err(|_| bad())?;
-    let (bytes, secs) = match unit.trim() {
-        "B" => (Some(1.0), None),
-        "kB" | "KB" => (Some(1e3), None),
-        "KiB" => (Some(1024.0), None),
-        "MB" => (Some(1e6), None),
-        "MiB" => (Some(1024.0 * 1024.0), None),
-        "GB" => (Some(1e9), None),
-        "GiB" => (Some(1024.0 * 1024.0 * 1024.0), None),
-        "s" => (None, Some(1.0)),
-        "min" => (None, Some(60.0)),
-        "h" => (None, Some(3600.0)),
-        _ => return Err(bad()),
-    };
-    match (bytes, secs) {
-        (Some(u), _) => {
-            let b = n * u;
-            if !(1024.0..=1e15).contains(&b) {
-                return Err(format!("--split {s}: give 1KiB to 1PB"));
-            }
-            Ok(Split::Bytes(b as u64))
-        }
-        (_, Some(u)) => {
-            let t = n * u;
-            if !(1.0..=1e7).contains(&t) {
-                return Err(format!("--split {s}: give 1 s to 1e7 s"));
-            }
-            Ok(Split::Seconds(t))
-        }
-        _ => Err(bad()),
-    }
-}
-
-fn parse_every(s: &str) -> Result<(String, u64), String> {
-    let (pattern, n) = s
-        .rsplit_once('=')
-        .ok_or_else(|| format!("'{s}' is not PATTERN=N (e.g. 'rectify/frame=10')"))?;
-    if pattern.is_empty() || !pattern.contains('/') {
-        return Err(format!(
-            "'{pattern}' is not an edge pattern NODE/OUTPUT (e.g. 'rectify/frame=10')"
-        ));
-    }
-    let n: u64 = n
-        .trim()
-        .parse()
-        .map_err(|_| format!("'{n}' is not a whole number of frames (1 to {EVERY_MAX})"))?;
-    if !(1..=EVERY_MAX).contains(&n) {
-        return Err(format!("every {n} frames: give 1 to {EVERY_MAX}"));
-    }
-    Ok((pattern.to_string(), n))
-}
-
-/// Turns nodes `replace` of `graph` into sources that send their outputs recorded in
-/// `file` (at `rate`, `looped`).
-pub fn apply_replay(
-    graph: &mut Graph,
-    file: &Path,
-    replace: &[String],
-    rate: &str,
-    looped: bool,
-    window: (f64, Option<f64>),
-) -> Result<(), String> {
-    let file = std::path::absolute(file).unwrap_or(file.to_path_buf());
-    let mut params = toml::Table::from_iter([
-        (
-            "file".to_string(),
-            toml::Value::String(file.display().to_string()),
-        ),
-        ("rate".to_string(), toml::Value::String(rate.to_string())),
-        ("loop".to_string(), toml::Value::Boolean(looped)),
-        ("start".to_string(), toml::Value::Float(window.0)),
-    ]);
-    if let Some(d) = window.1 {
-        params.insert("duration".into(), toml::Value::Float(d));
-    }
-    graph.replace_with_sources(replace, REPLAY_KIND, &params)
 }
 
 /// Checks, before anything starts, that `--record` can create its file.

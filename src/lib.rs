@@ -4,8 +4,7 @@
 //! one-shot commands, launch files for `run`), runs them with the runtime's executor or
 //! supervisor, and writes what they produce.
 //!
-//! - [`cli`]: the commands and their dispatch; [`error`]: the one error type; [`outputs`]:
-//!   what a command may write; [`fuzzing`]: the fuzz targets' entry points;
+//! - [`cli`]: the commands and their dispatch; [`error`]: the one error type;
 //! - the built-in node kinds, the default graph and the stereo graph of `reconstruct`,
 //!   `bench` and `calibrate-depth` are the `pipelines` crate's;
 //! - [`reconstruct`], [`bench`], [`segmentcmd`], [`synthcmd`], [`calibrate`]: one-shot
@@ -21,9 +20,7 @@ pub mod calibrate;
 pub mod calibstereo;
 pub mod cli;
 pub mod error;
-pub mod fuzzing;
 pub mod graphopts;
-pub mod outputs;
 pub mod reconstruct;
 pub mod recording;
 pub mod run;

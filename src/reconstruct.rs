@@ -8,11 +8,12 @@ use clap::{Args, ValueEnum};
 use formats as io;
 use matcher::node::{MatchParams, Region};
 use matcher::{Mode, PaperParams, QualityParams, Weights};
+use pipelines::maps::{CellMaps, PairMaps, occlusion};
 use pipelines::range::{RangeScore, auto_range, candidate_ranges};
-use pipelines::stereo::{Stereo, got};
+use pipelines::stereo::Stereo;
 use postprocess::{Fill, PostParams};
 use runtime::exec::Frame;
-use schemas::{Cloud, DisparityMap, DisparityRange, LengthUnit, Mask, Plane, Targets};
+use schemas::{DisparityRange, LengthUnit};
 use serde::Serialize;
 use std::path::PathBuf;
 use std::time::Instant;
@@ -330,12 +331,13 @@ const OUTPUT_NAMES: &[&str] = &[
 fn refuse_inputs_as_outputs(a: &ReconstructArgs) -> Result<(), CliError> {
     let inputs = [Some(&a.left), Some(&a.right), a.calibration.as_ref()];
     let inputs: Vec<&std::path::Path> = inputs.into_iter().flatten().map(|p| p.as_path()).collect();
-    crate::outputs::check(
-        &crate::outputs::in_dir(&a.output, OUTPUT_NAMES),
+    formats::outputs::check(
+        &formats::outputs::in_dir(&a.output, OUTPUT_NAMES),
         &inputs,
         a.overwrite,
         "give -o another directory",
-    )
+    )?;
+    Ok(())
 }
 
 /// Checks the flags that only some runs use (geometry without --cells, segmentation
@@ -399,18 +401,6 @@ fn mkdir(o: &std::path::Path) -> Result<(), CliError> {
             o.display()
         ))
     })
-}
-
-fn occlusion(map: &DisparityMap) -> Mask {
-    Plane::from_vec(
-        map.width,
-        map.height,
-        map.data
-            .iter()
-            .map(|d| if d.is_finite() { 0 } else { 255 })
-            .collect(),
-    )
-    .expect("size")
 }
 
 /// Runs `microstereo reconstruct`.
@@ -477,16 +467,13 @@ pub fn reconstruct(a: ReconstructArgs) -> Result<(), CliError> {
     if a.cells {
         return write_cells(&a, &preset, &f, times, t0);
     }
-    let outs = preset.outs();
-    let checked = f.read(&outs.checked)?;
-    let checked_right = f.read(&outs.checked_right)?;
-    let post = got(&f, &outs.post)?;
-    let raw = checked.paste();
-    let disparity = post.paste();
-    let cloud: Option<(Cloud, Targets)> = match preset.geometry {
-        Some(_) => Some((got(&f, &outs.cloud)?, got(&f, &outs.targets)?)),
-        None => None,
-    };
+    let PairMaps {
+        checked,
+        raw,
+        raw_right,
+        disparity,
+        cloud,
+    } = preset.pair_maps(&f)?;
     let unit = cloud.as_ref().map(|(_, t)| unit_of(&t.unit));
     // Everything computed: only now touch the output directory.
     let o = &a.output;
@@ -505,10 +492,7 @@ pub fn reconstruct(a: ReconstructArgs) -> Result<(), CliError> {
         &io::disparity_color(&disparity, range.min as f32, range.max as f32),
     )?;
     io::write_mask_png(&o.join("occlusion_left.png"), &occlusion(&raw))?;
-    io::write_mask_png(
-        &o.join("occlusion_right.png"),
-        &occlusion(&checked_right.paste()),
-    )?;
+    io::write_mask_png(&o.join("occlusion_right.png"), &occlusion(&raw_right))?;
     if let (Some((c, _)), Some(u)) = (&cloud, unit) {
         io::write_ply(&o.join("points.ply"), c, u)?;
     }
@@ -604,21 +588,16 @@ fn write_cells(
     mut times: serde_json::Map<String, serde_json::Value>,
     t0: Instant,
 ) -> Result<(), CliError> {
-    let outs = preset.outs();
-    let labels = got(f, &outs.labels)?;
-    let lists = got(f, &outs.cells)?;
-    let tiles = f.read(&outs.checked)?;
-    let post = got(f, &outs.post)?;
-    let targets = got(f, &outs.targets)?;
-    let cloud = got(f, &outs.cloud)?;
-    let disparity = got(f, &outs.disparity)?;
-    let composed = cells::compose(
-        (&labels.left, &cells::mask_of(&labels.left)),
-        (&lists.left, &lists.right),
-        &post,
-        &tiles,
-    )?;
-    let colour = f.read(&outs.colour)?;
+    let CellMaps {
+        labels,
+        lists,
+        tiles,
+        targets,
+        cloud,
+        disparity,
+        composed,
+        colour,
+    } = preset.cell_maps(f)?;
     let unit = unit_of(&targets.unit);
     let o = &a.output;
     mkdir(o)?;

@@ -3,9 +3,7 @@
 use crate::error::CliError;
 use crate::graphopts::OutputOpts;
 use clap::Args;
-use pipelines::recording::{launch_of, usable};
-use recorder::node::check_channels;
-use schemas::MessageKind;
+use pipelines::recording::usable;
 use std::path::PathBuf;
 
 /// Arguments of `microstereo view`.
@@ -37,7 +35,7 @@ pub fn view(a: ViewArgs) -> Result<(), CliError> {
         ..OutputOpts::default()
     })?;
     if let Some(o) = &a.output {
-        crate::outputs::check(
+        formats::outputs::check(
             std::slice::from_ref(o),
             &[&a.file],
             a.overwrite,
@@ -47,7 +45,7 @@ pub fn view(a: ViewArgs) -> Result<(), CliError> {
     // Saved under a temporary name, renamed when the viewer has written it all.
     let tmp = a.output.as_deref().map(formats::atomic::temp_beside);
     // The viewer binary checks the recording itself before it shows anything.
-    let mut cmd = std::process::Command::new(crate::graphopts::viewer_exe());
+    let mut cmd = std::process::Command::new(pipelines::taps::viewer_exe());
     cmd.arg("view").arg(&a.file);
     if let Some(t) = &tmp {
         cmd.arg("-o").arg(t);
@@ -57,7 +55,7 @@ pub fn view(a: ViewArgs) -> Result<(), CliError> {
     let status = cmd.status().map_err(|e| {
         CliError::Other(format!(
             "cannot run {}: {e}",
-            crate::graphopts::viewer_exe().display()
+            pipelines::taps::viewer_exe().display()
         ))
     })?;
     let done = match status.code() {
@@ -164,40 +162,16 @@ pub fn replay(a: ReplayArgs) -> Result<(), CliError> {
     let o = usable(&a.file)?;
     crate::graphopts::check_record_target(&a.out)?;
     crate::graphopts::check_viewer_target(&a.out)?;
-    let mut graph = launch_of(&a.file, &o, a.launch.as_deref())?;
-    // A start past the end would send no frame, and the graph wait for one.
-    let edges = o.channels.iter().filter(|c| c.edge.is_some());
-    if let (Some(t0), Some(t1)) = (
-        edges.clone().map(|c| c.first_ns).min(),
-        edges.map(|c| c.last_ns).max(),
-    ) {
-        let span = (t1 - t0) as f64 * 1e-9;
-        if a.start > 0.0 && a.start >= span {
-            return Err(CliError::Other(format!(
-                "--start {} is past the end of {}: it holds {span:.2} s",
-                a.start,
-                a.file.display()
-            )));
-        }
-    }
-    let mut replaced: Vec<(String, MessageKind)> = Vec::new();
-    for id in &a.replace {
-        if graph.node(id).is_none() {
-            return Err(CliError::Other(format!(
-                "--replace {id}: {} has no node '{id}'",
-                graph.file.display()
-            )));
-        }
-        replaced.extend(graph.output_edges(id));
-    }
-    check_channels(&a.file, &o, &replaced).map_err(CliError::Other)?;
-    crate::graphopts::apply_replay(
-        &mut graph,
+    let mut graph = pipelines::recording::replay_graph(
         &a.file,
-        &a.replace,
-        &a.rate,
-        a.looped,
-        (a.start, a.duration),
+        &o,
+        a.launch.as_deref(),
+        &pipelines::recording::Replay {
+            replace: a.replace.clone(),
+            rate: a.rate.clone(),
+            looped: a.looped,
+            window: (a.start, a.duration),
+        },
     )?;
     a.out.apply(&mut graph)?;
     // A window of the recording ends with its last frame (the nodes take the end of the

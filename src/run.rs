@@ -195,23 +195,11 @@ pub fn run_graph(
     if let Some(path) = &out.record {
         let written = report
             .stats
-            .get(crate::graphopts::RECORDER_ID)
+            .get(pipelines::taps::RECORDER_ID)
             .map_or(0, |s| s.frames_out);
-        let files = recorder::file::recording_files(path);
-        let size: u64 = files
-            .iter()
-            .map(|f| std::fs::metadata(f).map_or(0, |m| m.len()))
-            .sum();
         runtime::outln!(
-            "recorded {written} message(s) into {}{} ({:.1} MB); `microstereo inspect {}` lists them",
-            path.display(),
-            if out.split.is_some() {
-                format!(" as {} part(s), {} …", files.len(), files[0].display())
-            } else {
-                String::new()
-            },
-            size as f64 / 1e6,
-            path.display()
+            "{}",
+            recorder::file::written(path, written, out.split.is_some())
         );
     }
     Ok(rate)

@@ -111,8 +111,8 @@ pub fn segment_cmd(a: SegmentArgs) -> Result<(), CliError> {
         .flatten()
         .map(PathBuf::as_path)
         .collect();
-    crate::outputs::check(
-        &crate::outputs::in_dir(&a.output, OUTPUT_NAMES),
+    formats::outputs::check(
+        &formats::outputs::in_dir(&a.output, OUTPUT_NAMES),
         &inputs,
         a.overwrite,
         "give -o another directory",

@@ -4,7 +4,6 @@ use crate::error::CliError;
 use clap::Args;
 use formats as io;
 use schemas::Plane;
-use serde::Serialize;
 use std::path::{Path, PathBuf};
 use synth::{CellSpec, Look, Optics, Pipette, Scene, Texture};
 
@@ -161,36 +160,6 @@ pub enum ProfileArg {
     FriedEgg,
 }
 
-/// What truth.json holds.
-#[derive(Serialize)]
-struct Truth<'a> {
-    optics: &'a Optics,
-    seed: u64,
-    calibration: &'a schemas::Calibration,
-    /// Disparity per µm of height at the substrate.
-    px_per_um_height: f64,
-    disparity_range: [f64; 2],
-    cells: &'a [synth::CellTruth],
-    /// The pipette, where there is one.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pipette: Option<PipetteTruth>,
-}
-
-/// The pipette in truth.json.
-#[derive(Serialize)]
-struct PipetteTruth {
-    /// Its shape and place.
-    spec: synth::Pipette,
-    /// The tip's front (the glass's farthest point along it), `[x, y, height]` µm.
-    front: [f64; 3],
-    /// The same in the camera frame `[X, Y, Z]` µm.
-    front_camera: [f64; 3],
-    /// The front in the left and the right view, px.
-    front_px: [[f64; 2]; 2],
-    /// Its defocus blur (Gaussian sigma, px).
-    defocus_px: f64,
-}
-
 fn other(msg: String) -> CliError {
     CliError::Other(msg)
 }
@@ -212,71 +181,6 @@ fn scene_files(prefix: &str) -> [String; 6] {
     .map(|n| format!("{prefix}{n}"))
 }
 
-/// Says how far a long render got, every few seconds on stderr, until dropped.
-struct RenderProgress {
-    stop: Option<std::sync::mpsc::Sender<()>>,
-    thread: Option<std::thread::JoinHandle<()>>,
-}
-
-impl RenderProgress {
-    /// Pixels of rendering (both views and the truth, over every scene) that take long
-    /// enough to be worth a progress line: a 2048² scene takes seconds on two cores.
-    const WORTH: usize = 3 * 2048 * 2048;
-
-    /// Says `say` every `every` while `scenes` scenes of `width × height` render, when that
-    /// is [`Self::WORTH`] it.
-    fn start(
-        (width, height, scenes): (usize, usize, usize),
-        every: std::time::Duration,
-        say: impl Fn(String) + Send + 'static,
-    ) -> Self {
-        let total_rows = (3 * height * scenes) as u64;
-        if 3 * width * height * scenes < Self::WORTH {
-            return Self {
-                stop: None,
-                thread: None,
-            };
-        }
-        let (tx, rx) = std::sync::mpsc::channel::<()>();
-        let start = std::time::Instant::now();
-        let first = synth::rows_rendered();
-        let thread = std::thread::spawn(move || {
-            while let Err(std::sync::mpsc::RecvTimeoutError::Timeout) = rx.recv_timeout(every) {
-                let done = (synth::rows_rendered() - first).min(total_rows);
-                let f = done as f64 / total_rows as f64;
-                let secs = start.elapsed().as_secs_f64();
-                say(format!(
-                    "rendering {width}×{height}{}: {:.0} % after {secs:.0} s{}",
-                    if scenes > 1 {
-                        format!(", {scenes} scenes")
-                    } else {
-                        String::new()
-                    },
-                    100.0 * f,
-                    if f > 0.02 {
-                        format!(", about {:.0} s to go", secs * (1.0 - f) / f)
-                    } else {
-                        String::new()
-                    }
-                ));
-            }
-        });
-        Self {
-            stop: Some(tx),
-            thread: Some(thread),
-        }
-    }
-}
-
-impl Drop for RenderProgress {
-    fn drop(&mut self) {
-        drop(self.stop.take());
-        if let Some(t) = self.thread.take() {
-            let _ = t.join();
-        }
-    }
-}
-
 fn write_scene(dir: &Path, scene: &Scene, prefix: &str) -> Result<synth::Rendered, CliError> {
     let r = scene.render();
     save_grey(&dir.join(format!("{prefix}left.png")), &r.left)?;
@@ -294,26 +198,7 @@ fn write_scene(dir: &Path, scene: &Scene, prefix: &str) -> Result<synth::Rendere
     )
     .expect("size");
     io::render::write_labels_png(&dir.join(format!("{prefix}mask.png")), &labels)?;
-    let (lo, hi) = r
-        .disparity
-        .data
-        .iter()
-        .fold((f32::MAX, f32::MIN), |(a, b), &d| (a.min(d), b.max(d)));
-    let t = Truth {
-        optics: &scene.optics,
-        seed: scene.seed,
-        calibration: &r.calibration,
-        px_per_um_height: scene.optics.px_per_um_height(),
-        disparity_range: [lo as f64, hi as f64],
-        cells: &r.cells,
-        pipette: scene.pipette.map(|p| PipetteTruth {
-            spec: p,
-            front: p.front(),
-            front_camera: scene.camera_point(p.front()),
-            front_px: scene.project(p.front()),
-            defocus_px: scene.pipette_defocus_px(),
-        }),
-    };
+    let t = synth::truth::Truth::of(scene, &r);
     let p = dir.join(format!("{prefix}truth.json"));
     io::atomic::write_bytes(
         &p,
@@ -450,8 +335,8 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
         (None, 0) => names.extend(scene_files("")),
         (None, n) => names.extend((0..n).flat_map(|f| scene_files(&format!("f{f:04}_")))),
     }
-    crate::outputs::check(
-        &crate::outputs::in_dir(&a.output, &names),
+    formats::outputs::check(
+        &formats::outputs::in_dir(&a.output, &names),
         &[],
         a.overwrite,
         "give -o another directory",
@@ -468,7 +353,7 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
         (Some(zs), _) => zs.len(),
         (None, n) => n.max(1),
     };
-    let _progress = RenderProgress::start(
+    let _progress = synth::progress::RenderProgress::start(
         (optics.width, optics.height, scenes),
         std::time::Duration::from_secs(2),
         |line| runtime::errln!("{line}"),
@@ -514,33 +399,16 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
         scene = scene.with_debris(a.debris, [1.0, 4.0], a.seed);
     }
     if let Some(h) = a.pipette {
-        let s = optics.um_per_px();
-        let az = a.pipette_azimuth.to_radians();
         let tip = match &a.pipette_tip {
             Some(t) if t.len() != 2 || t.iter().any(|v| !v.is_finite() || v.abs() > 1e6) => {
                 return Err(other(format!(
                     "--pipette-tip {t:?}: give X,Y in µm from the image centre (two finite numbers)"
                 )));
             }
-            Some(t) => [t[0], t[1]],
-            None if a.pipette_azimuth == 0.0 => [-0.5 * a.width as f64 * s + 20.0 * s, 0.0],
-            None => {
-                // 20 px in from the border the body leaves through.
-                let (c, n) = (-az.cos(), -az.sin());
-                let reach = (0.5 * a.width as f64 / c.abs().max(1e-9))
-                    .min(0.5 * a.height as f64 / n.abs().max(1e-9))
-                    - 20.0;
-                [c * reach * s, n * reach * s]
-            }
+            Some(t) => Some([t[0], t[1]]),
+            None => None,
         };
-        scene.pipette = Some(Pipette {
-            tip,
-            height: h,
-            tip_radius: 1.5,
-            taper: 0.08,
-            elevation: 0.0,
-            azimuth: az,
-        });
+        scene.pipette = Some(Pipette::entering(&optics, h, a.pipette_azimuth, tip));
     }
     if let Some(why) = synth::shortfall(&scene, &spec) {
         runtime::errln!("warning: {why}");
@@ -575,59 +443,4 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
         );
     }
     Ok(())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use std::sync::{Arc, Mutex};
-
-    #[test]
-    fn a_long_render_says_how_far_it_got() {
-        let said: Arc<Mutex<Vec<String>>> = Arc::default();
-        let optics = Optics {
-            width: 1024,
-            height: 1024,
-            ..Optics::default()
-        };
-        let scene = Scene::random(optics, Look::default(), &CellSpec::default(), 1);
-        {
-            let said = said.clone();
-            let _progress = RenderProgress::start(
-                (1024, 1024, 4),
-                std::time::Duration::from_millis(20),
-                move |l| said.lock().unwrap().push(l),
-            );
-            for _ in 0..4 {
-                let _ = scene.render();
-            }
-        }
-        let said = said.lock().unwrap();
-        let percent: Vec<f64> = said
-            .iter()
-            .map(|l| {
-                assert!(l.starts_with("rendering 1024×1024, 4 scenes: "), "{l}");
-                l.split(": ")
-                    .nth(1)
-                    .unwrap()
-                    .split(' ')
-                    .next()
-                    .unwrap()
-                    .parse()
-                    .unwrap()
-            })
-            .collect();
-        assert!(!percent.is_empty());
-        assert!(percent.windows(2).all(|w| w[0] <= w[1]), "{said:?}");
-        assert!(percent.iter().all(|&p| p <= 100.0), "{said:?}");
-        // A small render says nothing.
-        let quiet: Arc<Mutex<Vec<String>>> = Arc::default();
-        let q = quiet.clone();
-        drop(RenderProgress::start(
-            (640, 480, 1),
-            std::time::Duration::from_millis(1),
-            move |l| q.lock().unwrap().push(l),
-        ));
-        assert!(quiet.lock().unwrap().is_empty());
-    }
 }

@@ -18,7 +18,7 @@ fn files(dir: &std::path::Path) -> Vec<PathBuf> {
 #[test]
 fn every_seed_and_every_crash_found_runs_without_panic() {
     let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("fuzz");
-    for (name, target) in microstereo::fuzzing::TARGETS {
+    for (name, target) in pipelines::fuzzing::TARGETS {
         let seeds = files(&root.join("corpus").join(name));
         assert!(!seeds.is_empty(), "no seed for the fuzz target {name}");
         for p in seeds

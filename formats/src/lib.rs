@@ -3,6 +3,7 @@
 //! cell overlays and histograms). Every error names the file and the fix.
 
 pub mod atomic;
+pub mod outputs;
 pub mod render;
 
 use image::{ImageBuffer, Luma, Rgb, RgbImage};

@@ -24,6 +24,24 @@ pub enum Error {
     /// A recording cannot be used as asked (its message says what was read and what to do).
     #[error("{0}")]
     Recording(String),
+    /// A replay would start past the recording's end.
+    #[error("--start {start} is past the end of {file}: it holds {span:.2} s")]
+    PastTheEnd {
+        /// Seconds into the recording asked for.
+        start: f64,
+        /// The recording.
+        file: String,
+        /// Seconds it holds.
+        span: f64,
+    },
+    /// A replay was asked to replace a node its graph does not have.
+    #[error("--replace {id}: {file} has no node '{id}'")]
+    NoSuchNode {
+        /// The node asked for.
+        id: String,
+        /// The launch file.
+        file: String,
+    },
     /// The source ended before the first frame.
     #[error("the image pair sent no frame")]
     NoFrame,

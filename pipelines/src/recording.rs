@@ -62,6 +62,59 @@ pub fn launch_of(file: &Path, o: &Overview, launch: Option<&Path>) -> Result<Gra
     }
 }
 
+/// How a replay runs a recording.
+#[derive(Clone, Debug)]
+pub struct Replay {
+    /// The nodes whose recorded outputs replace them.
+    pub replace: Vec<String>,
+    /// Speed: `1.0` as recorded, `max` as fast as the graph goes.
+    pub rate: String,
+    /// Start again at the end.
+    pub looped: bool,
+    /// Seconds into the recording to start at, and how many to replay (`None`: to its end).
+    pub window: (f64, Option<f64>),
+}
+
+/// The graph a replay of `file` (overview `o`) runs: `launch`, or the one the recording
+/// holds, with the replaced nodes turned into sources of what they recorded.
+pub fn replay_graph(
+    file: &Path,
+    o: &Overview,
+    launch: Option<&Path>,
+    r: &Replay,
+) -> Result<Graph, Error> {
+    let mut graph = launch_of(file, o, launch)?;
+    // A start past the end would send no frame, and the graph wait for one.
+    let edges = o.channels.iter().filter(|c| c.edge.is_some());
+    if let (Some(t0), Some(t1)) = (
+        edges.clone().map(|c| c.first_ns).min(),
+        edges.map(|c| c.last_ns).max(),
+    ) {
+        let span = (t1 - t0) as f64 * 1e-9;
+        if r.window.0 > 0.0 && r.window.0 >= span {
+            return Err(Error::PastTheEnd {
+                start: r.window.0,
+                file: file.display().to_string(),
+                span,
+            });
+        }
+    }
+    let mut replaced: Vec<(String, MessageKind)> = Vec::new();
+    for id in &r.replace {
+        if graph.node(id).is_none() {
+            return Err(Error::NoSuchNode {
+                id: id.clone(),
+                file: graph.file.display().to_string(),
+            });
+        }
+        replaced.extend(graph.output_edges(id));
+    }
+    check_channels(file, o, &replaced).map_err(Error::Recording)?;
+    crate::taps::apply_replay(&mut graph, file, &r.replace, &r.rate, r.looped, r.window)
+        .map_err(Error::Recording)?;
+    Ok(graph)
+}
+
 /// Feeds node `id` of the recording's graph (or of `launch`) its recorded inputs and
 /// compares what it sends with the recorded outputs. A source makes frames 0, 1, … and is
 /// compared without capture times (wall clock); the manipulator bridge is checked by what

@@ -1,5 +1,5 @@
-//! Fuzz target `bridge_line`: see `microstereo::fuzzing::bridge_line`.
+//! Fuzz target `bridge_line`: see `pipelines::fuzzing::bridge_line`.
 
 fn main() {
-    afl::fuzz!(|data: &[u8]| microstereo::fuzzing::bridge_line(data));
+    afl::fuzz!(|data: &[u8]| pipelines::fuzzing::bridge_line(data));
 }

@@ -1,5 +1,5 @@
-//! Fuzz target `calibration`: see `microstereo::fuzzing::calibration`.
+//! Fuzz target `calibration`: see `pipelines::fuzzing::calibration`.
 
 fn main() {
-    afl::fuzz!(|data: &[u8]| microstereo::fuzzing::calibration(data));
+    afl::fuzz!(|data: &[u8]| pipelines::fuzzing::calibration(data));
 }

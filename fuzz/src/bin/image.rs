@@ -1,5 +1,5 @@
-//! Fuzz target `image`: see `microstereo::fuzzing::image`.
+//! Fuzz target `image`: see `pipelines::fuzzing::image`.
 
 fn main() {
-    afl::fuzz!(|data: &[u8]| microstereo::fuzzing::image(data));
+    afl::fuzz!(|data: &[u8]| pipelines::fuzzing::image(data));
 }

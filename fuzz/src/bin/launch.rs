@@ -1,5 +1,5 @@
-//! Fuzz target `launch`: see `microstereo::fuzzing::launch`.
+//! Fuzz target `launch`: see `pipelines::fuzzing::launch`.
 
 fn main() {
-    afl::fuzz!(|data: &[u8]| microstereo::fuzzing::launch(data));
+    afl::fuzz!(|data: &[u8]| pipelines::fuzzing::launch(data));
 }

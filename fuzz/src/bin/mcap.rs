@@ -1,5 +1,5 @@
-//! Fuzz target `mcap`: see `microstereo::fuzzing::mcap`.
+//! Fuzz target `mcap`: see `pipelines::fuzzing::mcap`.
 
 fn main() {
-    afl::fuzz!(|data: &[u8]| microstereo::fuzzing::mcap(data));
+    afl::fuzz!(|data: &[u8]| pipelines::fuzzing::mcap(data));
 }

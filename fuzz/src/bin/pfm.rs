@@ -1,5 +1,5 @@
-//! Fuzz target `pfm`: see `microstereo::fuzzing::pfm`.
+//! Fuzz target `pfm`: see `pipelines::fuzzing::pfm`.
 
 fn main() {
-    afl::fuzz!(|data: &[u8]| microstereo::fuzzing::pfm(data));
+    afl::fuzz!(|data: &[u8]| pipelines::fuzzing::pfm(data));
 }

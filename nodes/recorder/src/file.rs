@@ -533,6 +533,27 @@ pub fn unfinished_parts(path: &Path) -> Vec<String> {
     found
 }
 
+/// What a run says of the recording it made at `path`: the messages `written`, its parts
+/// where it was `split`, its size, and how to list it.
+pub fn written(path: &Path, written: u64, split: bool) -> String {
+    let files = recording_files(path);
+    let size: u64 = files
+        .iter()
+        .map(|f| std::fs::metadata(f).map_or(0, |m| m.len()))
+        .sum();
+    format!(
+        "recorded {written} message(s) into {}{} ({:.1} MB); `microstereo inspect {}` lists them",
+        path.display(),
+        if split {
+            format!(" as {} part(s), {} …", files.len(), files[0].display())
+        } else {
+            String::new()
+        },
+        size as f64 / 1e6,
+        path.display()
+    )
+}
+
 /// The files of recording `path`: itself, or where it does not exist and it was split,
 /// its parts in order ([`part_path`]), read as one recording.
 pub fn recording_files(path: &Path) -> Vec<PathBuf> {

@@ -18,7 +18,9 @@
 //! and per cell its centroid, area, height, volume and 3D centroid.
 
 pub mod layers;
+pub mod progress;
 pub mod tour;
+pub mod truth;
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -297,6 +299,32 @@ pub struct Pipette {
 }
 
 impl Pipette {
+    /// A level pipette `height` µm above the substrate whose body leaves the view towards
+    /// `azimuth_deg`, its tip at `tip` (µm from the image centre) or, where not given, 20
+    /// px in from the border the body leaves through.
+    pub fn entering(optics: &Optics, height: f64, azimuth_deg: f64, tip: Option<[f64; 2]>) -> Self {
+        let s = optics.um_per_px();
+        let az = azimuth_deg.to_radians();
+        let (w, h) = (optics.width as f64, optics.height as f64);
+        let tip = match tip {
+            Some(t) => t,
+            None if azimuth_deg == 0.0 => [-0.5 * w * s + 20.0 * s, 0.0],
+            None => {
+                let (c, n) = (-az.cos(), -az.sin());
+                let reach = (0.5 * w / c.abs().max(1e-9)).min(0.5 * h / n.abs().max(1e-9)) - 20.0;
+                [c * reach * s, n * reach * s]
+            }
+        };
+        Pipette {
+            tip,
+            height,
+            tip_radius: 1.5,
+            taper: 0.08,
+            elevation: 0.0,
+            azimuth: az,
+        }
+    }
+
     /// The pipette with its tip at camera-frame point `tip` (`[X, Y, Z]` µm), its body
     /// rising at `elevation_deg` towards `azimuth_deg` (the manipulator bridge's
     /// convention), over a substrate at depth `z0`.

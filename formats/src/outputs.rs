@@ -1,9 +1,39 @@
 //! What a command is about to write, checked before any work: no input is ever
 //! overwritten, and no earlier output without `--overwrite`. The files themselves are
-//! written whole or not at all ([`formats::atomic`]).
+//! written whole or not at all ([`crate::atomic`]).
 
-use crate::error::CliError;
 use std::path::{Path, PathBuf};
+
+/// Why a command may not write one of its outputs; `elsewhere` says how to choose others.
+#[derive(Debug, thiserror::Error)]
+pub enum Refused {
+    /// The output is one of the command's inputs.
+    #[error("input '{}' would be overwritten by the output '{}': {elsewhere}", .input.display(), .output.display())]
+    Input {
+        /// The input, as given.
+        input: PathBuf,
+        /// The output at the same place.
+        output: PathBuf,
+        /// How to choose other outputs.
+        elsewhere: String,
+    },
+    /// The output is a directory.
+    #[error("output '{}' is a directory: {elsewhere}", .output.display())]
+    Directory {
+        /// The output.
+        output: PathBuf,
+        /// How to choose other outputs.
+        elsewhere: String,
+    },
+    /// The output exists and replacing was not asked for.
+    #[error("output '{}' exists (from an earlier run?): add --overwrite to replace it, or {elsewhere}", .output.display())]
+    Exists {
+        /// The output.
+        output: PathBuf,
+        /// How to choose other outputs.
+        elsewhere: String,
+    },
+}
 
 /// Refuses `files` (the outputs a command will write) when one of them is one of `inputs`
 /// (always, `--overwrite` or not) or exists and `overwrite` is false. `elsewhere` says how
@@ -13,7 +43,7 @@ pub fn check(
     inputs: &[&Path],
     overwrite: bool,
     elsewhere: &str,
-) -> Result<(), CliError> {
+) -> Result<(), Refused> {
     let inputs: Vec<(&Path, PathBuf)> = inputs
         .iter()
         .filter_map(|i| std::fs::canonicalize(i).ok().map(|c| (*i, c)))
@@ -21,23 +51,23 @@ pub fn check(
     for f in files {
         let canonical = std::fs::canonicalize(f).ok();
         if let Some((input, _)) = inputs.iter().find(|(_, c)| Some(c) == canonical.as_ref()) {
-            return Err(CliError::Other(format!(
-                "input '{}' would be overwritten by the output '{}': {elsewhere}",
-                input.display(),
-                f.display()
-            )));
+            return Err(Refused::Input {
+                input: input.to_path_buf(),
+                output: f.clone(),
+                elsewhere: elsewhere.into(),
+            });
         }
         if f.is_dir() {
-            return Err(CliError::Other(format!(
-                "output '{}' is a directory: {elsewhere}",
-                f.display()
-            )));
+            return Err(Refused::Directory {
+                output: f.clone(),
+                elsewhere: elsewhere.into(),
+            });
         }
         if !overwrite && f.exists() {
-            return Err(CliError::Other(format!(
-                "output '{}' exists (from an earlier run?): add --overwrite to replace it, or {elsewhere}",
-                f.display()
-            )));
+            return Err(Refused::Exists {
+                output: f.clone(),
+                elsewhere: elsewhere.into(),
+            });
         }
     }
     Ok(())

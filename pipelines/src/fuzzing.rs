@@ -25,7 +25,7 @@ pub fn launch(data: &[u8]) {
         return;
     };
     if let Ok(f) = runtime::launch::LaunchFile::parse(Path::new("fuzz.toml"), text) {
-        let _ = f.validate(&pipelines::registry::builtin());
+        let _ = f.validate(&crate::registry::builtin());
     }
 }
 
