@@ -15,6 +15,9 @@ pub enum CliError {
     /// A check ran and found a difference (exit code 1, not 2).
     #[error("{0}")]
     Failed(String),
+    /// `top` or `topic` could not watch the run.
+    #[error(transparent)]
+    Monitor(#[from] monitor::Error),
     /// A child program failed and has said why already: exit with its code, print nothing.
     #[error("exit code {0}")]
     Reported(i32),
