@@ -21,6 +21,9 @@ pub enum CliError {
     /// A built-in pipeline failed.
     #[error(transparent)]
     Pipeline(#[from] pipelines::Error),
+    /// `top` or `topic` could not watch the run.
+    #[error(transparent)]
+    Monitor(#[from] monitor::Error),
     /// A child program failed and has said why already: exit with its code, print nothing.
     #[error("exit code {0}")]
     Reported(i32),
