@@ -64,58 +64,6 @@ fn check_output(
     Ok(())
 }
 
-/// The stack's pairs `(left, right, z)`.
-fn read_stack(dir: &Path) -> Result<Vec<(PathBuf, PathBuf, f64)>, CliError> {
-    let csv = dir.join("heights.csv");
-    let err = |m: String| CliError::Other(m);
-    if !dir.is_dir() {
-        return Err(err(format!(
-            "z-stack directory '{}' does not exist",
-            dir.display()
-        )));
-    }
-    let mut out = Vec::new();
-    if csv.exists() {
-        let text = std::fs::read_to_string(&csv)
-            .map_err(|e| err(format!("'{}' cannot be read: {e}", csv.display())))?;
-        for (i, line) in text.lines().enumerate().skip(1) {
-            if line.trim().is_empty() {
-                continue;
-            }
-            let f: Vec<&str> = line.split(',').map(str::trim).collect();
-            let z = (f.len() == 3)
-                .then(|| f[2].parse::<f64>().ok())
-                .flatten()
-                .filter(|z| z.is_finite());
-            let Some(z) = z else {
-                return Err(err(format!(
-                    "{}:{}: expected 'left,right,z_um' with z a number, got '{line}'",
-                    csv.display(),
-                    i + 1
-                )));
-            };
-            out.push((dir.join(f[0]), dir.join(f[1]), z));
-        }
-    } else {
-        let entries = std::fs::read_dir(dir)
-            .map_err(|e| err(format!("'{}' cannot be listed: {e}", dir.display())))?;
-        for e in entries.flatten() {
-            let name = e.file_name().to_string_lossy().to_string();
-            let Some(rest) = name.strip_prefix("left_z") else {
-                continue;
-            };
-            let Some((zs, ext)) = rest.rsplit_once('.') else {
-                continue;
-            };
-            if let Ok(z) = zs.trim_end_matches("um").parse::<f64>() {
-                out.push((e.path(), dir.join(format!("right_z{zs}.{ext}")), z));
-            }
-        }
-        out.sort_by(|a, b| a.2.total_cmp(&b.2));
-    }
-    Ok(out)
-}
-
 /// Runs `microstereo calibrate-depth`.
 pub fn calibrate_depth(a: CalibrateArgs) -> Result<(), CliError> {
     // Every length in µm, within what optics have (a NaN is inside no range).
@@ -133,7 +81,7 @@ pub fn calibrate_depth(a: CalibrateArgs) -> Result<(), CliError> {
             )));
         }
     }
-    let stack = read_stack(&a.dir)?;
+    let stack = calibration::stack::read_stack(&a.dir).map_err(CliError::Other)?;
     let out = a
         .into
         .clone()

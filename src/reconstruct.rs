@@ -9,7 +9,8 @@ use formats as io;
 use matcher::node::{MatchParams, Region};
 use matcher::{Mode, PaperParams, QualityParams, Weights};
 use pipelines::maps::{CellMaps, PairMaps, occlusion};
-use pipelines::range::{RangeScore, auto_range, candidate_ranges};
+use pipelines::range::{auto_range, candidate_ranges};
+use pipelines::report::{CellsReport, PairReport};
 use pipelines::stereo::Stereo;
 use postprocess::{Fill, PostParams};
 use runtime::exec::Frame;
@@ -364,36 +365,6 @@ fn check_every_flag(a: &ReconstructArgs) -> Result<(), CliError> {
     Ok(())
 }
 
-/// The preset's parameters as report.json lists them.
-#[derive(Serialize)]
-struct Config<'a> {
-    #[serde(rename = "match")]
-    matching: &'a MatchParams,
-    validate: &'a ValidateParams,
-    postprocess: &'a Option<PostParams>,
-}
-
-/// What `report.json` holds.
-#[derive(Serialize)]
-struct Report<'a> {
-    mode: Mode,
-    left: String,
-    right: String,
-    width: usize,
-    height: usize,
-    range: DisparityRange,
-    auto_range_curve: Option<Vec<RangeScore>>,
-    config: Config<'a>,
-    validation: schemas::ValidationFigures,
-    density_raw: f64,
-    density: f64,
-    evaluations: u64,
-    points: Option<usize>,
-    unit: Option<&'static str>,
-    times_ms: serde_json::Map<String, serde_json::Value>,
-    total_ms: f64,
-}
-
 fn mkdir(o: &std::path::Path) -> Result<(), CliError> {
     std::fs::create_dir_all(o).map_err(|e| {
         CliError::Other(format!(
@@ -474,7 +445,9 @@ pub fn reconstruct(a: ReconstructArgs) -> Result<(), CliError> {
         disparity,
         cloud,
     } = preset.pair_maps(&f)?;
-    let unit = cloud.as_ref().map(|(_, t)| unit_of(&t.unit));
+    let unit = cloud
+        .as_ref()
+        .map(|(_, t)| pipelines::report::unit_of(&t.unit));
     // Everything computed: only now touch the output directory.
     let o = &a.output;
     mkdir(o)?;
@@ -500,30 +473,15 @@ pub fn reconstruct(a: ReconstructArgs) -> Result<(), CliError> {
         "write".into(),
         serde_json::json!(round3(tw.elapsed().as_secs_f64() * 1e3)),
     );
-    let figures = checked.tiles[0].figures.unwrap_or_default();
-    let total_ms: f64 = times.values().filter_map(|v| v.as_f64()).sum();
-    let report = Report {
-        mode: a.mode(),
-        left: a.left.display().to_string(),
-        right: a.right.display().to_string(),
-        width: disparity.width,
-        height: disparity.height,
-        range,
-        auto_range_curve: curve,
-        config: Config {
-            matching: &preset.matching,
-            validate: &preset.validate,
-            postprocess: &preset.post,
-        },
-        validation: figures,
-        density_raw: schemas::density(&raw),
-        density: schemas::density(&disparity),
-        evaluations: checked.evaluations(),
-        points: cloud.as_ref().map(|(c, _)| c.points.len()),
-        unit: unit.map(|u| u.symbol()),
-        times_ms: times,
-        total_ms,
-    };
+    let report = PairReport::new(
+        &preset,
+        (&checked, &raw, &disparity),
+        cloud.as_ref().map(|(c, t)| (c, t)),
+        (range, curve),
+        times,
+    );
+    let figures = report.validation;
+    let total_ms = report.total_ms;
     write_json(&o.join("report.json"), &report)?;
     runtime::outln!(
         "{:?} mode, range {}..{}: consistent {:.1} %, off by 1 {:.1} %, off by more {:.1} %; density after LR check {:.1} %",
@@ -546,39 +504,9 @@ fn round3(v: f64) -> f64 {
     (v * 1000.0).round() / 1000.0
 }
 
-fn unit_of(symbol: &str) -> LengthUnit {
-    match symbol {
-        "µm" => LengthUnit::Um,
-        "m" => LengthUnit::M,
-        _ => LengthUnit::Mm,
-    }
-}
-
 fn write_json<T: Serialize>(path: &std::path::Path, v: &T) -> Result<(), CliError> {
     let json = serde_json::to_string_pretty(v).expect("serialises");
     io::atomic::write_bytes(path, (json + "\n").as_bytes()).map_err(CliError::from)
-}
-
-/// What `reconstruct --cells` writes to cells.json.
-#[derive(Serialize)]
-struct CellsReport<'a> {
-    left: String,
-    right: String,
-    width: usize,
-    height: usize,
-    range: DisparityRange,
-    unit: &'a str,
-    segmentation: &'a Option<segment::SegmentParams>,
-    cells_left: usize,
-    cells_right: usize,
-    pairs: usize,
-    /// Pixels handed to the matcher over the image's pixels.
-    matched_share: f64,
-    /// The substrate's disparity plane over the background (absent: each cell's ring
-    /// median stood in).
-    substrate_plane: Option<schemas::DisparityPlane>,
-    times_ms: serde_json::Map<String, serde_json::Value>,
-    cells: &'a [schemas::Cell3],
 }
 
 fn write_cells(
@@ -598,7 +526,7 @@ fn write_cells(
         composed,
         colour,
     } = preset.cell_maps(f)?;
-    let unit = unit_of(&targets.unit);
+    let unit = pipelines::report::unit_of(&targets.unit);
     let o = &a.output;
     mkdir(o)?;
     let tw = Instant::now();
@@ -621,23 +549,7 @@ fn write_cells(
         "write".into(),
         serde_json::json!(round3(tw.elapsed().as_secs_f64() * 1e3)),
     );
-    let (w, h) = (d.width, d.height);
-    let report = CellsReport {
-        left: a.left.display().to_string(),
-        right: a.right.display().to_string(),
-        width: w,
-        height: h,
-        range,
-        unit: unit.symbol(),
-        segmentation: &preset.segment,
-        cells_left: lists.left.len(),
-        cells_right: lists.right.len(),
-        pairs: tiles.tiles.len(),
-        matched_share: tiles.matched_pixels() as f64 / (w * h) as f64,
-        substrate_plane: targets.substrate,
-        times_ms: times,
-        cells: &targets.cells,
-    };
+    let report = CellsReport::new(preset, (&lists, &tiles, &targets), d, times);
     write_json(&o.join("cells.json"), &report)?;
     runtime::outln!(
         "{} cells left, {} right, {} paired; matched {:.1} % of the image",
@@ -647,30 +559,7 @@ fn write_cells(
         100.0 * report.matched_share
     );
     for c in &targets.cells {
-        let u = unit.symbol();
-        let height = match (c.height, c.quality.height_std) {
-            (Some(h), Some(s)) => format!("height {h:.2} ± {s:.2} {u}"),
-            (Some(h), None) => format!("height {h:.2} {u}"),
-            (None, _) => "no height".into(),
-        };
-        let trust = match &c.quality.doubt {
-            None => String::new(),
-            Some(why) => format!(" — NOT TRUSTED: {why}"),
-        };
-        runtime::outln!(
-            "cell {:>3}: centroid ({:.1}, {:.1}) px, {height}, volume {:.0} {u}³, 3D centroid ({:.1}, {:.1}, {:.1}) {u}, substrate from {}{trust}",
-            c.id,
-            c.centroid_px[0],
-            c.centroid_px[1],
-            c.volume,
-            c.centroid[0],
-            c.centroid[1],
-            c.centroid[2],
-            serde_json::to_value(c.quality.substrate)
-                .ok()
-                .and_then(|v| v.as_str().map(String::from))
-                .unwrap_or_default(),
-        );
+        runtime::outln!("{}", pipelines::report::cell_line(c, unit.symbol()));
     }
     runtime::outln!(
         "total {:.1} ms; outputs in {}",

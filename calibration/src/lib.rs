@@ -11,6 +11,7 @@ pub mod board;
 pub mod calibrate;
 pub mod file;
 pub mod lm;
+pub mod stack;
 pub mod stereo;
 
 use schemas::Plane;

@@ -7,6 +7,7 @@
 //!   `bench`, `calibrate-depth`), its typed outputs, and what is measured on it (the
 //!   paper's range selection, a target's disparity, the per-node times);
 //! - [`maps`]: what one frame of it made, read back as whole maps;
+//! - [`report`]: what `reconstruct` reports of a run and of each cell;
 //! - [`taps`]: the recorder, viewer and replay nodes `run` and `replay` add to a graph;
 //! - [`fuzzing`]: the fuzz targets' entry points, one per reader of untrusted bytes;
 //! - [`recording`]: the graph a replay or a node test of a recording runs, and that test.
@@ -17,6 +18,7 @@ pub mod maps;
 pub mod range;
 pub mod recording;
 pub mod registry;
+pub mod report;
 pub mod stereo;
 pub mod taps;
 pub mod timing;
