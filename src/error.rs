@@ -9,6 +9,9 @@ pub enum CliError {
     /// A file problem.
     #[error(transparent)]
     Io(#[from] IoError),
+    /// A folder of chessboard pairs that gave no calibration (`calibrate-stereo`).
+    #[error(transparent)]
+    Pairs(#[from] calibration::pairs::PairsError),
     /// Anything else, already phrased for the user.
     #[error("{0}")]
     Other(String),
