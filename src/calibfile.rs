@@ -9,7 +9,7 @@
 
 use crate::error::CliError;
 use crate::reconstruct::UnitArg;
-use calibration::file::{CalibrationFile, read_file, write_file};
+use calibration::file::{CalibrationFile, LAYOUT, read_file, write_file};
 use calibration::stereo::{Rectification, StereoCalibration};
 use clap::{Args, Subcommand};
 use std::path::{Path, PathBuf};
@@ -95,8 +95,7 @@ fn import(a: ImportArgs) -> Result<(), CliError> {
         Rectification::from_camera_info(
             &read(&ci[0], "left camera_info")?,
             &read(&ci[1], "right camera_info")?,
-        )
-        .map_err(CliError::Other)?
+        )?
         .calibration()
         .clone()
     };
@@ -106,16 +105,13 @@ fn import(a: ImportArgs) -> Result<(), CliError> {
         a.overwrite,
         "give -o another file",
     )?;
-    // Checked as any file is when read.
-    let table = calibration::stereo::StereoTable::from(&cal);
-    table.calibration().map_err(CliError::Other)?;
-    let file = CalibrationFile::from_stereo(&cal, a.unit.unit(), None);
-    let from = inputs
-        .iter()
-        .map(|p| p.display().to_string())
-        .collect::<Vec<_>>()
-        .join(" and ");
-    write_file(&a.output, &file, &format!("Imported by microstereo calibration import from {from}.\n# Top level: the rectified views' geometry (triangulate); [stereo]: the raw cameras (rectify).")).map_err(CliError::Other)?;
+    let file = CalibrationFile::imported(&cal, a.unit.unit())?;
+    let from: Vec<String> = inputs.iter().map(|p| p.display().to_string()).collect();
+    let comment = format!(
+        "Imported by microstereo calibration import from {}.\n{LAYOUT}",
+        from.join(" and ")
+    );
+    write_file(&a.output, &file, &comment)?;
     runtime::outln!(
         "baseline {:.4} {}, rectified focal {:.2} px; written to {}",
         file.baseline,
@@ -127,13 +123,8 @@ fn import(a: ImportArgs) -> Result<(), CliError> {
 }
 
 fn export(a: ExportArgs) -> Result<(), CliError> {
-    let file = read_file(&a.file).map_err(CliError::Other)?;
-    let source = format!("'{}'", a.file.display());
-    let cal = file.cameras(&source).map_err(CliError::Other)?.ok_or_else(|| {
-        CliError::Other(format!(
-            "calibration {source} has no [stereo] table (the raw cameras) to export; make one with calibrate-stereo or calibration import"
-        ))
-    })?;
+    let file = read_file(&a.file)?;
+    let cal = file.exported_cameras(&format!("'{}'", a.file.display()))?;
     let mut outs: Vec<PathBuf> = a.opencv.iter().cloned().collect();
     outs.extend(a.camera_info.iter().flatten().cloned());
     formats::outputs::check(
@@ -144,14 +135,12 @@ fn export(a: ExportArgs) -> Result<(), CliError> {
     )?;
     let rect = Rectification::bouguet(&cal);
     if let Some(p) = &a.opencv {
-        formats::atomic::write_bytes(p, rect.to_opencv_yaml().as_bytes())
-            .map_err(|e| CliError::Other(e.to_string()))?;
+        formats::atomic::write_bytes(p, rect.to_opencv_yaml().as_bytes())?;
         runtime::outln!("OpenCV stereo YAML written to {}", p.display());
     }
     if let Some(ci) = &a.camera_info {
         for ((path, side), text) in ci.iter().zip(["left", "right"]).zip(rect.to_camera_info()) {
-            formats::atomic::write_bytes(path, text.as_bytes())
-                .map_err(|e| CliError::Other(e.to_string()))?;
+            formats::atomic::write_bytes(path, text.as_bytes())?;
             runtime::outln!("{side} camera_info written to {}", path.display());
         }
     }

@@ -8,15 +8,9 @@
 
 use crate::error::CliError;
 use clap::Args;
-use manipulator_bridge::device::{Device, SimDevice, wall_clock};
-use manipulator_bridge::geom::P3;
 use manipulator_bridge::registration::Registration;
-use registration::{
-    Fitted, Optics, SimMicroscope, Stop, grid_stops, mount, register, tip_in_scene,
-};
-use schemas::StereoFrame;
+use registration::session::{Grab, Plan, Rig, sim_start};
 use std::path::{Path, PathBuf};
-use std::time::Duration;
 
 /// Arguments of `microstereo calibrate-manipulator`.
 #[derive(Args, Debug)]
@@ -82,51 +76,10 @@ pub struct CalibrateManipulatorArgs {
     pub overwrite: bool,
 }
 
-fn parse_grid(s: &str) -> Result<[usize; 3], String> {
-    let v: Vec<usize> = s
-        .split(['x', 'X'])
-        .map(|p| p.trim().parse().unwrap_or(0))
-        .collect();
-    if v.len() != 3 || v.iter().any(|n| *n == 0 || *n > 10) || v.iter().product::<usize>() < 6 {
-        return Err(format!(
-            "--grid '{s}': give NXxNYxNZ stops (each 1..10, at least 6 in all, e.g. 3x3x2)"
-        ));
-    }
-    Ok([v[0], v[1], v[2]])
-}
-
 /// Runs `calibrate-manipulator`.
 pub fn calibrate_manipulator(a: CalibrateManipulatorArgs) -> Result<(), CliError> {
-    let grid = parse_grid(&a.grid)?;
-    if a.span.len() != 3
-        || a.span
-            .iter()
-            .any(|v| !(v.is_finite() && *v > 0.0 && *v <= 5000.0))
-    {
-        return Err(CliError::Other(format!(
-            "--span {:?}: give three half-travels in µm (0..5000)",
-            a.span
-        )));
-    }
-    if !(a.max_rms > 0.0 && a.max_rms <= 1000.0) {
-        return Err(CliError::Other(format!(
-            "--max-rms {} must be in 0..1000 µm",
-            a.max_rms
-        )));
-    }
-    // Manipulators travel at most centimetres a second.
-    if !(a.speed > 0.0 && a.speed <= 1e5) {
-        return Err(CliError::Other(format!(
-            "--speed {} must be in 0..1e5 µm/s",
-            a.speed
-        )));
-    }
-    if a.sim_start.len() != 3 || a.sim_start.iter().any(|v| !v.is_finite() || v.abs() > 1e6) {
-        return Err(CliError::Other(format!(
-            "--sim-start {:?}: give X,Y,Z in µm (each within ±1e6)",
-            a.sim_start
-        )));
-    }
+    let plan = Plan::new(&a.grid, &a.span, a.speed, a.max_rms)?;
+    let start = sim_start(&a.sim_start)?;
     // The registration is written after minutes of moves: a folder that is not there is
     // said before the first.
     if let Some(parent) = a.output.parent().filter(|p| !p.as_os_str().is_empty())
@@ -154,195 +107,55 @@ pub fn calibrate_manipulator(a: CalibrateManipulatorArgs) -> Result<(), CliError
         a.overwrite,
         "give -o another file",
     )?;
-    let geometry_of = |p: &Path, w: usize, h: usize| -> Result<Optics, CliError> {
-        let file = calibration::file::read_file(p).map_err(CliError::Other)?;
-        let source = format!("'{}'", p.display());
-        let calibration = file.resolve(w, h, &source).map_err(CliError::Other)?;
-        let rectify = file
-            .cameras(&source)
-            .map_err(CliError::Other)?
-            .map(|cal| rectify::luts(&calibration::stereo::Rectification::bouguet(&cal)));
-        Ok(Optics {
-            rectify,
-            calibration,
-        })
-    };
-    let (mut device, mut grab, optics): (Box<dyn Device>, Grab, Optics) = match a.device.as_str() {
-        "sim" => {
-            let m = mount(&a.sim_mount)?;
-            if a.sim_start.len() != 3 {
-                return Err(CliError::Other("--sim-start takes X,Y,UP in µm".into()));
-            }
-            let start = [a.sim_start[0], a.sim_start[1], a.sim_start[2]];
-            let mut micro = SimMicroscope::new(a.seed, m);
-            let (w, h) = (micro.scene.optics.width, micro.scene.optics.height);
-            let optics = match &a.calibration {
-                Some(p) => geometry_of(p, w, h)?,
-                None => Optics {
-                    rectify: None,
-                    calibration: micro.scene.optics.calibration(),
-                },
-            };
-            let dev = SimDevice::new(m.to_device(start), 4.0 * a.speed, 20_000.0, wall_clock());
-            (
-                Box::new(dev),
-                Box::new(move |at| Ok(micro.frame(at))),
-                optics,
-            )
-        }
-        d @ ("mp285" | "scientifica") => {
-            let port = a
-                .port
-                .as_deref()
-                .ok_or(format!("--device {d} needs --port (its serial port)"))?;
-            let cal = a
-                .calibration
-                .as_ref()
-                .ok_or("a real device needs the cameras' --calibration")?;
-            let cams = a
-                .cameras
-                .clone()
-                .ok_or("a real device needs --cameras LEFT RIGHT")?;
-            let dev: Box<dyn Device> = if d == "mp285" {
-                Box::new(
-                    manipulator_bridge::mp285::Mp285::open(port, Duration::from_secs(2))
-                        .map_err(|e| CliError::Other(e.0))?,
-                )
-            } else {
-                Box::new(
-                    manipulator_bridge::scientifica::Scientifica::open(
-                        port,
-                        Duration::from_secs(2),
-                    )
-                    .map_err(|e| CliError::Other(e.0))?,
-                )
-            };
-            let (grab, (w, h)) = cameras(&cams)?;
-            (dev, grab, geometry_of(cal, w, h)?)
-        }
+    let mut rig = match a.device.as_str() {
+        "sim" => Rig::sim(
+            a.seed,
+            &a.sim_mount,
+            start,
+            a.speed,
+            a.calibration.as_deref(),
+        )?,
+        d @ ("mp285" | "scientifica") => Rig::real(
+            d,
+            a.port.as_deref(),
+            a.calibration.as_deref(),
+            a.cameras.as_deref(),
+            cameras,
+        )?,
         d => {
             return Err(CliError::Other(format!(
                 "unknown --device '{d}'; devices: sim, mp285, scientifica"
             )));
         }
     };
-    let (registration, stops, rms) = if let Some(reg) = earlier {
-        let at = device.state().map_err(|e| CliError::Other(e.0))?.position;
-        let scene = grab(at)
-            .and_then(|f| tip_in_scene(&f, &optics))
-            .map_err(CliError::Other)?;
-        let r = reg.with_offset_through(scene, at);
-        runtime::outln!(
-            "offset re-registered at device {at:?}: tip at scene {scene:?}; offset {:?} (was {:?})",
-            r.offset,
-            reg.offset
-        );
-        (
-            r,
-            vec![Stop {
-                device: at,
-                scene: Some(scene),
-                why: None,
-                residual: Some(0.0),
-            }],
-            0.0,
-        )
-    } else {
-        let start = device.state().map_err(|e| CliError::Other(e.0))?.position;
-        let stops = grid_stops(start, grid, [a.span[0], a.span[1], a.span[2]]);
-        let f = register(device.as_mut(), &mut grab, &optics, &stops, a.speed)
-            .map_err(CliError::Other)?;
-        (f.registration, f.stops, f.rms)
-    };
-    let refusal = Fitted {
-        registration,
-        stops: stops.clone(),
-        rms,
-    }
-    .refuse(a.max_rms);
-    for (k, s) in stops.iter().enumerate() {
-        match (&s.scene, s.residual, &s.why) {
-            (Some(p), Some(r), _) => runtime::outln!(
-                "stop {:>2}: device [{:.1}, {:.1}, {:.1}] -> tip [{:.2}, {:.2}, {:.2}] µm, residual {r:.3} µm",
-                k + 1,
-                s.device[0],
-                s.device[1],
-                s.device[2],
-                p[0],
-                p[1],
-                p[2]
-            ),
-            (_, _, Some(why)) => runtime::outln!(
-                "stop {:>2}: device [{:.1}, {:.1}, {:.1}]: {why}",
-                k + 1,
-                s.device[0],
-                s.device[1],
-                s.device[2]
-            ),
-            _ => {}
+    let fitted = match &earlier {
+        Some(reg) => {
+            let f = rig.register_offset(reg)?;
+            runtime::outln!(
+                "offset re-registered at device {:?}: tip at scene {:?}; offset {:?} (was {:?})",
+                f.stops[0].device,
+                f.stops[0].scene.expect("found"),
+                f.registration.offset,
+                reg.offset
+            );
+            f
         }
+        None => rig.register(&plan)?,
+    };
+    for line in fitted.stop_lines() {
+        runtime::outln!("{line}");
     }
-    if let Some(why) = refusal {
+    if let Some(why) = fitted.refuse(plan.max_rms) {
         return Err(CliError::Other(why));
     }
-    let m = &registration.matrix;
-    let det = m[0] * (m[4] * m[8] - m[5] * m[7]) - m[1] * (m[3] * m[8] - m[5] * m[6])
-        + m[2] * (m[3] * m[7] - m[4] * m[6]);
-    let svd = nalgebra::Matrix3::from_row_slice(m).svd(false, false);
-    let scales = svd.singular_values;
-    runtime::outln!(
-        "registration: rms residual {rms:.3} µm over {} stops; axis scales {:.4} {:.4} {:.4}; {}; device = M·scene + offset with M rows [{:.4} {:.4} {:.4}] [{:.4} {:.4} {:.4}] [{:.4} {:.4} {:.4}]",
-        stops.iter().filter(|s| s.residual.is_some()).count(),
-        scales[0],
-        scales[1],
-        scales[2],
-        if det < 0.0 {
-            "one axis flipped (a left-handed device frame)"
-        } else {
-            "right-handed"
-        },
-        m[0],
-        m[1],
-        m[2],
-        m[3],
-        m[4],
-        m[5],
-        m[6],
-        m[7],
-        m[8]
-    );
-    let rows: Vec<String> = stops
-        .iter()
-        .map(|s| match (&s.scene, s.residual) {
-            (Some(p), Some(r)) => format!(
-                "{{ device = {:?}, scene = {:?}, residual_um = {r} }}",
-                s.device, p
-            ),
-            _ => format!(
-                "{{ device = {:?}, left_out = {:?} }}",
-                s.device,
-                s.why.clone().unwrap_or_default()
-            ),
-        })
-        .collect();
-    let text = format!(
-        "# Written by microstereo calibrate-manipulator: device = matrix · [X, Y, Z] + offset (µm; matrix row by row;\n# [X, Y, Z]: the triangulation's camera frame, Z the depth). The bridge reads it: registration = \"{}\".\nmatrix = {:?}\noffset = {:?}\nrms_um = {rms}\nstops = [\n  {}\n]\n",
-        a.output.display(),
-        registration.matrix,
-        registration.offset,
-        rows.join(",\n  ")
-    );
-    formats::atomic::write_bytes(&a.output, text.as_bytes())
-        .map_err(|e| CliError::Other(e.to_string()))?;
+    runtime::outln!("{}", fitted.summary());
+    formats::atomic::write_bytes(&a.output, fitted.to_toml(&a.output).as_bytes())?;
     runtime::outln!("registration written to {}", a.output.display());
     Ok(())
 }
 
-/// A source of frames, told where the device stands.
-type Grab = Box<dyn FnMut(P3) -> Result<StereoFrame, String>>;
-
 #[cfg(feature = "v4l")]
-fn cameras(c: &[String]) -> Result<(Grab, (usize, usize)), CliError> {
+fn cameras(c: &[String]) -> Result<(Grab, (usize, usize)), String> {
     let p = capture::camera::CameraParams {
         source: "camera".into(),
         left: c[0].clone(),
@@ -352,15 +165,13 @@ fn cameras(c: &[String]) -> Result<(Grab, (usize, usize)), CliError> {
         max_skew_ms: 20.0,
         fps: None,
     };
-    let mut cam = capture::camera::CameraCapture::new(&p).map_err(CliError::Other)?;
-    let first = cam.next_frame().map_err(CliError::Other)?;
+    let mut cam = capture::camera::CameraCapture::new(&p)?;
+    let first = cam.next_frame()?;
     let size = (first.left.width, first.left.height);
     Ok((Box::new(move |_| cam.next_frame()), size))
 }
 
 #[cfg(not(feature = "v4l"))]
-fn cameras(_: &[String]) -> Result<(Grab, (usize, usize)), CliError> {
-    Err(CliError::Other(
-        "cameras need a build with --features v4l".into(),
-    ))
+fn cameras(_: &[String]) -> Result<(Grab, (usize, usize)), String> {
+    Err("cameras need a build with --features v4l".into())
 }

@@ -5,11 +5,8 @@
 
 use crate::error::CliError;
 use crate::reconstruct::UnitArg;
-use calibration::board::{Board, find_board};
-use calibration::calibrate::{Corners, Stereo, calibrate_stereo};
+use calibration::pairs::{BoardPairs, find_pairs};
 use clap::Args;
-use image::{Rgb, RgbImage};
-use imageproc::drawing::{draw_hollow_circle_mut, draw_line_segment_mut};
 use std::path::{Path, PathBuf};
 
 /// Arguments of `microstereo calibrate-stereo`.
@@ -59,61 +56,6 @@ fn parse_inner(s: &str) -> Result<(usize, usize), String> {
     Ok((c, r))
 }
 
-/// The pairs in `dir`: (name, left path, right path), by name.
-fn pairs(a: &CalibrateStereoArgs) -> Result<Vec<(String, PathBuf, PathBuf)>, CliError> {
-    let entries = std::fs::read_dir(&a.dir).map_err(|e| {
-        CliError::Other(format!(
-            "cannot read the pairs' directory '{}': {e}",
-            a.dir.display()
-        ))
-    })?;
-    let image = |p: &Path| {
-        p.extension().and_then(|e| e.to_str()).is_some_and(|e| {
-            matches!(
-                e.to_ascii_lowercase().as_str(),
-                "png" | "jpg" | "jpeg" | "tif" | "tiff"
-            )
-        })
-    };
-    let mut out = Vec::new();
-    for e in entries.flatten() {
-        let p = e.path();
-        let Some(name) = p.file_name().and_then(|n| n.to_str()) else {
-            continue;
-        };
-        if let Some(rest) = name.strip_prefix(&a.left_prefix)
-            && image(&p)
-        {
-            let right = a.dir.join(format!("{}{rest}", a.right_prefix));
-            if right.exists() {
-                let stem = Path::new(rest)
-                    .file_stem()
-                    .and_then(|s| s.to_str())
-                    .unwrap_or(rest);
-                out.push((stem.to_string(), p.clone(), right));
-            }
-        }
-    }
-    out.sort();
-    if out.is_empty() {
-        return Err(CliError::Other(format!(
-            "no image pairs in '{}': expected {}NAME and {}NAME files (PNG, JPEG or TIFF) with the same NAME; set --left-prefix/--right-prefix for other names",
-            a.dir.display(),
-            a.left_prefix,
-            a.right_prefix
-        )));
-    }
-    Ok(out)
-}
-
-/// One pair's outcome.
-struct PairResult {
-    name: String,
-    boards: Result<(Board, Board), String>,
-    rms: Option<f64>,
-    left_out: Option<String>,
-}
-
 /// Runs `calibrate-stereo`.
 pub fn calibrate_stereo_cmd(a: CalibrateStereoArgs) -> Result<(), CliError> {
     // Boards from a micrometre stage target to a metre poster, in any unit.
@@ -130,248 +72,45 @@ pub fn calibrate_stereo_cmd(a: CalibrateStereoArgs) -> Result<(), CliError> {
             "--max-pair-rms {m} must be a number of pixels in 0..1000"
         )));
     }
-    let list = pairs(&a)?;
+    let list = find_pairs(&a.dir, &a.left_prefix, &a.right_prefix)?;
     let outputs = [
         a.output.join("calibration.toml"),
         a.output.join("report.json"),
     ];
     let pngs: Vec<PathBuf> = list
         .iter()
-        .map(|(n, ..)| a.output.join("corners").join(format!("{n}.png")))
+        .map(|p| a.output.join("corners").join(format!("{}.png", p.name)))
         .collect();
     let inputs: Vec<&Path> = list
         .iter()
-        .flat_map(|(_, l, r)| [l.as_path(), r.as_path()])
+        .flat_map(|p| [p.left.as_path(), p.right.as_path()])
         .collect();
     let all: Vec<PathBuf> = outputs.iter().chain(&pngs).cloned().collect();
     formats::outputs::check(&all, &inputs, a.overwrite, "give -o another directory")?;
 
-    let (cols, rows) = a.inner;
-    let mut size = None;
-    let mut results = Vec::new();
-    let mut images = Vec::new();
-    for (name, lp, rp) in &list {
-        let l = capture::image::load(lp, "left image").map_err(CliError::Other)?;
-        let r = capture::image::load(rp, "right image").map_err(CliError::Other)?;
-        let s = (l.grey.width, l.grey.height);
-        if (r.grey.width, r.grey.height) != s {
-            return Err(CliError::Other(format!(
-                "pair {name}: the left image is {}×{} but the right {}×{}; both cameras must give one size",
-                s.0, s.1, r.grey.width, r.grey.height
-            )));
-        }
-        if *size.get_or_insert(s) != s {
-            let z = size.unwrap();
-            return Err(CliError::Other(format!(
-                "pair {name} is {}×{} but the first pair {}×{}: calibrate one image size at a time",
-                s.0, s.1, z.0, z.1
-            )));
-        }
-        let found =
-            |img, side: &str| find_board(img, cols, rows).map_err(|e| format!("{side} view: {e}"));
-        let boards = found(&l.grey, "left").and_then(|lb| {
-            found(&r.grey, "right").map(|mut rb| {
-                rb.align_to(&lb);
-                (lb, rb)
-            })
-        });
-        results.push(PairResult {
-            name: name.clone(),
-            boards,
-            rms: None,
-            left_out: None,
-        });
-        images.push((l.grey, r.grey));
+    let mut boards = BoardPairs::new(a.inner.0, a.inner.1);
+    for p in &list {
+        let l = capture::image::load(&p.left, "left image")?;
+        let r = capture::image::load(&p.right, "right image")?;
+        boards.add(&p.name, l.grey, r.grey)?;
     }
-    let size = size.expect("at least one pair");
-    let object: Vec<[f64; 2]> = (0..rows)
-        .flat_map(|b| (0..cols).map(move |c| [c as f64 * a.square, b as f64 * a.square]))
-        .collect();
-
-    // Fit, leave out the worst pair while it fits badly, fit again.
-    let fit = |results: &[PairResult]| -> Result<(Vec<usize>, Stereo), CliError> {
-        let used: Vec<usize> = (0..results.len())
-            .filter(|&i| results[i].boards.is_ok() && results[i].left_out.is_none())
-            .collect();
-        if used.len() < 3 {
-            return Err(CliError::Other(format!(
-                "{} usable pairs of {}; calibration needs at least 3 with the board seen whole in both views at different angles (see the reasons above)",
-                used.len(),
-                results.len()
-            )));
-        }
-        let (l, r): (Vec<Corners>, Vec<Corners>) = used
-            .iter()
-            .map(|&i| {
-                let (lb, rb) = results[i].boards.as_ref().expect("usable");
-                (lb.corners.clone(), rb.corners.clone())
-            })
-            .unzip();
-        let s = calibrate_stereo(&l, &r, &object, size).map_err(CliError::Other)?;
-        Ok((used, s))
-    };
-    for p in &results {
-        if let Err(e) = &p.boards {
-            runtime::errln!("pair {}: {e}; left out", p.name);
-        }
-    }
-    let (used, stereo) = loop {
-        let (used, s) = fit(&results)?;
-        let mut sorted = s.pair_rms.clone();
-        sorted.sort_by(f64::total_cmp);
-        let limit = a
-            .max_pair_rms
-            .unwrap_or((3.0 * sorted[sorted.len() / 2]).max(1.0));
-        let (k, worst) = s
-            .pair_rms
-            .iter()
-            .enumerate()
-            .max_by(|x, y| x.1.total_cmp(y.1))
-            .map(|(k, v)| (k, *v))
-            .expect("pairs");
-        if worst > limit && used.len() > 3 {
-            let p = &mut results[used[k]];
-            runtime::errln!(
-                "pair {}: fits badly (RMS {worst:.3} px, limit {limit:.3}); left out, refitting",
-                p.name
-            );
-            p.left_out = Some(format!("RMS {worst:.3} px over the limit {limit:.3} px"));
-            continue;
-        }
-        for (k, &i) in used.iter().enumerate() {
-            results[i].rms = Some(s.pair_rms[k]);
-        }
-        break (used, s);
-    };
-
-    let cal = stereo.calibration(size);
-    let rect = calibration::stereo::Rectification::bouguet(&cal);
-    // The rectification's own check: each board row's mean rectified row in both views.
-    let boards: Vec<calibration::calibrate::PairView> = used
-        .iter()
-        .map(|&i| {
-            let (lb, rb) = results[i].boards.as_ref().expect("used");
-            (&lb.corners[..], &rb.corners[..])
-        })
-        .collect();
-    let worst_row = calibration::calibrate::row_gap(&rect, &boards, cols);
-    std::fs::create_dir_all(a.output.join("corners")).map_err(|e| {
-        CliError::Other(format!(
-            "cannot create '{}': {e}",
-            a.output.join("corners").display()
-        ))
-    })?;
-    for ((p, png), (l, r)) in results.iter().zip(&pngs).zip(&images) {
-        let img = drawing(
-            l,
-            r,
-            p.boards.as_ref().ok(),
-            p.left_out.is_some() || p.boards.is_err(),
-        );
-        formats::write_color_png(png, &img)?;
+    let fit = boards.calibrate(a.square, a.max_pair_rms, |note| runtime::errln!("{note}"))?;
+    let corners = a.output.join("corners");
+    std::fs::create_dir_all(&corners)
+        .map_err(|e| CliError::Other(format!("cannot create '{}': {e}", corners.display())))?;
+    for (p, png) in fit.pairs.iter().zip(&pngs) {
+        formats::write_color_png(png, &p.drawing())?;
     }
     let unit = a.unit.unit();
-    let file = calibration::file::CalibrationFile::from_stereo(&cal, unit, Some(stereo.rms));
-    calibration::file::write_file(
-        &outputs[0],
-        &file,
-        &format!(
-            "Written by microstereo calibrate-stereo from {} of {} pairs in '{}' ({cols}x{rows} inner corners, squares of {} {}): RMS {:.4} px.\n# Top level: the rectified views' geometry (triangulate); [stereo]: the raw cameras (rectify).",
-            used.len(),
-            results.len(),
-            a.dir.display(),
-            a.square,
-            unit.symbol(),
-            stereo.rms
-        ),
-    )
-    .map_err(CliError::Other)?;
-    let report = serde_json::json!({
-        "pairs": results.iter().map(|p| serde_json::json!({
-            "name": p.name,
-            "used": p.rms.is_some(),
-            "rms_px": p.rms,
-            "left_out": p.left_out.clone().or_else(|| p.boards.as_ref().err().cloned()),
-        })).collect::<Vec<_>>(),
-        "rms_px": stereo.rms,
-        "baseline": stereo.t.norm(),
-        "unit": unit.symbol(),
-        "left": stereo.left,
-        "right": stereo.right,
-        "rectified": {
-            "focal_px": rect.f, "cx": rect.c[0], "cy": rect.c[1], "cx_right": rect.cx_right,
-            "baseline": rect.baseline, "worst_board_row_px": worst_row,
-        },
-    });
-    formats::atomic::write_bytes(
-        &outputs[1],
-        serde_json::to_string_pretty(&report)
-            .expect("json")
-            .as_bytes(),
-    )
-    .map_err(|e| CliError::Other(e.to_string()))?;
-    for p in &results {
+    calibration::file::write_file(&outputs[0], &fit.file(unit), &fit.comment(&a.dir, unit))?;
+    let report = serde_json::to_string_pretty(&fit.report(unit)).expect("json");
+    formats::atomic::write_bytes(&outputs[1], report.as_bytes())?;
+    for p in &fit.pairs {
         if let Some(r) = p.rms {
             runtime::outln!("pair {}: RMS {r:.3} px", p.name);
         }
     }
-    runtime::outln!(
-        "{} of {} pairs used: RMS {:.4} px; baseline {:.3} {u}; left fx {:.1} fy {:.1} px, right fx {:.1} fy {:.1} px; rectified: focal {:.1} px, every board row within {worst_row:.3} px of one row",
-        used.len(),
-        results.len(),
-        stereo.rms,
-        stereo.t.norm(),
-        stereo.left[0],
-        stereo.left[1],
-        stereo.right[0],
-        stereo.right[1],
-        rect.f,
-        u = unit.symbol()
-    );
+    runtime::outln!("{}", fit.summary(unit));
     runtime::outln!("calibration written to {}", outputs[0].display());
     Ok(())
-}
-
-/// Both views side by side, each found corner ringed, rows joined (the first row red,
-/// the rest green; grey when the pair was left out).
-fn drawing(
-    l: &schemas::Plane<u8>,
-    r: &schemas::Plane<u8>,
-    boards: Option<&(Board, Board)>,
-    left_out: bool,
-) -> RgbImage {
-    let (w, h) = (l.width as u32, l.height as u32);
-    let mut img = RgbImage::from_fn(2 * w, h, |x, y| {
-        let v = if x < w {
-            *l.get(x as usize, y as usize)
-        } else {
-            *r.get((x - w) as usize, y as usize)
-        };
-        Rgb([v, v, v])
-    });
-    if let Some((lb, rb)) = boards {
-        for (b, dx) in [(lb, 0.0f32), (rb, w as f32)] {
-            for (k, p) in b.corners.iter().enumerate() {
-                let colour = if left_out {
-                    Rgb([160, 160, 160])
-                } else if k < b.cols {
-                    Rgb([230, 40, 40])
-                } else {
-                    Rgb([40, 210, 60])
-                };
-                let c = (p[0] as f32 + dx, p[1] as f32);
-                draw_hollow_circle_mut(
-                    &mut img,
-                    (c.0.round() as i32, c.1.round() as i32),
-                    4,
-                    colour,
-                );
-                if k % b.cols != 0 {
-                    let q = b.corners[k - 1];
-                    draw_line_segment_mut(&mut img, (q[0] as f32 + dx, q[1] as f32), c, colour);
-                }
-            }
-        }
-    }
-    img
 }

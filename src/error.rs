@@ -12,6 +12,9 @@ pub enum CliError {
     /// An output the command may not write.
     #[error(transparent)]
     Refused(#[from] formats::outputs::Refused),
+    /// A folder of chessboard pairs that gave no calibration (`calibrate-stereo`).
+    #[error(transparent)]
+    Pairs(#[from] calibration::pairs::PairsError),
     /// Anything else, already phrased for the user.
     #[error("{0}")]
     Other(String),

@@ -111,6 +111,29 @@ impl CalibrationFile {
         }
     }
 
+    /// The file of cameras calibrated elsewhere (OpenCV's stereo YAML, ROS camera_info),
+    /// lengths in `unit`: their table checked as it will be when the file is read.
+    pub fn imported(
+        cal: &crate::stereo::StereoCalibration,
+        unit: LengthUnit,
+    ) -> Result<Self, String> {
+        crate::stereo::StereoTable::from(cal).calibration()?;
+        Ok(Self::from_stereo(cal, unit, None))
+    }
+
+    /// The raw cameras to export (`source` names the file in errors): a file without a
+    /// `[stereo]` table has none.
+    pub fn exported_cameras(
+        &self,
+        source: &str,
+    ) -> Result<crate::stereo::StereoCalibration, String> {
+        self.cameras(source)?.ok_or_else(|| {
+            format!(
+                "calibration {source} has no [stereo] table (the raw cameras) to export; make one with calibrate-stereo or calibration import"
+            )
+        })
+    }
+
     /// The raw cameras, checked (`None` without a `[stereo]` table).
     pub fn cameras(
         &self,
@@ -140,6 +163,9 @@ impl CalibrationFile {
         }
     }
 }
+
+/// The comment line that says which part of a file with raw cameras is read by what.
+pub const LAYOUT: &str = "# Top level: the rectified views' geometry (triangulate); [stereo]: the raw cameras (rectify).";
 
 /// Checks that a geometry can triangulate (`source` names where it came from).
 pub fn check(c: &Calibration, source: &str) -> Result<(), String> {
@@ -315,6 +341,35 @@ mod tests {
         std::fs::write(&p, "baseline = 2000.0\nfocal_px = 1.0\n").unwrap();
         assert!(load(&p, 4, 4).unwrap_err().contains("add unit = \"um\""));
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn imported_cameras_export_again_and_a_plain_geometry_has_none() {
+        use crate::stereo::StereoCalibration;
+        use nalgebra::{Matrix3, Vector3};
+        let k = Matrix3::new(500.0, 0.0, 320.0, 0.0, 500.0, 240.0, 0.0, 0.0, 1.0);
+        let cal = StereoCalibration {
+            k1: k,
+            d1: vec![0.0; 5],
+            k2: k,
+            d2: vec![0.0; 5],
+            r: Matrix3::identity(),
+            t: Vector3::new(-60.0, 0.0, 0.0),
+            size: (640, 480),
+        };
+        let f = CalibrationFile::imported(&cal, LengthUnit::Mm).unwrap();
+        assert_eq!((f.baseline, f.unit), (60.0, Some(LengthUnit::Mm)));
+        assert_eq!(f.exported_cameras("'a'").unwrap(), cal);
+        let plain = CalibrationFile { stereo: None, ..f };
+        assert_eq!(
+            plain.exported_cameras("'a'").unwrap_err(),
+            "calibration 'a' has no [stereo] table (the raw cameras) to export; make one with calibrate-stereo or calibration import"
+        );
+        let bad = StereoCalibration {
+            size: (0, 0),
+            ..cal
+        };
+        assert!(CalibrationFile::imported(&bad, LengthUnit::Mm).is_err());
     }
 
     #[test]

@@ -3,7 +3,9 @@
 //! file the rectifier, the triangulate node, `reconstruct` and the calibrate commands share
 //! ([`file`]), chessboard corners (`board::find_board`), both cameras and their relative
 //! pose fitted to pairs of views (`calibrate::calibrate_stereo`; these two under the
-//! default feature `boards`) and the microscope's depth from a z-stack ([`file::fit_depth`]).
+//! default feature `boards`), a folder of board pairs calibrated as one rig
+//! (`pairs::find_pairs`, `pairs::BoardPairs`, also under `boards`) and the microscope's
+//! depth from a z-stack ([`file::fit_depth`]).
 
 #[cfg(feature = "boards")]
 pub mod board;
@@ -11,6 +13,8 @@ pub mod board;
 pub mod calibrate;
 pub mod file;
 pub mod lm;
+#[cfg(feature = "boards")]
+pub mod pairs;
 pub mod stack;
 pub mod stereo;
 

@@ -1,9 +1,11 @@
 //! The manipulator registered to the cameras: the pipette's tip found in both views
 //! ([`tip::find_tip`]) and triangulated at a grid of device stops ([`grid_stops`]), the map
 //! `device = M·scene + offset` fitted ([`register`]), and the simulated microscope a
-//! simulated manipulator is seen through ([`SimMicroscope`]). `microstereo
-//! calibrate-manipulator` runs it and writes what the bridge reads.
+//! simulated manipulator is seen through ([`SimMicroscope`]). [`session`] runs it with a
+//! device and a source of frames as `microstereo calibrate-manipulator` does, and says
+//! what the bridge reads.
 
+pub mod session;
 pub mod tip;
 
 use manipulator_bridge::device::Device;
@@ -21,6 +23,23 @@ pub struct Optics {
     pub rectify: Option<(RemapLut, RemapLut)>,
     /// The rectified views' geometry.
     pub calibration: Calibration,
+}
+
+impl Optics {
+    /// The optics a calibration file gives frames of `w × h`: its rectified geometry and,
+    /// when it holds the raw cameras (`[stereo]`), their rectification.
+    pub fn from_file(path: &std::path::Path, w: usize, h: usize) -> Result<Self, String> {
+        let file = calibration::file::read_file(path)?;
+        let source = format!("'{}'", path.display());
+        let calibration = file.resolve(w, h, &source)?;
+        let rectify = file
+            .cameras(&source)?
+            .map(|cal| rectify::luts(&calibration::stereo::Rectification::bouguet(&cal)));
+        Ok(Self {
+            rectify,
+            calibration,
+        })
+    }
 }
 
 /// The tip's front in the camera frame `[X, Y, Z]` µm (the bridge's), from one frame.
