@@ -15,6 +15,9 @@ pub enum CliError {
     /// A folder of chessboard pairs that gave no calibration (`calibrate-stereo`).
     #[error(transparent)]
     Pairs(#[from] calibration::pairs::PairsError),
+    /// A `synth` request that makes no scene.
+    #[error(transparent)]
+    Synth(#[from] synth::request::RequestError),
     /// Anything else, already phrased for the user.
     #[error("{0}")]
     Other(String),

@@ -17,8 +17,10 @@
 //! Ground truth: the left disparity and depth at every pixel centre, the left cell labels,
 //! and per cell its centroid, area, height, volume and 3D centroid.
 
+pub mod files;
 pub mod layers;
 pub mod progress;
+pub mod request;
 pub mod tour;
 pub mod truth;
 
@@ -879,6 +881,16 @@ pub struct Rendered {
     pub cells: Vec<CellTruth>,
     /// The calibration that triangulates the pair.
     pub calibration: Calibration,
+}
+
+impl Rendered {
+    /// The smallest and the largest true disparity, px.
+    pub fn disparity_range(&self) -> (f32, f32) {
+        self.disparity
+            .data
+            .iter()
+            .fold((f32::MAX, f32::MIN), |(a, b), &d| (a.min(d), b.max(d)))
+    }
 }
 
 /// Label of pipette pixels in [`Rendered::labels`].

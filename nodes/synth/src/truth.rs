@@ -42,11 +42,7 @@ pub struct PipetteTruth {
 impl<'a> Truth<'a> {
     /// The truth of `scene` as `r` rendered it.
     pub fn of(scene: &'a Scene, r: &'a Rendered) -> Self {
-        let (lo, hi) = r
-            .disparity
-            .data
-            .iter()
-            .fold((f32::MAX, f32::MIN), |(a, b), &d| (a.min(d), b.max(d)));
+        let (lo, hi) = r.disparity_range();
         Truth {
             optics: &scene.optics,
             seed: scene.seed,
