@@ -15,6 +15,12 @@ pub enum CliError {
     /// A folder of chessboard pairs that gave no calibration (`calibrate-stereo`).
     #[error(transparent)]
     Pairs(#[from] calibration::pairs::PairsError),
+    /// A truth mask that cannot score the image (`segment`).
+    #[error(transparent)]
+    Truth(#[from] segment::report::TruthError),
+    /// A map that is not the size of its ground truth (`eval`).
+    #[error(transparent)]
+    EvalSize(#[from] validate::eval::SizeError),
     /// Anything else, already phrased for the user.
     #[error("{0}")]
     Other(String),
