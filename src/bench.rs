@@ -4,8 +4,7 @@
 
 use crate::error::CliError;
 use clap::Args;
-use matcher::Mode;
-use pipelines::timing::bench_pair;
+use pipelines::timing::bench_pairs;
 use schemas::DisparityRange;
 use std::path::PathBuf;
 
@@ -69,54 +68,32 @@ pub fn bench(a: BenchArgs) -> Result<(), CliError> {
     let (l, r) = (cones.join("im2.png"), cones.join("im6.png"));
     formats::outputs::check(&outputs, &[&l, &r], a.overwrite, "choose other names")?;
     let dir = a.write_pairs.clone().unwrap_or_else(|| tmp.clone());
-    let mut pairs = vec![("cones".to_string(), l.clone(), r.clone())];
+    let mut pairs = vec![("cones".to_string(), l, r)];
     if !a.cones_only {
         let s = synth::layers::standard_scene(1280, 1024, 4, 14, 7);
         std::fs::create_dir_all(&dir)
             .map_err(|e| CliError::Other(format!("cannot create '{}': {e}", dir.display())))?;
-        let mut files = Vec::new();
-        for (name, p) in PAIR_NAMES.into_iter().zip([&s.left, &s.right]) {
-            let path = dir.join(name);
-            formats::write_mask_png(&path, p)?;
-            files.push(path);
-        }
-        pairs.push(("synth1280".into(), files[0].clone(), files[1].clone()));
+        let [left, right] = PAIR_NAMES.map(|n| dir.join(n));
+        formats::write_mask_png(&left, &s.left)?;
+        formats::write_mask_png(&right, &s.right)?;
+        pairs.push(("synth1280".into(), left, right));
     }
-    let result = bench_pairs(&a, &pairs);
+    let result = bench_all(&a, &pairs);
     let _ = std::fs::remove_dir_all(&tmp);
     result
 }
 
-fn bench_pairs(a: &BenchArgs, pairs: &[(String, PathBuf, PathBuf)]) -> Result<(), CliError> {
+fn bench_all(a: &BenchArgs, pairs: &[(String, PathBuf, PathBuf)]) -> Result<(), CliError> {
     let range = DisparityRange::new(0, 63);
     let repeat = a.repeat.max(1);
     runtime::outln!(
         "{} threads; median of {repeat} runs; ranges 0..63 (64 disparities, as SGBM numDisparities=64)",
         rayon::current_num_threads(),
     );
-    let mut lines = Vec::new();
-    for (name, left, right) in pairs {
-        for mode in [Mode::Paper, Mode::Quality] {
-            let line = bench_pair(name, (left, right), mode, range, repeat, a.paths)
-                .map_err(|e| CliError::with_flags(e, &[]))?;
-            let st: Vec<String> = line
-                .stages_ms
-                .iter()
-                .map(|(n, v)| format!("{n} {v:.1}"))
-                .collect();
-            runtime::outln!(
-                "{:<10} {:<8} {:>4}×{:<4} total {:>7.1} ms  [{}]  {:.0} M disparity evaluations/s",
-                name,
-                format!("{mode:?}").to_lowercase(),
-                line.width,
-                line.height,
-                line.total_ms,
-                st.join(", "),
-                line.mevals_per_s
-            );
-            lines.push(line);
-        }
-    }
+    let lines = bench_pairs(pairs, range, repeat, a.paths, |l| {
+        runtime::outln!("{}", l.summary());
+    })
+    .map_err(|e| CliError::with_flags(e, &[]))?;
     if let Some(p) = &a.json {
         formats::atomic::write_bytes(
             p,

@@ -170,31 +170,11 @@ pub fn eval(a: EvalArgs) -> Result<(), CliError> {
     }
     let disp = io::read_disparity(&a.disparity, a.scale, "disparity map")?;
     let gt = io::read_disparity(&a.gt, a.gt_scale, "ground truth")?;
-    if (disp.width, disp.height) != (gt.width, gt.height) {
-        return Err(CliError::Other(format!(
-            "disparity map '{}' is {}×{} but ground truth '{}' is {}×{}; evaluate maps of the same view and size",
-            a.disparity.display(),
-            disp.width,
-            disp.height,
-            a.gt.display(),
-            gt.width,
-            gt.height
-        )));
-    }
+    validate::eval::check_size(&disp, &a.disparity, &gt, &a.gt)?;
     let visible = match &a.gt_right {
         Some(p) => {
             let gr = io::read_disparity(p, a.gt_right_scale.or(a.gt_scale), "right ground truth")?;
-            if (gr.width, gr.height) != (gt.width, gt.height) {
-                return Err(CliError::Other(format!(
-                    "right ground truth '{}' is {}×{} but the left one is {}×{}",
-                    p.display(),
-                    gr.width,
-                    gr.height,
-                    gt.width,
-                    gt.height
-                )));
-            }
-            Some(validate::occlusion_from_gt(&gt, &gr))
+            Some(validate::eval::visible_from_right(&gt, &gr, p)?)
         }
         None => None,
     };
@@ -203,35 +183,8 @@ pub fn eval(a: EvalArgs) -> Result<(), CliError> {
         runtime::outln!("{}", serde_json::to_string_pretty(&f).expect("serialises"));
         return Ok(());
     }
-    runtime::outln!(
-        "{:<8} {:>9} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8}",
-        "pixels",
-        "count",
-        "bad0.5%",
-        "bad1%",
-        "bad2%",
-        "bad4%",
-        "mae",
-        "rms",
-        "dens%"
-    );
-    let label = if visible.is_some() { "nonocc" } else { "known" };
-    for (name, s) in [(label, f.nonocc), ("all", f.all)] {
-        runtime::outln!(
-            "{:<8} {:>9} {:>8.2} {:>8.2} {:>8.2} {:>8.2} {:>8.3} {:>8.3} {:>8.2}",
-            name,
-            s.pixels,
-            s.bad_0_5,
-            s.bad_1,
-            s.bad_2,
-            s.bad_4,
-            s.mean_abs_error,
-            s.rms,
-            s.density
-        );
-        if visible.is_none() {
-            break;
-        }
+    for line in validate::eval::table(&f, visible.is_some()) {
+        runtime::outln!("{line}");
     }
     Ok(())
 }

@@ -18,6 +18,12 @@ pub enum CliError {
     /// A `synth` request that makes no scene.
     #[error(transparent)]
     Synth(#[from] synth::request::RequestError),
+    /// A truth mask that cannot score the image (`segment`).
+    #[error(transparent)]
+    Truth(#[from] segment::report::TruthError),
+    /// A map that is not the size of its ground truth (`eval`).
+    #[error(transparent)]
+    EvalSize(#[from] validate::eval::SizeError),
     /// Anything else, already phrased for the user.
     #[error("{0}")]
     Other(String),

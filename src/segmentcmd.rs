@@ -4,9 +4,8 @@
 use crate::error::CliError;
 use clap::{Args, ValueEnum};
 use formats::{self as io, IoError};
-use schemas::{Cell, Plane};
-use segment::{SegmentParams, Segmentation};
-use serde::Serialize;
+use schemas::Plane;
+use segment::{SegmentParams, Segmentation, report};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -106,10 +105,8 @@ pub fn segment_cmd(a: SegmentArgs) -> Result<(), CliError> {
     let params = a.opts.params();
     runtime::node::Params::check(&params)
         .map_err(|e| CliError::Other(crate::error::in_flag_terms(&e, FLAGS)))?;
-    let inputs: Vec<&Path> = [Some(&a.image), a.truth.as_ref()]
-        .into_iter()
-        .flatten()
-        .map(PathBuf::as_path)
+    let inputs: Vec<&Path> = std::iter::once(a.image.as_path())
+        .chain(a.truth.as_deref())
         .collect();
     formats::outputs::check(
         &formats::outputs::in_dir(&a.output, OUTPUT_NAMES),
@@ -120,26 +117,9 @@ pub fn segment_cmd(a: SegmentArgs) -> Result<(), CliError> {
     let img = capture::image::load(&a.image, "image").map_err(CliError::Other)?;
     let truth = match &a.truth {
         Some(p) => {
-            let t = capture::image::load(p, "truth mask")
-                .map_err(CliError::Other)?
-                .grey;
-            if (t.width, t.height) != (img.grey.width, img.grey.height) {
-                return Err(CliError::Other(format!(
-                    "truth mask '{}' is {}×{} but the image is {}×{}; give the mask of this image",
-                    p.display(),
-                    t.width,
-                    t.height,
-                    img.grey.width,
-                    img.grey.height
-                )));
-            }
-            let on = |v: u8| (v != 0) != a.truth_inverted;
-            let data = t
-                .data
-                .iter()
-                .map(|&v| if on(v) { 255 } else { 0 })
-                .collect();
-            Some(schemas::Plane::from_vec(t.width, t.height, data).expect("same size"))
+            let t = capture::image::load(p, "truth mask").map_err(CliError::Other)?;
+            let size = (img.grey.width, img.grey.height);
+            Some(report::truth_mask(&t.grey, p, size, a.truth_inverted)?)
         }
         None => None,
     };
@@ -150,48 +130,15 @@ pub fn segment_cmd(a: SegmentArgs) -> Result<(), CliError> {
         .as_ref()
         .map(|t| segment::score(&seg.mask, t, seg.cells.len()));
     write_segmentation(&a.output, &a.image, &img.rgb, &seg, &params, score)?;
-    let max_label = seg.cells.len();
-    if max_label > 65535 {
-        runtime::errln!(
-            "warning: {max_label} cells; labels.png holds ids up to 65535, cells.json has all"
-        );
+    if seg.cells.len() > 65535 {
+        let n = seg.cells.len();
+        runtime::errln!("warning: {n} cells; labels.png holds ids up to 65535, cells.json has all");
     }
-    match seg.otsu {
-        Some(o) => runtime::outln!(
-            "Otsu threshold {o} of 255 (applied {}; 255 = local std {:.1} grey levels)",
-            seg.threshold,
-            seg.variance_max
-        ),
-        None => runtime::outln!("flat image: no threshold, no cells"),
-    }
-    runtime::outln!("{} cells in {ms:.1} ms", seg.cells.len());
-    if let Some(s) = score {
-        runtime::outln!(
-            "truth: Dice {:.3}, {} cells found / {} in the truth ({:+.1} %)",
-            s.dice,
-            s.found_cells,
-            s.truth_cells,
-            100.0 * s.count_error
-        );
+    for line in report::summary(&seg, ms, score.as_ref()) {
+        runtime::outln!("{line}");
     }
     runtime::outln!("outputs in {}", a.output.display());
     Ok(())
-}
-
-/// What `segment` writes to cells.json.
-#[derive(Serialize)]
-struct SegmentReport<'a> {
-    image: String,
-    width: usize,
-    height: usize,
-    params: &'a SegmentParams,
-    /// Largest local standard deviation (or variance), grey levels: 255 on variance.png.
-    variance_max: f32,
-    otsu_threshold: Option<u8>,
-    threshold: u16,
-    histogram: Vec<u64>,
-    truth: Option<segment::TruthScore>,
-    cells: &'a [Cell],
 }
 
 /// What `segment` writes into its output directory.
@@ -212,11 +159,10 @@ pub fn write_segmentation(
     params: &SegmentParams,
     truth: Option<segment::TruthScore>,
 ) -> Result<(), IoError> {
-    let werr = |p: &Path, e: &dyn std::fmt::Display| IoError::Write {
-        path: p.into(),
+    std::fs::create_dir_all(dir).map_err(|e| IoError::Write {
+        path: dir.into(),
         reason: e.to_string(),
-    };
-    std::fs::create_dir_all(dir).map_err(|e| werr(dir, &e))?;
+    })?;
     io::render::write_labels_png(&dir.join("labels.png"), &seg.labels)?;
     let ov = dir.join("overlay.png");
     io::write_color_png(&ov, &io::render::overlay(rgb, &seg.cells))?;
@@ -226,19 +172,8 @@ pub fn write_segmentation(
         &hp,
         &io::render::histogram_chart(&seg.histogram, Some(seg.threshold)),
     )?;
-    let report = SegmentReport {
-        image: image.display().to_string(),
-        width: rgb.width,
-        height: rgb.height,
-        params,
-        variance_max: seg.variance_max,
-        otsu_threshold: seg.otsu,
-        threshold: seg.threshold,
-        histogram: seg.histogram.to_vec(),
-        truth,
-        cells: &seg.cells,
-    };
+    let r = report::SegmentReport::new(image, seg, params, truth);
     let jp = dir.join("cells.json");
-    let json = serde_json::to_string_pretty(&report).expect("serialises");
+    let json = serde_json::to_string_pretty(&r).expect("serialises");
     io::atomic::write_bytes(&jp, (json + "\n").as_bytes())
 }

@@ -5,7 +5,7 @@ use crate::stereo::{Stereo, ids};
 use matcher::Mode;
 use schemas::{DisparityRange, DisparityTiles};
 use serde::Serialize;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 /// One pair through one matcher: the median time of each node and of the whole graph.
 #[derive(Clone, Debug, Serialize)]
@@ -26,6 +26,27 @@ pub struct BenchLine {
     pub total_ms: f64,
     /// The matcher's disparity evaluations per second, in millions.
     pub mevals_per_s: f64,
+}
+
+impl BenchLine {
+    /// The line `microstereo bench` prints for it.
+    pub fn summary(&self) -> String {
+        let st: Vec<String> = self
+            .stages_ms
+            .iter()
+            .map(|(n, v)| format!("{n} {v:.1}"))
+            .collect();
+        format!(
+            "{:<10} {:<8} {:>4}×{:<4} total {:>7.1} ms  [{}]  {:.0} M disparity evaluations/s",
+            self.pair,
+            format!("{:?}", self.mode).to_lowercase(),
+            self.width,
+            self.height,
+            self.total_ms,
+            st.join(", "),
+            self.mevals_per_s
+        )
+    }
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -82,4 +103,53 @@ pub fn bench_pair(
         total_ms: total,
         mevals_per_s: evals as f64 / (match_ms * 1e3),
     })
+}
+
+/// [`bench_pair`] for each of `pairs` (name, left, right) through the paper's matcher, then
+/// the quality one; `on_line` sees each line as it is measured.
+pub fn bench_pairs(
+    pairs: &[(String, PathBuf, PathBuf)],
+    range: DisparityRange,
+    repeat: usize,
+    paths: Option<u8>,
+    mut on_line: impl FnMut(&BenchLine),
+) -> Result<Vec<BenchLine>, Error> {
+    let mut lines = Vec::new();
+    for (name, left, right) in pairs {
+        for mode in [Mode::Paper, Mode::Quality] {
+            let line = bench_pair(name, (left, right), mode, range, repeat, paths)?;
+            on_line(&line);
+            lines.push(line);
+        }
+    }
+    Ok(lines)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn summary_is_the_printed_line() {
+        let line = BenchLine {
+            pair: "cones".into(),
+            mode: Mode::Quality,
+            width: 450,
+            height: 375,
+            range: DisparityRange::new(0, 63),
+            stages_ms: vec![("match".into(), 11.54), ("validate".into(), 1.8)],
+            total_ms: 15.66,
+            mevals_per_s: 940.6,
+        };
+        assert_eq!(
+            line.summary(),
+            "cones      quality   450×375  total    15.7 ms  [match 11.5, validate 1.8]  941 M disparity evaluations/s"
+        );
+    }
+
+    #[test]
+    fn median_takes_the_middle_run() {
+        assert_eq!(median(vec![3.0, 1.0, 2.0]), 2.0);
+        assert_eq!(median(vec![4.0, 1.0]), 4.0);
+    }
 }

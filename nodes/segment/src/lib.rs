@@ -20,6 +20,7 @@ mod morph;
 pub mod node;
 mod otsu;
 mod peel;
+pub mod report;
 mod rings;
 mod trace;
 mod variance;

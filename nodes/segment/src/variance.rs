@@ -410,7 +410,8 @@ impl<'a> Levels<'a> {
         // Most buckets hold one answer or straddle one bound: that comparison without a
         // branch (a quarter of a view's pixels fell in straddling buckets, half of them
         // mispredicted), a search for the rest.
-        if hi <= lo + 1 {
+        // Widened: `lo` is 255 where every bound lies below, and `lo + 1` must not wrap.
+        if u16::from(hi) <= u16::from(lo) + 1 {
             let b = self
                 .bounds
                 .get(lo as usize)

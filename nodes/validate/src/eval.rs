@@ -2,6 +2,7 @@
 
 use schemas::{DisparityMap, Plane};
 use serde::Serialize;
+use std::path::{Path, PathBuf};
 
 /// Error statistics over one set of pixels.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Default)]
@@ -127,6 +128,107 @@ pub fn evaluate(
     EvalFigures { nonocc, all }
 }
 
+/// A map that cannot be compared with the ground truth it was given.
+#[derive(Debug, thiserror::Error)]
+pub enum SizeError {
+    /// The disparity map is not the size of the left ground truth.
+    #[error(
+        "disparity map '{}' is {}×{} but ground truth '{}' is {}×{}; evaluate maps of the same view and size",
+        map.display(), map_size.0, map_size.1, gt.display(), gt_size.0, gt_size.1
+    )]
+    Map {
+        /// The disparity map's file.
+        map: PathBuf,
+        /// Its width and height.
+        map_size: (usize, usize),
+        /// The ground truth's file.
+        gt: PathBuf,
+        /// Its width and height.
+        gt_size: (usize, usize),
+    },
+    /// The right ground truth is not the size of the left one.
+    #[error(
+        "right ground truth '{}' is {}×{} but the left one is {}×{}",
+        right.display(), right_size.0, right_size.1, left_size.0, left_size.1
+    )]
+    RightTruth {
+        /// The right ground truth's file.
+        right: PathBuf,
+        /// Its width and height.
+        right_size: (usize, usize),
+        /// The left ground truth's width and height.
+        left_size: (usize, usize),
+    },
+}
+
+/// Checks that the disparity map read from `map` is the size of the ground truth read from `gt_path`.
+pub fn check_size(
+    disp: &DisparityMap,
+    map: &Path,
+    gt: &DisparityMap,
+    gt_path: &Path,
+) -> Result<(), SizeError> {
+    if (disp.width, disp.height) == (gt.width, gt.height) {
+        return Ok(());
+    }
+    Err(SizeError::Map {
+        map: map.into(),
+        map_size: (disp.width, disp.height),
+        gt: gt_path.into(),
+        gt_size: (gt.width, gt.height),
+    })
+}
+
+/// The pixels of the left ground truth visible in the right one read from `right_path`
+/// ([`occlusion_from_gt`]), once the two are known to be the same size.
+pub fn visible_from_right(
+    gt_left: &DisparityMap,
+    gt_right: &DisparityMap,
+    right_path: &Path,
+) -> Result<Plane<bool>, SizeError> {
+    let (left_size, right_size) = (
+        (gt_left.width, gt_left.height),
+        (gt_right.width, gt_right.height),
+    );
+    if left_size != right_size {
+        return Err(SizeError::RightTruth {
+            right: right_path.into(),
+            right_size,
+            left_size,
+        });
+    }
+    Ok(occlusion_from_gt(gt_left, gt_right))
+}
+
+/// The figures as `microstereo eval` prints them: a header, the non-occluded row
+/// (`known` when no occlusion mask was given) and, given one, the row of all known pixels.
+pub fn table(f: &EvalFigures, occlusion_known: bool) -> Vec<String> {
+    let mut lines = vec![format!(
+        "{:<8} {:>9} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8}",
+        "pixels", "count", "bad0.5%", "bad1%", "bad2%", "bad4%", "mae", "rms", "dens%"
+    )];
+    let rows = if occlusion_known {
+        vec![("nonocc", f.nonocc), ("all", f.all)]
+    } else {
+        vec![("known", f.nonocc)]
+    };
+    for (name, s) in rows {
+        lines.push(format!(
+            "{:<8} {:>9} {:>8.2} {:>8.2} {:>8.2} {:>8.2} {:>8.3} {:>8.3} {:>8.2}",
+            name,
+            s.pixels,
+            s.bad_0_5,
+            s.bad_1,
+            s.bad_2,
+            s.bad_4,
+            s.mean_abs_error,
+            s.rms,
+            s.density
+        ));
+    }
+    lines
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -162,5 +264,49 @@ mod tests {
         assert_eq!(f.nonocc.pixels, 1);
         assert_eq!(f.nonocc.bad_1, 0.0);
         assert_eq!(f.all.bad_1, 50.0);
+    }
+
+    #[test]
+    fn table_rows_follow_the_occlusion_mask() {
+        let gl = Plane::from_vec(4, 1, vec![X, X, 2.0, 1.0]).unwrap();
+        let gr = Plane::from_vec(4, 1, vec![2.0, X, 3.0, X]).unwrap();
+        let v = visible_from_right(&gl, &gr, Path::new("r.pfm")).unwrap();
+        let d = Plane::from_vec(4, 1, vec![0.0, 0.0, 2.0, 9.0]).unwrap();
+        let header =
+            "pixels       count  bad0.5%    bad1%    bad2%    bad4%      mae      rms    dens%";
+        assert_eq!(
+            table(&evaluate(&d, &gl, Some(&v)), true),
+            [
+                header,
+                "nonocc           1     0.00     0.00     0.00     0.00    0.000    0.000   100.00",
+                "all              2    50.00    50.00    50.00    50.00    4.000    5.657   100.00",
+            ]
+        );
+        assert_eq!(
+            table(&evaluate(&d, &gl, None), false),
+            [
+                header,
+                "known            2    50.00    50.00    50.00    50.00    4.000    5.657   100.00",
+            ]
+        );
+    }
+
+    #[test]
+    fn maps_of_other_sizes_are_refused_by_name() {
+        let a = Plane::filled(3, 2, 1.0f32);
+        let b = Plane::filled(4, 2, 1.0f32);
+        assert!(check_size(&a, Path::new("d.pfm"), &a, Path::new("g.png")).is_ok());
+        assert_eq!(
+            check_size(&a, Path::new("d.pfm"), &b, Path::new("g.png"))
+                .unwrap_err()
+                .to_string(),
+            "disparity map 'd.pfm' is 3×2 but ground truth 'g.png' is 4×2; evaluate maps of the same view and size"
+        );
+        assert_eq!(
+            visible_from_right(&a, &b, Path::new("r.png"))
+                .unwrap_err()
+                .to_string(),
+            "right ground truth 'r.png' is 4×2 but the left one is 3×2"
+        );
     }
 }
