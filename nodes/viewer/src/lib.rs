@@ -240,14 +240,16 @@ impl Sink {
             }
             MessageKind::PointCloud => {
                 let cloud = Cloud::decode(h, payload).map_err(bad)?;
+                // A cloud waits for its frame's unit; its line goes with it, so that the
+                // view is the same whichever of the two arrived first.
                 match self.metres {
                     Some(m) => self.log_cloud(edge, h, &cloud, m)?,
                     None => {
                         self.clouds
                             .insert(h.sequence, (edge.to_string(), *h, cloud));
-                        return Ok(());
                     }
                 }
+                return Ok(());
             }
             MessageKind::ManipulatorState => {
                 let st = ManipulatorState::decode(h, payload).map_err(bad)?;
@@ -374,6 +376,11 @@ impl Sink {
                 format!("{} target cell(s)", t.cells.len())
             }
         };
+        self.log_line(edge, h, &summary)
+    }
+
+    /// One line per message under `/logs/NODE`, at the message's frame.
+    fn log_line(&self, edge: &str, h: &FrameHeader, summary: &str) -> Result<(), String> {
         self.rec
             .log(
                 format!("/logs/{}", edge.split('/').next().unwrap_or(edge)),
@@ -511,7 +518,7 @@ impl Sink {
         h: &FrameHeader,
         cloud: &Cloud,
         m: f64,
-    ) -> Result<String, String> {
+    ) -> Result<(), String> {
         self.rec.set_time_sequence("frame", h.sequence as i64);
         self.rec
             .set_timestamp_nanos_since_epoch("capture_time", h.capture_ns as i64);
@@ -532,7 +539,7 @@ impl Sink {
                 &rerun::Points3D::new(pos).with_colors(col),
             )
             .map_err(err)?;
-        Ok(format!("{n} points"))
+        self.log_line(edge, h, &format!("{n} points"))
     }
 
     /// Logs clouds still waiting for a unit (in the calibration's unit), flushes and closes
@@ -607,6 +614,99 @@ mod tests {
             .filter(|p| p.starts_with("/logs"))
             .collect();
         assert_eq!(paths, ["/logs/nodes/segment"]);
+    }
+
+    /// The text lines of a stream, as `(path, frame, text)`.
+    fn lines(msgs: Vec<rerun::log::LogMsg>) -> BTreeSet<(String, i64, String)> {
+        let mut out = BTreeSet::new();
+        for m in msgs {
+            let rerun::log::LogMsg::ArrowMsg(_, a) = m else {
+                continue;
+            };
+            let chunk = rerun::log::Chunk::from_arrow_msg(&a).unwrap();
+            let path = chunk.entity_path().to_string();
+            if !path.starts_with("/logs") {
+                continue;
+            }
+            let frames = chunk.timelines()[&"frame".into()].times_raw().to_vec();
+            let texts = chunk
+                .iter_component::<rerun::components::Text>(
+                    rerun::TextLog::descriptor_text().component,
+                )
+                .map(|t| {
+                    t.as_slice()
+                        .iter()
+                        .map(|t| t.to_string())
+                        .collect::<Vec<_>>()
+                })
+                .collect::<Vec<_>>();
+            for (f, t) in frames.iter().zip(texts) {
+                for t in t {
+                    out.insert((path.clone(), *f, t));
+                }
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn a_cloud_gets_its_line_whether_it_comes_before_or_after_its_targets() {
+        let cloud = Cloud {
+            points: vec![
+                schemas::CloudPoint {
+                    xyz: [1.0, 2.0, 3.0],
+                    rgb: [9, 9, 9],
+                },
+                schemas::CloudPoint {
+                    xyz: [4.0, 5.0, 6.0],
+                    rgb: [1, 2, 3],
+                },
+            ],
+        };
+        let targets = Targets {
+            frame: 3,
+            capture_ns: 7,
+            unit: "µm".into(),
+            cells: vec![],
+            substrate: None,
+        };
+        let enc = |e: schemas::msg::Encoded<'_>| {
+            let mut h = e.header;
+            h.sequence = 3;
+            h.capture_ns = 7;
+            (h, e.to_vec())
+        };
+        let (ch, cp) = enc(cloud.encode());
+        let (th, tp) = enc(targets.encode());
+        let run = |cloud_first: bool| {
+            let (rec, storage) = rerun::RecordingStreamBuilder::new("microstereo-test")
+                .memory()
+                .unwrap();
+            let mut sink = Sink::new(rec);
+            let mut send = |c: bool| {
+                if c {
+                    sink.log("triangulate/cloud", MessageKind::PointCloud, &ch, &cp)
+                } else {
+                    sink.log("triangulate/targets", MessageKind::Targets, &th, &tp)
+                }
+            };
+            send(cloud_first).unwrap();
+            send(!cloud_first).unwrap();
+            sink.stream().flush_blocking().unwrap();
+            let got = lines(storage.take());
+            sink.finish().unwrap();
+            got
+        };
+        let first = run(true);
+        assert!(
+            first.contains(&(
+                "/logs/triangulate".into(),
+                3,
+                "triangulate/cloud: frame 3: 2 points".into()
+            )),
+            "{first:?}"
+        );
+        assert_eq!(first, run(false));
     }
 
     #[test]
