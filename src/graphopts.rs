@@ -6,66 +6,7 @@ use crate::error::CliError;
 use clap::Args;
 use pipelines::taps;
 use runtime::launch::Graph;
-use std::path::{Path, PathBuf};
-
-/// Checks, before anything starts, that `--viewer` can work: the viewer binary is built,
-/// a viewer to spawn is installed, a viewer to connect to is listening, a file to save
-/// does not exist yet.
-pub fn check_viewer_target(opts: &OutputOpts) -> Result<(), CliError> {
-    if opts.viewer.is_empty() {
-        return Ok(());
-    }
-    taps::check_viewer_words(&opts.viewer).map_err(CliError::Other)?;
-    let exe = taps::viewer_exe();
-    if !exe.is_file() {
-        return Err(CliError::Other(format!(
-            "--viewer needs {}, which is not built; run `cargo build --release -p viewer` (it holds the rerun dependency)",
-            exe.display()
-        )));
-    }
-    match opts.viewer[0].as_str() {
-        "spawn" => {
-            let found = std::env::var_os("PATH")
-                .is_some_and(|p| std::env::split_paths(&p).any(|d| d.join("rerun").is_file()));
-            if !found {
-                return Err(CliError::Other(
-                    "--viewer spawn starts the `rerun` viewer, which is not on PATH; install it with `pip install rerun-sdk==0.36.*`, or use --viewer save FILE.rrd".into(),
-                ));
-            }
-        }
-        "connect" => {
-            let addr = &opts.viewer[1];
-            let hp = addr
-                .split_once("://")
-                .map_or(addr.as_str(), |(_, r)| r)
-                .split('/')
-                .next()
-                .unwrap_or(addr);
-            let reachable = std::net::ToSocketAddrs::to_socket_addrs(hp)
-                .ok()
-                .and_then(|mut a| a.next())
-                .is_some_and(|a| {
-                    std::net::TcpStream::connect_timeout(&a, std::time::Duration::from_secs(2))
-                        .is_ok()
-                });
-            if !reachable {
-                return Err(CliError::Other(format!(
-                    "--viewer connect {addr}: no Rerun viewer is listening there; start one with `rerun` (it listens on 127.0.0.1:9876) or use --viewer spawn"
-                )));
-            }
-        }
-        _ => {
-            let path = Path::new(&opts.viewer[1]);
-            if path.exists() && !opts.overwrite {
-                return Err(CliError::Other(format!(
-                    "--viewer save {}: the file exists; choose another name or add --overwrite",
-                    path.display()
-                )));
-            }
-        }
-    }
-    Ok(())
-}
+use std::path::PathBuf;
 
 /// Where a run's edges go besides the graph: a recording, a Rerun viewer.
 #[derive(Args, Debug, Clone, Default)]
@@ -99,16 +40,30 @@ pub struct OutputOpts {
 }
 
 impl OutputOpts {
+    /// The recorder tap `--record` asks for.
+    pub fn recording(&self) -> Option<taps::Recording> {
+        self.record.as_ref().map(|path| taps::Recording {
+            path: path.clone(),
+            edges: self.edges.clone(),
+            every: self.every.clone(),
+            split: self.split,
+            overwrite: self.overwrite,
+        })
+    }
+
+    /// Checks, before anything starts, that the recording can be created and the viewer
+    /// can work.
+    pub fn check(&self) -> Result<(), CliError> {
+        if let Some(r) = self.recording() {
+            taps::check_recording(&r).map_err(CliError::Other)?;
+        }
+        taps::check_viewer(&self.viewer, self.overwrite).map_err(CliError::Other)?;
+        Ok(())
+    }
+
     /// Adds the recorder and the viewer taps to `graph`.
     pub fn apply(&self, graph: &mut Graph) -> Result<(), String> {
-        if let Some(path) = &self.record {
-            let r = taps::Recording {
-                path: path.clone(),
-                edges: self.edges.clone(),
-                every: self.every.clone(),
-                split: self.split,
-                overwrite: self.overwrite,
-            };
+        if let Some(r) = self.recording() {
             taps::add_recorder(graph, &r)?;
         }
         if !self.viewer.is_empty() {
@@ -116,38 +71,4 @@ impl OutputOpts {
         }
         Ok(())
     }
-}
-
-/// Checks, before anything starts, that `--record` can create its file.
-pub fn check_record_target(opts: &OutputOpts) -> Result<(), CliError> {
-    let Some(path) = &opts.record else {
-        return Ok(());
-    };
-    let first = match opts.split {
-        Some(_) => recorder::file::part_path(path, 0),
-        None => path.clone(),
-    };
-    if first.exists() && !opts.overwrite {
-        return Err(CliError::Other(format!(
-            "--record {}: {}the file exists; choose another name or add --overwrite",
-            path.display(),
-            if first == *path {
-                String::new()
-            } else {
-                format!("its first part {} exists: ", first.display())
-            }
-        )));
-    }
-    let dir = path
-        .parent()
-        .filter(|d| !d.as_os_str().is_empty())
-        .unwrap_or(Path::new("."));
-    if !dir.is_dir() {
-        return Err(CliError::Other(format!(
-            "--record {}: the folder {} does not exist; create it first",
-            path.display(),
-            dir.display()
-        )));
-    }
-    Ok(())
 }

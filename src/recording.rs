@@ -24,56 +24,11 @@ pub struct ViewArgs {
 
 /// Shows a recording in Rerun, through the viewer binary (the same code as `--viewer`).
 pub fn view(a: ViewArgs) -> Result<(), CliError> {
-    let viewer = match (&a.output, &a.connect) {
-        (Some(p), _) => vec!["save".into(), p.display().to_string()],
-        (None, Some(c)) => vec!["connect".into(), c.clone()],
-        (None, None) => vec!["spawn".into()],
-    };
-    crate::graphopts::check_viewer_target(&OutputOpts {
-        viewer,
-        overwrite: a.overwrite,
-        ..OutputOpts::default()
-    })?;
-    if let Some(o) = &a.output {
-        formats::outputs::check(
-            std::slice::from_ref(o),
-            &[&a.file],
-            a.overwrite,
-            "give -o another file",
-        )?;
+    let (o, c) = (a.output.as_deref(), a.connect.as_deref());
+    match pipelines::taps::view(&a.file, o, c, a.overwrite) {
+        Err(pipelines::Error::ViewerExit(code)) => Err(CliError::Reported(code)),
+        r => Ok(r?),
     }
-    // Saved under a temporary name, renamed when the viewer has written it all.
-    let tmp = a.output.as_deref().map(formats::atomic::temp_beside);
-    // The viewer binary checks the recording itself before it shows anything.
-    let mut cmd = std::process::Command::new(pipelines::taps::viewer_exe());
-    cmd.arg("view").arg(&a.file);
-    if let Some(t) = &tmp {
-        cmd.arg("-o").arg(t);
-    } else if let Some(c) = &a.connect {
-        cmd.arg("--connect").arg(c);
-    }
-    let status = cmd.status().map_err(|e| {
-        CliError::Other(format!(
-            "cannot run {}: {e}",
-            pipelines::taps::viewer_exe().display()
-        ))
-    })?;
-    let done = match status.code() {
-        Some(0) => Ok(()),
-        Some(code) => Err(CliError::Reported(code)),
-        None => Err(CliError::Other(format!("the viewer failed ({status})"))),
-    };
-    if let (Some(t), Some(o)) = (&tmp, &a.output) {
-        let kept = done.and_then(|_| {
-            formats::atomic::commit(t, o, true)
-                .map_err(|e| CliError::Other(format!("cannot write '{}': {e}", o.display())))
-        });
-        if kept.is_err() {
-            let _ = std::fs::remove_file(t);
-        }
-        return kept;
-    }
-    done
 }
 
 /// Arguments of `microstereo inspect`.
@@ -160,8 +115,7 @@ pub fn replay(a: ReplayArgs) -> Result<(), CliError> {
         )));
     }
     let o = usable(&a.file)?;
-    crate::graphopts::check_record_target(&a.out)?;
-    crate::graphopts::check_viewer_target(&a.out)?;
+    a.out.check()?;
     let mut graph = pipelines::recording::replay_graph(
         &a.file,
         &o,

@@ -123,92 +123,32 @@ pub fn run_graph(
     s: &Supervision,
     out: &OutputOpts,
 ) -> Result<f64, CliError> {
-    if !(0.0..=600.0).contains(&s.grace) {
-        return Err(CliError::Other(format!(
-            "--grace {} is out of range: use 0..600 seconds",
-            s.grace
-        )));
-    }
-    if frames == Some(0) {
-        return Err(CliError::Other(
-            "--frames 0 would never end: give at least 1, or leave it out to run until Ctrl-C"
-                .into(),
-        ));
-    }
-    runtime::transport::set_domain(s.domain.as_deref()).map_err(CliError::Other)?;
-    let exe = std::env::current_exe()
-        .map_err(|e| CliError::Other(format!("cannot find this program: {e}")))?;
-    let report = runtime::supervisor::run(
-        graph,
-        &runtime::supervisor::RunOptions {
-            builtin: vec![exe.into_os_string(), "node".into()],
-            frames,
-            grace: s.grace,
-            instance: s.instance.clone(),
-            progress: !s.quiet,
-            host: s.host.clone(),
-            controls: graph
-                .nodes
-                .iter()
-                .filter(|n| n.kind() == Some(recorder::node::REPLAY_KIND))
-                .map(|n| n.id.clone())
-                .collect(),
-            endpoints: (!s.listen.is_empty() || !s.connect.is_empty()).then(|| {
-                hostlink::Endpoints {
-                    listen: s.listen.clone(),
-                    connect: s.connect.clone(),
-                }
-            }),
-        },
-    )?;
-    if let Some(sig) = report.signal
-        && report.stats.is_empty()
-    {
-        runtime::errln!(
-            "stopped by {} before the graph started",
-            runtime::signals::name(sig)
-        );
-    }
-    let rate = runtime::supervisor::print_summary(
-        graph,
-        &report.stats,
-        report.wall,
+    let endpoints = (!s.listen.is_empty() || !s.connect.is_empty()).then(|| hostlink::Endpoints {
+        listen: s.listen.clone(),
+        connect: s.connect.clone(),
+    });
+    let o = runtime::supervisor::RunOptions {
+        builtin: vec![],
         frames,
-        report.host.as_deref(),
-    );
-    if let Some(f) = report.failure {
-        let kept = out
-            .record
-            .as_deref()
-            .map(recorder::file::unfinished_parts)
-            .unwrap_or_default();
-        let kept = if kept.is_empty() {
-            String::new()
-        } else {
-            format!(
-                "; the unfinished recording is kept as {} (readable up to its last flush)",
-                kept.join(", ")
-            )
-        };
-        return Err(CliError::Other(format!("the run stopped early: {f}{kept}")));
-    }
-    if let Some(path) = &out.record {
-        let written = report
-            .stats
-            .get(pipelines::taps::RECORDER_ID)
-            .map_or(0, |s| s.frames_out);
-        runtime::outln!(
-            "{}",
-            recorder::file::written(path, written, out.split.is_some())
-        );
-    }
-    Ok(rate)
+        grace: s.grace,
+        instance: s.instance.clone(),
+        progress: !s.quiet,
+        host: s.host.clone(),
+        endpoints,
+        controls: vec![],
+    };
+    let rec = out.recording();
+    Ok(pipelines::processes::run(
+        graph,
+        o,
+        s.domain.as_deref(),
+        rec.as_ref(),
+    )?)
 }
 
 /// Runs the graph: one process per node, logs prefixed, restarts, clean stop, summary.
 pub fn run_cmd(a: RunArgs) -> Result<(), CliError> {
-    crate::graphopts::check_record_target(&a.out)?;
-    crate::graphopts::check_viewer_target(&a.out)?;
+    a.out.check()?;
     let mut graph = load_with(a.launch.as_deref(), &a.set)?;
     if a.in_process {
         return run_in_process(&graph, a.frames.unwrap_or(1)).map(|_| ());

@@ -24,6 +24,21 @@ pub enum Error {
     /// A recording cannot be used as asked (its message says what was read and what to do).
     #[error("{0}")]
     Recording(String),
+    /// A run's option out of range (its message names the flag and the range).
+    #[error("{0}")]
+    Options(String),
+    /// A run ended early (its message says why and what was kept).
+    #[error("{0}")]
+    Stopped(String),
+    /// An output that may not be written.
+    #[error(transparent)]
+    Refused(#[from] formats::outputs::Refused),
+    /// The viewer binary could not be run, or was killed.
+    #[error("{0}")]
+    Viewer(String),
+    /// The viewer binary failed and has said why: its exit code.
+    #[error("the viewer exited with code {0}")]
+    ViewerExit(i32),
     /// A replay would start past the recording's end.
     #[error("--start {start} is past the end of {file}: it holds {span:.2} s")]
     PastTheEnd {

@@ -9,12 +9,14 @@
 //! - [`maps`]: what one frame of it made, read back as whole maps;
 //! - [`report`]: what `reconstruct` reports of a run and of each cell;
 //! - [`taps`]: the recorder, viewer and replay nodes `run` and `replay` add to a graph;
+//! - [`processes`]: a graph run as processes of this program, supervised;
 //! - [`fuzzing`]: the fuzz targets' entry points, one per reader of untrusted bytes;
 //! - [`recording`]: the graph a replay or a node test of a recording runs, and that test.
 
 pub mod fuzzing;
 pub mod launch;
 pub mod maps;
+pub mod processes;
 pub mod range;
 pub mod recording;
 pub mod registry;

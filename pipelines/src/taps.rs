@@ -32,6 +32,65 @@ pub fn check_viewer_words(w: &[String]) -> Result<(), String> {
     }
 }
 
+/// Checks, before anything starts, that `--viewer` can work: the viewer binary is built,
+/// a viewer to spawn is installed, a viewer to connect to is listening, a file to save
+/// does not exist yet.
+pub fn check_viewer(words: &[String], overwrite: bool) -> Result<(), String> {
+    if words.is_empty() {
+        return Ok(());
+    }
+    check_viewer_words(words)?;
+    let exe = viewer_exe();
+    if !exe.is_file() {
+        return Err(format!(
+            "--viewer needs {}, which is not built; run `cargo build --release -p viewer` (it holds the rerun dependency)",
+            exe.display()
+        ));
+    }
+    match words[0].as_str() {
+        "spawn" => {
+            let found = std::env::var_os("PATH")
+                .is_some_and(|p| std::env::split_paths(&p).any(|d| d.join("rerun").is_file()));
+            if !found {
+                return Err(
+                    "--viewer spawn starts the `rerun` viewer, which is not on PATH; install it with `pip install rerun-sdk==0.36.*`, or use --viewer save FILE.rrd".into(),
+                );
+            }
+        }
+        "connect" => {
+            let addr = &words[1];
+            let hp = addr
+                .split_once("://")
+                .map_or(addr.as_str(), |(_, r)| r)
+                .split('/')
+                .next()
+                .unwrap_or(addr);
+            let reachable = std::net::ToSocketAddrs::to_socket_addrs(hp)
+                .ok()
+                .and_then(|mut a| a.next())
+                .is_some_and(|a| {
+                    std::net::TcpStream::connect_timeout(&a, std::time::Duration::from_secs(2))
+                        .is_ok()
+                });
+            if !reachable {
+                return Err(format!(
+                    "--viewer connect {addr}: no Rerun viewer is listening there; start one with `rerun` (it listens on 127.0.0.1:9876) or use --viewer spawn"
+                ));
+            }
+        }
+        _ => {
+            let path = Path::new(&words[1]);
+            if path.exists() && !overwrite {
+                return Err(format!(
+                    "--viewer save {}: the file exists; choose another name or add --overwrite",
+                    path.display()
+                ));
+            }
+        }
+    }
+    Ok(())
+}
+
 /// A recorder tap: where it writes and what.
 #[derive(Clone, Debug, Default)]
 pub struct Recording {
@@ -45,6 +104,38 @@ pub struct Recording {
     pub split: Option<Split>,
     /// Replace an existing file.
     pub overwrite: bool,
+}
+
+/// Checks, before anything starts, that `--record` can create its file.
+pub fn check_recording(r: &Recording) -> Result<(), String> {
+    let path = &r.path;
+    let first = match r.split {
+        Some(_) => recorder::file::part_path(path, 0),
+        None => path.clone(),
+    };
+    if first.exists() && !r.overwrite {
+        return Err(format!(
+            "--record {}: {}the file exists; choose another name or add --overwrite",
+            path.display(),
+            if first == *path {
+                String::new()
+            } else {
+                format!("its first part {} exists: ", first.display())
+            }
+        ));
+    }
+    let dir = path
+        .parent()
+        .filter(|d| !d.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    if !dir.is_dir() {
+        return Err(format!(
+            "--record {}: the folder {} does not exist; create it first",
+            path.display(),
+            dir.display()
+        ));
+    }
+    Ok(())
 }
 
 /// Adds a recorder tap to `graph` (with the cameras' CameraInfo where the graph says it).
@@ -207,4 +298,59 @@ pub fn apply_replay(
         params.insert("duration".into(), toml::Value::Float(d));
     }
     graph.replace_with_sources(replace, REPLAY_KIND, &params)
+}
+
+/// Shows a recording in Rerun through the viewer binary (the same code as `--viewer`):
+/// saved to `output` (written under a temporary name, renamed when complete), sent to a
+/// viewer at `connect`, or shown in a new viewer.
+pub fn view(
+    file: &Path,
+    output: Option<&Path>,
+    connect: Option<&str>,
+    overwrite: bool,
+) -> Result<(), crate::Error> {
+    let words = match (output, connect) {
+        (Some(p), _) => vec!["save".into(), p.display().to_string()],
+        (None, Some(c)) => vec!["connect".into(), c.to_string()],
+        (None, None) => vec!["spawn".into()],
+    };
+    check_viewer(&words, overwrite).map_err(crate::Error::Viewer)?;
+    if let Some(o) = output {
+        formats::outputs::check(
+            &[o.to_path_buf()],
+            &[file],
+            overwrite,
+            "give -o another file",
+        )?;
+    }
+    let tmp = output.map(formats::atomic::temp_beside);
+    // The viewer binary checks the recording itself before it shows anything.
+    let mut cmd = std::process::Command::new(viewer_exe());
+    cmd.arg("view").arg(file);
+    if let Some(t) = &tmp {
+        cmd.arg("-o").arg(t);
+    } else if let Some(c) = connect {
+        cmd.arg("--connect").arg(c);
+    }
+    let status = cmd
+        .status()
+        .map_err(|e| crate::Error::Viewer(format!("cannot run {}: {e}", viewer_exe().display())))?;
+    let done = match status.code() {
+        Some(0) => Ok(()),
+        Some(code) => Err(crate::Error::ViewerExit(code)),
+        None => Err(crate::Error::Viewer(format!(
+            "the viewer failed ({status})"
+        ))),
+    };
+    let (Some(t), Some(o)) = (&tmp, output) else {
+        return done;
+    };
+    let kept = done.and_then(|_| {
+        formats::atomic::commit(t, o, true)
+            .map_err(|e| crate::Error::Viewer(format!("cannot write '{}': {e}", o.display())))
+    });
+    if kept.is_err() {
+        let _ = std::fs::remove_file(t);
+    }
+    kept
 }

@@ -143,6 +143,7 @@ pub fn centred_nucleus() -> [f64; 3] {
 /// radius ρ (0 at the centre, 1 on the outline).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 pub enum Profile {
     /// An ellipsoidal dome, `h·√(1 − ρ²)`: a rounded cell, its flank vertical at the edge.
     #[default]
@@ -156,7 +157,7 @@ pub enum Profile {
     Flat,
     /// A fried egg: a thin spread cytoplasm, `0.3·h·(1 − ρ⁴)`, under a raised nucleus (a
     /// dome over 30–55 % of the footprint's radius, up to 0.3 of it off centre:
-    /// [`CellShape::nucleus`]) whose top is the height.
+    /// `CellShape::nucleus`) whose top is the height.
     FriedEgg,
 }
 

@@ -3,92 +3,156 @@
 
 use crate::{CellSpec, Look, Optics, Pipette, Profile, Scene, Texture};
 
-/// The appearance preset a request starts from.
+/// The appearance preset a request starts from (`--look`).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 pub enum LookPreset {
-    /// [`Look::default`]: textured cells with relief, a faintly textured substrate.
+    /// Textured cells with relief shading, a faintly textured substrate ([`Look::default`]).
     #[default]
     Dic,
-    /// [`Look::brightfield`].
+    /// A textureless substrate under uneven light, darker cells with a membrane rim
+    /// ([`Look::brightfield`]).
     Brightfield,
 }
 
-/// How strongly the substrate is textured.
+/// How strongly the substrate is textured (`--substrate-texture`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 pub enum SubstrateTexture {
     /// No texture: only noise.
     None,
-    /// [`Look::default`]'s faint texture.
+    /// The default faint texture.
     Faint,
     /// A strongly textured substrate.
     Strong,
 }
 
-/// A synthetic scene, sequence or z-stack as asked for; [`Request::check`] it first.
+/// A synthetic scene, sequence or z-stack as asked for; [`Request::check`] it first. With
+/// the `cli` feature it is the `synth` command's flags, with their defaults (as
+/// [`Request::default`]).
 #[derive(Clone, Debug, PartialEq)]
+#[cfg_attr(feature = "cli", derive(clap::Args))]
 pub struct Request {
     /// Image width, px.
+    #[cfg_attr(feature = "cli", arg(long, default_value_t = 640))]
     pub width: usize,
     /// Image height, px.
+    #[cfg_attr(feature = "cli", arg(long, default_value_t = 480))]
     pub height: usize,
     /// Number of cells.
+    #[cfg_attr(feature = "cli", arg(long, default_value_t = 6))]
     pub cells: usize,
-    /// Footprint diameter range, µm (MIN, MAX).
+    /// Footprint diameter range, µm (MIN,MAX).
+    #[cfg_attr(feature = "cli", arg(long, value_delimiter = ',', default_values_t = [20.0, 100.0]))]
     pub diameter: Vec<f64>,
-    /// Cell height range, µm (MIN, MAX).
+    /// Cell height range, µm (MIN,MAX).
+    #[cfg_attr(feature = "cli", arg(long, value_delimiter = ',', default_values_t = [8.0, 25.0]))]
     pub cell_height: Vec<f64>,
-    /// Random seed.
+    /// Random seed: same seed, same images.
+    #[cfg_attr(feature = "cli", arg(long, default_value_t = 1))]
     pub seed: u64,
-    /// Sensor noise, grey levels.
+    /// Sensor noise, grey levels (standard deviation).
+    #[cfg_attr(feature = "cli", arg(long, default_value_t = 1.5))]
     pub noise: f64,
-    /// Defocus blur, px.
+    /// Defocus blur, px (Gaussian sigma).
+    #[cfg_attr(feature = "cli", arg(long, default_value_t = 0.0))]
     pub blur: f64,
     /// Pixel pitch, µm.
+    #[cfg_attr(feature = "cli", arg(long, default_value_t = 5.0))]
     pub pixel_pitch: f64,
     /// Magnification.
+    #[cfg_attr(feature = "cli", arg(long, default_value_t = 5.0))]
     pub magnification: f64,
     /// Effective focal length, µm.
+    #[cfg_attr(feature = "cli", arg(long, default_value_t = 20_000.0))]
     pub f_eff: f64,
     /// Stereo baseline, µm.
+    #[cfg_attr(feature = "cli", arg(long, default_value_t = 1_200.0))]
     pub baseline: f64,
-    /// A sequence of this many frames instead of one scene.
+    /// Write a sequence of this many frames (cells drift, the pipette advances).
+    #[cfg_attr(feature = "cli", arg(long))]
     pub frames: Option<usize>,
     /// Largest cell drift, µm per frame.
+    #[cfg_attr(feature = "cli", arg(long, default_value_t = 1.0))]
     pub drift: f64,
-    /// A pipette at this height above the substrate, µm.
+    /// Add a pipette entering from the left at this height above the substrate, µm.
+    #[cfg_attr(feature = "cli", arg(long))]
     pub pipette: Option<f64>,
-    /// Where the pipette's tip points, degrees from +x towards +y.
+    /// Where the pipette's tip points, degrees from +x towards +y (0: in from the left).
+    #[cfg_attr(
+        feature = "cli",
+        arg(
+            long,
+            default_value_t = 0.0,
+            allow_hyphen_values = true,
+            requires = "pipette"
+        )
+    )]
     pub pipette_azimuth: f64,
-    /// The tip's centre `X,Y`, µm from the image centre.
+    /// The tip's centre `X,Y` in µm from the image centre (default: 20 px in from the
+    /// border it comes through).
+    #[cfg_attr(
+        feature = "cli",
+        arg(
+            long,
+            value_delimiter = ',',
+            allow_hyphen_values = true,
+            requires = "pipette"
+        )
+    )]
     pub pipette_tip: Option<Vec<f64>>,
-    /// Numerical aperture for the pipette's defocus.
+    /// Numerical aperture for the pipette's defocus: blurred by its height from the focal
+    /// plane (blur circle radius NA·Δz; 0: always sharp).
+    #[cfg_attr(feature = "cli", arg(long, default_value_t = 0.0))]
     pub aperture: f64,
-    /// A z-stack of a textured target at these stage heights instead of cells, µm.
+    /// Instead of cells, a textured target at these stage heights, µm (a z-stack for
+    /// `calibrate-depth`).
+    #[cfg_attr(
+        feature = "cli",
+        arg(long, value_delimiter = ',', allow_hyphen_values = true)
+    )]
     pub stage_heights: Option<Vec<f64>>,
-    /// The appearance preset.
+    /// Appearance preset: `dic` (textured cells with relief, a faintly textured substrate)
+    /// or `brightfield` (a textureless substrate under a gradient and vignetting, darker
+    /// cells with a dark membrane rim). The flags below change single properties of it.
+    #[cfg_attr(feature = "cli", arg(long, value_enum, default_value_t = LookPreset::Dic))]
     pub look: LookPreset,
-    /// The substrate's disparity at the image centre, px.
+    /// The substrate's disparity at the image centre, px (the microscope focused above it:
+    /// positive; default 0, the focal plane on the substrate).
+    #[cfg_attr(feature = "cli", arg(long, allow_hyphen_values = true))]
     pub substrate_disparity: Option<f64>,
-    /// The substrate's texture (default: the preset's).
+    /// Substrate texture: none, faint or strong (default: the look's).
+    #[cfg_attr(feature = "cli", arg(long, value_enum))]
     pub substrate_texture: Option<SubstrateTexture>,
-    /// Substrate tilt about the y and the x axis, degrees.
+    /// Substrate tilt about the y and the x axis, degrees (each at most 10).
+    #[cfg_attr(
+        feature = "cli",
+        arg(long, value_delimiter = ',', allow_hyphen_values = true)
+    )]
     pub tilt: Option<Vec<f64>>,
-    /// Lighting gradient, grey levels (default: the preset's).
+    /// Lighting gradient across the field of view, grey levels.
+    #[cfg_attr(feature = "cli", arg(long, allow_hyphen_values = true))]
     pub gradient: Option<f64>,
-    /// Vignetting (default: the preset's).
+    /// Vignetting: the share of brightness lost at the corners (0..0.9).
+    #[cfg_attr(feature = "cli", arg(long))]
     pub vignetting: Option<f64>,
-    /// Membrane rim darkening, grey levels (default: the preset's).
+    /// Darkening of the membrane rim where cells meet the substrate, grey levels (0..170).
+    #[cfg_attr(feature = "cli", arg(long))]
     pub rim: Option<f64>,
-    /// Cell height profile.
+    /// Cell height profile: dome (ellipsoid), cap (paraboloid), spread (flattened), flat (a plateau) or fried-egg (a raised nucleus on a thin spread cytoplasm).
+    #[cfg_attr(feature = "cli", arg(long, value_enum, default_value_t = Profile::Dome))]
     pub profile: Profile,
-    /// Outline irregularity.
+    /// Outline irregularity: the largest amplitude of each of the radius's 2nd–4th
+    /// harmonics, as a share of it (0..0.15; 0: ellipses).
+    #[cfg_attr(feature = "cli", arg(long, default_value_t = 0.0))]
     pub irregular: f64,
-    /// Debris particles on the substrate.
+    /// Scatter this many debris particles on the substrate.
+    #[cfg_attr(feature = "cli", arg(long, default_value_t = 0))]
     pub debris: usize,
 }
 
 impl Default for Request {
-    /// The command line's defaults.
+    /// The command line's defaults (a test holds them to the flags').
     fn default() -> Self {
         Self {
             width: 640,
@@ -581,5 +645,22 @@ mod tests {
         assert_eq!(t[1].1.stage, 10.0);
         assert_eq!(t[1].1.seed, 2);
         assert!(t.iter().all(|(_, s)| s.target));
+    }
+
+    #[cfg(feature = "cli")]
+    #[test]
+    fn the_flags_defaults_are_the_requests() {
+        use clap::{Args, FromArgMatches};
+        let cmd = Request::augment_args(clap::Command::new("synth"));
+        let m = cmd.clone().try_get_matches_from(["synth"]).unwrap();
+        assert_eq!(Request::from_arg_matches(&m).unwrap(), Request::default());
+        let m = cmd
+            .try_get_matches_from(["synth", "--profile", "fried-egg", "--tilt", "-2,1"])
+            .unwrap();
+        let r = Request::from_arg_matches(&m).unwrap();
+        assert_eq!(
+            (r.profile, r.tilt),
+            (Profile::FriedEgg, Some(vec![-2.0, 1.0]))
+        );
     }
 }
