@@ -8,7 +8,6 @@
 //! write the same rectification (R1, R2, P1, P2) for others to use.
 
 use crate::error::CliError;
-use crate::reconstruct::UnitArg;
 use calibration::file::{CalibrationFile, LAYOUT, read_file, write_file};
 use calibration::stereo::{Rectification, StereoCalibration};
 use clap::{Args, Subcommand};
@@ -45,7 +44,7 @@ struct ImportArgs {
     camera_info: Option<Vec<PathBuf>>,
     /// Unit of the file's translation T (OpenCV's is the board's square unit).
     #[arg(long, value_enum)]
-    unit: UnitArg,
+    unit: schemas::LengthUnit,
     /// The calibration file to write.
     #[arg(short, long)]
     output: PathBuf,
@@ -105,7 +104,7 @@ fn import(a: ImportArgs) -> Result<(), CliError> {
         a.overwrite,
         "give -o another file",
     )?;
-    let file = CalibrationFile::imported(&cal, a.unit.unit())?;
+    let file = CalibrationFile::imported(&cal, a.unit)?;
     let from: Vec<String> = inputs.iter().map(|p| p.display().to_string()).collect();
     let comment = format!(
         "Imported by microstereo calibration import from {}.\n{LAYOUT}",
@@ -115,7 +114,7 @@ fn import(a: ImportArgs) -> Result<(), CliError> {
     runtime::outln!(
         "baseline {:.4} {}, rectified focal {:.2} px; written to {}",
         file.baseline,
-        a.unit.unit().symbol(),
+        a.unit.symbol(),
         file.focal_px.unwrap_or(f64::NAN),
         a.output.display()
     );

@@ -4,7 +4,6 @@
 //! the rectified geometry).
 
 use crate::error::CliError;
-use crate::reconstruct::UnitArg;
 use calibration::pairs::{BoardPairs, find_pairs};
 use clap::Args;
 use std::path::{Path, PathBuf};
@@ -24,7 +23,7 @@ pub struct CalibrateStereoArgs {
     pub square: f64,
     /// Unit of `--square`, and so of the baseline and every length triangulated later.
     #[arg(long, value_enum)]
-    pub unit: UnitArg,
+    pub unit: schemas::LengthUnit,
     /// Output directory: calibration.toml, report.json and corners/<NAME>.png.
     #[arg(short, long)]
     pub output: PathBuf,
@@ -101,7 +100,7 @@ pub fn calibrate_stereo_cmd(a: CalibrateStereoArgs) -> Result<(), CliError> {
     for (p, png) in fit.pairs.iter().zip(&pngs) {
         formats::write_color_png(png, &p.drawing())?;
     }
-    let unit = a.unit.unit();
+    let unit = a.unit;
     calibration::file::write_file(&outputs[0], &fit.file(unit), &fit.comment(&a.dir, unit))?;
     let report = serde_json::to_string_pretty(&fit.report(unit)).expect("json");
     formats::atomic::write_bytes(&outputs[1], report.as_bytes())?;

@@ -4,12 +4,12 @@
 use crate::error::CliError;
 use crate::segmentcmd::SegmentOpts;
 use calibration::file::CalibrationFile;
-use clap::{Args, ValueEnum};
+use clap::Args;
 use formats as io;
 use matcher::node::{MatchParams, Region};
 use matcher::{Mode, PaperParams, QualityParams, Weights};
 use pipelines::maps::{CellMaps, PairMaps, occlusion};
-use pipelines::range::{auto_range, candidate_ranges};
+use pipelines::range::{RangeKind, auto_range, candidate_ranges};
 use pipelines::report::{CellsReport, PairReport};
 use pipelines::stereo::Stereo;
 use postprocess::{Fill, PostParams};
@@ -20,66 +20,6 @@ use std::path::PathBuf;
 use std::time::Instant;
 use triangulate::geometry::Geometry;
 use validate::node::ValidateParams;
-
-#[derive(Clone, Copy, Debug, ValueEnum)]
-enum ModeArg {
-    Quality,
-    Paper,
-}
-
-#[derive(Clone, Copy, Debug, ValueEnum)]
-enum WeightsArg {
-    Equal,
-    Decreasing,
-}
-
-#[derive(Clone, Copy, Debug, ValueEnum)]
-enum FillArg {
-    Background,
-    Linear,
-    None,
-}
-
-#[derive(Clone, Copy, Debug, ValueEnum, PartialEq)]
-/// A length unit on the command line.
-pub enum UnitArg {
-    /// Micrometres (a microscope).
-    Um,
-    /// Millimetres (a bench rig, a printed board).
-    Mm,
-    /// Metres.
-    M,
-}
-
-impl UnitArg {
-    /// The unit it names.
-    pub fn unit(self) -> LengthUnit {
-        match self {
-            UnitArg::Um => LengthUnit::Um,
-            UnitArg::Mm => LengthUnit::Mm,
-            UnitArg::M => LengthUnit::M,
-        }
-    }
-}
-
-/// How the candidate ranges of `--auto-range` are built from the radii.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
-pub enum RangeKind {
-    /// `−r..r`: convergent microscope optics.
-    Symmetric,
-    /// `0..r`: parallel rigs.
-    Positive,
-}
-
-impl RangeKind {
-    /// The kind it names.
-    fn kind(self) -> pipelines::range::RangeKind {
-        match self {
-            RangeKind::Symmetric => pipelines::range::RangeKind::Symmetric,
-            RangeKind::Positive => pipelines::range::RangeKind::Positive,
-        }
-    }
-}
 
 /// Arguments of `microstereo reconstruct`.
 #[derive(Args, Debug)]
@@ -96,7 +36,7 @@ pub struct ReconstructArgs {
     overwrite: bool,
     /// Matcher: `quality` (semi-global) or `paper` (support value + NCC).
     #[arg(long, value_enum, default_value = "quality")]
-    mode: ModeArg,
+    mode: Mode,
     /// Smallest disparity searched (may be negative).
     #[arg(long, allow_hyphen_values = true, requires = "max_disparity")]
     min_disparity: Option<i32>,
@@ -122,7 +62,7 @@ pub struct ReconstructArgs {
     window: usize,
     /// Support-value weights (paper mode).
     #[arg(long, value_enum, default_value = "equal")]
-    weights: WeightsArg,
+    weights: Weights,
     /// Top-SV candidates passed to the NCC decision (paper mode).
     #[arg(long, default_value_t = PaperParams::default().candidates)]
     candidates: usize,
@@ -162,7 +102,7 @@ pub struct ReconstructArgs {
     median: usize,
     /// How invalid pixels are filled.
     #[arg(long, value_enum, default_value = "background")]
-    fill: FillArg,
+    fill: Fill,
     /// Baseline for triangulation (in `--unit`, which it requires).
     #[arg(
         long,
@@ -186,7 +126,7 @@ pub struct ReconstructArgs {
     /// Unit of `--baseline`, and so of every length written and printed (µm for a
     /// microscope: `um`). Required with `--baseline`: no unit is assumed.
     #[arg(long, value_enum, requires = "baseline")]
-    unit: Option<UnitArg>,
+    unit: Option<LengthUnit>,
     /// Calibration file (TOML or JSON): baseline, focal_px or f_eff + pixel_pitch, cx, cy,
     /// unit; with a `[stereo]` table (`calibrate-stereo` writes one) the pair is taken as
     /// raw and rectified first.
@@ -229,22 +169,12 @@ const FLAGS: &[(&str, &str)] = &[
 ];
 
 impl ReconstructArgs {
-    fn mode(&self) -> Mode {
-        match self.mode {
-            ModeArg::Quality => Mode::Quality,
-            ModeArg::Paper => Mode::Paper,
-        }
-    }
-
     /// The graph its flags describe over `range`.
     fn preset(&self, range: DisparityRange) -> Result<Stereo, CliError> {
-        let mode = self.mode();
+        let mode = self.mode;
         let matching = MatchParams {
             window: self.window,
-            weights: match self.weights {
-                WeightsArg::Equal => Weights::Equal,
-                WeightsArg::Decreasing => Weights::Decreasing,
-            },
+            weights: self.weights,
             candidates: self.candidates,
             uniqueness: self.uniqueness,
             ordering: self.ordering,
@@ -262,11 +192,7 @@ impl ReconstructArgs {
             post.min_region = m;
         }
         post.median_radius = self.median;
-        post.fill = match self.fill {
-            FillArg::Background => Fill::Background,
-            FillArg::Linear => Fill::Linear,
-            FillArg::None => Fill::None,
-        };
+        post.fill = self.fill;
         Ok(Stereo {
             left: self.left.clone(),
             right: self.right.clone(),
@@ -303,7 +229,7 @@ impl ReconstructArgs {
                 cx: self.cx,
                 cy: self.cy,
                 cx_right: self.cx_right.or(self.cx),
-                unit: self.unit.map(UnitArg::unit),
+                unit: self.unit,
                 stereo: None,
             })),
             _ => None,
@@ -400,7 +326,7 @@ pub fn reconstruct(a: ReconstructArgs) -> Result<(), CliError> {
         (Some(lo), Some(hi)) => (DisparityRange::new(lo, hi), None, None),
         _ if a.auto_range => {
             let (w, _) = size()?;
-            let ranges = candidate_ranges(a.range_kind.kind(), &a.range_radii, w);
+            let ranges = candidate_ranges(a.range_kind, &a.range_radii, w);
             if ranges.is_empty() {
                 return Err(CliError::Other(format!(
                     "--range-radii {:?} has no radius between 1 and the image width {w}",
@@ -485,7 +411,7 @@ pub fn reconstruct(a: ReconstructArgs) -> Result<(), CliError> {
     write_json(&o.join("report.json"), &report)?;
     runtime::outln!(
         "{:?} mode, range {}..{}: consistent {:.1} %, off by 1 {:.1} %, off by more {:.1} %; density after LR check {:.1} %",
-        a.mode(),
+        a.mode,
         range.min,
         range.max,
         100.0 * figures.consistent_exact,

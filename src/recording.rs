@@ -100,33 +100,16 @@ pub struct ReplayArgs {
 
 /// Runs a launch file's graph with recorded edges in place of the replaced nodes.
 pub fn replay(a: ReplayArgs) -> Result<(), CliError> {
-    recorder::node::Rate::parse(&a.rate).map_err(|e| CliError::Other(format!("--rate: {e}")))?;
-    if !(a.start >= 0.0 && a.start <= 1e9) {
-        return Err(CliError::Other(format!(
-            "--start {} is out of range: give 0 to 1e9 seconds into the recording",
-            a.start
-        )));
-    }
-    if let Some(d) = a.duration
-        && !(d > 0.0 && d <= 1e9)
-    {
-        return Err(CliError::Other(format!(
-            "--duration {d} is out of range: give above 0 to 1e9 seconds"
-        )));
-    }
+    let replay = pipelines::recording::Replay {
+        replace: a.replace.clone(),
+        rate: a.rate.clone(),
+        looped: a.looped,
+        window: (a.start, a.duration),
+    };
+    replay.check()?;
     let o = usable(&a.file)?;
     a.out.check()?;
-    let mut graph = pipelines::recording::replay_graph(
-        &a.file,
-        &o,
-        a.launch.as_deref(),
-        &pipelines::recording::Replay {
-            replace: a.replace.clone(),
-            rate: a.rate.clone(),
-            looped: a.looped,
-            window: (a.start, a.duration),
-        },
-    )?;
+    let mut graph = pipelines::recording::replay_graph(&a.file, &o, a.launch.as_deref(), &replay)?;
     a.out.apply(&mut graph)?;
     // A window of the recording ends with its last frame (the nodes take the end of the
     // stream from the source).
@@ -163,29 +146,8 @@ pub fn test_node_cmd(a: TestNodeArgs) -> Result<(), CliError> {
         )));
     }
     let c = pipelines::recording::test_node(&a.file, a.launch.as_deref(), &a.node, a.tolerance)?;
-    runtime::outln!(
-        "{}: {} frame(s) stepped on recorded inputs{}",
-        c.node,
-        c.frames,
-        if c.incomplete > 0 {
-            format!(", {} recorded only in part (skipped)", c.incomplete)
-        } else {
-            String::new()
-        }
-    );
-    for o in &c.outputs {
-        runtime::outln!(
-            "  {:<28} {:>4} compared {:>4} identical {:>4} within ±{}  max diff {}{}",
-            o.edge,
-            o.compared,
-            o.identical,
-            o.within_tolerance,
-            a.tolerance,
-            o.max_diff,
-            o.first_difference
-                .as_ref()
-                .map_or(String::new(), |d| format!("  first: {d}"))
-        );
+    for line in c.lines(a.tolerance) {
+        runtime::outln!("{line}");
     }
     if c.passed() {
         runtime::outln!("PASS");

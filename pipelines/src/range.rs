@@ -7,6 +7,7 @@ use serde::Serialize;
 
 /// How the candidate ranges are built from radii.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 pub enum RangeKind {
     /// `−r..r`: convergent microscope optics.
     Symmetric,

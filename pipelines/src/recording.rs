@@ -75,6 +75,28 @@ pub struct Replay {
     pub window: (f64, Option<f64>),
 }
 
+impl Replay {
+    /// Checks the rate and the window before anything is read.
+    pub fn check(&self) -> Result<(), Error> {
+        recorder::node::Rate::parse(&self.rate)
+            .map_err(|e| Error::Options(format!("--rate: {e}")))?;
+        let (start, duration) = self.window;
+        if !(0.0..=1e9).contains(&start) {
+            return Err(Error::Options(format!(
+                "--start {start} is out of range: give 0 to 1e9 seconds into the recording"
+            )));
+        }
+        if let Some(d) = duration
+            && !(d > 0.0 && d <= 1e9)
+        {
+            return Err(Error::Options(format!(
+                "--duration {d} is out of range: give above 0 to 1e9 seconds"
+            )));
+        }
+        Ok(())
+    }
+}
+
 /// The graph a replay of `file` (overview `o`) runs: `launch`, or the one the recording
 /// holds, with the replaced nodes turned into sources of what they recorded.
 pub fn replay_graph(

@@ -50,6 +50,32 @@ impl NodeCheck {
                 o.compared == self.frames && o.identical + o.within_tolerance == o.compared
             })
     }
+
+    /// The report `test-node` prints: the frames, then one line per output.
+    pub fn lines(&self, tolerance: f32) -> Vec<String> {
+        let part = match self.incomplete {
+            0 => String::new(),
+            n => format!(", {n} recorded only in part (skipped)"),
+        };
+        let mut out = vec![format!(
+            "{}: {} frame(s) stepped on recorded inputs{part}",
+            self.node, self.frames
+        )];
+        out.extend(self.outputs.iter().map(|o| {
+            format!(
+                "  {:<28} {:>4} compared {:>4} identical {:>4} within ±{tolerance}  max diff {}{}",
+                o.edge,
+                o.compared,
+                o.identical,
+                o.within_tolerance,
+                o.max_diff,
+                o.first_difference
+                    .as_ref()
+                    .map_or(String::new(), |d| format!("  first: {d}"))
+            )
+        }));
+        out
+    }
 }
 
 /// Edges as `(NODE/OUTPUT, message)`.

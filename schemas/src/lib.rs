@@ -135,6 +135,7 @@ impl DisparityRange {
 /// Length unit of a calibration and of everything triangulated with it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "lowercase")]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 pub enum LengthUnit {
     /// Micrometres: microscope scenes.
     #[serde(alias = "µm", alias = "micrometre", alias = "micrometer")]

@@ -33,6 +33,7 @@ use serde::{Deserialize, Serialize};
 /// Which matcher to run.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "lowercase")]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 pub enum Mode {
     /// Semi-global census matcher (default).
     #[default]

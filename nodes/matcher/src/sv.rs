@@ -21,6 +21,7 @@ pub const MAX_WINDOW: usize = 31;
 /// Weight matrix W(i, j) of the support value.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "lowercase")]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 pub enum Weights {
     /// Every position weighs 1.
     #[default]

@@ -21,6 +21,7 @@ use serde::{Deserialize, Serialize};
 /// How invalid pixels are filled.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "lowercase")]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 pub enum Fill {
     /// The smaller disparity of the two nearest valid neighbours.
     #[default]
