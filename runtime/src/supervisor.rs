@@ -521,150 +521,282 @@ async fn supervise(
     file: &std::path::Path,
     instance: &str,
 ) -> Supervised {
-    let stats: StatsSink = Default::default();
     let start = Instant::now();
-    let states: States = Default::default();
-    let monitor = Monitor::start(graph, instance, a, stats.clone(), states.clone());
+    let mut s = Supervisor::new(graph, a, file, instance);
+    let monitor = Monitor::start(graph, instance, a, s.stats.clone(), s.states.clone());
     // A control file left by an earlier run of this instance would hold its sources.
     for n in graph.nodes.iter().filter(|n| n.inputs.is_empty()) {
         let _ = std::fs::remove_file(crate::process::control_path(instance, &n.id));
     }
     let control_files = control_from_terminal(&a.controls, instance);
-    let tap: LogTap = graph.nodes.iter().find(|n| n.logs).map(|_| {
+    s.tap = graph.nodes.iter().find(|n| n.logs).map(|_| {
         let (tx, rx) = tokio::sync::mpsc::unbounded_channel();
         *VIEWER_LOGS.lock().expect("logs") = Some(rx);
         tx
     });
-    let mut children = Vec::new();
-    let here = |n: &crate::launch::NodeSpec| a.host.is_none() || n.host == a.host;
-    // The parts on other hosts that read this one's edges: it stops once they ended.
-    let mut readers_elsewhere = RemoteParts::of(graph, instance, a.host.as_deref());
-    let mut failure: Option<String> = None;
-    // Set once the graph is told to stop: when its grace runs out, whatever still runs is
-    // killed.
-    let mut stopping: Option<Instant> = None;
-    // Whether a process of the run died by a signal (its shared memory is then removed at
-    // the end), and whether the stop's grace ran out (the rest were killed).
-    let mut killed = false;
-    let mut grace_over = false;
-    // Report readers of ended processes that were still reading when they were last awaited.
-    let mut unread: Vec<tokio::task::JoinHandle<()>> = Vec::new();
-    for n in graph.nodes.iter().filter(|n| here(n)) {
-        // A stop while the nodes start: the rest are not started.
-        if crate::signals::stop_requested() {
-            break;
+    s.start_nodes();
+    if s.failure.is_some() || crate::signals::stop_requested() {
+        s.stop();
+    }
+    while !s.children.is_empty() {
+        s.look_at_signals();
+        // Every node nobody reads is done: the ones they read may go.
+        if s.stopping.is_none()
+            && s.children.iter().all(|c| graph.is_read(&c.id))
+            && s.readers_elsewhere.all_ended()
+        {
+            s.stop();
         }
-        let mut proc = match spawn(graph, a, file, instance, &n.id, 0, None) {
-            Ok(p) => p,
-            Err(e) => {
-                failure = Some(e);
+        s.kill_when_grace_is_over();
+        match s.next_event().await {
+            Event::Exit(i, status) => s.exited(i, status).await,
+            Event::Tick => s.watch(),
+        }
+    }
+    // The last reports still in their pipes (bounded, as in `exited`), and a moment for
+    // the log forwarders to flush the last lines.
+    let _ = tokio::time::timeout(Duration::from_secs(2), futures_all(s.unread.iter_mut())).await;
+    tokio::time::sleep(Duration::from_millis(50)).await;
+    let wall = start.elapsed();
+    monitor.stop();
+    for f in control_files {
+        let _ = std::fs::remove_file(f);
+    }
+    let stats = s
+        .stats
+        .lock()
+        .expect("stats")
+        .iter()
+        .filter_map(|(id, runs)| {
+            let runs: Vec<NodeStats> = runs.iter().flatten().map(|h| h.stats.clone()).collect();
+            Some((id.clone(), crate::stats::merge(&runs)?))
+        })
+        .collect();
+    (stats, wall, s.failure, s.killed)
+}
+
+/// A run's processes while they run: started, watched, restarted by their policy, and
+/// stopped (SIGTERM, then SIGKILL once the grace is over).
+struct Supervisor<'a> {
+    graph: &'a Graph,
+    a: &'a RunOptions,
+    file: &'a std::path::Path,
+    instance: &'a str,
+    /// Each node's reports, per run of it.
+    stats: StatsSink,
+    /// Each node's state for the status block.
+    states: States,
+    /// Where node log lines go besides the terminal.
+    tap: LogTap,
+    /// The processes running now.
+    children: Vec<Child>,
+    /// The parts on other hosts that read this one's edges: it stops once they ended.
+    readers_elsewhere: RemoteParts,
+    /// Why the run ends early.
+    failure: Option<String>,
+    /// Set once the graph is told to stop: when its grace runs out, whatever still runs is
+    /// killed.
+    stopping: Option<Instant>,
+    grace: Duration,
+    /// Whether a process of the run died by a signal (its shared memory is then removed at
+    /// the end).
+    killed: bool,
+    /// Whether the stop's grace ran out (the rest were killed).
+    grace_over: bool,
+    /// Report readers of ended processes that were still reading when they were last
+    /// awaited.
+    unread: Vec<tokio::task::JoinHandle<()>>,
+    /// Restarts so far in this run: a restarted node's markers carry the count.
+    generation: u64,
+    /// Signals already acted on (a second one means: now).
+    signals_seen: usize,
+}
+
+impl<'a> Supervisor<'a> {
+    fn new(
+        graph: &'a Graph,
+        a: &'a RunOptions,
+        file: &'a std::path::Path,
+        instance: &'a str,
+    ) -> Self {
+        Self {
+            graph,
+            a,
+            file,
+            instance,
+            stats: Default::default(),
+            states: Default::default(),
+            tap: None,
+            children: Vec::new(),
+            readers_elsewhere: RemoteParts::of(graph, instance, a.host.as_deref()),
+            failure: None,
+            stopping: None,
+            grace: Duration::try_from_secs_f64(a.grace).unwrap_or(Duration::ZERO),
+            killed: false,
+            grace_over: false,
+            unread: Vec::new(),
+            generation: 0,
+            signals_seen: 0,
+        }
+    }
+
+    /// Starts this host's nodes in the graph's order; a stop or a failure to start leaves
+    /// the rest unstarted.
+    fn start_nodes(&mut self) {
+        let a = self.a;
+        for n in self
+            .graph
+            .nodes
+            .iter()
+            .filter(|n| a.host.is_none() || n.host == a.host)
+        {
+            if crate::signals::stop_requested() {
                 break;
             }
-        };
-        set_state(&states, &n.id, NodeState::Starting, 0, proc.id());
-        let reports = forward_logs(&n.id, 0, n.logs, &mut proc, &stats, &tap);
-        children.push(Child {
-            id: n.id.clone(),
+            if let Err(e) = self.start(&n.id, 0, 0, None) {
+                self.failure = Some(e);
+                break;
+            }
+        }
+    }
+
+    /// Starts node `id` for its run number `restarts` (a source from `first_frame`).
+    fn start(
+        &mut self,
+        id: &str,
+        restarts: u32,
+        streak: u32,
+        first_frame: Option<u64>,
+    ) -> Result<(), String> {
+        let (g, a) = (self.graph, self.a);
+        let mut proc = spawn(
+            g,
+            a,
+            self.file,
+            self.instance,
+            id,
+            self.generation,
+            first_frame,
+        )?;
+        set_state(&self.states, id, NodeState::Starting, restarts, proc.id());
+        let logs = g.node(id).expect("validated").logs;
+        let run = restarts as usize;
+        let reports = forward_logs(id, run, logs, &mut proc, &self.stats, &self.tap);
+        self.children.push(Child {
+            id: id.to_string(),
             proc,
-            restarts: 0,
-            streak: 0,
+            restarts,
+            streak,
             hung: None,
             reports,
         });
+        Ok(())
     }
-    let grace = Duration::try_from_secs_f64(a.grace).unwrap_or(Duration::ZERO);
-    let stop = |children: &[Child], stopping: &mut Option<Instant>| {
-        if stopping.is_none() {
-            *stopping = Some(Instant::now());
-            terminate(children);
+
+    /// Tells every node to stop (once): SIGTERM now, SIGKILL when the grace is over.
+    fn stop(&mut self) {
+        if self.stopping.is_none() {
+            self.stopping = Some(Instant::now());
+            terminate(&self.children);
         }
-    };
-    if failure.is_some() || crate::signals::stop_requested() {
-        stop(&children, &mut stopping);
     }
-    // Restarts so far in this run: a restarted node's markers carry the count.
-    let mut generation = 0u64;
-    // Signals already acted on (a second one means: now).
-    let mut signals_seen = 0;
-    loop {
-        if children.is_empty() {
-            break;
-        }
+
+    fn kill_all(&mut self) {
+        kill_all(&mut self.children);
+        self.killed = true;
+        self.grace_over = true;
+    }
+
+    /// A signal stops the graph; a second one kills what is left.
+    fn look_at_signals(&mut self) {
         let signals = crate::signals::signal_count();
-        if signals > signals_seen || (signals_seen == 0 && crate::signals::stop_requested()) {
-            if stopping.is_none() {
+        if signals > self.signals_seen
+            || (self.signals_seen == 0 && crate::signals::stop_requested())
+        {
+            if self.stopping.is_none() {
                 above_progress(|| crate::errln!("stopping the graph"));
-            } else if signals_seen > 0 {
+            } else if self.signals_seen > 0 {
                 above_progress(|| crate::errln!("stopping now: the nodes left are killed"));
-                kill_all(&mut children);
-                killed = true;
-                grace_over = true;
+                self.kill_all();
             }
-            signals_seen = signals.max(1);
-            stop(&children, &mut stopping);
+            self.signals_seen = signals.max(1);
+            self.stop();
         }
-        // Every node nobody reads is done: the ones they read may go.
-        if stopping.is_none()
-            && children.iter().all(|c| graph.is_read(&c.id))
-            && readers_elsewhere.all_ended()
+    }
+
+    fn kill_when_grace_is_over(&mut self) {
+        if let Some(t) = self.stopping
+            && t.elapsed() >= self.grace
+            && !self.grace_over
         {
-            stop(&children, &mut stopping);
+            self.kill_all();
         }
-        if let Some(t) = stopping
-            && t.elapsed() >= grace
-            && !grace_over
-        {
-            kill_all(&mut children);
-            killed = true;
-            grace_over = true;
-        }
-        let watched = stopping.is_none()
-            && (graph.nodes.iter().any(|n| n.restart.heartbeat_ms.is_some())
-                || !readers_elsewhere.is_empty());
+    }
+
+    /// Whether the nodes' reports and the other hosts are watched while the graph runs.
+    fn watched(&self) -> bool {
+        self.stopping.is_none()
+            && (self
+                .graph
+                .nodes
+                .iter()
+                .any(|n| n.restart.heartbeat_ms.is_some())
+                || !self.readers_elsewhere.is_empty())
+    }
+
+    /// The next process to exit, or a tick to look at the stop flag and the watchdog.
+    async fn next_event(&mut self) -> Event {
         // The stop flag is a signal handler's: it is looked at this often.
-        let tick = if watched { WATCH_TICK } else { SIGNAL_TICK };
-        let event = {
-            let waits = children
-                .iter_mut()
-                .enumerate()
-                .map(|(i, c)| Box::pin(async move { (i, c.proc.wait().await) }));
-            tokio::select! {
-                biased;
-                (r, _, _) = futures_select(waits) => Event::Exit(r.0, r.1),
-                _ = tokio::time::sleep(tick.min(SIGNAL_TICK)) => Event::Tick,
-            }
+        let tick = if self.watched() {
+            WATCH_TICK
+        } else {
+            SIGNAL_TICK
         };
-        let (i, status) = match event {
-            Event::Exit(i, status) => (i, status),
-            Event::Tick => {
-                if stopping.is_none() && watched {
-                    watch(graph, &stats, &mut children);
-                    if let Some(why) = readers_elsewhere.look() {
-                        failure = Some(why);
-                        stop(&children, &mut stopping);
-                    }
-                }
-                continue;
-            }
-        };
-        let mut c = children.remove(i);
+        let waits = self
+            .children
+            .iter_mut()
+            .enumerate()
+            .map(|(i, c)| Box::pin(async move { (i, c.proc.wait().await) }));
+        tokio::select! {
+            biased;
+            (r, _, _) = futures_select(waits) => Event::Exit(r.0, r.1),
+            _ = tokio::time::sleep(tick.min(SIGNAL_TICK)) => Event::Tick,
+        }
+    }
+
+    /// The watchdog's look at the nodes' last reports, and at the other hosts' parts.
+    fn watch(&mut self) {
+        if !self.watched() {
+            return;
+        }
+        watch(self.graph, &self.stats, &mut self.children);
+        if let Some(why) = self.readers_elsewhere.look() {
+            self.failure = Some(why);
+            self.stop();
+        }
+    }
+
+    /// Child `i` exited with `status`: restarted by its policy, or the graph stopped when
+    /// it failed.
+    async fn exited(&mut self, i: usize, status: std::io::Result<std::process::ExitStatus>) {
+        let mut c = self.children.remove(i);
         let status = match status {
             Ok(s) => s,
             Err(e) => {
                 // It cannot be waited for: killed, so that nothing outlives the run.
                 let _ = c.proc.start_kill();
-                killed = true;
-                if stopping.is_none() {
-                    failure = Some(format!("waiting for node '{}': {e}", c.id));
-                    stop(&children, &mut stopping);
+                self.killed = true;
+                if self.stopping.is_none() {
+                    self.failure = Some(format!("waiting for node '{}': {e}", c.id));
+                    self.stop();
                 }
-                continue;
+                return;
             }
         };
         // Killed by a signal (SIGKILL after its grace, the watchdog, anyone): whatever it
         // had made stays until removed.
         if std::os::unix::process::ExitStatusExt::signal(&status).is_some() {
-            killed = true;
+            self.killed = true;
         }
         // Its last reports may still be in the pipe (the reader task runs beside this one,
         // and lags under load): a restarted source would otherwise go on from a frame
@@ -672,20 +804,20 @@ async fn supervise(
         // something the node started keeps the pipe open; briefly once the graph stops
         // (no restart needs it, and the others' grace runs meanwhile).
         if let Some(mut r) = c.reports.take() {
-            let wait = if stopping.is_some() {
+            let wait = if self.stopping.is_some() {
                 Duration::from_millis(300)
             } else {
                 Duration::from_secs(2)
             };
             if tokio::time::timeout(wait, &mut r).await.is_err() {
-                unread.push(r);
+                self.unread.push(r);
             }
         }
-        let spec = graph.node(&c.id).expect("validated");
+        let spec = self.graph.node(&c.id).expect("validated");
         // A node others read never ends on its own before the graph stops: one that did
         // was stopped from outside (a SIGTERM it obeyed), and its readers would wait for
         // its frames for ever. It counts as failed.
-        let ended_early = stopping.is_none() && status.success() && graph.is_read(&c.id);
+        let ended_early = self.stopping.is_none() && status.success() && self.graph.is_read(&c.id);
         let failed = !status.success() || ended_early || c.hung.is_some();
         let why = if let Some(h) = c.hung {
             format!(
@@ -697,7 +829,7 @@ async fn supervise(
         } else {
             format!("{status}")
         };
-        let restart = stopping.is_none()
+        let restart = self.stopping.is_none()
             && match spec.restart.policy {
                 RestartPolicy::Never => false,
                 RestartPolicy::OnFailure => failed,
@@ -705,134 +837,106 @@ async fn supervise(
             }
             && c.restarts < spec.restart.max;
         if restart {
-            // The back-off doubles while the node fails without handling a frame (a crash
-            // loop); one that handled frames since its start comes back after the base
-            // back-off, however often it was restarted before: 20 kills spread over a run
-            // doubled it to 6.4 s by the eighth, and the source finished meanwhile.
-            let progressed = stats
-                .lock()
-                .expect("stats")
-                .get(&c.id)
-                .and_then(|runs| runs.get(c.restarts as usize))
-                .and_then(Option::as_ref)
-                .is_some_and(|h| h.stats.frames_in > 0);
-            let exponent = if progressed { 0 } else { c.streak };
-            let wait = Duration::from_millis(
-                spec.restart
-                    .backoff_ms
-                    .saturating_mul(1 << exponent.min(10)),
-            );
-            above_progress(|| {
-                crate::errln!(
-                    "[{}] exited ({why}); restart {} of {} in {:?}",
-                    c.id,
-                    c.restarts + 1,
-                    spec.restart.max,
-                    wait
-                )
-            });
-            set_state(&states, &c.id, NodeState::Restarting, c.restarts + 1, None);
-            if failed {
-                // A node that died holds its places on its edges (a full queue of a dead
-                // reader blocks a lossless writer): free them at once, so that its writers
-                // go on while it is down.
-                let stale = tokio::task::spawn_blocking(crate::process::remove_stale_resources)
-                    .await
-                    .unwrap_or_default();
-                if stale.gave_up {
-                    above_progress(|| {
-                        crate::errln!("[{}] warning: its shared memory could not be removed", c.id)
-                    });
-                }
+            self.restart(c, failed, &why).await;
+        } else {
+            let failed_now = failed && self.stopping.is_none();
+            let state = if failed_now {
+                NodeState::Failed
+            } else {
+                NodeState::Exited
+            };
+            set_state(&self.states, &c.id, state, c.restarts, None);
+            if failed_now {
+                self.failure = Some(format!("node '{}' failed ({why})", c.id));
+                self.stop();
             }
-            // The back-off is cut short by a stop.
-            let until = Instant::now() + wait;
-            while Instant::now() < until && !crate::signals::stop_requested() {
-                tokio::time::sleep(SIGNAL_TICK.min(until - Instant::now())).await;
+        }
+    }
+
+    /// Starts the ended child `c` again after its back-off (cut short by a stop).
+    async fn restart(&mut self, c: Child, failed: bool, why: &str) {
+        let spec = self.graph.node(&c.id).expect("validated");
+        // The back-off doubles while the node fails without handling a frame (a crash
+        // loop); one that handled frames since its start comes back after the base
+        // back-off, however often it was restarted before: 20 kills spread over a run
+        // doubled it to 6.4 s by the eighth, and the source finished meanwhile.
+        let progressed = self
+            .stats
+            .lock()
+            .expect("stats")
+            .get(&c.id)
+            .and_then(|runs| runs.get(c.restarts as usize))
+            .and_then(Option::as_ref)
+            .is_some_and(|h| h.stats.frames_in > 0);
+        let exponent = if progressed { 0 } else { c.streak };
+        let wait = Duration::from_millis(
+            spec.restart
+                .backoff_ms
+                .saturating_mul(1 << exponent.min(10)),
+        );
+        above_progress(|| {
+            crate::errln!(
+                "[{}] exited ({why}); restart {} of {} in {:?}",
+                c.id,
+                c.restarts + 1,
+                spec.restart.max,
+                wait
+            )
+        });
+        set_state(
+            &self.states,
+            &c.id,
+            NodeState::Restarting,
+            c.restarts + 1,
+            None,
+        );
+        if failed {
+            // A node that died holds its places on its edges (a full queue of a dead
+            // reader blocks a lossless writer): free them at once, so that its writers
+            // go on while it is down.
+            let stale = tokio::task::spawn_blocking(crate::process::remove_stale_resources)
+                .await
+                .unwrap_or_default();
+            if stale.gave_up {
+                above_progress(|| {
+                    crate::errln!("[{}] warning: its shared memory could not be removed", c.id)
+                });
             }
-            if crate::signals::stop_requested() {
-                set_state(&states, &c.id, NodeState::Exited, c.restarts, None);
-                continue;
-            }
-            generation += 1;
-            // A source goes on from the frame after the last its predecessors reported.
-            let first_frame = spec
-                .inputs
-                .is_empty()
-                .then(|| {
-                    stats.lock().expect("stats").get(&c.id).and_then(|runs| {
+        }
+        // The back-off is cut short by a stop.
+        let until = Instant::now() + wait;
+        while Instant::now() < until && !crate::signals::stop_requested() {
+            tokio::time::sleep(SIGNAL_TICK.min(until - Instant::now())).await;
+        }
+        if crate::signals::stop_requested() {
+            set_state(&self.states, &c.id, NodeState::Exited, c.restarts, None);
+            return;
+        }
+        self.generation += 1;
+        // A source goes on from the frame after the last its predecessors reported.
+        let first_frame = spec
+            .inputs
+            .is_empty()
+            .then(|| {
+                self.stats
+                    .lock()
+                    .expect("stats")
+                    .get(&c.id)
+                    .and_then(|runs| {
                         runs.iter()
                             .flatten()
                             .filter_map(|h| h.stats.last_frame)
                             .max()
                     })
-                })
-                .flatten()
-                .map(|l| l + 1);
-            let mut proc = match spawn(graph, a, file, instance, &c.id, generation, first_frame) {
-                Ok(p) => p,
-                Err(e) => {
-                    set_state(&states, &c.id, NodeState::Failed, c.restarts, None);
-                    failure = Some(e);
-                    stop(&children, &mut stopping);
-                    continue;
-                }
-            };
-            set_state(
-                &states,
-                &c.id,
-                NodeState::Starting,
-                c.restarts + 1,
-                proc.id(),
-            );
-            let reports = forward_logs(
-                &c.id,
-                c.restarts as usize + 1,
-                spec.logs,
-                &mut proc,
-                &stats,
-                &tap,
-            );
-            children.push(Child {
-                id: c.id,
-                proc,
-                restarts: c.restarts + 1,
-                streak: exponent + 1,
-                hung: None,
-                reports,
-            });
-        } else {
-            let state = if failed && stopping.is_none() {
-                NodeState::Failed
-            } else {
-                NodeState::Exited
-            };
-            set_state(&states, &c.id, state, c.restarts, None);
-            if failed && stopping.is_none() {
-                failure = Some(format!("node '{}' failed ({why})", c.id));
-                stop(&children, &mut stopping);
-            }
+            })
+            .flatten()
+            .map(|l| l + 1);
+        if let Err(e) = self.start(&c.id, c.restarts + 1, exponent + 1, first_frame) {
+            set_state(&self.states, &c.id, NodeState::Failed, c.restarts, None);
+            self.failure = Some(e);
+            self.stop();
         }
     }
-    // The last reports still in their pipes (bounded, as above), and a moment for the log
-    // forwarders to flush the last lines.
-    let _ = tokio::time::timeout(Duration::from_secs(2), futures_all(unread.iter_mut())).await;
-    tokio::time::sleep(Duration::from_millis(50)).await;
-    let wall = start.elapsed();
-    monitor.stop();
-    for f in control_files {
-        let _ = std::fs::remove_file(f);
-    }
-    let stats = stats
-        .lock()
-        .expect("stats")
-        .iter()
-        .filter_map(|(id, runs)| {
-            let runs: Vec<NodeStats> = runs.iter().flatten().map(|h| h.stats.clone()).collect();
-            Some((id.clone(), crate::stats::merge(&runs)?))
-        })
-        .collect();
-    (stats, wall, failure, killed)
 }
 
 /// How often the supervisor looks at the stop flag its signal handler raises.
