@@ -127,54 +127,7 @@ impl Drop for InstanceLock {
 pub fn run(graph: &Graph, o: &RunOptions) -> Result<RunReport, String> {
     // Before anything is made that a signal's default action would leave behind.
     crate::signals::install();
-    // A part runs its host's nodes and the taps added for it (recorder, viewer).
-    let mut graph = graph.clone();
-    if o.host.is_none() {
-        // The whole graph here: one host, whatever the file says.
-        for n in &mut graph.nodes {
-            n.host = None;
-        }
-    }
-    if let Some(h) = &o.host {
-        if !graph.hosts.contains_key(h) {
-            return Err(format!(
-                "--host {h}: the launch file declares no such host; its hosts: {}",
-                if graph.hosts.is_empty() {
-                    "none (add [hosts.NAME] tables and a host per node)".to_string()
-                } else {
-                    graph.hosts.keys().cloned().collect::<Vec<_>>().join(", ")
-                }
-            ));
-        }
-        for n in &mut graph.nodes {
-            n.host.get_or_insert_with(|| h.clone());
-        }
-        // A tap here records what reaches this host: its nodes' outputs and the edges its
-        // nodes read from other hosts (the others are recorded on their own host).
-        let on_host = |g: &Graph, node: &str, output: &str| {
-            g.host_of(node) == Some(h.as_str())
-                || g.nodes.iter().any(|m| {
-                    !m.tap
-                        && m.host.as_deref() == Some(h.as_str())
-                        && m.inputs
-                            .iter()
-                            .any(|i| i.node == node && i.output == output)
-                })
-        };
-        let snapshot = graph.clone();
-        for n in graph.nodes.iter_mut().filter(|n| n.tap) {
-            let before = n.inputs.len();
-            n.inputs.retain(|i| on_host(&snapshot, &i.node, &i.output));
-            if n.inputs.len() < before {
-                crate::errln!(
-                    "{}: {} edge(s) written and read only on other hosts are left out here (record them on their host)",
-                    n.id,
-                    before - n.inputs.len()
-                );
-            }
-        }
-    }
-    let graph = &graph;
+    let graph = &part_of(graph, o.host.as_deref())?;
     let stale = crate::process::remove_stale_resources();
     if stale.removed > 0 || stale.empty_files > 0 {
         crate::errln!(
@@ -255,6 +208,58 @@ pub fn run(graph: &Graph, o: &RunOptions) -> Result<RunReport, String> {
         failure,
         signal: crate::signals::first_signal(),
     })
+}
+
+/// The part of `graph` this host runs: its nodes and the taps added for it (recorder,
+/// viewer), each tap reading what reaches this host; without a host, the whole graph.
+fn part_of(graph: &Graph, host: Option<&str>) -> Result<Graph, String> {
+    let mut graph = graph.clone();
+    if host.is_none() {
+        // The whole graph here: one host, whatever the file says.
+        for n in &mut graph.nodes {
+            n.host = None;
+        }
+    }
+    if let Some(h) = host {
+        if !graph.hosts.contains_key(h) {
+            return Err(format!(
+                "--host {h}: the launch file declares no such host; its hosts: {}",
+                if graph.hosts.is_empty() {
+                    "none (add [hosts.NAME] tables and a host per node)".to_string()
+                } else {
+                    graph.hosts.keys().cloned().collect::<Vec<_>>().join(", ")
+                }
+            ));
+        }
+        for n in &mut graph.nodes {
+            n.host.get_or_insert_with(|| h.to_string());
+        }
+        // A tap here records what reaches this host: its nodes' outputs and the edges its
+        // nodes read from other hosts (the others are recorded on their own host).
+        let on_host = |g: &Graph, node: &str, output: &str| {
+            g.host_of(node) == Some(h)
+                || g.nodes.iter().any(|m| {
+                    !m.tap
+                        && m.host.as_deref() == Some(h)
+                        && m.inputs
+                            .iter()
+                            .any(|i| i.node == node && i.output == output)
+                })
+        };
+        let snapshot = graph.clone();
+        for n in graph.nodes.iter_mut().filter(|n| n.tap) {
+            let before = n.inputs.len();
+            n.inputs.retain(|i| on_host(&snapshot, &i.node, &i.output));
+            if n.inputs.len() < before {
+                crate::errln!(
+                    "{}: {} edge(s) written and read only on other hosts are left out here (record them on their host)",
+                    n.id,
+                    before - n.inputs.len()
+                );
+            }
+        }
+    }
+    Ok(graph)
 }
 
 /// Removes what a dead run of `instance` left behind: edges iceoryx2 never finished making
