@@ -112,6 +112,52 @@ fn cones_quality_mode_beats_sgbm() {
     assert!(four != eight, "--paths 8 should change the result");
 }
 
+/// Offered radii 1..16, auto-range picks a range that holds the scene's disparities (±R)
+/// and at most ±2R, in both modes: on fronto-parallel layers and on a microscope's cells on
+/// a tilted substrate (continuous disparities). A match the range only clamped at its end
+/// is not evidence, or the narrowest range would win.
+#[test]
+fn auto_range_holds_the_scene_and_at_most_twice_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut scenes = Vec::new();
+    // Layers at −6, −2, 2, 6 px (R = 6) and at −3, −1, 1, 3 px (R = 3).
+    for (base, step, seed) in [(-6, 4, 3), (-3, 2, 4)] {
+        let s = standard_scene(320, 240, base, step, seed);
+        scenes.push((s.left, s.right, (base + 3 * step).max(-base) as f32));
+    }
+    let cells = synth::request::Request {
+        width: 320,
+        height: 240,
+        cells: 4,
+        seed: 5,
+        tilt: Some(vec![5.0, -2.0]),
+        substrate_disparity: Some(-3.0),
+        substrate_texture: Some(synth::request::SubstrateTexture::Strong),
+        ..Default::default()
+    };
+    let (scene, _) = cells.setup(synth::Texture::Noise).unwrap().cells().unwrap();
+    let r = scene.render();
+    let (lo, hi) = r.disparity_range();
+    scenes.push((r.left, r.right, lo.abs().max(hi.abs())));
+    let radii = [1, 2, 3, 4, 5, 6, 8, 10, 12, 16];
+    for (i, (l, r, reach)) in scenes.iter().enumerate() {
+        let (l, r) = (
+            save(dir.path(), &format!("l{i}.png"), l),
+            save(dir.path(), &format!("r{i}.png"), r),
+        );
+        let ranges = candidate_ranges(RangeKind::Symmetric, &radii, 320);
+        for mode in [Mode::Quality, Mode::Paper] {
+            let base = preset(l.clone(), r.clone(), mode, ranges[0]);
+            let (best, curve) = auto_range(&base, &ranges).unwrap();
+            let picked = best.max as f32;
+            assert!(
+                picked >= *reach && picked <= 2.0 * reach.ceil(),
+                "scene {i} (±{reach:.2} px), {mode:?}: picked ±{picked}; curve {curve:?}"
+            );
+        }
+    }
+}
+
 #[test]
 fn auto_range_picks_the_narrowest_range_that_covers_the_scene() {
     // True disparities −3..9: ±4 and ±8 miss the nearest layer, ±12 covers everything.

@@ -31,7 +31,9 @@ pub fn candidate_ranges(kind: RangeKind, rs: &[u32], width: usize) -> Vec<Dispar
 pub struct RangeScore {
     /// The range tried.
     pub range: DisparityRange,
-    /// Consistent left pixels (within the LR tolerance) over all pixels with a candidate.
+    /// Consistent left pixels (within the LR tolerance) inside the range, not within half a
+    /// pixel of its ends (where a match beyond it is clamped), over all pixels with a
+    /// candidate.
     pub consistency_ratio: f64,
 }
 

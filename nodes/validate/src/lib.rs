@@ -280,16 +280,23 @@ pub fn validation_figures(
 }
 
 /// The paper's score for a disparity range (its Fig. 12): the left pixels the LR check
-/// kept, over the pixels that have a candidate at all in `range` (the right pixel `x − d`
-/// exists for some `d`).
+/// kept inside the range, over the pixels that have a candidate at all in `range` (the
+/// right pixel `x − d` exists for some `d`). A match within half a pixel of either end of
+/// the range is not evidence: a disparity beyond the range is clamped there, and both views
+/// clamp alike, so it passes the LR check; counted, the narrowest range would always win.
 pub fn consistency_ratio(checked_left: &DisparityMap, range: schemas::DisparityRange) -> f64 {
     let w = checked_left.width as i64;
     let cols = (0..w)
         .filter(|&x| (range.min as i64..=range.max as i64).any(|d| (0..w).contains(&(x - d))))
         .count();
     let total = (cols * checked_left.height).max(1);
-    let consistent = checked_left.data.iter().filter(|d| d.is_finite()).count();
-    consistent as f64 / total as f64
+    let (lo, hi) = (range.min as f32 + 0.5, range.max as f32 - 0.5);
+    let inside = checked_left
+        .data
+        .iter()
+        .filter(|&&d| d.is_finite() && d > lo && d < hi)
+        .count();
+    inside as f64 / total as f64
 }
 
 #[cfg(test)]
@@ -388,13 +395,21 @@ mod tests {
     }
 
     #[test]
-    fn the_consistency_ratio_counts_kept_pixels_among_those_with_a_candidate() {
-        // 4 columns, range 2..3: columns 0 and 1 have no partner (x − d < 0).
+    fn the_consistency_ratio_counts_kept_pixels_inside_the_range_among_those_with_a_candidate() {
+        // 6 columns, range 2..5: columns 0 and 1 have no partner (x − d < 0), so 4 × 2
+        // pixels have a candidate. Kept: 3.0 and 4.2 inside; 2.0, 2.4 and 5.0 lie within
+        // half a pixel of an end (clamped, not evidence).
         let inf = f32::INFINITY;
-        let m = Plane::from_vec(4, 2, vec![inf, inf, 2.0, inf, inf, inf, 3.0, 2.0]).unwrap();
-        let r = consistency_ratio(&m, schemas::DisparityRange::new(2, 3));
-        assert_eq!(r, 3.0 / 4.0);
-        let r = consistency_ratio(&m, schemas::DisparityRange::new(0, 3));
-        assert_eq!(r, 3.0 / 8.0);
+        let m = Plane::from_vec(
+            6,
+            2,
+            vec![inf, inf, 2.0, 3.0, inf, 5.0, inf, inf, 2.4, 4.2, inf, inf],
+        )
+        .unwrap();
+        let r = consistency_ratio(&m, schemas::DisparityRange::new(2, 5));
+        assert_eq!(r, 2.0 / 8.0);
+        // Over 0..8 every column has one (d = 0) and all five are inside.
+        let r = consistency_ratio(&m, schemas::DisparityRange::new(0, 8));
+        assert_eq!(r, 5.0 / 12.0);
     }
 }
