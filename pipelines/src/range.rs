@@ -38,12 +38,15 @@ pub struct RangeScore {
 }
 
 /// `base` (matching and its LR check) over each of `ranges`; the range with the highest
-/// consistency ratio (ties: the narrower, listed first), and the whole curve.
+/// consistency ratio (ties: the narrower, listed first), and the whole curve. The ratio is
+/// taken over the textured regions of the left view (the segmentation's mask) when they
+/// are at least a twentieth of it: there the matches decide; elsewhere over every pixel.
 pub fn auto_range(
     base: &Stereo,
     ranges: &[DisparityRange],
 ) -> Result<(DisparityRange, Vec<RangeScore>), Error> {
     let mut curve = Vec::new();
+    let mut mask: Option<Option<schemas::Mask>> = None;
     for &range in ranges {
         let mut preset = Stereo {
             post: None,
@@ -54,10 +57,18 @@ pub fn auto_range(
         preset.matching.min_disparity = range.min;
         preset.matching.max_disparity = range.max;
         let f = preset.run_once()?;
-        let checked = f.read(&preset.outs().checked).map_err(Error::Node)?;
+        let outs = preset.outs();
+        if mask.is_none() {
+            let frame = f.read(&outs.frame).map_err(Error::Node)?;
+            let m = segment::segment(&frame.left, &segment::SegmentParams::default()).mask;
+            let share = m.data.iter().filter(|&&v| v != 0).count() as f64 / m.len() as f64;
+            mask = Some((share >= 0.05).then_some(m));
+        }
+        let checked = f.read(&outs.checked).map_err(Error::Node)?;
+        let m = mask.as_ref().and_then(Option::as_ref);
         curve.push(RangeScore {
             range,
-            consistency_ratio: validate::consistency_ratio(&checked.paste(), range),
+            consistency_ratio: validate::consistency_ratio_within(&checked.paste(), range, m),
         });
     }
     let best = curve

@@ -285,18 +285,31 @@ pub fn validation_figures(
 /// the range is not evidence: a disparity beyond the range is clamped there, and both views
 /// clamp alike, so it passes the LR check; counted, the narrowest range would always win.
 pub fn consistency_ratio(checked_left: &DisparityMap, range: schemas::DisparityRange) -> f64 {
-    let w = checked_left.width as i64;
-    let cols = (0..w)
-        .filter(|&x| (range.min as i64..=range.max as i64).any(|d| (0..w).contains(&(x - d))))
-        .count();
-    let total = (cols * checked_left.height).max(1);
+    consistency_ratio_within(checked_left, range, None)
+}
+
+/// [`consistency_ratio`] over the pixels of `mask` (non-zero) alone: the textured regions
+/// a matcher can decide on (the paper matches only the cells; a textureless background is
+/// consistent or not by chance and would swamp them).
+pub fn consistency_ratio_within(
+    checked_left: &DisparityMap,
+    range: schemas::DisparityRange,
+    mask: Option<&schemas::Mask>,
+) -> f64 {
+    let w = checked_left.width;
+    let has_candidate: Vec<bool> = (0..w as i64)
+        .map(|x| (range.min as i64..=range.max as i64).any(|d| (0..w as i64).contains(&(x - d))))
+        .collect();
     let (lo, hi) = (range.min as f32 + 0.5, range.max as f32 - 0.5);
-    let inside = checked_left
-        .data
-        .iter()
-        .filter(|&&d| d.is_finite() && d > lo && d < hi)
-        .count();
-    inside as f64 / total as f64
+    let (mut total, mut inside) = (0usize, 0usize);
+    for (i, &d) in checked_left.data.iter().enumerate() {
+        if !has_candidate[i % w] || mask.is_some_and(|m| m.data[i] == 0) {
+            continue;
+        }
+        total += 1;
+        inside += (d.is_finite() && d > lo && d < hi) as usize;
+    }
+    inside as f64 / total.max(1) as f64
 }
 
 #[cfg(test)]
