@@ -250,6 +250,7 @@ const OUTPUT_NAMES: &[&str] = &[
     "overlay_left.png",
     "points.ply",
     "report.json",
+    "range_curve.png",
     "cells.json",
 ];
 
@@ -406,6 +407,20 @@ pub fn reconstruct(a: ReconstructArgs) -> Result<(), CliError> {
         (range, curve),
         times,
     );
+    if let Some(c) = &report.auto_range_curve {
+        let pts: Vec<(u32, f64)> = c
+            .iter()
+            .map(|s| {
+                (
+                    s.range.max.unsigned_abs().max(s.range.min.unsigned_abs()),
+                    s.consistency_ratio,
+                )
+            })
+            .collect();
+        let best = c.iter().position(|s| s.range == range).unwrap_or(0);
+        let chart = io::render::range_curve_chart(&pts, best);
+        io::write_color_png(&o.join("range_curve.png"), &chart)?;
+    }
     let figures = report.validation;
     let total_ms = report.total_ms;
     write_json(&o.join("report.json"), &report)?;

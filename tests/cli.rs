@@ -141,6 +141,14 @@ fn auto_range_reports_the_curve() {
     assert_eq!(curve.len(), 3);
     // Cones spans about 0..55 px: only 0..64 covers it.
     assert_eq!(report["range"]["max"], 64);
+    // And the curve is drawn, the chosen (last) range's marker in red at the right end.
+    let chart = image::open(o.join("range_curve.png")).unwrap().to_rgb8();
+    assert_eq!(chart.dimensions(), (560, 260));
+    let red = |x: u32| (0..260).any(|y| chart.get_pixel(x, y).0 == [220, 0, 0]);
+    assert!(
+        red(536) && !red(294),
+        "the marker is on the last point only"
+    );
 }
 
 #[test]

@@ -138,6 +138,66 @@ pub fn histogram_chart(hist: &[u64; 256], threshold: Option<u16>) -> RgbImage {
     img
 }
 
+/// The range-selection curve (the paper's Fig. 12): one point per range tried, left to
+/// right, labelled with its radius below, its consistency in per cent on a scale from the
+/// lowest tenth below the curve to 100 %; the chosen range (`best`) in red with its
+/// per cent above it.
+pub fn range_curve_chart(points: &[(u32, f64)], best: usize) -> RgbImage {
+    let (w, h, pad) = (560u32, 260u32, 24u32);
+    let mut img = RgbImage::from_pixel(w, h, Rgb([255, 255, 255]));
+    let (x0, x1) = (pad as f32 + 28.0, (w - pad) as f32);
+    let (y_top, y_base) = (pad as f32 + 14.0, (h - pad - 16) as f32);
+    let lo = points.iter().map(|p| p.1).fold(1.0f64, f64::min);
+    let lo = ((lo * 10.0).floor() / 10.0).clamp(0.0, 0.9);
+    let n = points.len().max(2) as f32 - 1.0;
+    let at = |i: usize, r: f64| {
+        let x = x0 + (x1 - x0) * i as f32 / n;
+        let t = ((r - lo) / (1.0 - lo)).clamp(0.0, 1.0) as f32;
+        (x, y_base - t * (y_base - y_top))
+    };
+    let black = Rgb([0, 0, 0]);
+    draw_line_segment_mut(&mut img, (x0, y_base), (x1, y_base), black);
+    draw_line_segment_mut(&mut img, (x0, y_top), (x0, y_base), black);
+    let ink = [[0, 0, 0], [255, 255, 255]];
+    for (pct, y) in [((lo * 100.0).round() as u32, y_base), (100, y_top)] {
+        draw_number(&mut img, (pad as i32 - 14, y as i32 - 6), pct, 2, ink);
+    }
+    for (i, w) in points.windows(2).enumerate() {
+        let (a, b) = (at(i, w[0].1), at(i + 1, w[1].1));
+        draw_line_segment_mut(&mut img, a, b, Rgb([40, 40, 160]));
+    }
+    for (i, &(radius, r)) in points.iter().enumerate() {
+        let (x, y) = at(i, r);
+        let red = i == best;
+        let colour = if red { [220, 0, 0] } else { [40, 40, 160] };
+        draw_filled_rect_mut(
+            &mut img,
+            Rect::at(x as i32 - 3, y as i32 - 3).of_size(7, 7),
+            Rgb(colour),
+        );
+        let digits = radius.to_string().len() as i32;
+        draw_number(
+            &mut img,
+            (x as i32 - 4 * digits, y_base as i32 + 4),
+            radius,
+            2,
+            ink,
+        );
+        if red {
+            draw_line_segment_mut(&mut img, (x, y + 4.0), (x, y_base), Rgb(colour));
+            let pct = (r * 100.0).round() as u32;
+            draw_number(
+                &mut img,
+                (x as i32 - 8, y as i32 - 18),
+                pct,
+                2,
+                [colour, [255, 255, 255]],
+            );
+        }
+    }
+    img
+}
+
 /// Writes a label image as a 16-bit PNG (labels above 65535 saturate; the caller warns).
 pub fn write_labels_png(path: &Path, labels: &Plane<u32>) -> Result<(), IoError> {
     let data: Vec<u16> = labels.data.iter().map(|&l| l.min(65535) as u16).collect();
@@ -179,5 +239,33 @@ mod tests {
         assert_eq!(img.get_pixel(410, 205).0, [40, 40, 40]);
         assert_eq!(img.get_pixel(410, 40).0, [255, 255, 255]);
         assert_eq!(img.get_pixel(30, 40).0, [40, 40, 40]);
+    }
+
+    #[test]
+    fn the_range_curve_marks_its_best_range_in_red_above_its_radius() {
+        let pts = [
+            (1, 0.04),
+            (2, 0.33),
+            (4, 0.94),
+            (5, 0.976),
+            (8, 0.96),
+            (16, 0.936),
+        ];
+        let img = range_curve_chart(&pts, 3);
+        let red = |x: u32, y: u32| *img.get_pixel(x, y) == Rgb([220, 0, 0]);
+        let cols: Vec<u32> = (0..img.width())
+            .filter(|&x| (0..img.height()).filter(|&y| red(x, y)).count() > 20)
+            .collect();
+        // The marker line stands at the fourth of six points: 3/5 of the way along the axis.
+        let (x0, x1) = (24.0 + 28.0, 560.0 - 24.0);
+        let want = x0 + (x1 - x0) * 3.0 / 5.0;
+        assert!(
+            !cols.is_empty() && cols.iter().all(|&x| (x as f32 - want).abs() <= 4.0),
+            "{cols:?}"
+        );
+        // The lowest point (4 %) stands 4 % of the way up a scale from 0 % at the axis
+        // (y 220) to 100 % (y 38): at y 212.7.
+        assert_eq!(*img.get_pixel(54, 213), Rgb([40, 40, 160]));
+        assert_eq!(*img.get_pixel(54, 205), Rgb([255, 255, 255]));
     }
 }
