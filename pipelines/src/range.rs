@@ -46,7 +46,7 @@ pub fn auto_range(
     ranges: &[DisparityRange],
 ) -> Result<(DisparityRange, Vec<RangeScore>), Error> {
     let mut curve = Vec::new();
-    let mut mask: Option<Option<schemas::Mask>> = None;
+    let mut mask: Option<schemas::Mask> = None;
     for &range in ranges {
         let mut preset = Stereo {
             post: None,
@@ -58,17 +58,13 @@ pub fn auto_range(
         preset.matching.max_disparity = range.max;
         let f = preset.run_once()?;
         let outs = preset.outs();
-        if mask.is_none() {
-            let frame = f.read(&outs.frame).map_err(Error::Node)?;
-            let m = segment::segment(&frame.left, &segment::SegmentParams::default()).mask;
-            let share = m.data.iter().filter(|&&v| v != 0).count() as f64 / m.len() as f64;
-            mask = Some((share >= 0.05).then_some(m));
+        if curve.is_empty() {
+            mask = textured(&f.read(&outs.frame).map_err(Error::Node)?.left);
         }
-        let checked = f.read(&outs.checked).map_err(Error::Node)?;
-        let m = mask.as_ref().and_then(Option::as_ref);
+        let checked = f.read(&outs.checked).map_err(Error::Node)?.paste();
         curve.push(RangeScore {
             range,
-            consistency_ratio: validate::consistency_ratio_within(&checked.paste(), range, m),
+            consistency_ratio: validate::consistency_ratio_within(&checked, range, mask.as_ref()),
         });
     }
     let best = curve
@@ -79,4 +75,12 @@ pub fn auto_range(
         })
         .ok_or(Error::NoRange)?;
     Ok((best.range, curve))
+}
+
+/// The segmentation's mask of `left` when it covers at least a twentieth of the view (less
+/// is too little to score a range on).
+fn textured(left: &schemas::Plane<u8>) -> Option<schemas::Mask> {
+    let m = segment::segment(left, &segment::SegmentParams::default()).mask;
+    let share = m.data.iter().filter(|&&v| v != 0).count() as f64 / m.len() as f64;
+    (share >= 0.05).then_some(m)
 }
