@@ -13,6 +13,7 @@ pub mod board;
 pub mod calibrate;
 pub mod file;
 pub mod lm;
+pub mod microscope;
 #[cfg(feature = "boards")]
 pub mod pairs;
 pub mod stack;
