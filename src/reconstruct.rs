@@ -231,6 +231,7 @@ impl ReconstructArgs {
                 cx_right: self.cx_right.or(self.cx),
                 unit: self.unit,
                 stereo: None,
+                microscope: None,
             })),
             _ => None,
         }

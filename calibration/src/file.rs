@@ -52,6 +52,11 @@ pub struct CalibrationFile {
     /// The raw cameras, for rectifying raw pairs (`None`: the images come rectified).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub stereo: Option<Box<crate::stereo::StereoTable>>,
+    /// A stereo microscope's views and their rectification onto the stage plane
+    /// (`calibrate-microscope`), for the rectifier; the top level is its parallel-axis
+    /// geometry.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub microscope: Option<Box<crate::microscope::Rig>>,
 }
 
 impl CalibrationFile {
@@ -83,6 +88,14 @@ impl CalibrationFile {
         };
         check(&c, source)?;
         self.cameras(source)?;
+        if let Some(m) = &self.microscope {
+            if self.stereo.is_some() {
+                return Err(format!(
+                    "calibration {source}: give [stereo] (a bench rig's cameras) or [microscope], not both"
+                ));
+            }
+            m.check().map_err(|e| format!("calibration {source}: {e}"))?;
+        }
         Ok(c)
     }
 
@@ -108,6 +121,7 @@ impl CalibrationFile {
                 rms,
                 ..crate::stereo::StereoTable::from(cal)
             })),
+            microscope: None,
         }
     }
 
@@ -160,6 +174,7 @@ impl CalibrationFile {
             cx_right: Some(c.cx_right),
             unit: Some(c.unit),
             stereo: None,
+            microscope: None,
         }
     }
 }

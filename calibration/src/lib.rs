@@ -17,6 +17,8 @@ pub mod microscope;
 #[cfg(feature = "boards")]
 pub mod pairs;
 pub mod stack;
+#[cfg(feature = "boards")]
+pub mod stage;
 pub mod stereo;
 
 use schemas::Plane;

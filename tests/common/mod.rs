@@ -84,6 +84,7 @@ pub fn cell_targets(
             cx_right: Some(c.cx_right),
             unit: Some(c.unit),
             stereo: None,
+            microscope: None,
         })),
         rectify: None,
     };

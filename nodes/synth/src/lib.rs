@@ -20,6 +20,7 @@
 pub mod files;
 pub mod layers;
 pub mod progress;
+pub mod raw;
 pub mod request;
 pub mod tour;
 pub mod truth;
@@ -438,6 +439,45 @@ impl Default for Look {
     }
 }
 
+/// A chessboard target: `cols × rows` inner corners, squares of `square` µm, with edges
+/// as soft as a printed board's under the optics' resolution (a quarter of a pixel wide,
+/// symmetric about each edge, so each corner is a saddle exactly at its place).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Chessboard {
+    /// Inner corners along a row.
+    pub cols: usize,
+    /// Inner corners down a column.
+    pub rows: usize,
+    /// Side of a square, µm.
+    pub square: f64,
+}
+
+impl Chessboard {
+    /// The board's brightness offset at `(x, y)` µm (±1 on its squares, +1 on its white
+    /// border beyond them).
+    pub fn value(&self, x: f64, y: f64, um_per_px: f64) -> f64 {
+        let half = [
+            0.5 * (self.cols + 1) as f64 * self.square,
+            0.5 * (self.rows + 1) as f64 * self.square,
+        ];
+        if x.abs() > half[0] || y.abs() > half[1] {
+            return 1.0;
+        }
+        // Sharp to the pixel: the steepness makes each edge a pixel wide.
+        let k = self.square / (std::f64::consts::PI * um_per_px);
+        let wave = |t: f64, h: f64| (k * (std::f64::consts::PI * (t + h) / self.square).sin()).clamp(-1.0, 1.0);
+        wave(x, half[0]) * wave(y, half[1])
+    }
+
+    /// Inner corner `(i, j)` (along a row, down a column) in µm from the board's centre.
+    pub fn corner(&self, i: usize, j: usize) -> [f64; 2] {
+        [
+            (i as f64 - 0.5 * (self.cols - 1) as f64) * self.square,
+            (j as f64 - 0.5 * (self.rows - 1) as f64) * self.square,
+        ]
+    }
+}
+
 /// A whole scene.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Scene {
@@ -453,6 +493,8 @@ pub struct Scene {
     pub stage: f64,
     /// Texture the whole substrate like a calibration target (for depth calibration).
     pub target: bool,
+    /// A chessboard printed on the substrate, centred under the field (for calibrating).
+    pub board: Option<Chessboard>,
     /// Substrate tilt: its height's slope along x and along y (rise over run; 2° is 0.035).
     pub tilt: [f64; 2],
     /// Particles lying on the substrate.
@@ -643,6 +685,7 @@ impl Scene {
             pipette: None,
             stage: 0.0,
             target: false,
+            board: None,
             tilt: [0.0; 2],
             debris: Vec::new(),
             seed,
@@ -659,6 +702,7 @@ impl Scene {
             pipette: None,
             stage,
             target: true,
+            board: None,
             tilt: [0.0; 2],
             debris: Vec::new(),
             seed,
@@ -1158,6 +1202,9 @@ impl Scene {
                 } else {
                     (ox + (u - cx) / f * (z0 - s), (v - cal.cy) / f * (z0 - s))
                 };
+                if let Some(b) = &self.board {
+                    return base + 70.0 * b.value(x, y, self.optics.um_per_px());
+                }
                 let amp = if self.target {
                     40.0
                 } else {
