@@ -192,3 +192,51 @@ pub fn calibrate_depth(a: CalibrateArgs) -> Result<(), CliError> {
     runtime::outln!("calibration written to {}", out.display());
     Ok(())
 }
+
+/// Arguments of `microstereo calibrate-microscope`.
+#[derive(Args, Debug)]
+pub struct CalibrateMicroscopeArgs {
+    /// Directory with the chessboard's pairs at known stage heights and `heights.csv`
+    /// (left,right,z_um; z towards the cameras).
+    pub dir: PathBuf,
+    /// Inner corners of the board, along a row × down a column (e.g. 9x6).
+    #[arg(long, value_parser = crate::calibstereo::parse_inner)]
+    pub inner: (usize, usize),
+    /// Side of a square, µm.
+    #[arg(long)]
+    pub square: f64,
+    /// Output directory: calibration.toml and report.json.
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Replace earlier outputs.
+    #[arg(long)]
+    pub overwrite: bool,
+}
+
+/// Runs `microstereo calibrate-microscope`.
+pub fn calibrate_microscope(a: CalibrateMicroscopeArgs) -> Result<(), CliError> {
+    let fit = pipelines::microscope::calibrate_microscope(
+        &a.dir,
+        &a.output,
+        a.inner,
+        a.square,
+        a.overwrite,
+    )?;
+    for p in &fit.pairs {
+        match (&p.not_used, p.rms) {
+            (Some(why), _) => runtime::outln!("pair {} (z {} µm): not used: {why}", p.name, p.z),
+            (None, Some([l, r])) => {
+                runtime::outln!("pair {} (z {} µm): RMS {l:.3} / {r:.3} px", p.name, p.z)
+            }
+            _ => {}
+        }
+    }
+    runtime::outln!("{}", fit.summary());
+    let [cal, report] = pipelines::microscope::outputs(&a.output);
+    runtime::outln!(
+        "calibration written to {} (report {})",
+        cal.display(),
+        report.display()
+    );
+    Ok(())
+}

@@ -42,7 +42,7 @@ pub struct CalibrateStereoArgs {
     pub overwrite: bool,
 }
 
-fn parse_inner(s: &str) -> Result<(usize, usize), String> {
+pub(crate) fn parse_inner(s: &str) -> Result<(usize, usize), String> {
     let bad = || format!("'{s}' is not COLSxROWS inner corners (e.g. 9x6, each at least 2)");
     let (c, r) = s.split_once(['x', 'X', '×']).ok_or_else(bad)?;
     let (c, r): (usize, usize) = (

@@ -29,6 +29,8 @@ enum Command {
     CalibrateDepth(crate::calibrate::CalibrateArgs),
     /// Calibrates both cameras and their relative pose from chessboard pairs: the calibration file rectify, triangulate and reconstruct read.
     CalibrateStereo(crate::calibstereo::CalibrateStereoArgs),
+    /// Calibrates a stereo microscope (converging, nearly telecentric views) from a chessboard at known stage heights: the calibration file rectify, triangulate and reconstruct read.
+    CalibrateMicroscope(crate::calibrate::CalibrateMicroscopeArgs),
     /// Registers the manipulator to the cameras: moves it through stops, finds the tip at each, fits device = M·scene + offset.
     CalibrateManipulator(crate::calibmanip::CalibrateManipulatorArgs),
     /// Imports a calibration file from OpenCV's stereo YAML or ROS camera_info, or exports one to them.
@@ -84,6 +86,7 @@ pub fn main() -> i32 {
         Command::Synth(a) => crate::synthcmd::synth(a),
         Command::CalibrateDepth(a) => crate::calibrate::calibrate_depth(a),
         Command::CalibrateStereo(a) => crate::calibstereo::calibrate_stereo_cmd(a),
+        Command::CalibrateMicroscope(a) => crate::calibrate::calibrate_microscope(a),
         Command::Calibration(a) => crate::calibfile::calibration_cmd(a),
         Command::CalibrateManipulator(a) => crate::calibmanip::calibrate_manipulator(a),
         Command::Run(a) => crate::run::run_cmd(a),

@@ -215,7 +215,7 @@ impl ReconstructArgs {
             return Ok(None);
         };
         let file = calibration::file::read_file(p).map_err(CliError::Other)?;
-        Ok(file.stereo.is_some().then(|| p.display().to_string()))
+        Ok((file.stereo.is_some() || file.microscope.is_some()).then(|| p.display().to_string()))
     }
 
     fn geometry(&self) -> Option<Geometry> {

@@ -226,6 +226,56 @@ pub fn read_stereo(path: &str) -> Result<StereoCalibration, String> {
         .map_err(|e| format!("calibration '{path}': {e}"))
 }
 
+/// What resamples a raw pair into rectified views: a bench rig's Bouguet rectification or
+/// a microscope's onto its stage plane.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Rectifier {
+    /// Pinhole cameras turned onto their baseline.
+    Bouguet(Rectification),
+    /// A stereo microscope's views rectified onto the stage plane.
+    Microscope(Box<crate::microscope::Rig>),
+}
+
+impl From<Rectification> for Rectifier {
+    fn from(r: Rectification) -> Self {
+        Rectifier::Bouguet(r)
+    }
+}
+
+impl Rectifier {
+    /// Where rectified pixel `(u, v)` of a view comes from in its raw image.
+    pub fn source(&self, right: bool, u: f64, v: f64) -> (f64, f64) {
+        match self {
+            Rectifier::Bouguet(r) => r.source(right, u, v),
+            Rectifier::Microscope(m) => m.source(right, u, v),
+        }
+    }
+
+    /// The raw (and rectified) image size.
+    pub fn size(&self) -> (usize, usize) {
+        match self {
+            Rectifier::Bouguet(r) => r.size(),
+            Rectifier::Microscope(m) => (m.width, m.height),
+        }
+    }
+}
+
+/// Reads what rectifies raw pairs from `path`: a calibration file's `[microscope]` table
+/// (`calibrate-microscope`), else the raw cameras as [`read_stereo`] reads them.
+pub fn read_rectifier(path: &str) -> Result<Rectifier, String> {
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| format!("cannot read calibration '{path}': {e}"))?;
+    #[derive(serde::Deserialize)]
+    struct OnlyMicroscope {
+        microscope: Option<crate::microscope::Rig>,
+    }
+    if let Ok(OnlyMicroscope { microscope: Some(m) }) = toml::from_str(&text) {
+        m.check().map_err(|e| format!("calibration '{path}': {e}"))?;
+        return Ok(Rectifier::Microscope(Box::new(m)));
+    }
+    read_stereo(path).map(|c| Rectifier::Bouguet(Rectification::bouguet(&c)))
+}
+
 /// Applies radial-tangential distortion `k1 k2 p1 p2 [k3]` to normalised coordinates (OpenCV's model).
 pub fn distort(d: &[f64], x: f64, y: f64) -> (f64, f64) {
     let (k1, k2, p1, p2) = (d[0], d[1], d[2], d[3]);

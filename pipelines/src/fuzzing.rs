@@ -60,7 +60,7 @@ pub fn calibration(data: &[u8]) {
             calibration::stereo::Rectification::from_camera_info(l, r)
         }
     };
-    if let Ok(rect) = rect {
+    if let Ok(rect) = rect.map(calibration::stereo::Rectifier::from) {
         let img =
             schemas::Plane::from_vec(16, 12, (0..192).map(|i| i as u8).collect()).expect("size");
         for right in [false, true] {

@@ -16,6 +16,7 @@
 pub mod fuzzing;
 pub mod launch;
 pub mod maps;
+pub mod microscope;
 pub mod processes;
 pub mod range;
 pub mod recording;

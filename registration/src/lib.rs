@@ -34,7 +34,7 @@ impl Optics {
         let calibration = file.resolve(w, h, &source)?;
         let rectify = file
             .cameras(&source)?
-            .map(|cal| rectify::luts(&calibration::stereo::Rectification::bouguet(&cal)));
+            .map(|cal| rectify::luts(&calibration::stereo::Rectification::bouguet(&cal).into()));
         Ok(Self {
             rectify,
             calibration,

@@ -1,14 +1,14 @@
 //! Stereo rectification for microstereo: [`RemapLut`] resamples whole images (bilinear)
-//! from a table built once from the rig's [`Rectification`] (the `calibration` crate's
-//! Bouguet rectification, as OpenCV's `stereoRectify`), and the rectify node applies both
-//! views' tables to every frame.
+//! from a table built once from the rig's [`Rectifier`] (the `calibration` crate's
+//! Bouguet rectification, as OpenCV's `stereoRectify`, or a microscope's onto its stage
+//! plane), and the rectify node applies both views' tables to every frame.
 
 pub mod node;
 
-use calibration::stereo::Rectification;
+use calibration::stereo::Rectifier;
 
 /// The resampling tables of both views of `rect`, left and right, at the calibrated size.
-pub fn luts(rect: &Rectification) -> (RemapLut, RemapLut) {
+pub fn luts(rect: &Rectifier) -> (RemapLut, RemapLut) {
     let (w, h) = rect.size();
     (
         RemapLut::new(rect, false, w, h),
@@ -27,7 +27,7 @@ pub struct RemapLut {
 
 impl RemapLut {
     /// The table of view `right` for output images of `width × height`.
-    pub fn new(rect: &Rectification, right: bool, width: usize, height: usize) -> Self {
+    pub fn new(rect: &Rectifier, right: bool, width: usize, height: usize) -> Self {
         let map = (0..height)
             .flat_map(|v| (0..width).map(move |u| (u, v)))
             .map(|(u, v)| {

@@ -2,7 +2,7 @@
 //! calibration is given: the input is already rectified).
 
 use crate::{RemapLut, luts};
-use calibration::stereo::{Rectification, read_stereo};
+use calibration::stereo::{Rectification, Rectifier, read_rectifier};
 use node_api::{NodeError, Params, Stamp, Task};
 use schemas::StereoFrame;
 use serde::Deserialize;
@@ -11,7 +11,8 @@ use serde::Deserialize;
 #[derive(Clone, Debug, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RectifyParams {
-    /// The calibration file (its `[stereo]` table) or OpenCV YAML with K1, D1, K2, D2, R, T
+    /// The calibration file (its `[microscope]` or `[stereo]` table) or OpenCV YAML with
+    /// K1, D1, K2, D2, R, T
     /// (none: pass frames through).
     #[serde(default)]
     pub calibration: Option<String>,
@@ -23,15 +24,16 @@ pub struct RectifyParams {
 impl RectifyParams {
     /// The rectification these parameters describe (`None`: pass frames through). Reading
     /// and checking it is cheap; the resampling tables are built only by the node.
-    pub fn rectification(&self) -> Result<Option<Rectification>, String> {
+    pub fn rectification(&self) -> Result<Option<Rectifier>, String> {
         let read = |path: &str| {
             std::fs::read_to_string(path)
                 .map_err(|e| format!("cannot read calibration '{path}': {e}"))
         };
         match (&self.calibration, &self.camera_info) {
             (None, None) => Ok(None),
-            (Some(path), None) => Ok(Some(Rectification::bouguet(&read_stereo(path)?))),
-            (None, Some([l, r])) => Rectification::from_camera_info(&read(l)?, &read(r)?).map(Some),
+            (Some(path), None) => read_rectifier(path).map(Some),
+            (None, Some([l, r])) => Rectification::from_camera_info(&read(l)?, &read(r)?)
+                .map(|r| Some(Rectifier::Bouguet(r))),
             (Some(_), Some(_)) => Err("give calibration or camera_info, not both".into()),
         }
     }

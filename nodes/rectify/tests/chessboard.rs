@@ -124,7 +124,7 @@ fn the_resampling_table_inverts_the_point_map() {
             .collect(),
     )
     .unwrap();
-    let lut = rectify::RemapLut::new(&rect, false, 640, 480);
+    let lut = rectify::RemapLut::new(&rect.clone().into(), false, 640, 480);
     let out = lut.apply(&ramp);
     let (xs, _) = rect.source(false, 320.0, 240.0);
     assert!(

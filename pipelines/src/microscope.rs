@@ -1,0 +1,67 @@
+//! `calibrate-microscope`: a stereo microscope calibrated from a chessboard at known stage
+//! heights (a folder with `heights.csv`), written as the calibration file the rectifier,
+//! the triangulate node and `reconstruct` read, with its report.
+
+use calibration::stage::{StageFit, StagePair, calibrate_stage};
+use std::path::{Path, PathBuf};
+
+/// The files `calibrate-microscope` writes into `out`.
+pub fn outputs(out: &Path) -> [PathBuf; 2] {
+    [out.join("calibration.toml"), out.join("report.json")]
+}
+
+/// Calibrates the microscope from the stack in `dir` (a board of `inner` corners, squares
+/// `square` µm) and writes [`outputs`] into `out` (replacing them only with `overwrite`);
+/// nothing is written when the calibration is refused.
+pub fn calibrate_microscope(
+    dir: &Path,
+    out: &Path,
+    inner: (usize, usize),
+    square: f64,
+    overwrite: bool,
+) -> Result<StageFit, String> {
+    if !(square > 0.0 && square <= 1e5) {
+        return Err(format!(
+            "--square {square} must be the board's square side in µm (0..1e5)"
+        ));
+    }
+    let stack = calibration::stack::read_stack(dir)?;
+    let files = outputs(out);
+    let inputs: Vec<&Path> = stack
+        .iter()
+        .flat_map(|(l, r, _)| [l.as_path(), r.as_path()])
+        .collect();
+    formats::outputs::check(&files, &inputs, overwrite, "give -o another directory")
+        .map_err(|e| e.to_string())?;
+    let pairs = stack
+        .iter()
+        .map(|(l, r, z)| {
+            Ok(StagePair {
+                name: l
+                    .file_name()
+                    .map_or_else(String::new, |n| n.to_string_lossy().into_owned()),
+                left: capture::image::load(l, "left image")?.grey,
+                right: capture::image::load(r, "right image")?.grey,
+                z: *z,
+            })
+        })
+        .collect::<Result<Vec<_>, String>>()?;
+    let fit = calibrate_stage(&pairs, inner.0, inner.1, square)
+        .map_err(|e| format!("calibration of the stack in '{}' refused: {e}", dir.display()))?;
+    std::fs::create_dir_all(out)
+        .map_err(|e| format!("cannot create '{}': {e}", out.display()))?;
+    let [lo, hi] = fit.disparity_range();
+    calibration::file::write_file(
+        &files[0],
+        &fit.file(),
+        &format!(
+            "Microscope calibrated by microstereo calibrate-microscope from the stage stack in '{}'.\n# Top level: the rectified views' parallel-axis geometry (triangulate); [microscope]: the views and their rectification onto the stage plane (rectify).\n# Disparity range for the stack's depth and half again: {:.0} to {:.0} px.",
+            dir.display(),
+            lo.floor(),
+            hi.ceil()
+        ),
+    )?;
+    let report = serde_json::to_string_pretty(&fit.report()).expect("json");
+    formats::atomic::write_bytes(&files[1], report.as_bytes()).map_err(|e| e.to_string())?;
+    Ok(fit)
+}
