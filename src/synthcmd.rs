@@ -44,11 +44,13 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
         ))
     })?;
     let optics = setup.optics;
-    calibration::file::write(
-        &a.output.join("calibration.toml"),
-        &optics.calibration(),
-        optics.pixel_pitch,
-    )?;
+    if setup.microscope.is_none() {
+        calibration::file::write(
+            &a.output.join("calibration.toml"),
+            &optics.calibration(),
+            optics.pixel_pitch,
+        )?;
+    }
     let _progress = synth::progress::RenderProgress::start(
         (optics.width, optics.height, setup.scene_count()),
         std::time::Duration::from_secs(2),
@@ -71,7 +73,7 @@ pub fn synth(a: SynthArgs) -> Result<(), CliError> {
     }
     match a.request.frames.unwrap_or(0) {
         0 => {
-            let r = synth::files::write_scene(&a.output, &scene, "")?;
+            let r = synth::files::write_scene(&a.output, &scene, "", setup.microscope.as_ref())?;
             let (lo, hi) = r.disparity_range();
             runtime::outln!(
                 "{} cells; disparity {lo:.2}..{hi:.2} px ({:.3} px per µm of height); outputs in {}",

@@ -1,23 +1,28 @@
 //! A rendered scene as files: both views, the true disparity and depth, the labels and
 //! `truth.json`, each name with a prefix (a frame's or a stack slice's).
 
+use crate::raw::Microscope;
 use crate::request::Setup;
 use crate::{PIPETTE, Rendered, Scene};
 use formats::IoError;
 use schemas::Plane;
 use std::path::Path;
 
-/// The files [`write_scene`] writes for `prefix`.
-pub fn scene_files(prefix: &str) -> [String; 6] {
-    [
+/// The files [`write_scene`] writes for `prefix`: of raw views (`raw`) only the views and
+/// `truth.json` (the true maps are of rectified views).
+pub fn scene_files(prefix: &str, raw: bool) -> Vec<String> {
+    let all = [
         "left.png",
         "right.png",
         "disparity.pfm",
         "depth.pfm",
         "mask.png",
         "truth.json",
-    ]
-    .map(|n| format!("{prefix}{n}"))
+    ];
+    all.iter()
+        .filter(|n| !raw || ["left.png", "right.png", "truth.json"].contains(n))
+        .map(|n| format!("{prefix}{n}"))
+        .collect()
 }
 
 /// The prefix of stack slice `i`'s files.
@@ -30,25 +35,43 @@ pub fn frame_prefix(f: usize) -> String {
     format!("f{f:04}_")
 }
 
-/// Every file `setup` writes: `calibration.toml`, then a stack's `heights.csv` and slices,
-/// a sequence's frames, or one scene's files.
+/// Every file `setup` writes: `calibration.toml` (of rectified views only: raw ones are
+/// calibrated), then a stack's `heights.csv` and slices, a sequence's frames, or one
+/// scene's files.
 pub fn names(setup: &Setup) -> Vec<String> {
     let r = &setup.request;
-    let mut names = vec!["calibration.toml".to_string()];
+    let raw = setup.microscope.is_some();
+    let mut names = Vec::new();
+    if !raw {
+        names.push("calibration.toml".to_string());
+    }
     match (&r.stage_heights, r.frames.unwrap_or(0)) {
         (Some(zs), _) => {
             names.push("heights.csv".into());
-            names.extend((0..zs.len()).flat_map(|i| scene_files(&slice_prefix(i))));
+            names.extend((0..zs.len()).flat_map(|i| scene_files(&slice_prefix(i), raw)));
         }
-        (None, 0) => names.extend(scene_files("")),
-        (None, n) => names.extend((0..n).flat_map(|f| scene_files(&frame_prefix(f)))),
+        (None, 0) => names.extend(scene_files("", raw)),
+        (None, n) => names.extend((0..n).flat_map(|f| scene_files(&frame_prefix(f), raw))),
     }
     names
 }
 
-/// Renders `scene` and writes its files into `dir`, each name prefixed with `prefix`.
-pub fn write_scene(dir: &Path, scene: &Scene, prefix: &str) -> Result<Rendered, IoError> {
+/// Renders `scene` and writes its files into `dir`, each name prefixed with `prefix`: as
+/// `microscope`'s raw views where it is given (then only the views and `truth.json`).
+pub fn write_scene(
+    dir: &Path,
+    scene: &Scene,
+    prefix: &str,
+    microscope: Option<&Microscope>,
+) -> Result<Rendered, IoError> {
     let r = scene.render();
+    if let Some(m) = microscope {
+        let (left, right) = m.render(scene);
+        formats::write_mask_png(&dir.join(format!("{prefix}left.png")), &left)?;
+        formats::write_mask_png(&dir.join(format!("{prefix}right.png")), &right)?;
+        write_truth(dir, scene, &r, prefix)?;
+        return Ok(r);
+    }
     formats::write_mask_png(&dir.join(format!("{prefix}left.png")), &r.left)?;
     formats::write_mask_png(&dir.join(format!("{prefix}right.png")), &r.right)?;
     formats::write_pfm(&dir.join(format!("{prefix}disparity.pfm")), &r.disparity)?;
@@ -65,12 +88,16 @@ pub fn write_scene(dir: &Path, scene: &Scene, prefix: &str) -> Result<Rendered, 
     )
     .expect("size");
     formats::render::write_labels_png(&dir.join(format!("{prefix}mask.png")), &labels)?;
-    let t = crate::truth::Truth::of(scene, &r);
+    write_truth(dir, scene, &r, prefix)?;
+    Ok(r)
+}
+
+fn write_truth(dir: &Path, scene: &Scene, r: &Rendered, prefix: &str) -> Result<(), IoError> {
+    let t = crate::truth::Truth::of(scene, r);
     formats::atomic::write_bytes(
         &dir.join(format!("{prefix}truth.json")),
         (serde_json::to_string_pretty(&t).expect("serialises") + "\n").as_bytes(),
-    )?;
-    Ok(r)
+    )
 }
 
 /// Renders the z-stack of `setup` into `dir`: each slice's files and `heights.csv`, the
@@ -79,7 +106,7 @@ pub fn write_stack(dir: &Path, setup: &Setup) -> Result<(), IoError> {
     let mut csv = String::from("left,right,z_um\n");
     for (i, (z, s)) in setup.targets().enumerate() {
         let prefix = slice_prefix(i);
-        write_scene(dir, &s, &prefix)?;
+        write_scene(dir, &s, &prefix, setup.microscope.as_ref())?;
         csv += &format!("{prefix}left.png,{prefix}right.png,{z}\n");
     }
     formats::atomic::write_bytes(&dir.join("heights.csv"), csv.as_bytes())
@@ -88,7 +115,12 @@ pub fn write_stack(dir: &Path, setup: &Setup) -> Result<(), IoError> {
 /// Renders each frame of the sequence of `scene` into `dir`.
 pub fn write_frames(dir: &Path, setup: &Setup, scene: &Scene) -> Result<(), IoError> {
     for f in 0..setup.request.frames.unwrap_or(0) {
-        write_scene(dir, &setup.frame(scene, f), &frame_prefix(f))?;
+        write_scene(
+            dir,
+            &setup.frame(scene, f),
+            &frame_prefix(f),
+            setup.microscope.as_ref(),
+        )?;
     }
     Ok(())
 }

@@ -1,6 +1,7 @@
 //! What `microstereo synth` is asked for: the numbers of its command line, checked, and the
 //! scenes they make. The errors name the flags because these numbers come from them.
 
+use crate::raw::{Layout, Microscope};
 use crate::{CellSpec, Look, Optics, Pipette, Profile, Scene, Texture};
 
 /// The appearance preset a request starts from (`--look`).
@@ -149,6 +150,29 @@ pub struct Request {
     /// Scatter this many debris particles on the substrate.
     #[cfg_attr(feature = "cli", arg(long, default_value_t = 0))]
     pub debris: usize,
+    /// The microscope's layout: `parallel` (rectified views from --f-eff and --baseline),
+    /// or the raw views of a `cmo` (common main objective) or `greenough` microscope with
+    /// --convergence, --pupil and --distortion (to calibrate with calibrate-microscope).
+    #[cfg_attr(feature = "cli", arg(long, value_enum, default_value_t = Layout::Parallel))]
+    pub optics: Layout,
+    /// Each raw view's angle off the stage's normal, degrees (cmo, greenough).
+    #[cfg_attr(feature = "cli", arg(long, default_value_t = 5.5))]
+    pub convergence: f64,
+    /// Distance of the raw views' pupils above the focal plane, mm (cmo, greenough).
+    #[cfg_attr(feature = "cli", arg(long, default_value_t = 100.0))]
+    pub pupil: f64,
+    /// The raw views' off-axis distortion at its largest, px (cmo, greenough).
+    #[cfg_attr(feature = "cli", arg(long, default_value_t = 3.0))]
+    pub distortion: f64,
+    /// A z-stack of a chessboard instead of a textured target: its inner corners COLS,ROWS.
+    #[cfg_attr(
+        feature = "cli",
+        arg(long, value_delimiter = ',', requires = "stage_heights")
+    )]
+    pub board: Option<Vec<usize>>,
+    /// The chessboard's square side, µm.
+    #[cfg_attr(feature = "cli", arg(long, default_value_t = 100.0))]
+    pub square: f64,
 }
 
 impl Default for Request {
@@ -184,6 +208,12 @@ impl Default for Request {
             profile: Profile::Dome,
             irregular: 0.0,
             debris: 0,
+            optics: Layout::Parallel,
+            convergence: 5.5,
+            pupil: 100.0,
+            distortion: 3.0,
+            board: None,
+            square: 100.0,
         }
     }
 }
@@ -232,6 +262,9 @@ pub enum RequestError {
     /// A pipette tip that is not two finite numbers.
     #[error("--pipette-tip {0:?}: give X,Y in µm from the image centre (two finite numbers)")]
     PipetteTip(Vec<f64>),
+    /// A chessboard that is not two corner counts of at least 2.
+    #[error("--board {0:?}: give the inner corners COLS,ROWS, each 2..100 (e.g. --board 9,6)")]
+    Board(Vec<usize>),
 }
 
 impl Request {
@@ -266,6 +299,10 @@ impl Request {
             ("--cells", self.cells as f64, 0.0, 10_000.0),
             ("--debris", self.debris as f64, 0.0, 100_000.0),
             ("--irregular", self.irregular, 0.0, 0.15),
+            ("--convergence", self.convergence, 0.5, 30.0),
+            ("--pupil", self.pupil, 1.0, 1e7),
+            ("--distortion", self.distortion, 0.0, 50.0),
+            ("--square", self.square, 1.0, 1e5),
         ];
         let optional = [
             ("--pipette", self.pipette, 0.0, 10_000.0),
@@ -300,6 +337,11 @@ impl Request {
                 hi,
             });
         }
+        if let Some(b) = &self.board
+            && (b.len() != 2 || b.iter().any(|&n| !(2..=100).contains(&n)))
+        {
+            return Err(RequestError::Board(b.clone()));
+        }
         if d[0] <= 0.0 || d[0] > d[1] || h[0] <= 0.0 || h[0] > h[1] {
             return Err(RequestError::Order {
                 diameter: d.clone(),
@@ -312,13 +354,27 @@ impl Request {
     /// The optics, the look (cells textured by `texture`) and the tilt of a checked request;
     /// fails on a tilt that is not two angles within ±10°.
     pub fn setup(self, texture: Texture) -> Result<Setup, RequestError> {
-        let optics = Optics {
+        let microscope = (self.optics != Layout::Parallel).then(|| Microscope {
+            layout: self.optics,
+            convergence_deg: self.convergence,
+            pupil: 1000.0 * self.pupil,
+            um_per_px: self.pixel_pitch / self.magnification,
             width: self.width,
             height: self.height,
-            pixel_pitch: self.pixel_pitch,
-            magnification: self.magnification,
-            f_eff: self.f_eff,
-            baseline: self.baseline,
+            distortion: self.distortion,
+            aperture: if self.aperture > 0.0 { self.aperture } else { 0.05 },
+            seed: self.seed,
+        });
+        let optics = match &microscope {
+            Some(m) => m.optics(),
+            None => Optics {
+                width: self.width,
+                height: self.height,
+                pixel_pitch: self.pixel_pitch,
+                magnification: self.magnification,
+                f_eff: self.f_eff,
+                baseline: self.baseline,
+            },
         };
         let mut look = match self.look {
             LookPreset::Dic => Look::default(),
@@ -351,11 +407,16 @@ impl Request {
         if let Some(r) = self.rim {
             look.rim = r;
         }
+        if microscope.is_some() {
+            // The raw views blur by their own defocus.
+            look.blur = 0.0;
+        }
         Ok(Setup {
             request: self,
             optics,
             look,
             tilt,
+            microscope,
         })
     }
 }
@@ -371,6 +432,8 @@ pub struct Setup {
     pub look: Look,
     /// The substrate's slope along x and along y (rise over run).
     pub tilt: [f64; 2],
+    /// The raw views' microscope (`None`: the views come rectified, `optics`' own).
+    pub microscope: Option<Microscope>,
 }
 
 impl Setup {
@@ -394,7 +457,15 @@ impl Setup {
             .flatten()
             .enumerate()
             .map(move |(i, &z)| {
-                let s = Scene::target(self.optics, self.look.clone(), z, r.seed + i as u64);
+                let mut s = Scene::target(self.optics, self.look.clone(), z, r.seed + i as u64);
+                if let Some([cols, rows]) = r.board.as_deref().map(|b| [b[0], b[1]]) {
+                    s.target = false;
+                    s.board = Some(crate::Chessboard {
+                        cols,
+                        rows,
+                        square: r.square,
+                    });
+                }
                 (z, s)
             })
     }
