@@ -211,16 +211,21 @@ pub struct CalibrateMicroscopeArgs {
     /// Replace earlier outputs.
     #[arg(long)]
     pub overwrite: bool,
+    /// A held-out stack (heights.csv) of a flat textured target to measure through the
+    /// calibration: each pair's height and each step, measured against the stage's.
+    #[arg(long)]
+    pub check: Option<PathBuf>,
 }
 
 /// Runs `microstereo calibrate-microscope`.
 pub fn calibrate_microscope(a: CalibrateMicroscopeArgs) -> Result<(), CliError> {
-    let fit = pipelines::microscope::calibrate_microscope(
+    let (fit, checked) = pipelines::microscope::calibrate_microscope(
         &a.dir,
         &a.output,
         a.inner,
         a.square,
         a.overwrite,
+        a.check.as_deref(),
     )?;
     for p in &fit.pairs {
         match (&p.not_used, p.rms) {
@@ -232,6 +237,9 @@ pub fn calibrate_microscope(a: CalibrateMicroscopeArgs) -> Result<(), CliError> 
         }
     }
     runtime::outln!("{}", fit.summary());
+    for line in calibration::stage::check_lines(&checked) {
+        runtime::outln!("{line}");
+    }
     let [cal, report] = pipelines::microscope::outputs(&a.output);
     runtime::outln!(
         "calibration written to {} (report {})",

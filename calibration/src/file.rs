@@ -94,7 +94,8 @@ impl CalibrationFile {
                     "calibration {source}: give [stereo] (a bench rig's cameras) or [microscope], not both"
                 ));
             }
-            m.check().map_err(|e| format!("calibration {source}: {e}"))?;
+            m.check()
+                .map_err(|e| format!("calibration {source}: {e}"))?;
         }
         Ok(c)
     }

@@ -20,6 +20,7 @@ pub mod stack;
 #[cfg(feature = "boards")]
 pub mod stage;
 pub mod stereo;
+pub mod target;
 
 use schemas::Plane;
 

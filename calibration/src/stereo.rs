@@ -269,8 +269,12 @@ pub fn read_rectifier(path: &str) -> Result<Rectifier, String> {
     struct OnlyMicroscope {
         microscope: Option<crate::microscope::Rig>,
     }
-    if let Ok(OnlyMicroscope { microscope: Some(m) }) = toml::from_str(&text) {
-        m.check().map_err(|e| format!("calibration '{path}': {e}"))?;
+    if let Ok(OnlyMicroscope {
+        microscope: Some(m),
+    }) = toml::from_str(&text)
+    {
+        m.check()
+            .map_err(|e| format!("calibration '{path}': {e}"))?;
         return Ok(Rectifier::Microscope(Box::new(m)));
     }
     read_stereo(path).map(|c| Rectifier::Bouguet(Rectification::bouguet(&c)))

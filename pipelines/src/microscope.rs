@@ -2,7 +2,7 @@
 //! heights (a folder with `heights.csv`), written as the calibration file the rectifier,
 //! the triangulate node and `reconstruct` read, with its report.
 
-use calibration::stage::{StageFit, StagePair, calibrate_stage};
+use calibration::stage::{Checked, StageFit, StagePair, calibrate_stage};
 use std::path::{Path, PathBuf};
 
 /// The files `calibrate-microscope` writes into `out`.
@@ -10,16 +10,36 @@ pub fn outputs(out: &Path) -> [PathBuf; 2] {
     [out.join("calibration.toml"), out.join("report.json")]
 }
 
+/// The stack of pairs listed in `dir`'s `heights.csv`, loaded.
+fn load_stack(dir: &Path) -> Result<Vec<StagePair>, String> {
+    calibration::stack::read_stack(dir)?
+        .iter()
+        .map(|(l, r, z)| {
+            Ok(StagePair {
+                name: l
+                    .file_name()
+                    .map_or_else(String::new, |n| n.to_string_lossy().into_owned()),
+                left: capture::image::load(l, "left image")?.grey,
+                right: capture::image::load(r, "right image")?.grey,
+                z: *z,
+            })
+        })
+        .collect()
+}
+
 /// Calibrates the microscope from the stack in `dir` (a board of `inner` corners, squares
 /// `square` µm) and writes [`outputs`] into `out` (replacing them only with `overwrite`);
-/// nothing is written when the calibration is refused.
+/// nothing is written when the calibration is refused. With `check`, a held-out stack of
+/// a flat textured target is measured through the calibration (in the report and
+/// returned).
 pub fn calibrate_microscope(
     dir: &Path,
     out: &Path,
     inner: (usize, usize),
     square: f64,
     overwrite: bool,
-) -> Result<StageFit, String> {
+    check: Option<&Path>,
+) -> Result<(StageFit, Vec<Checked>), String> {
     if !(square > 0.0 && square <= 1e5) {
         return Err(format!(
             "--square {square} must be the board's square side in µm (0..1e5)"
@@ -33,23 +53,16 @@ pub fn calibrate_microscope(
         .collect();
     formats::outputs::check(&files, &inputs, overwrite, "give -o another directory")
         .map_err(|e| e.to_string())?;
-    let pairs = stack
-        .iter()
-        .map(|(l, r, z)| {
-            Ok(StagePair {
-                name: l
-                    .file_name()
-                    .map_or_else(String::new, |n| n.to_string_lossy().into_owned()),
-                left: capture::image::load(l, "left image")?.grey,
-                right: capture::image::load(r, "right image")?.grey,
-                z: *z,
-            })
-        })
-        .collect::<Result<Vec<_>, String>>()?;
-    let fit = calibrate_stage(&pairs, inner.0, inner.1, square)
-        .map_err(|e| format!("calibration of the stack in '{}' refused: {e}", dir.display()))?;
-    std::fs::create_dir_all(out)
-        .map_err(|e| format!("cannot create '{}': {e}", out.display()))?;
+    let held_out = check.map(load_stack).transpose()?;
+    let pairs = load_stack(dir)?;
+    let fit = calibrate_stage(&pairs, inner.0, inner.1, square).map_err(|e| {
+        format!(
+            "calibration of the stack in '{}' refused: {e}",
+            dir.display()
+        )
+    })?;
+    let checked = held_out.map(|h| fit.check(&h)).unwrap_or_default();
+    std::fs::create_dir_all(out).map_err(|e| format!("cannot create '{}': {e}", out.display()))?;
     let [lo, hi] = fit.disparity_range();
     calibration::file::write_file(
         &files[0],
@@ -61,7 +74,11 @@ pub fn calibrate_microscope(
             hi.ceil()
         ),
     )?;
-    let report = serde_json::to_string_pretty(&fit.report()).expect("json");
+    let mut report = fit.report();
+    if check.is_some() {
+        report["check"] = serde_json::json!(checked);
+    }
+    let report = serde_json::to_string_pretty(&report).expect("json");
     formats::atomic::write_bytes(&files[1], report.as_bytes()).map_err(|e| e.to_string())?;
-    Ok(fit)
+    Ok((fit, checked))
 }

@@ -465,7 +465,9 @@ impl Chessboard {
         }
         // Sharp to the pixel: the steepness makes each edge a pixel wide.
         let k = self.square / (std::f64::consts::PI * um_per_px);
-        let wave = |t: f64, h: f64| (k * (std::f64::consts::PI * (t + h) / self.square).sin()).clamp(-1.0, 1.0);
+        let wave = |t: f64, h: f64| {
+            (k * (std::f64::consts::PI * (t + h) / self.square).sin()).clamp(-1.0, 1.0)
+        };
         wave(x, half[0]) * wave(y, half[1])
     }
 

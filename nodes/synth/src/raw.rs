@@ -130,7 +130,7 @@ impl RawView {
 
 impl Microscope {
     /// A CMO microscope as the published method's: ±5.5°, pupils 100 mm away, 1 µm per
-    /// px, 1280×1024, 3 px of distortion, NA 0.05.
+    /// px, 1280×1024, 3 px of distortion, NA 0.1.
     pub fn cmo() -> Self {
         Self {
             layout: Layout::Cmo,
@@ -140,7 +140,7 @@ impl Microscope {
             width: 1280,
             height: 1024,
             distortion: 3.0,
-            aperture: 0.05,
+            aperture: 0.1,
             seed: 1,
         }
     }
@@ -289,14 +289,16 @@ impl Microscope {
         )
     }
 
-    /// The defocus blur of a stage at height `z` across a view: the blur circle's
-    /// radius `NA·|z − focus(x)|` as a Gaussian sigma of half of it, with the scene's own
-    /// blur under it; across the field by blending the nearest of a few blurs.
+    /// The blur of a stage at height `z` across a view: the defocus blur circle's radius
+    /// `NA·|z − focus(x)|` as a Gaussian sigma of half of it, over the diffraction limit
+    /// (the Airy core's sigma `0.21·λ/NA`, λ 0.55 µm); across the field by blending the
+    /// nearest of a few blurs.
     fn defocus(&self, img: &Plane<f64>, view: &RawView, z: f64) -> Plane<f64> {
         let w = img.width;
         let sigma = |x: f64| {
             let dz = z - (view.focus[0] + view.focus[1] * (x - 0.5 * w as f64));
-            (0.5 * self.aperture * dz.abs() / self.um_per_px).hypot(0.5)
+            let diffraction = 0.21 * 0.55 / self.aperture.max(0.01);
+            (0.5 * self.aperture * dz.abs()).hypot(diffraction) / self.um_per_px
         };
         let (lo, hi) = (0..=64)
             .map(|i| sigma(w as f64 * i as f64 / 64.0))
@@ -306,10 +308,7 @@ impl Microscope {
         } else {
             (0..5).map(|i| lo + (hi - lo) * i as f64 / 4.0).collect()
         };
-        let blurs: Vec<Plane<f64>> = levels
-            .par_iter()
-            .map(|&s| gaussian_blur(img, s))
-            .collect();
+        let blurs: Vec<Plane<f64>> = levels.par_iter().map(|&s| gaussian_blur(img, s)).collect();
         if blurs.len() == 1 {
             return blurs.into_iter().next().expect("one");
         }
@@ -359,7 +358,10 @@ mod tests {
             let [l, r] = m.project(&scene, [0.0, 0.0, 0.0]);
             // The mounting shifts each view by at most 8 px and the distortion by 3.
             for p in [l, r] {
-                assert!((p[0] - 639.5).abs() < 14.0 && (p[1] - 511.5).abs() < 14.0, "{p:?}");
+                assert!(
+                    (p[0] - 639.5).abs() < 14.0 && (p[1] - 511.5).abs() < 14.0,
+                    "{p:?}"
+                );
             }
             // A point raised 10 µm: 2·tan(5.5°)·10 ≈ 1.93 px of disparity.
             let [l2, r2] = m.project(&scene, [0.0, 0.0, 10.0]);

@@ -362,7 +362,11 @@ impl Request {
             width: self.width,
             height: self.height,
             distortion: self.distortion,
-            aperture: if self.aperture > 0.0 { self.aperture } else { 0.05 },
+            aperture: if self.aperture > 0.0 {
+                self.aperture
+            } else {
+                0.1
+            },
             seed: self.seed,
         });
         let optics = match &microscope {
