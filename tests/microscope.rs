@@ -79,7 +79,7 @@ fn a_cmo_microscope_calibrated_from_a_stage_stack_measures_a_held_out_step() {
             "5.5",
             "--pupil",
             "100",
-            "--seed",
+            "--rig-seed",
             "3",
         ],
         [
@@ -89,7 +89,7 @@ fn a_cmo_microscope_calibrated_from_a_stage_stack_measures_a_held_out_step() {
             "4",
             "--pupil",
             "400",
-            "--seed",
+            "--rig-seed",
             "5",
         ],
     ] {
@@ -112,7 +112,7 @@ fn a_greenough_microscope_calibrated_from_a_stage_stack_measures_a_held_out_step
             "7",
             "--pupil",
             "80",
-            "--seed",
+            "--rig-seed",
             "4",
         ],
         [
@@ -122,7 +122,7 @@ fn a_greenough_microscope_calibrated_from_a_stage_stack_measures_a_held_out_step
             "4.5",
             "--pupil",
             "150",
-            "--seed",
+            "--rig-seed",
             "6",
         ],
     ] {
@@ -160,4 +160,147 @@ fn a_stack_at_one_height_is_refused_and_nothing_written() {
     ]);
     assert_clean_failure(&out, "the depth is undetermined");
     assert!(!cal.exists());
+}
+
+/// The default graph with its capture reading `left`/`right` (raw views) from files, the
+/// rectifier and the triangulate node on the microscope's calibration `cal`, the matcher's
+/// range `range`, a lossless entrance and the bridge on a free port.
+fn raw_graph(left: &Path, right: &Path, cal: &Path, range: [i32; 2]) -> String {
+    let text =
+        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("launch.toml")).unwrap();
+    let swaps = [
+        (
+            "params = { source = \"synthetic\", width = 1280, height = 1024, cells = 10, seed = 1, repeat = 30, fps = 30 }".to_string(),
+            format!(
+                "params = {{ source = \"files\", left = \"{}\", right = \"{}\", repeat = true }}",
+                left.display(),
+                right.display()
+            ),
+        ),
+        (
+            "inputs = { frame = { from = \"capture/frame\", depth = 1 } }".into(),
+            format!(
+                "inputs = {{ frame = {{ from = \"capture/frame\", depth = 1, overflow = \"block\" }} }}\nparams = {{ calibration = \"{}\" }}",
+                cal.display()
+            ),
+        ),
+        (
+            "params = { min_disparity = -4, max_disparity = 12 }".into(),
+            format!(
+                "params = {{ min_disparity = {}, max_disparity = {} }}",
+                range[0], range[1]
+            ),
+        ),
+        (
+            "params = { calibration = \"synthetic\", cloud_step = 0 }".into(),
+            format!(
+                "params = {{ calibration = \"{}\", cloud_step = 0 }}",
+                cal.display()
+            ),
+        ),
+        ("127.0.0.1:7878".into(), "127.0.0.1:0".into()),
+    ];
+    swaps.iter().fold(text, |t, (a, b)| {
+        assert!(t.contains(a.as_str()), "the default graph changed: {a}");
+        t.replace(a.as_str(), b)
+    })
+}
+
+/// The live graph on a CMO microscope's raw pairs: rectified onto the stage plane by the
+/// calibration `calibrate-microscope` wrote, its cells measured as `reconstruct --cells`
+/// measures them from the same raw pair, to the bit.
+#[test]
+fn the_live_graph_runs_on_raw_pairs_with_the_microscope_calibration() {
+    let dir = tempfile::tempdir().unwrap();
+    let optics = ["--optics", "cmo", "--rig-seed", "2", "--aperture", "0.3"];
+    let (stack, cal, scene) = (
+        dir.path().join("stack"),
+        dir.path().join("cal"),
+        dir.path().join("scene"),
+    );
+    synth(
+        &stack,
+        &optics,
+        &["--stage-heights=-40,-20,0,20,40", "--board", "9,6"],
+    );
+    let out = run(&[
+        "calibrate-microscope",
+        s(&stack),
+        "--inner",
+        "9x6",
+        "--square",
+        "100",
+        "-o",
+        s(&cal),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    synth(
+        &scene,
+        &optics,
+        &["--cells", "10", "--cell-height", "10,30", "--seed", "5"],
+    );
+    let (l, r, file) = (
+        scene.join("left.png"),
+        scene.join("right.png"),
+        cal.join("calibration.toml"),
+    );
+    let launch = dir.path().join("raw.toml");
+    std::fs::write(&launch, raw_graph(&l, &r, &file, [-12, 12])).unwrap();
+    let rec = dir.path().join("run.mcap");
+    let out = run(&[
+        "run",
+        s(&launch),
+        "--frames",
+        "1",
+        "--record",
+        s(&rec),
+        "--edges",
+        "triangulate/targets",
+        "--instance",
+        &format!("raw{}", std::process::id()),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let o = dir.path().join("reconstruct");
+    let out = run(&[
+        "reconstruct",
+        s(&l),
+        s(&r),
+        "-o",
+        s(&o),
+        "--cells",
+        "--calibration",
+        s(&file),
+        "--min-disparity",
+        "-12",
+        "--max-disparity",
+        "12",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(o.join("cells.json")).unwrap()).unwrap();
+    let want = report["cells"].as_array().unwrap();
+    let measured = want.iter().filter(|c| c["height"].is_number()).count();
+    assert!(measured >= 4, "{measured} cells measured: {report}");
+    let msg = recorder::EdgeReader::open(&rec, None)
+        .unwrap()
+        .map(|m| m.unwrap())
+        .find(|m| m.edge == "triangulate/targets")
+        .expect("a targets message");
+    let t: schemas::Targets = schemas::Message::decode(&msg.header, &msg.payload).unwrap();
+    assert_eq!(
+        serde_json::to_value(&t.cells).unwrap().as_array().unwrap(),
+        want
+    );
 }

@@ -173,6 +173,10 @@ pub struct Request {
     /// The chessboard's square side, µm.
     #[cfg_attr(feature = "cli", arg(long, default_value_t = 100.0))]
     pub square: f64,
+    /// Seed of the raw views' cameras (their small turns, scales and shifts): one
+    /// microscope for a board stack and the scenes it measures, whatever their --seed.
+    #[cfg_attr(feature = "cli", arg(long, default_value_t = 1))]
+    pub rig_seed: u64,
 }
 
 impl Default for Request {
@@ -214,6 +218,7 @@ impl Default for Request {
             distortion: 3.0,
             board: None,
             square: 100.0,
+            rig_seed: 1,
         }
     }
 }
@@ -367,7 +372,7 @@ impl Request {
             } else {
                 0.1
             },
-            seed: self.seed,
+            seed: self.rig_seed,
         });
         let optics = match &microscope {
             Some(m) => m.optics(),
