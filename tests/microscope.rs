@@ -304,3 +304,49 @@ fn the_live_graph_runs_on_raw_pairs_with_the_microscope_calibration() {
         want
     );
 }
+
+/// What `calibrate-stereo` met on a microscope: ten board pairs tilted at most 3° (all a
+/// microscope's depth of field allows) seen by a CMO's converging, nearly telecentric views
+/// fit to a small reprojection error, but a pinhole's focal lengths and baseline are
+/// undetermined there: refused with the reason and what to use, no file written.
+#[test]
+fn calibrate_stereo_refuses_a_microscopes_tilted_boards() {
+    let dir = tempfile::tempdir().unwrap();
+    let pairs = dir.path().join("pairs");
+    std::fs::create_dir_all(&pairs).unwrap();
+    let tilts = ["3,0", "-3,0", "0,3", "0,-3", "2,2", "-2,2", "2,-2", "-2,-2"];
+    for (i, t) in tilts.iter().enumerate() {
+        let one = dir.path().join(format!("s{i}"));
+        let z = format!("--stage-heights={}", 10 * (i as i32 % 5) - 20);
+        let tilt = format!("--tilt={t}");
+        let seed = (i + 1).to_string();
+        synth(
+            &one,
+            &["--optics", "cmo", "--rig-seed", "3"],
+            &[&z, &tilt, "--seed", &seed, "--board", "9,6"],
+        );
+        for side in ["left", "right"] {
+            std::fs::copy(
+                one.join(format!("z00_{side}.png")),
+                pairs.join(format!("{side}{i:02}.png")),
+            )
+            .unwrap();
+        }
+    }
+    let cal = dir.path().join("cal");
+    let out = run(&[
+        "calibrate-stereo",
+        s(&pairs),
+        "--inner",
+        "9x6",
+        "--square",
+        "100",
+        "--unit",
+        "um",
+        "-o",
+        s(&cal),
+    ]);
+    assert_clean_failure(&out, "the pairs do not determine the cameras");
+    assert_clean_failure(&out, "calibrate-microscope");
+    assert!(!cal.join("calibration.toml").exists());
+}

@@ -68,6 +68,9 @@ pub struct Stereo {
     pub rms: f64,
     /// The same per pair.
     pub pair_rms: Vec<f64>,
+    /// Standard errors of the left and right focal lengths `fx` (px) and of the baseline
+    /// (board units), from the fit's covariance: how well the boards determine them.
+    pub std: [f64; 3],
 }
 
 impl Stereo {
@@ -289,6 +292,7 @@ pub fn calibrate_stereo(
         }
     };
     let cost = minimise(&mut p, &steps, &res, 200);
+    let std = standard_errors(&p, &steps, &res, cost);
     let pair_rms = (0..n)
         .map(|i| {
             let mut s = 0.0;
@@ -307,7 +311,48 @@ pub fn calibrate_stereo(
             .collect(),
         rms: rms_of(cost, 2 * n * object.len()),
         pair_rms,
+        std,
     })
+}
+
+/// The standard errors of the left `fx`, the right `fx` and the baseline `|t|` at the
+/// stereo fit `p` (covariance `σ²·(JᵀJ)⁻¹`, σ² the residuals' variance); infinite where the
+/// normal matrix is singular.
+fn standard_errors(
+    p: &[f64],
+    steps: &[f64],
+    res: &dyn Fn(&[f64], &mut Vec<f64>),
+    cost: f64,
+) -> [f64; 3] {
+    let (mut rp, mut rm) = (Vec::new(), Vec::new());
+    res(p, &mut rp);
+    let m = rp.len();
+    let n = p.len();
+    let mut jac = nalgebra::DMatrix::<f64>::zeros(m, n);
+    let mut q = p.to_vec();
+    for j in 0..n {
+        q[j] = p[j] + steps[j];
+        res(&q, &mut rp);
+        q[j] = p[j] - steps[j];
+        res(&q, &mut rm);
+        q[j] = p[j];
+        for i in 0..m {
+            jac[(i, j)] = (rp[i] - rm[i]) / (2.0 * steps[j]);
+        }
+    }
+    let sigma2 = cost / (m as f64 - n as f64).max(1.0);
+    let Some(cov) = (jac.transpose() * &jac).try_inverse() else {
+        return [f64::INFINITY; 3];
+    };
+    let t = Vector3::new(p[21], p[22], p[23]);
+    let g = t / t.norm().max(1e-300);
+    let mut vb = 0.0;
+    for a in 0..3 {
+        for b in 0..3 {
+            vb += g[a] * g[b] * cov[(21 + a, 21 + b)];
+        }
+    }
+    [cov[(0, 0)], cov[(9, 9)], vb].map(|v| (v * sigma2).max(0.0).sqrt())
 }
 
 /// How well `rect` puts a board's rows on image rows: the largest difference, over every

@@ -16,6 +16,11 @@ use std::path::{Path, PathBuf};
 /// Why a folder of pairs gave no calibration (each message as the user reads it).
 #[derive(Debug, thiserror::Error)]
 pub enum PairsError {
+    /// The boards do not determine the cameras: the fit's standard errors say so.
+    #[error(
+        "the pairs do not determine the cameras: {0}. Add pairs with the board tilted 20–45° in different directions and nearer and farther; for a stereo microscope (views a few degrees apart, nearly telecentric), whose boards cannot tilt that far, use calibrate-microscope with pairs at known stage heights"
+    )]
+    Undetermined(String),
     /// The folder cannot be listed.
     #[error("cannot read the pairs' directory '{}': {source}", dir.display())]
     ReadDir {
@@ -336,6 +341,34 @@ impl BoardPairs {
             }
             break (used, s);
         };
+        let [fl, fr] = [stereo.left[0], stereo.right[0]];
+        let [sl, sr, sb] = stereo.std;
+        let baseline = stereo.t.norm();
+        let worst = (sl / fl).max(sr / fr).max(sb / baseline);
+        if !(worst <= MAX_RELATIVE_STD) {
+            let pm = |v: f64, e: f64, digits: usize| {
+                if e.is_finite() {
+                    format!("{v:.digits$} ± {e:.digits$}")
+                } else {
+                    format!("{v:.digits$} (its error unbounded)")
+                }
+            };
+            return Err(PairsError::Undetermined(format!(
+                "focal lengths {} and {} px, baseline {}{}",
+                pm(fl, sl, 1),
+                pm(fr, sr, 1),
+                pm(baseline, sb, 4),
+                if worst.is_finite() {
+                    format!(
+                        " ({:.1} % at worst, at most {:.1} % is written)",
+                        100.0 * worst,
+                        100.0 * MAX_RELATIVE_STD
+                    )
+                } else {
+                    String::new()
+                }
+            )));
+        }
         let calibration = stereo.calibration(size);
         let rectification = Rectification::bouguet(&calibration);
         // The rectification's own check: each board row's mean rectified row in both views.
@@ -359,6 +392,10 @@ impl BoardPairs {
         })
     }
 }
+
+/// The largest relative standard error of a focal length or the baseline that
+/// `calibrate-stereo` writes a calibration with.
+pub const MAX_RELATIVE_STD: f64 = 0.02;
 
 /// A rig calibrated from board pairs.
 #[derive(Clone, Debug)]
@@ -416,6 +453,9 @@ impl PairsFit {
             })).collect::<Vec<_>>(),
             "rms_px": stereo.rms,
             "baseline": stereo.t.norm(),
+            "standard_errors": {
+                "left_fx_px": stereo.std[0], "right_fx_px": stereo.std[1], "baseline": stereo.std[2],
+            },
             "unit": unit.symbol(),
             "left": stereo.left,
             "right": stereo.right,
@@ -431,15 +471,18 @@ impl PairsFit {
     pub fn summary(&self, unit: LengthUnit) -> String {
         let s = &self.stereo;
         format!(
-            "{} of {} pairs used: RMS {:.4} px; baseline {:.3} {u}; left fx {:.1} fy {:.1} px, right fx {:.1} fy {:.1} px; rectified: focal {:.1} px, every board row within {:.3} px of one row",
+            "{} of {} pairs used: RMS {:.4} px; baseline {:.3} ± {:.3} {u}; left fx {:.1} fy {:.1} px, right fx {:.1} fy {:.1} px (fx ± {:.1}, ± {:.1}); rectified: focal {:.1} px, every board row within {:.3} px of one row",
             self.used,
             self.pairs.len(),
             s.rms,
             s.t.norm(),
+            s.std[2],
             s.left[0],
             s.left[1],
             s.right[0],
             s.right[1],
+            s.std[0],
+            s.std[1],
             self.rectification.f,
             self.worst_row,
             u = unit.symbol()

@@ -467,6 +467,7 @@ impl Setup {
             .enumerate()
             .map(move |(i, &z)| {
                 let mut s = Scene::target(self.optics, self.look.clone(), z, r.seed + i as u64);
+                s.tilt = self.tilt;
                 if let Some([cols, rows]) = r.board.as_deref().map(|b| [b[0], b[1]]) {
                     s.target = false;
                     s.board = Some(crate::Chessboard {
