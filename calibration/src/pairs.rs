@@ -345,7 +345,7 @@ impl BoardPairs {
         let [sl, sr, sb] = stereo.std;
         let baseline = stereo.t.norm();
         let worst = (sl / fl).max(sr / fr).max(sb / baseline);
-        if !(worst <= MAX_RELATIVE_STD) {
+        if worst.is_nan() || worst > MAX_RELATIVE_STD {
             let pm = |v: f64, e: f64, digits: usize| {
                 if e.is_finite() {
                     format!("{v:.digits$} ± {e:.digits$}")

@@ -37,6 +37,9 @@ pub struct PairUse {
     pub rms: Option<[f64; 2]>,
 }
 
+/// A pair's stage height and its board's corners, left and right.
+type Seen = (f64, Vec<[f64; 2]>, Vec<[f64; 2]>);
+
 /// A microscope calibrated from a stage stack.
 #[derive(Clone, Debug)]
 pub struct StageFit {
@@ -127,7 +130,7 @@ pub fn calibrate_stage(
     };
     let size = (first.left.width, first.left.height);
     let mut uses = Vec::new();
-    let mut seen: Vec<(f64, Vec<[f64; 2]>, Vec<[f64; 2]>)> = Vec::new();
+    let mut seen: Vec<Seen> = Vec::new();
     let mut reference: Option<crate::board::Board> = None;
     for p in pairs {
         if (p.left.width, p.left.height) != size || (p.right.width, p.right.height) != size {
@@ -224,7 +227,7 @@ pub fn calibrate_stage(
     let rig = Rig::new(fits[0].model.clone(), fits[1].model.clone(), size, mid)?;
     let u = uncertainty(&rig, [&fits[0], &fits[1]]);
     let [k, k_std] = u.px_per_um;
-    if !(k.abs() > 1e-3) {
+    if k.is_nan() || k.abs() <= 1e-3 {
         return Err(format!(
             "the views barely converge ({k:.2e} px of disparity per µm of height): a stereo microscope's views are a few degrees apart; check that left and right are two views, not one"
         ));

@@ -233,7 +233,7 @@ pub enum Rectifier {
     /// Pinhole cameras turned onto their baseline.
     Bouguet(Rectification),
     /// A stereo microscope's views rectified onto the stage plane.
-    Microscope(Box<crate::microscope::Rig>),
+    Microscope(crate::microscope::Rig),
 }
 
 impl From<Rectification> for Rectifier {
@@ -275,7 +275,7 @@ pub fn read_rectifier(path: &str) -> Result<Rectifier, String> {
     {
         m.check()
             .map_err(|e| format!("calibration '{path}': {e}"))?;
-        return Ok(Rectifier::Microscope(Box::new(m)));
+        return Ok(Rectifier::Microscope(m));
     }
     read_stereo(path).map(|c| Rectifier::Bouguet(Rectification::bouguet(&c)))
 }

@@ -206,7 +206,7 @@ mod tests {
             ..Request::default()
         });
         let (scene, _) = s.cells().unwrap();
-        let r = write_scene(dir.path(), &scene, "p_").unwrap();
+        let r = write_scene(dir.path(), &scene, "p_", None).unwrap();
         assert_eq!(r.disparity.data, scene.render().disparity.data);
         let d = formats::read_pfm(&dir.path().join("p_disparity.pfm"), "disparity").unwrap();
         assert_eq!(d.data, r.disparity.data);
@@ -218,8 +218,32 @@ mod tests {
         assert_eq!(truth["disparity_range"][0].as_f64(), Some(lo as f64));
         assert_eq!(truth["disparity_range"][1].as_f64(), Some(hi as f64));
         assert!(truth["pipette"].is_object());
-        for n in scene_files("p_") {
+        for n in scene_files("p_", false) {
             assert!(dir.path().join(&n).is_file(), "{n}");
         }
+    }
+
+    #[test]
+    fn a_raw_microscopes_stack_is_its_views_and_truth_without_a_calibration() {
+        let raw = setup(Request {
+            optics: crate::raw::Layout::Cmo,
+            stage_heights: Some(vec![0.0, 10.0]),
+            ..Request::default()
+        });
+        assert_eq!(
+            names(&raw),
+            [
+                "heights.csv",
+                "z00_left.png",
+                "z00_right.png",
+                "z00_truth.json",
+                "z01_left.png",
+                "z01_right.png",
+                "z01_truth.json"
+            ]
+        );
+        let m = raw.microscope.expect("a raw microscope");
+        assert_eq!((m.width, m.height), (48, 40));
+        assert_eq!(raw.optics.width, 48 + 2 * 48);
     }
 }
