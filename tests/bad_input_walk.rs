@@ -77,6 +77,19 @@ fn base(sub: &str, dir: &Path, stack: &Path) -> Option<(Vec<String>, Option<Path
             ],
             Some(out),
         ),
+        // A stack without a board: every bad flag is refused before the board is looked for.
+        "calibrate-microscope" => (
+            vec![
+                s(stack.to_path_buf()),
+                "--inner".into(),
+                "9x6".into(),
+                "--square".into(),
+                "100".into(),
+                "-o".into(),
+                s(out.clone()),
+            ],
+            Some(out),
+        ),
         // Its own arguments are its subcommands'.
         "calibration" => (vec![], None),
         "calibrate-manipulator" => (
@@ -102,7 +115,7 @@ fn base(sub: &str, dir: &Path, stack: &Path) -> Option<(Vec<String>, Option<Path
 
 /// Flags where any value of their type is a valid one (a seed, a frame count: a huge one
 /// only means a long run, which Ctrl-C ends).
-const ANY_VALUE: &[&str] = &["seed", "frames"];
+const ANY_VALUE: &[&str] = &["seed", "rig_seed", "frames"];
 
 /// One run of the binary under a 4 GiB address-space limit and a time limit: its exit
 /// code (None: killed by a signal or the limit) and stderr.

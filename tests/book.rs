@@ -126,7 +126,13 @@ fn runs_alone(args: &[String], made: impl Fn(&str) -> bool) -> bool {
         .and_then(|i| args.get(i + 1))
         .and_then(|n| n.parse::<u64>().ok());
     match args[0].as_str() {
-        "reconstruct" | "eval" | "segment" | "synth" | "calibrate-stereo" | "calibrate-depth"
+        "reconstruct"
+        | "eval"
+        | "segment"
+        | "synth"
+        | "calibrate-stereo"
+        | "calibrate-depth"
+        | "calibrate-microscope"
         | "calibration" => true,
         "inspect" | "test-node" => made(&args[1]),
         "replay" => made(&args[1]) && !has("--loop"),
