@@ -131,6 +131,7 @@ pub fn calibrate_depth(a: CalibrateArgs) -> Result<(), CliError> {
         d.push(di);
     }
     let fit = calibration::file::fit_depth(&z, &d, a.working_distance);
+    fit.check(&z, a.working_distance.is_none())?;
     let (w, h) = size.unwrap_or((0, 0));
     let f_px = fit.b_f / a.baseline;
     let cx = (w as f64 - 1.0) / 2.0;
@@ -227,24 +228,8 @@ pub fn calibrate_microscope(a: CalibrateMicroscopeArgs) -> Result<(), CliError> 
         a.overwrite,
         a.check.as_deref(),
     )?;
-    for p in &fit.pairs {
-        match (&p.not_used, p.rms) {
-            (Some(why), _) => runtime::outln!("pair {} (z {} µm): not used: {why}", p.name, p.z),
-            (None, Some([l, r])) => {
-                runtime::outln!("pair {} (z {} µm): RMS {l:.3} / {r:.3} px", p.name, p.z)
-            }
-            _ => {}
-        }
-    }
-    runtime::outln!("{}", fit.summary());
-    for line in calibration::stage::check_lines(&checked) {
+    for line in pipelines::microscope::lines(&fit, &checked, &a.output) {
         runtime::outln!("{line}");
     }
-    let [cal, report] = pipelines::microscope::outputs(&a.output);
-    runtime::outln!(
-        "calibration written to {} (report {})",
-        cal.display(),
-        report.display()
-    );
     Ok(())
 }

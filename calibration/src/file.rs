@@ -293,13 +293,44 @@ fn linear_fit(z: &[f64], d: &[f64], w: f64) -> (f64, f64, f64) {
     (b, off, rss)
 }
 
+/// The largest working distance [`fit_depth`] searches, beyond the highest stage, µm.
+const FARTHEST: f64 = 1e7;
+
+impl DepthFit {
+    /// Refuses a fit that cannot be written as a depth calibration (`searched`: the
+    /// working distance was fitted, not given), with the reason and what to do.
+    pub fn check(&self, z: &[f64], searched: bool) -> Result<(), String> {
+        let rms = (self.residuals.iter().map(|r| r * r).sum::<f64>()
+            / self.residuals.len().max(1) as f64)
+            .sqrt();
+        if rms > 0.3 {
+            return Err(format!(
+                "the target's disparities do not follow one depth model (residual {rms:.2} px RMS): the pairs must be rectified; for a stereo microscope's raw views (converging, nearly telecentric) use calibrate-microscope with a chessboard at known stage heights"
+            ));
+        }
+        if self.b_f.is_nan() || self.b_f <= 0.0 {
+            return Err(format!(
+                "the target's disparity does not grow with the stage height (b·f = {:.3e}): are left and right swapped, or do heights.csv's heights grow away from the cameras?",
+                self.b_f
+            ));
+        }
+        let zmax = z.iter().copied().fold(f64::MIN, f64::max);
+        if searched && self.working_distance - zmax > 0.99 * FARTHEST {
+            return Err(
+                "the z-stack shows no perspective (the views are telecentric within its noise), so the working distance and b·f are undetermined: give --working-distance, or calibrate the microscope with calibrate-microscope from a chessboard at known stage heights".into(),
+            );
+        }
+        Ok(())
+    }
+}
+
 /// Fits `d = B/(W − z) − offset` to measured `(z, d)`; `w` fixed or searched.
 pub fn fit_depth(z: &[f64], d: &[f64], w: Option<f64>) -> DepthFit {
     let zmax = z.iter().copied().fold(f64::MIN, f64::max);
     let w = w.unwrap_or_else(|| {
         // Golden section on log(W − zmax) over 1 µm .. 10 m.
         let f = |t: f64| linear_fit(z, d, zmax + t.exp()).2;
-        let (mut a, mut b) = (0f64, (1e7f64).ln());
+        let (mut a, mut b) = (0f64, FARTHEST.ln());
         let g = 0.5 * (5f64.sqrt() - 1.0);
         let (mut c, mut e) = (b - g * (b - a), a + g * (b - a));
         for _ in 0..200 {
@@ -398,5 +429,26 @@ mod tests {
         let g = fit_depth(&z, &d, None);
         assert!((g.working_distance / w - 1.0).abs() < 1e-3, "{g:?}");
         assert!((g.b_f / bf - 1.0).abs() < 2e-3, "{g:?}");
+        g.check(&z, true).unwrap();
+        // A telecentric stack: disparity linear in height, the fit runs to its bound.
+        let flat: Vec<f64> = z.iter().map(|z| 0.19 * z).collect();
+        let t = fit_depth(&z, &flat, None);
+        assert!(t.check(&z, true).unwrap_err().contains("no perspective"));
+        assert!(fit_depth(&z, &flat, Some(1e5)).check(&z, false).is_ok());
+        // Falling with height, and scattered.
+        let down: Vec<f64> = flat.iter().map(|d| -d).collect();
+        let e = fit_depth(&z, &down, Some(1e5))
+            .check(&z, false)
+            .unwrap_err();
+        assert!(e.contains("does not grow"), "{e}");
+        let noisy: Vec<f64> = flat
+            .iter()
+            .enumerate()
+            .map(|(i, d)| d + if i % 2 == 0 { 1.0 } else { -1.0 })
+            .collect();
+        let e = fit_depth(&z, &noisy, Some(1e5))
+            .check(&z, false)
+            .unwrap_err();
+        assert!(e.contains("calibrate-microscope"), "{e}");
     }
 }

@@ -82,3 +82,29 @@ pub fn calibrate_microscope(
     formats::atomic::write_bytes(&files[1], report.as_bytes()).map_err(|e| e.to_string())?;
     Ok((fit, checked))
 }
+
+/// What `calibrate-microscope` tells its user: each pair's use, the summary, the held-out
+/// pairs measured, and where the files are (`out`).
+pub fn lines(fit: &StageFit, checked: &[Checked], out: &Path) -> Vec<String> {
+    let mut lines: Vec<String> = fit
+        .pairs
+        .iter()
+        .filter_map(|p| match (&p.not_used, p.rms) {
+            (Some(why), _) => Some(format!("pair {} (z {} µm): not used: {why}", p.name, p.z)),
+            (None, Some([l, r])) => Some(format!(
+                "pair {} (z {} µm): RMS {l:.3} / {r:.3} px",
+                p.name, p.z
+            )),
+            _ => None,
+        })
+        .collect();
+    lines.push(fit.summary());
+    lines.extend(calibration::stage::check_lines(checked));
+    let [cal, report] = outputs(out);
+    lines.push(format!(
+        "calibration written to {} (report {})",
+        cal.display(),
+        report.display()
+    ));
+    lines
+}
