@@ -244,7 +244,8 @@ pub fn calibrate_stage(
     }
     let half = 0.5 * (span[1] - span[0]);
     let holds = rig.holds(half);
-    for (i, (z, l, r)) in seen.iter().enumerate() {
+    let used = uses.iter_mut().filter(|u| u.not_used.is_none());
+    for (u, (z, l, r)) in used.zip(&seen) {
         let rms = |f: &ViewFit, c: &[[f64; 2]]| {
             let s: f64 = c
                 .iter()
@@ -261,10 +262,7 @@ pub fn calibrate_stage(
                 .sum();
             (s / (2 * c.len()) as f64).sqrt()
         };
-        let used = uses.iter_mut().filter(|u| u.not_used.is_none()).nth(i);
-        if let Some(u) = used {
-            u.rms = Some([rms(&fits[0], l), rms(&fits[1], r)]);
-        }
+        u.rms = Some([rms(&fits[0], l), rms(&fits[1], r)]);
     }
     Ok(StageFit {
         rig,
@@ -384,32 +382,28 @@ pub struct Checked {
 
 impl StageFit {
     /// Measures the stage height of each of `pairs` (a flat textured target filling the
-    /// views' middle) through the calibration: rectified onto the stage plane, the target's
+    /// views' middle) through the calibration: each view rectified onto the stage plane by
+    /// `rectify(view, right)` (the rectifier's tables of [`StageFit::rig`]), the target's
     /// disparity fitted to the images ([`crate::target::target_disparity`]), triangulated.
-    pub fn check(&self, pairs: &[StagePair]) -> Vec<Checked> {
+    pub fn check(
+        &self,
+        pairs: &[StagePair],
+        rectify: &dyn Fn(&Plane<u8>, bool) -> Plane<u8>,
+    ) -> Vec<Checked> {
         let [lo, hi] = self.disparity_range();
         let c = self.rig.calibration();
         let sign = if self.turned { -1.0 } else { 1.0 };
+        let size = (self.rig.width, self.rig.height);
         pairs
             .iter()
             .map(|p| {
-                let rect = |img: &Plane<u8>, right: bool| {
-                    let (w, h) = (self.rig.width, self.rig.height);
-                    let data = (0..w * h)
-                        .map(|i| {
-                            let (x, y) = self.rig.source(right, (i % w) as f64, (i / w) as f64);
-                            crate::bilinear(img, x, y).map_or(0, |v| v.round() as u8)
-                        })
-                        .collect();
-                    Plane::from_vec(w, h, data).expect("size")
-                };
-                let same = (p.left.width, p.left.height) == (self.rig.width, self.rig.height)
-                    && (p.right.width, p.right.height) == (self.rig.width, self.rig.height);
+                let same = (p.left.width, p.left.height) == size
+                    && (p.right.width, p.right.height) == size;
                 let d = same
                     .then(|| {
                         crate::target::target_disparity(
-                            &rect(&p.left, false),
-                            &rect(&p.right, true),
+                            &rectify(&p.left, false),
+                            &rectify(&p.right, true),
                             lo.floor() as i32 - 2,
                             hi.ceil() as i32 + 2,
                         )

@@ -3,6 +3,7 @@
 //! the triangulate node and `reconstruct` read, with its report.
 
 use calibration::stage::{Checked, StageFit, StagePair, calibrate_stage};
+use calibration::stereo::Rectifier;
 use std::path::{Path, PathBuf};
 
 /// The files `calibrate-microscope` writes into `out`.
@@ -61,7 +62,14 @@ pub fn calibrate_microscope(
             dir.display()
         )
     })?;
-    let checked = held_out.map(|h| fit.check(&h)).unwrap_or_default();
+    let checked = held_out
+        .map(|h| {
+            let (l, r) = rectify::luts(&Rectifier::Microscope(fit.rig.clone()));
+            fit.check(&h, &|img, right| {
+                if right { r.apply(img) } else { l.apply(img) }
+            })
+        })
+        .unwrap_or_default();
     std::fs::create_dir_all(out).map_err(|e| format!("cannot create '{}': {e}", out.display()))?;
     let [lo, hi] = fit.disparity_range();
     calibration::file::write_file(

@@ -440,7 +440,7 @@ impl Default for Look {
 }
 
 /// A chessboard target: `cols × rows` inner corners, squares of `square` µm, with edges
-/// as soft as a printed board's under the optics' resolution (a quarter of a pixel wide,
+/// as soft as a printed board's under the optics' resolution (about a pixel wide,
 /// symmetric about each edge, so each corner is a saddle exactly at its place).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Chessboard {
@@ -469,14 +469,6 @@ impl Chessboard {
             (k * (std::f64::consts::PI * (t + h) / self.square).sin()).clamp(-1.0, 1.0)
         };
         wave(x, half[0]) * wave(y, half[1])
-    }
-
-    /// Inner corner `(i, j)` (along a row, down a column) in µm from the board's centre.
-    pub fn corner(&self, i: usize, j: usize) -> [f64; 2] {
-        [
-            (i as f64 - 0.5 * (self.cols - 1) as f64) * self.square,
-            (j as f64 - 0.5 * (self.rows - 1) as f64) * self.square,
-        ]
     }
 }
 
