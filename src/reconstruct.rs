@@ -163,6 +163,7 @@ const FLAGS: &[(&str, &str)] = &[
     ("margin", "--cell-margin"),
     ("variance_radius", "--variance-radius"),
     ("min_std", "--min-std"),
+    ("noise_floor", "--noise-floor"),
     ("min_area", "--min-area"),
     ("open_radius", "--open"),
     ("close_radius", "--close"),

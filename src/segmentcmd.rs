@@ -13,6 +13,7 @@ use std::time::Instant;
 pub const FLAGS: &[(&str, &str)] = &[
     ("variance_radius", "--variance-radius"),
     ("min_std", "--min-std"),
+    ("noise_floor", "--noise-floor"),
     ("min_area", "--min-area"),
     ("open_radius", "--open"),
     ("close_radius", "--close"),
@@ -37,6 +38,10 @@ pub struct SegmentOpts {
     /// Smallest local standard deviation (grey levels) that can be cell.
     #[arg(long, default_value_t = SegmentParams::default().min_std)]
     min_std: f32,
+    /// A cell's local standard deviation is at least this many times the image's noise
+    /// (read from its quietest tenth); 0 = the fixed floor alone.
+    #[arg(long, default_value_t = SegmentParams::default().noise_floor)]
+    noise_floor: f32,
     /// How the variance maps onto 0–255 before Otsu.
     #[arg(long, value_enum, default_value = "log-std-dev")]
     variance_scale: ScaleArg,
@@ -70,6 +75,7 @@ impl SegmentOpts {
                 ScaleArg::LogStdDev => segment::VarianceScale::LogStdDev,
             },
             min_std: self.min_std,
+            noise_floor: self.noise_floor,
             min_area: self.min_area,
             fill_holes: !self.no_fill_holes,
             open_radius: self.open,

@@ -272,6 +272,119 @@ fn the_live_graph_runs_on_raw_pairs_with_the_microscope_calibration() {
     );
 }
 
+/// Cell heights from a CMO microscope's raw pairs, through the calibration a board across
+/// half the field gives: 72 domes 10–30 µm tall in six scenes at NA 0.1 (blurred to the
+/// diffraction limit), each trusted cell compared with its truth. A trusted height is
+/// within 3 σ of its stated error, most within 2 %; a cell reaching outside the field the
+/// board covered is not trusted, and says why.
+#[test]
+fn cell_heights_on_raw_cmo_pairs_are_within_their_stated_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let optics = [
+        "--optics",
+        "cmo",
+        "--convergence",
+        "5",
+        "--pupil",
+        "150",
+        "--rig-seed",
+        "3",
+    ];
+    let (stack, cal) = (dir.path().join("stack"), dir.path().join("cal"));
+    synth(
+        &stack,
+        &optics,
+        &[
+            "--stage-heights=-40,-30,-20,-10,0,10,20,30,40",
+            "--board",
+            "11,8",
+        ],
+    );
+    let out = calibrate(&stack, "11,8", &cal, &[]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let (mut trusted, mut within2, mut outside) = (0, 0, 0);
+    for seed in ["11", "12", "13", "14", "15", "16"] {
+        let (scene, o) = (
+            dir.path().join(format!("scene{seed}")),
+            dir.path().join(format!("cells{seed}")),
+        );
+        synth(
+            &scene,
+            &optics,
+            &["--cells", "12", "--cell-height", "10,30", "--seed", seed],
+        );
+        let out = run(&[
+            "reconstruct",
+            s(&scene.join("left.png")),
+            s(&scene.join("right.png")),
+            "-o",
+            s(&o),
+            "--cells",
+            "--calibration",
+            s(&cal.join("calibration.toml")),
+            "--min-disparity",
+            "-12",
+            "--max-disparity",
+            "12",
+        ]);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let json = |p: &Path| -> serde_json::Value {
+            serde_json::from_slice(&std::fs::read(p).unwrap()).unwrap()
+        };
+        let truth = json(&scene.join("truth.json"));
+        let truth = truth["cells"].as_array().unwrap();
+        let got = json(&o.join("cells.json"));
+        for c in got["cells"].as_array().unwrap() {
+            let q = &c["quality"];
+            let doubt = q["doubt"].as_str().unwrap_or("");
+            outside += usize::from(doubt.contains("outside the calibrated field"));
+            if !q["trusted"].as_bool().unwrap() {
+                continue;
+            }
+            let at = |v: &serde_json::Value, k: usize| v["centroid"][k].as_f64().unwrap();
+            let near = truth
+                .iter()
+                .min_by(|a, b| {
+                    let d =
+                        |t: &serde_json::Value| (at(t, 0) - at(c, 0)).hypot(at(t, 1) - at(c, 1));
+                    d(a).total_cmp(&d(b))
+                })
+                .unwrap();
+            let (h, want) = (
+                c["height"].as_f64().unwrap(),
+                near["height"].as_f64().unwrap(),
+            );
+            let (err, std) = (h - want, q["height_std"].as_f64().unwrap());
+            eprintln!(
+                "seed {seed}: {h:.2} µm against {want:.2} ({:+.1} %, {:+.1} σ)",
+                100.0 * err / want,
+                err / std
+            );
+            assert!(
+                err.abs() <= 3.0 * std,
+                "seed {seed}: a trusted height {h:.2} µm against {want:.2} (σ {std:.2})"
+            );
+            trusted += 1;
+            within2 += usize::from(err.abs() <= 0.02 * want);
+        }
+    }
+    eprintln!("{trusted} trusted, {within2} within 2 %, {outside} outside the field");
+    assert!(trusted >= 8, "{trusted} trusted heights");
+    assert!(
+        4 * within2 >= 3 * trusted,
+        "{within2} of {trusted} within 2 %"
+    );
+    assert!(outside >= 1, "no cell outside the calibrated field");
+}
+
 /// What `calibrate-stereo` met on a microscope: ten board pairs tilted at most 3° (all a
 /// microscope's depth of field allows) seen by a CMO's converging, nearly telecentric views
 /// fit to a small reprojection error, but a pinhole's focal lengths and baseline are

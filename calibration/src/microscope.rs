@@ -376,6 +376,11 @@ pub struct Rig {
     pub e2: [f64; 2],
     /// µm of the plane per rectified pixel.
     pub scale: f64,
+    /// The part of the rectified frame the board's corners covered, `[u0, v0, u1, v1]` px
+    /// (left view, every height): the fit holds there; beyond it the distortion is
+    /// extrapolated (a Greenough's heights 9–12σ low 100–160 µm past a 7×5 board's edge).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub field: Option<[f64; 4]>,
 }
 
 impl Rig {
@@ -438,6 +443,7 @@ impl Rig {
             e1,
             e2,
             scale,
+            field: None,
         })
     }
 

@@ -224,7 +224,20 @@ pub fn calibrate_stage(
         ));
     }
     let mid = 0.5 * (span[0] + span[1]) * if turned { -1.0 } else { 1.0 };
-    let rig = Rig::new(fits[0].model.clone(), fits[1].model.clone(), size, mid)?;
+    let mut rig = Rig::new(fits[0].model.clone(), fits[1].model.clone(), size, mid)?;
+    let turn = if turned { -1.0 } else { 1.0 };
+    rig.field = observe(turn, false)
+        .iter()
+        .filter_map(|o| rig.rectified_of(false, o.world))
+        .fold(None, |b: Option<[f64; 4]>, p| {
+            let b = b.unwrap_or([p[0], p[1], p[0], p[1]]);
+            Some([
+                b[0].min(p[0]),
+                b[1].min(p[1]),
+                b[2].max(p[0]),
+                b[3].max(p[1]),
+            ])
+        });
     let u = uncertainty(&rig, [&fits[0], &fits[1]]);
     let [k, k_std] = u.px_per_um;
     if k.is_nan() || k.abs() <= 1e-3 {
@@ -316,6 +329,7 @@ impl StageFit {
             "stage_span_um": self.span,
             "heights_turned": self.turned,
             "disparity_range_px": self.disparity_range(),
+            "field_px": self.rig.field,
             "rectified_rows_within_px": self.holds.0,
             "parallel_axis_heights_within_um": self.holds.1,
             "pairs": self.pairs,
@@ -334,8 +348,22 @@ impl StageFit {
             }
         };
         let used = self.pairs.iter().filter(|p| p.not_used.is_none()).count();
+        let field = match self.rig.field {
+            Some(f) => format!(
+                "\nthe board covered x {:.0}–{:.0}, y {:.0}–{:.0} px of the {}×{} rectified frame ({:.0} %): cells outside it are measured but not trusted (move the board across the field, or use a larger one, to widen it)",
+                f[0],
+                f[2],
+                f[1],
+                f[3],
+                self.rig.width,
+                self.rig.height,
+                100.0 * (f[2] - f[0]).max(0.0) * (f[3] - f[1]).max(0.0)
+                    / (self.rig.width * self.rig.height) as f64
+            ),
+            None => String::new(),
+        };
         format!(
-            "{used} of {} pairs used, stage {} to {} µm{}\nreprojection error {:.3} px left, {:.3} px right\nscale {:.4} ± {:.4} and {:.4} ± {:.4} µm/px; views {:.2} ± {:.2}° and {:.2} ± {:.2}° off the stage normal\npupils: {}, {}\ndepth: {:.5} ± {:.5} px of disparity per µm of height ({:.3} %)\nrectified rows agree within {:.3} px, heights within {:.3} µm over the field\ndisparity range for the stack's depth and half again: {:.0} to {:.0} px",
+            "{used} of {} pairs used, stage {} to {} µm{}\nreprojection error {:.3} px left, {:.3} px right\nscale {:.4} ± {:.4} and {:.4} ± {:.4} µm/px; views {:.2} ± {:.2}° and {:.2} ± {:.2}° off the stage normal\npupils: {}, {}\ndepth: {:.5} ± {:.5} px of disparity per µm of height ({:.3} %)\nrectified rows agree within {:.3} px, heights within {:.3} µm over the field\ndisparity range for the stack's depth and half again: {:.0} to {:.0} px{field}",
             self.pairs.len(),
             self.span[0],
             self.span[1],

@@ -21,7 +21,7 @@ pub fn luts(rect: &Rectifier) -> (RemapLut, RemapLut) {
 pub struct RemapLut {
     width: usize,
     height: usize,
-    /// Per output pixel: source `(x, y)`, or NaN outside the image.
+    /// Per output pixel: source `(x, y)` (NaN where the rectifier has none).
     map: Vec<(f32, f32)>,
 }
 
@@ -38,16 +38,19 @@ impl RemapLut {
         Self { width, height, map }
     }
 
-    /// Resamples `img` (bilinear; 0 outside the source).
+    /// Resamples `img` (bilinear); a pixel whose source lies outside the view repeats the
+    /// view's nearest edge, as OpenCV's `BORDER_REPLICATE`: a black border would be an
+    /// edge that segmentation and matching take for texture.
     pub fn apply(&self, img: &schemas::Plane<u8>) -> schemas::Plane<u8> {
         let (w, h) = (img.width as f32, img.height as f32);
         let data = self
             .map
             .iter()
             .map(|&(x, y)| {
-                if !(x >= 0.0 && y >= 0.0 && x <= w - 1.0 && y <= h - 1.0) {
+                if !(x.is_finite() && y.is_finite()) {
                     return 0;
                 }
+                let (x, y) = (x.clamp(0.0, w - 1.0), y.clamp(0.0, h - 1.0));
                 let (x0, y0) = (x.floor() as usize, y.floor() as usize);
                 let (x1, y1) = ((x0 + 1).min(img.width - 1), (y0 + 1).min(img.height - 1));
                 let (fx, fy) = (x - x0 as f32, y - y0 as f32);

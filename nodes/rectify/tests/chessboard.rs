@@ -171,3 +171,28 @@ fn ros_camera_info_pairs_rectify_like_opencv() {
     let e = Rectification::from_camera_info("image_width: 1\n", "").unwrap_err();
     assert!(e.starts_with("left camera_info:"), "{e}");
 }
+
+#[test]
+fn pixels_from_outside_the_view_repeat_its_edge() {
+    // A black border is an edge no scene has: segmentation took it for the most textured
+    // thing in a microscope's rectified frame and its threshold then lost the cells.
+    let cal = StereoCalibration::from_opencv_yaml(&data("opencv_chessboard_stereo.yaml")).unwrap();
+    let rect = Rectification::bouguet(&cal);
+    // OpenCV's rectification keeps the sample rig's frame inside both views: a larger
+    // output reaches past them.
+    let (w, h) = (800, 600);
+    let outside = (0..h)
+        .flat_map(|v| (0..w).map(move |u| (u, v)))
+        .filter(|&(u, v)| {
+            let (x, y) = rect.source(false, u as f64, v as f64);
+            !(0.0..=639.0).contains(&x) || !(0.0..=479.0).contains(&y)
+        })
+        .count();
+    assert!(
+        outside > 1000,
+        "{outside} rectified pixels from outside the view"
+    );
+    let grey = schemas::Plane::filled(640, 480, 200u8);
+    let out = rectify::RemapLut::new(&rect.into(), false, w, h).apply(&grey);
+    assert!(out.data.iter().all(|&v| v == 200));
+}

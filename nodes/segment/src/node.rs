@@ -20,6 +20,12 @@ impl Params for SegmentParams {
                 self.min_std
             ));
         }
+        if !(0.0..=20.0).contains(&self.noise_floor) {
+            return Err(format!(
+                "noise_floor {} is out of range: use 0..=20 times the image's noise",
+                self.noise_floor
+            ));
+        }
         if self.min_area > MAX_AREA {
             return Err(format!(
                 "min_area {} is out of range: use 0..={MAX_AREA} pixels",

@@ -56,6 +56,8 @@ pub struct SegmentReport<'a> {
     params: &'a SegmentParams,
     /// Largest local standard deviation (or variance), grey levels: 255 on variance.png.
     variance_max: f32,
+    /// The image's noise (local standard deviation of its quietest tenth), grey levels.
+    noise_std: f32,
     otsu_threshold: Option<u8>,
     threshold: u16,
     histogram: Vec<u64>,
@@ -77,6 +79,7 @@ impl<'a> SegmentReport<'a> {
             height: seg.mask.height,
             params,
             variance_max: seg.variance_max,
+            noise_std: seg.noise,
             otsu_threshold: seg.otsu,
             threshold: seg.threshold,
             histogram: seg.histogram.to_vec(),

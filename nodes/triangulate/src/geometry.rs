@@ -68,6 +68,19 @@ impl Geometry {
         }
     }
 
+    /// The rectified field a microscope calibration's board covered
+    /// (`calibration::microscope::Rig::field`), for images of `w × h` (the file's size).
+    pub fn field(&self, w: usize, h: usize) -> Option<[f64; 4]> {
+        let file = match self {
+            Geometry::Synthetic => return None,
+            Geometry::File(p) => read_file(Path::new(p)).ok()?,
+            Geometry::Inline(f) => f.clone(),
+        };
+        file.microscope
+            .filter(|r| (r.width, r.height) == (w, h))
+            .and_then(|r| r.field)
+    }
+
     /// The geometry for images of `w × h`.
     pub fn resolve(&self, w: usize, h: usize) -> Result<Calibration, String> {
         match self {

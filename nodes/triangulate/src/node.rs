@@ -95,7 +95,8 @@ node_api::ports! {
 #[derive(Debug)]
 pub struct Triangulate {
     params: TriangulateParams,
-    calibration: Option<(usize, usize, Calibration)>,
+    /// The calibration for frames of a size, and the field its board covered.
+    calibration: Option<(usize, usize, Calibration, Option<[f64; 4]>)>,
     /// The substrate plane tracked up to the last frame, its frame size and disparity range.
     plane: Option<((usize, usize), DisparityRange, PlaneTrack)>,
     /// Whether it said that cells lie beyond infinite depth (once a run).
@@ -105,15 +106,20 @@ pub struct Triangulate {
 impl Triangulate {
     /// The calibration for frames of `w × h` (read once; a file's missing principal point
     /// defaults to the image centre).
-    fn calibration(&mut self, w: usize, h: usize) -> Result<Calibration, String> {
-        if let Some((cw, ch, c)) = self.calibration
+    fn calibration(
+        &mut self,
+        w: usize,
+        h: usize,
+    ) -> Result<(Calibration, Option<[f64; 4]>), String> {
+        if let Some((cw, ch, c, f)) = self.calibration
             && (cw, ch) == (w, h)
         {
-            return Ok(c);
+            return Ok((c, f));
         }
         let c = self.params.calibration.resolve(w, h)?;
-        self.calibration = Some((w, h, c));
-        Ok(c)
+        let f = self.params.calibration.field(w, h);
+        self.calibration = Some((w, h, c, f));
+        Ok((c, f))
     }
 }
 
@@ -167,7 +173,7 @@ impl Task for Triangulate {
                 i.disparity.width, i.disparity.height
             )));
         }
-        let calib = self.calibration(w, h)?;
+        let (calib, field) = self.calibration(w, h)?;
         let (map, cells, substrate) = match (&i.labels, &i.cells, &i.checked) {
             (Some(labels), Some(lists), Some(checked)) => {
                 // The plane's band-passed views beside the serial composition of the crops.
@@ -232,6 +238,9 @@ impl Task for Triangulate {
                     &calib,
                 );
                 cells.extend(lone);
+                if let Some(f) = field {
+                    crate::measure::flag_outside(&mut cells, &lists.left, f);
+                }
                 (c.disparity, cells, substrate)
             }
             _ => (i.disparity.paste(), Vec::new(), None),
