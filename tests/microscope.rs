@@ -39,6 +39,31 @@ fn calibrate(stack: &Path, inner: &str, cal: &Path, extra: &[&str]) -> std::proc
     run(&args)
 }
 
+/// `reconstruct --cells` of the raw pair `left`, `right` through calibration file `file` over
+/// −12..12 px into `out`; its cells.json.
+fn cells_of(left: &Path, right: &Path, file: &Path, out: &Path) -> serde_json::Value {
+    let done = run(&[
+        "reconstruct",
+        s(left),
+        s(right),
+        "-o",
+        s(out),
+        "--cells",
+        "--calibration",
+        s(file),
+        "--min-disparity",
+        "-12",
+        "--max-disparity",
+        "12",
+    ]);
+    assert!(
+        done.status.success(),
+        "{}",
+        String::from_utf8_lossy(&done.stderr)
+    );
+    serde_json::from_slice(&std::fs::read(out.join("cells.json")).unwrap()).unwrap()
+}
+
 /// Calibrates `optics` from a stack of a board of `inner` corners (COLS,ROWS; 100 µm
 /// squares) and measures a held-out 50 µm step (a speckle target at stage heights −20 and
 /// +30 µm) through it; returns the step measured, µm.
@@ -235,28 +260,7 @@ fn the_live_graph_runs_on_raw_pairs_with_the_microscope_calibration() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let o = dir.path().join("reconstruct");
-    let out = run(&[
-        "reconstruct",
-        s(&l),
-        s(&r),
-        "-o",
-        s(&o),
-        "--cells",
-        "--calibration",
-        s(&file),
-        "--min-disparity",
-        "-12",
-        "--max-disparity",
-        "12",
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let report: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(o.join("cells.json")).unwrap()).unwrap();
+    let report = cells_of(&l, &r, &file, &dir.path().join("reconstruct"));
     let want = report["cells"].as_array().unwrap();
     let measured = want.iter().filter(|c| c["height"].is_number()).count();
     assert!(measured >= 4, "{measured} cells measured: {report}");
@@ -317,31 +321,15 @@ fn cell_heights_on_raw_cmo_pairs_are_within_their_stated_error() {
             &optics,
             &["--cells", "12", "--cell-height", "10,30", "--seed", seed],
         );
-        let out = run(&[
-            "reconstruct",
-            s(&scene.join("left.png")),
-            s(&scene.join("right.png")),
-            "-o",
-            s(&o),
-            "--cells",
-            "--calibration",
-            s(&cal.join("calibration.toml")),
-            "--min-disparity",
-            "-12",
-            "--max-disparity",
-            "12",
-        ]);
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
+        let got = cells_of(
+            &scene.join("left.png"),
+            &scene.join("right.png"),
+            &cal.join("calibration.toml"),
+            &o,
         );
-        let json = |p: &Path| -> serde_json::Value {
-            serde_json::from_slice(&std::fs::read(p).unwrap()).unwrap()
-        };
-        let truth = json(&scene.join("truth.json"));
+        let truth: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(scene.join("truth.json")).unwrap()).unwrap();
         let truth = truth["cells"].as_array().unwrap();
-        let got = json(&o.join("cells.json"));
         for c in got["cells"].as_array().unwrap() {
             let q = &c["quality"];
             let doubt = q["doubt"].as_str().unwrap_or("");
