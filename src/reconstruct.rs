@@ -161,12 +161,6 @@ const FLAGS: &[(&str, &str)] = &[
     ("min_region", "--min-region"),
     ("median_radius", "--median"),
     ("margin", "--cell-margin"),
-    ("variance_radius", "--variance-radius"),
-    ("min_std", "--min-std"),
-    ("noise_floor", "--noise-floor"),
-    ("min_area", "--min-area"),
-    ("open_radius", "--open"),
-    ("close_radius", "--close"),
 ];
 
 impl ReconstructArgs {
@@ -289,9 +283,7 @@ fn check_every_flag(a: &ReconstructArgs) -> Result<(), CliError> {
             "--range-radii: {r} is out of range: use radii of 1..65536 px"
         )));
     }
-    runtime::node::Params::check(&a.seg.params())
-        .map_err(|e| CliError::Other(crate::error::in_flag_terms(&e, FLAGS)))?;
-    Ok(())
+    a.seg.checked().map(|_| ())
 }
 
 fn mkdir(o: &std::path::Path) -> Result<(), CliError> {

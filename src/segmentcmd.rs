@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// The flags of the segmentation parameters, for errors.
-pub const FLAGS: &[(&str, &str)] = &[
+const FLAGS: &[(&str, &str)] = &[
     ("variance_radius", "--variance-radius"),
     ("min_std", "--min-std"),
     ("noise_floor", "--noise-floor"),
@@ -38,8 +38,7 @@ pub struct SegmentOpts {
     /// Smallest local standard deviation (grey levels) that can be cell.
     #[arg(long, default_value_t = SegmentParams::default().min_std)]
     min_std: f32,
-    /// A cell's local standard deviation is at least this many times the image's noise
-    /// (read from its quietest tenth); 0 = the fixed floor alone.
+    /// Cells' local std is at least this many times the image's noise (0: --min-std alone).
     #[arg(long, default_value_t = SegmentParams::default().noise_floor)]
     noise_floor: f32,
     /// How the variance maps onto 0–255 before Otsu.
@@ -84,6 +83,14 @@ impl SegmentOpts {
             absorb_rings: !self.no_absorb_rings,
         }
     }
+
+    /// [`SegmentOpts::params`], checked: a bad value is refused in the terms of its flag.
+    pub fn checked(&self) -> Result<SegmentParams, CliError> {
+        let p = self.params();
+        runtime::node::Params::check(&p)
+            .map_err(|e| CliError::Other(crate::error::in_flag_terms(&e, FLAGS)))?;
+        Ok(p)
+    }
 }
 /// Arguments of `microstereo segment`.
 #[derive(Args, Debug)]
@@ -108,9 +115,7 @@ pub struct SegmentArgs {
 
 /// Runs `microstereo segment`.
 pub fn segment_cmd(a: SegmentArgs) -> Result<(), CliError> {
-    let params = a.opts.params();
-    runtime::node::Params::check(&params)
-        .map_err(|e| CliError::Other(crate::error::in_flag_terms(&e, FLAGS)))?;
+    let params = a.opts.checked()?;
     let inputs: Vec<&Path> = std::iter::once(a.image.as_path())
         .chain(a.truth.as_deref())
         .collect();
@@ -170,16 +175,14 @@ pub fn write_segmentation(
         reason: e.to_string(),
     })?;
     io::render::write_labels_png(&dir.join("labels.png"), &seg.labels)?;
-    let ov = dir.join("overlay.png");
-    io::write_color_png(&ov, &io::render::overlay(rgb, &seg.cells))?;
-    io::write_mask_png(&dir.join("variance.png"), &seg.variance)?;
-    let hp = dir.join("histogram.png");
     io::write_color_png(
-        &hp,
-        &io::render::histogram_chart(&seg.histogram, Some(seg.threshold)),
+        &dir.join("overlay.png"),
+        &io::render::overlay(rgb, &seg.cells),
     )?;
+    io::write_mask_png(&dir.join("variance.png"), &seg.variance)?;
+    let chart = io::render::histogram_chart(&seg.histogram, Some(seg.threshold));
+    io::write_color_png(&dir.join("histogram.png"), &chart)?;
     let r = report::SegmentReport::new(image, seg, params, truth);
-    let jp = dir.join("cells.json");
     let json = serde_json::to_string_pretty(&r).expect("serialises");
-    io::atomic::write_bytes(&jp, (json + "\n").as_bytes())
+    io::atomic::write_bytes(&dir.join("cells.json"), (json + "\n").as_bytes())
 }

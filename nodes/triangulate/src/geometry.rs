@@ -1,7 +1,7 @@
 //! Where a triangulate node's geometry comes from (`calibration` in its params): the
 //! synthetic microscope's optics, a calibration file, or the file's keys inline.
 
-use calibration::file::{CalibrationFile, load, read_file};
+use calibration::file::{CalibrationFile, read_file};
 use schemas::Calibration;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -68,30 +68,40 @@ impl Geometry {
         }
     }
 
-    /// The rectified field a microscope calibration's board covered
-    /// (`calibration::microscope::Rig::field`), for images of `w × h` (the file's size).
-    pub fn field(&self, w: usize, h: usize) -> Option<[f64; 4]> {
-        let file = match self {
-            Geometry::Synthetic => return None,
-            Geometry::File(p) => read_file(Path::new(p)).ok()?,
-            Geometry::Inline(f) => f.clone(),
-        };
-        file.microscope
-            .filter(|r| (r.width, r.height) == (w, h))
-            .and_then(|r| r.field)
-    }
-
     /// The geometry for images of `w × h`.
     pub fn resolve(&self, w: usize, h: usize) -> Result<Calibration, String> {
+        self.resolve_with_field(w, h).map(|(c, _)| c)
+    }
+
+    /// The geometry for images of `w × h`, and the rectified field a microscope
+    /// calibration's board covered (`calibration::microscope::Rig::field`) where the file
+    /// names one for that size: the file read once.
+    pub fn resolve_with_field(
+        &self,
+        w: usize,
+        h: usize,
+    ) -> Result<(Calibration, Option<[f64; 4]>), String> {
+        let field = |f: &CalibrationFile| {
+            f.microscope
+                .as_ref()
+                .filter(|r| (r.width, r.height) == (w, h))
+                .and_then(|r| r.field)
+        };
         match self {
-            Geometry::Synthetic => Ok(synth::Optics {
-                width: w,
-                height: h,
-                ..synth::Optics::default()
+            Geometry::Synthetic => Ok((
+                synth::Optics {
+                    width: w,
+                    height: h,
+                    ..synth::Optics::default()
+                }
+                .calibration(),
+                None,
+            )),
+            Geometry::File(p) => {
+                let f = read_file(Path::new(p))?;
+                Ok((f.resolve(w, h, &format!("file '{p}'"))?, field(&f)))
             }
-            .calibration()),
-            Geometry::File(p) => load(Path::new(p), w, h),
-            Geometry::Inline(f) => f.resolve(w, h, "given inline"),
+            Geometry::Inline(f) => Ok((f.resolve(w, h, "given inline")?, field(f))),
         }
     }
 }

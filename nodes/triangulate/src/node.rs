@@ -116,8 +116,7 @@ impl Triangulate {
         {
             return Ok((c, f));
         }
-        let c = self.params.calibration.resolve(w, h)?;
-        let f = self.params.calibration.field(w, h);
+        let (c, f) = self.params.calibration.resolve_with_field(w, h)?;
         self.calibration = Some((w, h, c, f));
         Ok((c, f))
     }
