@@ -71,7 +71,10 @@ def data(m, rows, cols):
     return f'  rows: {rows}\n  cols: {cols}\n  data: [{vals}]\n'
 
 
-for side, K, D, Rr, P in [('left', K1, D1, R1, P1), ('right', K2, D2, R2, P2)]:
+# ROS's Tx = -fx*B has B in metres; OpenCV's P2 shares T's unit (mm here).
+P2m = P2.copy()
+P2m[0, 3] *= 1e-3
+for side, K, D, Rr, P in [('left', K1, D1, R1, P1), ('right', K2, D2, R2, P2m)]:
     with open(f'{out}/opencv_chessboard_{side}_camera_info.yaml', 'w') as f:
         f.write(f'image_width: {size[0]}\nimage_height: {size[1]}\ncamera_name: {side}\n')
         f.write('camera_matrix:\n' + data(K, 3, 3))

@@ -42,7 +42,8 @@ struct ImportArgs {
     /// rectification_matrix, projection_matrix).
     #[arg(long, num_args = 2, value_names = ["LEFT", "RIGHT"])]
     camera_info: Option<Vec<PathBuf>>,
-    /// Unit of the file's translation T (OpenCV's is the board's square unit).
+    /// Unit to write the file in: OpenCV's T is in the board's square unit (give that);
+    /// camera_info's Tx is in metres and is converted.
     #[arg(long, value_enum)]
     unit: schemas::LengthUnit,
     /// The calibration file to write.
@@ -91,12 +92,15 @@ fn import(a: ImportArgs) -> Result<(), CliError> {
     } else {
         let ci = a.camera_info.as_ref().expect("clap requires one");
         inputs.extend(ci.iter().map(PathBuf::as_path));
-        Rectification::from_camera_info(
+        let mut cal = Rectification::from_camera_info(
             &read(&ci[0], "left camera_info")?,
             &read(&ci[1], "right camera_info")?,
         )?
         .calibration()
-        .clone()
+        .clone();
+        // ROS gives the baseline in metres; the file holds it in --unit.
+        cal.t /= a.unit.metres();
+        cal
     };
     formats::outputs::check(
         std::slice::from_ref(&a.output),
@@ -133,12 +137,25 @@ fn export(a: ExportArgs) -> Result<(), CliError> {
         "give other output paths",
     )?;
     let rect = Rectification::bouguet(&cal);
+    let infos = match &a.camera_info {
+        Some(_) => Some(rect.to_camera_info(
+            file.unit
+                .ok_or_else(|| {
+                    CliError::Other(format!(
+                        "calibration '{}' gives no unit, and camera_info's Tx is in metres: add unit = \"mm\" (or \"um\", \"m\") to it",
+                        a.file.display()
+                    ))
+                })?
+                .metres(),
+        )),
+        None => None,
+    };
     if let Some(p) = &a.opencv {
         formats::atomic::write_bytes(p, rect.to_opencv_yaml().as_bytes())?;
         runtime::outln!("OpenCV stereo YAML written to {}", p.display());
     }
-    if let Some(ci) = &a.camera_info {
-        for ((path, side), text) in ci.iter().zip(["left", "right"]).zip(rect.to_camera_info()) {
+    if let (Some(ci), Some(infos)) = (&a.camera_info, infos) {
+        for ((path, side), text) in ci.iter().zip(["left", "right"]).zip(infos) {
             formats::atomic::write_bytes(path, text.as_bytes())?;
             runtime::outln!("{side} camera_info written to {}", path.display());
         }

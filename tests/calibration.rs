@@ -316,6 +316,39 @@ fn calibrations_import_and_export_opencv_yaml_and_camera_info_unchanged() {
             );
         }
     }
+    // ROS's Tx = −fx·B with B in metres (the file's baseline is in mm), and OpenCV's Q
+    // puts a disparity at the depth the file's geometry gives it.
+    let after = |text: &str, key: &str| -> Vec<f64> {
+        let from = text.find(key).unwrap();
+        let data = &text[from..];
+        let (open, close) = (data.find('[').unwrap(), data.find(']').unwrap());
+        data[open + 1..close]
+            .split(',')
+            .map(|v| v.trim().parse().unwrap())
+            .collect()
+    };
+    let p2 = after(&text("r.yaml"), "projection_matrix");
+    let want = -p2[0] * ours.baseline * 1e-3;
+    assert!(
+        (p2[3] - want).abs() < 1e-9 * want.abs(),
+        "Tx {} vs {want}",
+        p2[3]
+    );
+    assert!(
+        (-p2[3] / p2[0] - 0.08318).abs() < 5e-5,
+        "B {} m",
+        -p2[3] / p2[0]
+    );
+    let q = after(&text("b.yaml"), "Q: !!opencv-matrix");
+    let (x, y, d) = (300.0, 200.0, 40.0);
+    let row = |r: usize| q[4 * r] * x + q[4 * r + 1] * y + q[4 * r + 2] * d + q[4 * r + 3];
+    let z = row(2) / row(3);
+    let truth = ours.f * ours.baseline / (d - (ours.c[0] - ours.cx_right));
+    assert!(
+        (z - truth).abs() < 1e-9 * truth,
+        "Q gives Z {z}, the geometry {truth}"
+    );
+    assert!((row(0) / row(3) - (x - ours.c[0]) * truth / ours.f).abs() < 1e-6);
     // OpenCV's own result: the same cameras (only its rectification's scale differs).
     let cv = calibration::stereo::StereoCalibration::from_opencv_yaml(
         &std::fs::read_to_string(&fixture).unwrap(),

@@ -358,7 +358,8 @@ impl Rectification {
     }
 
     /// The rectification two ROS `camera_info` YAML files already hold (camera_matrix,
-    /// distortion_coefficients, rectification_matrix, projection_matrix).
+    /// distortion_coefficients, rectification_matrix, projection_matrix); the baseline in
+    /// metres, as ROS gives the right camera's `Tx = −fx·B`.
     pub fn from_camera_info(left: &str, right: &str) -> Result<Self, String> {
         let read = |text: &str, side: &str| -> Result<_, String> {
             let text = format!("\n{text}");
@@ -482,15 +483,17 @@ fn row_major(m: &Matrix3<f64>) -> Vec<f64> {
 }
 
 impl Rectification {
-    /// The projection matrices of the rectified views (the right one's fourth column `−f·b`).
-    pub fn projections(&self) -> (Vec<f64>, Vec<f64>) {
+    /// The projection matrices of the rectified views, the right one's fourth column
+    /// `−f·b` with the baseline `b` scaled by `scale` (1 keeps the calibration's unit, as
+    /// OpenCV's P2 shares T's unit; ROS wants metres).
+    pub fn projections(&self, scale: f64) -> (Vec<f64>, Vec<f64>) {
         let (f, [cx, cy]) = (self.f, self.c);
         let p1 = vec![f, 0.0, cx, 0.0, 0.0, f, cy, 0.0, 0.0, 0.0, 1.0, 0.0];
         let p2 = vec![
             f,
             0.0,
             self.cx_right,
-            -f * self.baseline,
+            -f * self.baseline * scale,
             0.0,
             f,
             cy,
@@ -503,12 +506,37 @@ impl Rectification {
         (p1, p2)
     }
 
+    /// OpenCV's disparity-to-depth matrix `Q` of this rectification (`stereoRectify`'s, for
+    /// `reprojectImageTo3D`): `[X Y Z W]ᵀ = Q·[x y d 1]ᵀ`, lengths in the calibration's
+    /// unit; the principal points' offset makes `d = cx − cx'` the disparity at infinity.
+    pub fn q_matrix(&self) -> [f64; 16] {
+        let (f, [cx, cy], b) = (self.f, self.c, self.baseline);
+        [
+            1.0,
+            0.0,
+            0.0,
+            -cx,
+            0.0,
+            1.0,
+            0.0,
+            -cy,
+            0.0,
+            0.0,
+            0.0,
+            f,
+            0.0,
+            0.0,
+            1.0 / b,
+            (self.cx_right - cx) / b,
+        ]
+    }
+
     /// The raw cameras and this rectification as OpenCV's stereo YAML (`stereoCalibrate`'s
-    /// K1, D1, K2, D2, R, T and `stereoRectify`'s R1, R2, P1, P2), what
+    /// K1, D1, K2, D2, R, T and `stereoRectify`'s R1, R2, P1, P2, Q), what
     /// [`StereoCalibration::from_opencv_yaml`] reads back.
     pub fn to_opencv_yaml(&self) -> String {
         let cal = &self.calib;
-        let (p1, p2) = self.projections();
+        let (p1, p2) = self.projections(1.0);
         let mut text = String::from("%YAML:1.0\n---\n");
         text += &format!(
             "image_width: {}\nimage_height: {}\n",
@@ -524,14 +552,16 @@ impl Rectification {
         text += &opencv_text("R2", 3, 3, &row_major(&self.r2));
         text += &opencv_text("P1", 3, 4, &p1);
         text += &opencv_text("P2", 3, 4, &p2);
+        text += &opencv_text("Q", 4, 4, &self.q_matrix());
         text
     }
 
     /// The left and right views as ROS `camera_info` YAML (plumb_bob), what
-    /// [`Rectification::from_camera_info`] reads back.
-    pub fn to_camera_info(&self) -> [String; 2] {
+    /// [`Rectification::from_camera_info`] reads back; `metres` is the calibration's unit
+    /// in metres, for ROS's `Tx = −fx·B` with `B` in metres.
+    pub fn to_camera_info(&self, metres: f64) -> [String; 2] {
         let cal = &self.calib;
-        let (p1, p2) = self.projections();
+        let (p1, p2) = self.projections(metres);
         let data = |v: &[f64]| {
             v.iter()
                 .map(|x| format!("{x:?}"))
