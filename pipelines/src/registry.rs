@@ -38,9 +38,26 @@ pub fn cameras(graph: &Graph) -> Option<recorder::node::Cameras> {
     let (width, height) = cap.frame_size()?;
     let tri: triangulate::node::TriangulateParams =
         runtime::registry::parse_params(&tri.params).ok()?;
+    // Where a rectify node rectifies, the capture's images are raw: no CameraInfo for them.
+    let rectifies = graph.nodes.iter().any(|n| {
+        n.kind() == Some(<rectify::node::Rectify as runtime::node::Task>::KIND)
+            && runtime::registry::parse_params::<rectify::node::RectifyParams>(&n.params)
+                .is_ok_and(|p| p.calibration.is_some() || p.camera_info.is_some())
+    });
+    let capture = of_kind(<capture::Capture as runtime::node::Source>::KIND)?;
+    let raw = if rectifies {
+        graph
+            .output_edges(&capture.id)
+            .into_iter()
+            .map(|(e, _)| e)
+            .collect()
+    } else {
+        Vec::new()
+    };
     Some(recorder::node::Cameras {
         calibration: tri.calibration.resolve(width, height).ok()?,
         width,
         height,
+        raw,
     })
 }

@@ -7,6 +7,7 @@
 //! and payload the node sent. The launch file of the run is stored as a metadata record.
 
 use crate::ros2::{self, MsgType};
+use crate::scene;
 use mcap::records::MessageHeader;
 use schemas::{FrameHeader, MessageKind};
 use std::collections::{BTreeMap, HashMap};
@@ -22,8 +23,6 @@ pub const META_EDGE: &str = "microstereo.edge";
 pub const META_KIND: &str = "microstereo.kind";
 /// Channel metadata key: `left` or `right` for one image of a two-image message.
 pub const META_SIDE: &str = "microstereo.side";
-/// Channel metadata key of a calibration channel: the camera (`left` or `right`).
-pub const META_CAMERA: &str = "microstereo.camera";
 /// Name of the metadata record holding the run's launch file (`text`, `path`).
 pub const META_LAUNCH: &str = "microstereo.launch";
 
@@ -72,13 +71,28 @@ pub enum RecordingError {
     },
 }
 
-/// The topic of `edge` (`NODE/OUTPUT`) for `side`.
+/// The topic of `edge` (`NODE/OUTPUT`) for `side`: an image's is
+/// `/NODE/OUTPUT[/SIDE]/image`, beside its `camera_info` as ROS tools look for it.
 pub fn topic(edge: &str, side: Option<&str>) -> String {
+    match side {
+        Some(_) => format!("{}/image", topic_base(edge, side)),
+        None => format!("/{edge}"),
+    }
+}
+
+/// `/NODE/OUTPUT[/SIDE]`: where an edge's topics (and a side's) live.
+fn topic_base(edge: &str, side: Option<&str>) -> String {
     match side {
         Some(s) => format!("/{edge}/{s}"),
         None => format!("/{edge}"),
     }
 }
+
+/// `/tf_static`: the frame tree.
+pub const TF_STATIC: &str = "/tf_static";
+
+/// rosbag2's channel metadata key for a topic's QoS.
+const QOS: &str = "offered_qos_profiles";
 
 /// Writes edge messages into an MCAP file.
 pub struct RecordingWriter {
@@ -89,6 +103,11 @@ pub struct RecordingWriter {
     mcap: mcap::Writer<BufWriter<File>>,
     schemas: HashMap<&'static str, u16>,
     channels: HashMap<(String, Option<&'static str>), u16>,
+    /// Channels that are not edges' (the frame tree, CameraInfo, markers), by topic.
+    side_channels: HashMap<String, u16>,
+    /// The rectified cameras, their image size and the edges whose images are raw, once
+    /// [`RecordingWriter::write_cameras`] has given them.
+    cameras: Option<(schemas::Calibration, (usize, usize), Vec<String>)>,
     last_flush: Instant,
     /// Edge messages written.
     pub messages: u64,
@@ -151,6 +170,8 @@ impl RecordingWriter {
             mcap,
             schemas: HashMap::new(),
             channels: HashMap::new(),
+            side_channels: HashMap::new(),
+            cameras: None,
             last_flush: Instant::now(),
             messages: 0,
             bytes: 0,
@@ -184,50 +205,126 @@ impl RecordingWriter {
             .map_err(err)
     }
 
-    /// Writes each rectified camera's `sensor_msgs/msg/CameraInfo` from `calib` on
-    /// `/calibration/left` and `/calibration/right`.
-    pub fn write_calibration(
+    /// Starts the viewers' side of the recording for rectified cameras `calib` of images
+    /// `size`: the frame tree on `/tf_static` (latched) now, and from here on each image's
+    /// CameraInfo beside it (but for the edges in `raw`, whose images are not rectified)
+    /// and the scene's markers beside the targets, tracks and the manipulator's state.
+    pub fn write_cameras(
         &mut self,
         calib: &schemas::Calibration,
         size: (usize, usize),
+        raw: &[String],
         log_time: u64,
     ) -> Result<(), RecordingError> {
-        let err = self.mcap_err("writing the calibration");
-        let schema = self
-            .mcap
-            .add_schema(
-                ros2::CAMERA_INFO.name,
-                "ros2msg",
-                ros2::CAMERA_INFO.definition.as_bytes(),
-            )
-            .map_err(err)?;
-        for side in ["left", "right"] {
-            let cdr = ros2::camera_info(calib, size, side, log_time).map_err(|reason| {
+        let tf =
+            scene::tf_static(calib.baseline * calib.unit.metres(), log_time).map_err(|reason| {
                 RecordingError::Message {
                     path: self.path.clone(),
-                    topic: format!("/calibration/{side}"),
+                    topic: TF_STATIC.into(),
                     sequence: 0,
                     reason,
                 }
             })?;
-            let meta = BTreeMap::from([(META_CAMERA.to_string(), side.to_string())]);
-            let err = self.mcap_err("writing the calibration");
-            let channel_id = self
-                .mcap
-                .add_channel(schema, &format!("/calibration/{side}"), "cdr", &meta)
-                .map_err(err)?;
-            let err = self.mcap_err("writing the calibration");
-            self.mcap
-                .write_to_known_channel(
-                    &MessageHeader {
-                        channel_id,
-                        sequence: 0,
-                        log_time,
-                        publish_time: log_time,
-                    },
-                    &cdr,
-                )
-                .map_err(err)?;
+        let meta = BTreeMap::from([(QOS.to_string(), scene::LATCHED_QOS.to_string())]);
+        let id = self.side_channel(TF_STATIC, scene::TF_MESSAGE, &meta)?;
+        self.write_side(id, 0, log_time, log_time, &tf)?;
+        self.cameras = Some((*calib, size, raw.to_vec()));
+        Ok(())
+    }
+
+    /// The channel of `topic` (not an edge's: readers of edges pass it by), made on first use.
+    fn side_channel(
+        &mut self,
+        topic: &str,
+        msg: MsgType,
+        meta: &BTreeMap<String, String>,
+    ) -> Result<u16, RecordingError> {
+        if let Some(&id) = self.side_channels.get(topic) {
+            return Ok(id);
+        }
+        let schema = self.schema(msg)?;
+        let err = self.mcap_err("adding a channel");
+        let id = self
+            .mcap
+            .add_channel(schema, topic, "cdr", meta)
+            .map_err(err)?;
+        self.side_channels.insert(topic.to_string(), id);
+        Ok(id)
+    }
+
+    fn write_side(
+        &mut self,
+        channel_id: u16,
+        sequence: u64,
+        log_time: u64,
+        publish_time: u64,
+        cdr: &[u8],
+    ) -> Result<(), RecordingError> {
+        let err = self.mcap_err("writing a message");
+        self.mcap
+            .write_to_known_channel(
+                &MessageHeader {
+                    channel_id,
+                    sequence: sequence as u32,
+                    log_time,
+                    publish_time,
+                },
+                cdr,
+            )
+            .map_err(err)?;
+        self.bytes += cdr.len() as u64;
+        Ok(())
+    }
+
+    fn schema(&mut self, msg: MsgType) -> Result<u16, RecordingError> {
+        if let Some(&id) = self.schemas.get(msg.name) {
+            return Ok(id);
+        }
+        let err = self.mcap_err("adding a schema");
+        let id = self
+            .mcap
+            .add_schema(msg.name, "ros2msg", msg.definition.as_bytes())
+            .map_err(err)?;
+        self.schemas.insert(msg.name, id);
+        Ok(id)
+    }
+
+    /// Writes what viewers draw beside edge message `edge` (see [`Self::write_cameras`]).
+    fn write_view(
+        &mut self,
+        edge: &str,
+        kind: MessageKind,
+        header: &FrameHeader,
+        payload: &[u8],
+        sides: &[Option<&'static str>],
+        log_time: u64,
+    ) -> Result<(), RecordingError> {
+        let Some((calib, size, raw)) = &self.cameras else {
+            return Ok(());
+        };
+        let bad = |path: &Path, topic: String, reason| RecordingError::Message {
+            path: path.into(),
+            topic,
+            sequence: header.sequence,
+            reason,
+        };
+        if ros2::msg_type(kind) == ros2::IMAGE && !raw.iter().any(|r| r == edge) {
+            let (calib, size) = (*calib, *size);
+            for side in sides {
+                let topic = format!("{}/camera_info", topic_base(edge, *side));
+                let cdr =
+                    ros2::camera_info(&calib, size, side.unwrap_or("left"), header.capture_ns)
+                        .map_err(|r| bad(&self.path, topic.clone(), r))?;
+                let id = self.side_channel(&topic, ros2::CAMERA_INFO, &BTreeMap::new())?;
+                self.write_side(id, header.sequence, log_time, header.capture_ns, &cdr)?;
+            }
+        }
+        let topic = format!("/{edge}/markers");
+        if let Some(cdr) =
+            scene::markers(kind, header, payload).map_err(|r| bad(&self.path, topic.clone(), r))?
+        {
+            let id = self.side_channel(&topic, scene::MARKER_ARRAY, &BTreeMap::new())?;
+            self.write_side(id, header.sequence, log_time, header.capture_ns, &cdr)?;
         }
         Ok(())
     }
@@ -242,18 +339,7 @@ impl RecordingWriter {
         if let Some(&id) = self.channels.get(&(edge.to_string(), side)) {
             return Ok(id);
         }
-        let schema = match self.schemas.get(msg.name) {
-            Some(&id) => id,
-            None => {
-                let err = self.mcap_err("adding a schema");
-                let id = self
-                    .mcap
-                    .add_schema(msg.name, "ros2msg", msg.definition.as_bytes())
-                    .map_err(err)?;
-                self.schemas.insert(msg.name, id);
-                id
-            }
-        };
+        let schema = self.schema(msg)?;
         let mut meta = BTreeMap::from([
             (META_EDGE.to_string(), edge.to_string()),
             (META_KIND.to_string(), kind.name().to_string()),
@@ -280,30 +366,28 @@ impl RecordingWriter {
         payload: &[u8],
         log_time: u64,
     ) -> Result<(), RecordingError> {
-        let parts =
-            ros2::encode(kind, header, payload).map_err(|reason| RecordingError::Message {
+        let metres = self.cameras.as_ref().map(|c| c.0.unit.metres());
+        let parts = ros2::encode(kind, header, payload, metres).map_err(|reason| {
+            RecordingError::Message {
                 path: self.path.clone(),
                 topic: topic(edge, None),
                 sequence: header.sequence,
                 reason,
-            })?;
+            }
+        })?;
+        let sides: Vec<_> = parts.iter().map(|p| p.side).collect();
         for p in parts {
             let channel_id = self.channel(edge, kind, p.side, p.msg)?;
-            let err = self.mcap_err("writing a message");
-            self.mcap
-                .write_to_known_channel(
-                    &MessageHeader {
-                        channel_id,
-                        // MCAP has 32 bits for it: frame numbers wrap after 2^32 frames.
-                        sequence: header.sequence as u32,
-                        log_time,
-                        publish_time: header.capture_ns,
-                    },
-                    &p.cdr,
-                )
-                .map_err(err)?;
-            self.bytes += p.cdr.len() as u64;
+            // MCAP has 32 bits for the sequence: frame numbers wrap after 2^32 frames.
+            self.write_side(
+                channel_id,
+                header.sequence,
+                log_time,
+                header.capture_ns,
+                &p.cdr,
+            )?;
         }
+        self.write_view(edge, kind, header, payload, &sides, log_time)?;
         self.messages += 1;
         self.flush_if_due()
     }
@@ -1418,6 +1502,144 @@ mod tests {
         w.finish().unwrap();
     }
 
+    /// A cell of `id` at `[x, y]` µm on a substrate 150 mm down, 10 µm high, 20 µm across.
+    fn cell(id: u32, [x, y]: [f64; 2]) -> schemas::Cell3 {
+        let contour = (0..64)
+            .map(|i| {
+                let t = i as f64 / 64.0 * std::f64::consts::TAU;
+                [x + 10.0 * t.cos(), y + 10.0 * t.sin(), 150_000.0]
+            })
+            .collect();
+        schemas::Cell3 {
+            id,
+            right_id: id,
+            area_px: 300,
+            centroid_px: [0.0; 2],
+            disparity: 3.0,
+            centroid: [x, y, 149_995.0],
+            substrate_z: 150_000.0,
+            height: Some(10.0),
+            volume: 2000.0,
+            contour,
+            valid_share: 1.0,
+            quality: schemas::CellQuality {
+                trusted: id == 1,
+                height_std: Some(0.2),
+                ..Default::default()
+            },
+        }
+    }
+
+    #[test]
+    fn viewers_get_the_frame_tree_camera_info_beside_each_image_and_a_marker_per_cell() {
+        use schemas::msg::Message;
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("v.mcap");
+        let calib = schemas::Calibration {
+            baseline: 2000.0,
+            focal_px: 4000.0,
+            cx: 2.0,
+            cy: 1.0,
+            cx_right: 2.0,
+            unit: schemas::LengthUnit::Um,
+        };
+        let mut w = RecordingWriter::create(&path, false).unwrap();
+        w.write_cameras(&calib, (4, 2), &["raw/frame".into()], 10)
+            .unwrap();
+        let mut sent = Vec::new();
+        for seq in 0..2 {
+            let (h, p) = frame(seq, 4);
+            for edge in ["cam/frame", "raw/frame"] {
+                w.write(edge, MessageKind::StereoFrame, &h, &p, 50 + seq)
+                    .unwrap();
+                sent.push((edge.to_string(), h, p.clone()));
+            }
+        }
+        let targets = schemas::Targets {
+            frame: 1,
+            capture_ns: 1_001,
+            unit: "µm".into(),
+            cells: vec![cell(1, [100.0, -40.0]), cell(4, [-250.0, 60.0])],
+            substrate: None,
+        };
+        let e = targets.encode();
+        let h = FrameHeader {
+            sequence: 1,
+            capture_ns: 1_001,
+            ..e.header
+        };
+        w.write("tri/targets", MessageKind::Targets, &h, &e.to_vec(), 60)
+            .unwrap();
+        sent.push(("tri/targets".into(), h, e.to_vec()));
+        w.finish().unwrap();
+        // Our readers still get the edges, bit for bit, and nothing else.
+        let back: Vec<_> = EdgeReader::open(&path, None)
+            .unwrap()
+            .map(|m| {
+                let m = m.unwrap();
+                (m.edge, m.header, m.payload)
+            })
+            .collect();
+        assert_eq!(back, sent);
+        let bytes = std::fs::read(&path).unwrap();
+        let mut by_topic: BTreeMap<String, Vec<(u64, Vec<u8>)>> = BTreeMap::new();
+        for m in mcap::MessageStream::new(&bytes).unwrap() {
+            let m = m.unwrap();
+            if m.channel.topic == TF_STATIC {
+                assert!(m.channel.metadata[QOS].contains("durability: 1"));
+            }
+            by_topic
+                .entry(m.channel.topic.clone())
+                .or_default()
+                .push((m.publish_time, m.data.to_vec()));
+        }
+        let topics: Vec<&str> = by_topic.keys().map(String::as_str).collect();
+        assert_eq!(
+            topics,
+            [
+                "/cam/frame/left/camera_info",
+                "/cam/frame/left/image",
+                "/cam/frame/right/camera_info",
+                "/cam/frame/right/image",
+                "/raw/frame/left/image",
+                "/raw/frame/right/image",
+                "/tf_static",
+                "/tri/targets",
+                "/tri/targets/markers",
+            ]
+        );
+        for side in ["left", "right"] {
+            let stamps = |kind: &str| -> Vec<u64> {
+                by_topic[&format!("/cam/frame/{side}/{kind}")]
+                    .iter()
+                    .map(|m| m.0)
+                    .collect()
+            };
+            assert_eq!(stamps("camera_info"), stamps("image"));
+            let info = &by_topic[&format!("/cam/frame/{side}/camera_info")][1].1;
+            let header: (i32, u32, String) = ros2::from_cdr(info, "CameraInfo").unwrap();
+            assert_eq!(
+                header,
+                (0, 1_001, scene::camera_frame(side).to_string()),
+                "{side}"
+            );
+        }
+        let markers = scene::decode_markers(&by_topic["/tri/targets/markers"][0].1).unwrap();
+        let cells: Vec<(i32, [f64; 3])> = markers
+            .iter()
+            .filter(|m| m.0 == "cells")
+            .map(|m| (m.1, m.2))
+            .collect();
+        assert_eq!(cells.len(), 2);
+        assert_eq!(cells[0].0, 1);
+        assert_eq!(cells[1].0, 4);
+        // In metres, the body's middle half its height over the substrate.
+        let want = [100e-6, -40e-6, 149_995.0 * 1e-6];
+        for k in 0..3 {
+            assert!((cells[0].1[k] - want[k]).abs() < 1e-9, "{:?}", cells[0].1);
+        }
+    }
+
     #[test]
     fn a_recording_reads_back_exactly_and_lists_its_channels() {
         let dir = tempfile::tempdir().unwrap();
@@ -1444,7 +1666,10 @@ mod tests {
             .iter()
             .map(|c| (c.topic.as_str(), c.messages))
             .collect();
-        assert_eq!(topics, [("/cam/frame/left", 3), ("/cam/frame/right", 3)]);
+        assert_eq!(
+            topics,
+            [("/cam/frame/left/image", 3), ("/cam/frame/right/image", 3)]
+        );
         assert_eq!(o.channels[0].schema, "sensor_msgs/msg/Image");
         assert_eq!(o.edge("cam/frame").len(), 2);
         assert_eq!((o.first_sequence, o.last_sequence), (Some(0), Some(2)));

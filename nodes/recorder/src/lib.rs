@@ -10,6 +10,7 @@
 pub mod file;
 pub mod node;
 pub mod ros2;
+pub mod scene;
 
 pub use file::{
     EdgeMessage, EdgeReader, FrameReader, Overview, RecordingError, RecordingWriter, overview,

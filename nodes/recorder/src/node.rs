@@ -66,7 +66,7 @@ fn create_part(
         w.write_launch(file, text).map_err(|e| e.to_string())?;
     }
     if let Some(c) = cameras {
-        w.write_calibration(&c.calibration, (c.width, c.height), now_ns())
+        w.write_cameras(&c.calibration, (c.width, c.height), &c.raw, now_ns())
             .map_err(|e| e.to_string())?;
     }
     Ok(w)
@@ -114,7 +114,7 @@ impl Parts {
             split_bytes: p.split_bytes,
             split_seconds: p.split_seconds,
             launch,
-            cameras: p.cameras,
+            cameras: p.cameras.clone(),
             index: 0,
             started: std::time::Instant::now(),
             writer,
@@ -247,7 +247,7 @@ pub fn edge_rates(
 }
 
 /// What the recorder writes as the cameras' CameraInfo.
-#[derive(Clone, Copy, Debug, serde::Serialize, Deserialize)]
+#[derive(Clone, Debug, serde::Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Cameras {
     /// The rectified geometry.
@@ -256,6 +256,10 @@ pub struct Cameras {
     pub width: usize,
     /// Image height.
     pub height: usize,
+    /// Edges whose images are not rectified (a capture's, where the graph rectifies
+    /// them): no CameraInfo goes beside them.
+    #[serde(default)]
+    pub raw: Vec<String>,
 }
 
 /// A message taken from an edge, on its way to the writer thread.

@@ -6,6 +6,7 @@
 //! them as images. [`encode`] and [`decode`] are exact inverses: the bytes a node sent come
 //! back bit for bit.
 
+use crate::scene::{STEREO_FRAME, camera_frame};
 use schemas::msg::{Message, cloud_header};
 use schemas::wire::CLOUD_POINT_BYTES;
 use schemas::{
@@ -164,7 +165,7 @@ pub fn camera_info(
         (calib.cx, 0.0)
     };
     to_cdr(&CameraInfo {
-        header: Header::new(capture_ns, side),
+        header: Header::new(capture_ns, camera_frame(side)),
         height: height as u32,
         width: width as u32,
         distortion_model: "plumb_bob".into(),
@@ -506,14 +507,16 @@ struct Time {
     nanosec: u32,
 }
 
+/// `std_msgs/Header`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-struct Header {
+pub(crate) struct Header {
     stamp: Time,
-    frame_id: String,
+    pub(crate) frame_id: String,
 }
 
 impl Header {
-    fn new(capture_ns: u64, frame_id: &str) -> Self {
+    /// A header stamped `capture_ns` (ns since the epoch) in frame `frame_id`.
+    pub(crate) fn new(capture_ns: u64, frame_id: &str) -> Self {
         Self {
             stamp: Time {
                 sec: (capture_ns / 1_000_000_000) as i32,
@@ -1025,11 +1028,14 @@ pub fn kind_sides(kind: MessageKind) -> &'static [&'static str] {
     }
 }
 
+/// The encoding of label images whose ids fit 16 bits (all but the rarest).
+const LABELS16: &str = "16UC1";
+
 fn image_encoding(format: PixelFormat) -> Option<&'static str> {
     Some(match format {
         PixelFormat::Mono8 => "mono8",
         PixelFormat::F32 => "32FC1",
-        // Labels: ROS has no unsigned 32-bit encoding; label values stay below 2^31.
+        // Labels beyond 16 bits: ROS has no unsigned 32-bit encoding; ids stay below 2^31.
         PixelFormat::U32 => "32SC1",
         PixelFormat::Rgb8 => "rgb8",
         PixelFormat::None => return None,
@@ -1047,14 +1053,14 @@ fn image_format(encoding: &str) -> Option<PixelFormat> {
     .find(|f| image_encoding(*f) == Some(encoding))
 }
 
-fn to_cdr<T: Serialize>(v: &T) -> Result<Vec<u8>, String> {
+pub(crate) fn to_cdr<T: Serialize>(v: &T) -> Result<Vec<u8>, String> {
     cdr::serialize::<_, _, cdr::CdrLe>(v, cdr::Infinite).map_err(|e| format!("CDR: {e}"))
 }
 
 /// Decodes CDR with `cdr-encoding`, whose reader checks every length against the bytes
 /// left before taking them (`cdr` allocates whatever a length field claims first: fuzzing
 /// found a damaged string length that zero-filled 4 GiB).
-fn from_cdr<'de, T: Deserialize<'de>>(b: &'de [u8], what: &str) -> Result<T, String> {
+pub(crate) fn from_cdr<'de, T: Deserialize<'de>>(b: &'de [u8], what: &str) -> Result<T, String> {
     let err = |e: String| format!("not a CDR {what}: {e}");
     // The encapsulation header: 0x00 0x01 is little-endian CDR, 0x00 0x00 big-endian.
     let body = b
@@ -1073,8 +1079,14 @@ fn from_cdr<'de, T: Deserialize<'de>>(b: &'de [u8], what: &str) -> Result<T, Str
     .map_err(|e| err(e.to_string()))
 }
 
-/// Encodes one edge message of `kind` as its ROS 2 message(s).
-pub fn encode(kind: MessageKind, h: &FrameHeader, payload: &[u8]) -> Result<Vec<Part>, String> {
+/// Encodes one edge message of `kind` as its ROS 2 message(s); a cloud's lengths go into
+/// metres with `metres` per unit (`None`: the unit is not known, they stay as sent).
+pub fn encode(
+    kind: MessageKind,
+    h: &FrameHeader,
+    payload: &[u8],
+    metres: Option<f64>,
+) -> Result<Vec<Part>, String> {
     let header = |side: &str| Header::new(h.capture_ns, side);
     let one = |msg, cdr| {
         Ok(vec![Part {
@@ -1101,18 +1113,29 @@ pub fn encode(kind: MessageKind, h: &FrameHeader, payload: &[u8]) -> Result<Vec<
             }
             let size = h.stride as usize * h.height as usize;
             let names: &[&'static str] = if want.is_empty() { &[""] } else { want };
+            // Labels as 16UC1, which Foxglove and RViz show, whenever they fit.
+            let narrow = PixelFormat::from_u32(h.format) == Some(PixelFormat::U32)
+                && payload
+                    .chunks_exact(4)
+                    .all(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) <= u32::from(u16::MAX));
             names
                 .iter()
                 .zip(payload.chunks(size.max(1)))
                 .map(|(side, data)| {
+                    let (encoding, step, data) = if narrow {
+                        let d: Vec<u8> = data.chunks_exact(4).flat_map(|b| [b[0], b[1]]).collect();
+                        (LABELS16, h.stride / 2, d)
+                    } else {
+                        (format, h.stride, data.to_vec())
+                    };
                     let img = Image {
-                        header: header(if side.is_empty() { "left" } else { side }),
+                        header: header(camera_frame(side)),
                         height: h.height,
                         width: h.width,
-                        encoding: format.into(),
+                        encoding: encoding.into(),
                         is_bigendian: 0,
-                        step: h.stride,
-                        data: ByteBuf::from(data.to_vec()),
+                        step,
+                        data: ByteBuf::from(data),
                     };
                     Ok(Part {
                         side: (!side.is_empty()).then_some(*side),
@@ -1130,31 +1153,7 @@ pub fn encode(kind: MessageKind, h: &FrameHeader, payload: &[u8]) -> Result<Vec<
                     h.width
                 ));
             }
-            let field = |name: &str, offset, datatype| PointField {
-                name: name.into(),
-                offset,
-                datatype,
-                count: 1,
-            };
-            let cloud = PointCloud2 {
-                header: header("world"),
-                height: 1,
-                width: h.width,
-                fields: vec![
-                    field("x", 0, 7),
-                    field("y", 4, 7),
-                    field("z", 8, 7),
-                    field("r", 12, 2),
-                    field("g", 13, 2),
-                    field("b", 14, 2),
-                ],
-                is_bigendian: false,
-                point_step: CLOUD_POINT_BYTES as u32,
-                row_step: payload.len() as u32,
-                data: ByteBuf::from(payload.to_vec()),
-                is_dense: true,
-            };
-            one(POINT_CLOUD2, to_cdr(&cloud)?)
+            one(POINT_CLOUD2, to_cdr(&ros_cloud(h, payload, metres))?)
         }
         DISPARITY_TILES => {
             let t = DisparityTiles::decode(h, payload).map_err(|e| e.to_string())?;
@@ -1162,12 +1161,15 @@ pub fn encode(kind: MessageKind, h: &FrameHeader, payload: &[u8]) -> Result<Vec<
                 Side::Left => "left",
                 Side::Right => "right",
             };
-            one(DISPARITY_TILES, to_cdr(&RosTiles::new(&t, header(side)))?)
+            one(
+                DISPARITY_TILES,
+                to_cdr(&RosTiles::new(&t, header(camera_frame(side))))?,
+            )
         }
         CELL_ARRAY => {
             let lists = CellLists::decode(h, payload).map_err(|e| e.to_string())?;
             let msg = RosCellArray {
-                header: header("left"),
+                header: header(camera_frame("left")),
                 left: lists.left.iter().map(RosCell::from).collect(),
                 right: lists.right.iter().map(RosCell::from).collect(),
             };
@@ -1176,7 +1178,7 @@ pub fn encode(kind: MessageKind, h: &FrameHeader, payload: &[u8]) -> Result<Vec<
         TRACKS => {
             let t = Tracks::decode(h, payload).map_err(|e| e.to_string())?;
             let msg = RosTracks {
-                header: header("world"),
+                header: header(STEREO_FRAME),
                 frame: t.frame,
                 capture_ns: t.capture_ns,
                 unit: t.unit.clone(),
@@ -1191,7 +1193,7 @@ pub fn encode(kind: MessageKind, h: &FrameHeader, payload: &[u8]) -> Result<Vec<
             let m = ManipulatorState::decode(h, payload).map_err(|e| e.to_string())?;
             one(
                 MANIPULATOR_STATE,
-                to_cdr(&RosManipulatorState::new(&m, header("world")))?,
+                to_cdr(&RosManipulatorState::new(&m, header(STEREO_FRAME)))?,
             )
         }
         _ => {
@@ -1205,7 +1207,7 @@ pub fn encode(kind: MessageKind, h: &FrameHeader, payload: &[u8]) -> Result<Vec<
                 pixels: 0,
             });
             let msg = RosTargets {
-                header: header("world"),
+                header: header(STEREO_FRAME),
                 frame: t.frame,
                 capture_ns: t.capture_ns,
                 unit: t.unit,
@@ -1222,6 +1224,54 @@ pub fn encode(kind: MessageKind, h: &FrameHeader, payload: &[u8]) -> Result<Vec<
             };
             one(TARGETS, to_cdr(&msg)?)
         }
+    }
+}
+
+/// Bytes of a cloud point in ROS: `x, y, z` (float32, metres), `rgb` (packed as PCL,
+/// RViz and Foxglove read it) and `x_native, y_native, z_native` (float32, the values the
+/// node sent, in its unit), so that a replay gives the node's bytes back.
+const ROS_POINT_BYTES: usize = 28;
+
+/// The `PointCloud2` of a cloud message (`metres` per unit of its lengths, if known).
+fn ros_cloud(h: &FrameHeader, payload: &[u8], metres: Option<f64>) -> PointCloud2 {
+    let field = |name: &str, offset, datatype| PointField {
+        name: name.into(),
+        offset,
+        datatype,
+        count: 1,
+    };
+    let m = metres.unwrap_or(1.0);
+    let data = payload
+        .chunks_exact(CLOUD_POINT_BYTES)
+        .flat_map(|p| {
+            let mut o = [0u8; ROS_POINT_BYTES];
+            for k in 0..3 {
+                let v = f32::from_le_bytes(p[4 * k..4 * k + 4].try_into().expect("4 bytes"));
+                o[4 * k..4 * k + 4].copy_from_slice(&((v as f64 * m) as f32).to_le_bytes());
+            }
+            o[12..16].copy_from_slice(&[p[14], p[13], p[12], 0]);
+            o[16..28].copy_from_slice(&p[..12]);
+            o
+        })
+        .collect::<Vec<u8>>();
+    PointCloud2 {
+        header: Header::new(h.capture_ns, STEREO_FRAME),
+        height: 1,
+        width: h.width,
+        fields: vec![
+            field("x", 0, 7),
+            field("y", 4, 7),
+            field("z", 8, 7),
+            field("rgb", 12, 7),
+            field("x_native", 16, 7),
+            field("y_native", 20, 7),
+            field("z_native", 24, 7),
+        ],
+        is_bigendian: false,
+        point_step: ROS_POINT_BYTES as u32,
+        row_step: data.len() as u32,
+        data: ByteBuf::from(data),
+        is_dense: true,
     }
 }
 
@@ -1251,8 +1301,14 @@ pub fn decode(
                 .map(|p| from_cdr::<Image>(p, IMAGE.name))
                 .collect::<Result<Vec<_>, _>>()?;
             let first = &imgs[0];
-            let format = image_format(&first.encoding)
-                .ok_or_else(|| format!("image encoding '{}' is not one of ours", first.encoding))?;
+            let narrow = first.encoding == LABELS16;
+            let format = if narrow {
+                PixelFormat::U32
+            } else {
+                image_format(&first.encoding).ok_or_else(|| {
+                    format!("image encoding '{}' is not one of ours", first.encoding)
+                })?
+            };
             let h = FrameHeader::image(
                 kind,
                 format,
@@ -1262,10 +1318,11 @@ pub fn decode(
             );
             // Sized by the data read, not by the header's claim (checked below).
             let mut payload = Vec::with_capacity(imgs.iter().map(|i| i.data.len()).sum());
+            let step = if narrow { h.stride / 2 } else { h.stride };
             for i in &imgs {
                 if (i.width, i.height, i.step, &i.encoding)
-                    != (first.width, first.height, h.stride, &first.encoding)
-                    || i.data.len() != h.stride as usize * h.height as usize
+                    != (first.width, first.height, step, &first.encoding)
+                    || i.data.len() != step as usize * h.height as usize
                 {
                     return Err(format!(
                         "image of {}×{} ({}, step {}, {} bytes) does not fit a {}×{} {} image",
@@ -1279,23 +1336,41 @@ pub fn decode(
                         first.encoding
                     ));
                 }
-                payload.extend_from_slice(&i.data);
+                if narrow {
+                    payload.extend(i.data.chunks_exact(2).flat_map(|b| [b[0], b[1], 0, 0]));
+                } else {
+                    payload.extend_from_slice(&i.data);
+                }
             }
             Ok((stamp(h), payload))
         }
         POINT_CLOUD2 => {
             let c: PointCloud2 = from_cdr(parts[0], POINT_CLOUD2.name)?;
-            if c.point_step as usize != CLOUD_POINT_BYTES
-                || c.data.len() != c.width as usize * CLOUD_POINT_BYTES
-            {
+            let n = c.width as usize * c.height as usize;
+            let (step, data) = (c.point_step as usize, c.data.as_slice());
+            let payload = match step {
+                // Ours until December 2026: the points as sent, colours as r, g, b bytes.
+                CLOUD_POINT_BYTES => data.to_vec(),
+                ROS_POINT_BYTES => data
+                    .chunks_exact(ROS_POINT_BYTES)
+                    .flat_map(|p| {
+                        let mut o = [0u8; CLOUD_POINT_BYTES];
+                        o[..12].copy_from_slice(&p[16..28]);
+                        // Packed 0x00RRGGBB, little-endian: b, g, r.
+                        o[12..].copy_from_slice(&[p[14], p[13], p[12]]);
+                        o
+                    })
+                    .collect(),
+                _ => Vec::new(),
+            };
+            if payload.len() != n * CLOUD_POINT_BYTES || data.len() != n * step {
                 return Err(format!(
-                    "point cloud with {}-byte points and {} bytes for {} points; ours have {CLOUD_POINT_BYTES}-byte points",
+                    "point cloud with {}-byte points and {} bytes for {n} points; ours have {ROS_POINT_BYTES}-byte points",
                     c.point_step,
-                    c.data.len(),
-                    c.width
+                    data.len(),
                 ));
             }
-            Ok((stamp(cloud_header(c.width as usize)), c.data.into_vec()))
+            Ok((stamp(cloud_header(n)), payload))
         }
         CELL_ARRAY => {
             let m: RosCellArray = from_cdr(parts[0], CELL_ARRAY.name)?;
@@ -1380,7 +1455,7 @@ mod tests {
     }
 
     fn round_trip(kind: MessageKind, h: FrameHeader, payload: &[u8]) -> Vec<Part> {
-        let parts = encode(kind, &h, payload).unwrap();
+        let parts = encode(kind, &h, payload, Some(1e-6)).unwrap();
         let cdrs: Vec<&[u8]> = parts.iter().map(|p| p.cdr.as_slice()).collect();
         let (back, bytes) = decode(kind, &cdrs, (h.sequence, h.capture_ns)).unwrap();
         assert_eq!(back, h, "{kind:?} header");
@@ -1616,6 +1691,46 @@ mod tests {
     }
 
     #[test]
+    fn labels_that_fit_go_as_16uc1_and_the_cloud_in_metres_with_packed_colours() {
+        let ids: Vec<u8> = [0u32, 7, 65_535, 3, 1, 2]
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
+        let h = stamped(FrameHeader::image(
+            MessageKind::Labels,
+            PixelFormat::U32,
+            3,
+            1,
+            2,
+        ));
+        let parts = round_trip(MessageKind::Labels, h, &ids);
+        let img: Image = from_cdr(&parts[1].cdr, IMAGE.name).unwrap();
+        assert_eq!((img.encoding.as_str(), img.step), ("16UC1", 6));
+        assert_eq!(img.data.as_slice(), &[3, 0, 1, 0, 2, 0]);
+        assert_eq!(img.header.frame_id, "right_camera_optical_frame");
+        // One id past 16 bits: the whole message stays 32SC1.
+        let mut wide = ids.clone();
+        wide[4..8].copy_from_slice(&65_536u32.to_le_bytes());
+        let parts = round_trip(MessageKind::Labels, h, &wide);
+        let img: Image = from_cdr(&parts[0].cdr, IMAGE.name).unwrap();
+        assert_eq!(img.encoding, "32SC1");
+        let mut point = Vec::new();
+        for v in [250.0f32, -1500.5, 150_000.0] {
+            point.extend(v.to_le_bytes());
+        }
+        point.extend([200, 100, 50]);
+        let h = stamped(cloud_header(1));
+        let parts = round_trip(MessageKind::PointCloud, h, &point);
+        let c: PointCloud2 = from_cdr(&parts[0].cdr, POINT_CLOUD2.name).unwrap();
+        let f = |k: usize| f32::from_le_bytes(c.data[4 * k..4 * k + 4].try_into().unwrap());
+        assert_eq!([f(0), f(1), f(2)], [250e-6, -1500.5e-6, 0.15]);
+        // PCL's packed 0x00RRGGBB, little-endian.
+        assert_eq!(&c.data[12..16], &[50, 100, 200, 0]);
+        assert_eq!(c.fields[3].name, "rgb");
+        assert_eq!(c.header.frame_id, STEREO_FRAME);
+    }
+
+    #[test]
     fn an_image_is_standard_cdr() {
         // The bytes a ROS 2 reader expects: encapsulation CDR_LE, then the fields aligned
         // to their size from the start of the data.
@@ -1623,14 +1738,14 @@ mod tests {
             capture_ns: 3_000_000_005,
             ..FrameHeader::image(MessageKind::Image, PixelFormat::Mono8, 2, 1, 1)
         };
-        let parts = encode(MessageKind::Image, &h, &[9, 8]).unwrap();
+        let parts = encode(MessageKind::Image, &h, &[9, 8], None).unwrap();
         let b = &parts[0].cdr;
         let mut want = vec![0u8, 1, 0, 0];
         want.extend(3i32.to_le_bytes()); // stamp.sec
         want.extend(5u32.to_le_bytes()); // stamp.nanosec
-        want.extend(5u32.to_le_bytes()); // frame_id length with its NUL
-        want.extend(b"left\0");
-        want.extend([0, 0, 0]); // align to 4
+        want.extend(26u32.to_le_bytes()); // frame_id length with its NUL
+        want.extend(b"left_camera_optical_frame\0");
+        want.extend([0, 0]); // align to 4
         want.extend(1u32.to_le_bytes()); // height
         want.extend(2u32.to_le_bytes()); // width
         want.extend(6u32.to_le_bytes());
@@ -1667,7 +1782,7 @@ mod tests {
     #[test]
     fn malformed_messages_are_refused_with_a_reason() {
         let h = FrameHeader::image(MessageKind::Image, PixelFormat::Mono8, 4, 4, 1);
-        let e = encode(MessageKind::Image, &h, &[0; 3]).unwrap_err();
+        let e = encode(MessageKind::Image, &h, &[0; 3], None).unwrap_err();
         assert!(e.contains("3 bytes"), "{e}");
         let e = decode(MessageKind::Image, &[&[0, 1, 0, 0, 9]], (0, 0)).unwrap_err();
         assert!(e.contains("not a CDR sensor_msgs/msg/Image"), "{e}");
@@ -1677,6 +1792,7 @@ mod tests {
             MessageKind::CellList,
             &json_header(MessageKind::CellList),
             b"{",
+            None,
         )
         .unwrap_err();
         assert!(e.contains("cell list: EOF"), "{e}");
