@@ -71,12 +71,13 @@ pub enum RecordingError {
     },
 }
 
-/// The topic of `edge` (`NODE/OUTPUT`) for `side`: an image's is
+/// The topic of `edge` (`NODE/OUTPUT`) for `side` and message type `msg`: an image's is
 /// `/NODE/OUTPUT[/SIDE]/image`, beside its `camera_info` as ROS tools look for it.
-pub fn topic(edge: &str, side: Option<&str>) -> String {
-    match side {
-        Some(_) => format!("{}/image", topic_base(edge, side)),
-        None => format!("/{edge}"),
+pub fn topic(edge: &str, side: Option<&str>, msg: MsgType) -> String {
+    if msg == ros2::IMAGE {
+        format!("{}/image", topic_base(edge, side))
+    } else {
+        topic_base(edge, side)
     }
 }
 
@@ -350,7 +351,7 @@ impl RecordingWriter {
         let err = self.mcap_err("adding a channel");
         let id = self
             .mcap
-            .add_channel(schema, &topic(edge, side), "cdr", &meta)
+            .add_channel(schema, &topic(edge, side, msg), "cdr", &meta)
             .map_err(err)?;
         self.channels.insert((edge.to_string(), side), id);
         Ok(id)
@@ -370,7 +371,7 @@ impl RecordingWriter {
         let parts = ros2::encode(kind, header, payload, metres).map_err(|reason| {
             RecordingError::Message {
                 path: self.path.clone(),
-                topic: topic(edge, None),
+                topic: topic_base(edge, None),
                 sequence: header.sequence,
                 reason,
             }
