@@ -37,6 +37,10 @@ pub struct OutputOpts {
     /// `save FILE.rrd` (needs the viewer binary: cargo build --release -p viewer).
     #[arg(long, num_args = 1..=2, value_names = ["MODE", "WHERE"])]
     pub viewer: Vec<String>,
+    /// Show every stage in the viewer (label images, disparity maps and tiles), not only
+    /// the camera frames, cells and 3D (about 1 MB a 1280×1024 frame).
+    #[arg(long, requires = "viewer")]
+    pub viewer_all: bool,
 }
 
 impl OutputOpts {
@@ -67,7 +71,7 @@ impl OutputOpts {
             taps::add_recorder(graph, &r)?;
         }
         if !self.viewer.is_empty() {
-            taps::add_viewer(graph, &self.viewer)?;
+            taps::add_viewer(graph, &self.viewer, self.viewer_all)?;
         }
         Ok(())
     }

@@ -20,12 +20,16 @@ pub struct ViewArgs {
     /// Replace the --output file if it exists.
     #[arg(long, requires = "output")]
     pub overwrite: bool,
+    /// Show every stage (label images, disparity maps and tiles), not only the camera
+    /// frames, cells and 3D.
+    #[arg(long)]
+    pub all: bool,
 }
 
 /// Shows a recording in Rerun, through the viewer binary (the same code as `--viewer`).
 pub fn view(a: ViewArgs) -> Result<(), CliError> {
     let (o, c) = (a.output.as_deref(), a.connect.as_deref());
-    match pipelines::taps::view(&a.file, o, c, a.overwrite) {
+    match pipelines::taps::view(&a.file, o, c, a.overwrite, a.all) {
         Err(pipelines::Error::ViewerExit(code)) => Err(CliError::Reported(code)),
         r => Ok(r?),
     }

@@ -188,11 +188,15 @@ pub fn add_recorder(graph: &mut Graph, r: &Recording) -> Result<(), String> {
 }
 
 /// Adds a Rerun viewer tap to `graph`, run by the viewer binary; `words` as `--viewer`
-/// takes them.
-pub fn add_viewer(graph: &mut Graph, words: &[String]) -> Result<(), String> {
+/// takes them; `all_stages` shows the label images and disparity maps too.
+pub fn add_viewer(graph: &mut Graph, words: &[String], all_stages: bool) -> Result<(), String> {
     check_viewer_words(words)?;
     let words = words.iter().cloned().map(toml::Value::String).collect();
-    let params = toml::Table::from_iter([("target".to_string(), toml::Value::Array(words))]);
+    let stages = if all_stages { "all" } else { "cells" };
+    let params = toml::Table::from_iter([
+        ("target".to_string(), toml::Value::Array(words)),
+        ("stages".to_string(), toml::Value::String(stages.into())),
+    ]);
     graph.add_tap(VIEWER_ID, "viewer", &[], params)?;
     let n = graph.nodes.last_mut().expect("added");
     n.runner = Runner::Exec(viewer_exe());
@@ -302,12 +306,14 @@ pub fn apply_replay(
 
 /// Shows a recording in Rerun through the viewer binary (the same code as `--viewer`):
 /// saved to `output` (written under a temporary name, renamed when complete), sent to a
-/// viewer at `connect`, or shown in a new viewer.
+/// viewer at `connect`, or shown in a new viewer; `all_stages` shows the label images and
+/// disparity maps too.
 pub fn view(
     file: &Path,
     output: Option<&Path>,
     connect: Option<&str>,
     overwrite: bool,
+    all_stages: bool,
 ) -> Result<(), crate::Error> {
     let words = match (output, connect) {
         (Some(p), _) => vec!["save".into(), p.display().to_string()],
@@ -327,6 +333,9 @@ pub fn view(
     // The viewer binary checks the recording itself before it shows anything.
     let mut cmd = std::process::Command::new(viewer_exe());
     cmd.arg("view").arg(file);
+    if all_stages {
+        cmd.args(["--stages", "all"]);
+    }
     if let Some(t) = &tmp {
         cmd.arg("-o").arg(t);
     } else if let Some(c) = connect {

@@ -1636,8 +1636,8 @@ mod tests {
         assert_eq!(cells[1].0, 4);
         // In metres, the body's middle half its height over the substrate.
         let want = [100e-6, -40e-6, 149_995.0 * 1e-6];
-        for k in 0..3 {
-            assert!((cells[0].1[k] - want[k]).abs() < 1e-9, "{:?}", cells[0].1);
+        for (got, want) in cells[0].1.iter().zip(want) {
+            assert!((got - want).abs() < 1e-9, "{:?}", cells[0].1);
         }
     }
 

@@ -1,12 +1,13 @@
 //! The graph in Rerun, from live edges or from a recording: one code path ([`Sink::log`]).
 //!
-//! Every edge message becomes Rerun data with its meaning: camera frames as images under
-//! `/left` and `/right`, label images as `SegmentationImage`s and cell contours as
+//! Every edge message becomes Rerun data with its meaning: camera frames as JPEG images under
+//! `/left` and `/right`, and with [`Stages::All`] label images as `SegmentationImage`s and cell contours as
 //! `LineStrips2D` on top of them, disparity maps as colour-mapped `DepthImage`s under
 //! `/disparity` (tiles pasted into their frame), other images under `/images`, the point
 //! cloud and the targets as
 //! `Points3D` under `/world` in metres, and one `TextLog` line per message under `/logs`.
-//! Timelines: `frame` (the frame number) and `capture_time`. The blueprint lays out
+//! Timelines: `frame` (the frame number) and `capture_time`, the recording's own clock (no
+//! `log_time`); `/world` is right-down-forward (`ViewCoordinates::RDF`). The blueprint lays out
 //! left | right | disparity | 3D over the log.
 //!
 //! This crate is the only one that depends on `rerun`; the `microstereo` CLI runs its
@@ -18,7 +19,7 @@ use rerun::blueprint::{
 };
 use schemas::{
     CellLists, Cloud, Disparity, DisparityMap, DisparityPair, DisparityTiles, FrameHeader, Image,
-    Labels, ManipulatorState, Message, MessageKind, Side, StereoFrame, Targets, Tracks,
+    Labels, ManipulatorState, Message, MessageKind, StereoFrame, Targets, Tracks,
 };
 use std::collections::HashMap;
 use std::path::PathBuf;
@@ -86,13 +87,42 @@ pub fn blueprint() -> Blueprint {
 /// Opens a Rerun stream to `target` with the blueprint.
 pub fn open(target: &Target) -> Result<RecordingStream, String> {
     let b = rerun::RecordingStreamBuilder::new("microstereo").with_blueprint(blueprint());
-    match target {
+    let rec = match target {
         Target::Spawn => b.spawn(),
         Target::Connect(url) => b.connect_grpc_opts(url.clone()),
         Target::Save(p) => b.save(p),
     }
-    .map_err(|e| format!("Rerun: {e}"))
+    .map_err(|e| format!("Rerun: {e}"))?;
+    Ok(rec)
 }
+
+/// What the viewer shows.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Stages {
+    /// The camera frames (JPEG), cells, targets, tracks, the cloud and the pipette: a
+    /// 1280×1024 frame of the default graph in about 1 MB.
+    #[default]
+    Cells,
+    /// Those and every intermediate stage: label images, disparity maps and tiles.
+    All,
+}
+
+impl Stages {
+    /// Reads `cells` or `all`.
+    pub fn parse(word: &str) -> Result<Self, String> {
+        match word {
+            "cells" => Ok(Self::Cells),
+            "all" => Ok(Self::All),
+            _ => Err(format!(
+                "stages '{word}': give cells (frames, cells and 3D) or all (and labels, disparity maps and tiles)"
+            )),
+        }
+    }
+}
+
+/// JPEG quality of the camera frames shown: at 1280×1024 a microscope frame takes about
+/// 0.2 MB against 1.3 MB raw.
+const JPEG_QUALITY: u8 = 90;
 
 /// A recording stream that the graph's messages are logged to.
 pub struct Sink {
@@ -103,6 +133,8 @@ pub struct Sink {
     clouds: HashMap<u64, (String, FrameHeader, Cloud)>,
     /// Each track's recent tops, for its trail.
     trails: HashMap<u32, std::collections::VecDeque<[f32; 3]>>,
+    /// What is shown.
+    stages: Stages,
 }
 
 impl std::fmt::Debug for Sink {
@@ -129,14 +161,26 @@ fn err(e: impl std::fmt::Display) -> String {
 }
 
 impl Sink {
-    /// Logs into `rec`.
-    pub fn new(rec: RecordingStream) -> Self {
-        Self {
+    /// Logs into `rec`, on the recording's own clock (`capture_time`, `frame`; no
+    /// `log_time`, the time this process logged), `/world` right-down-forward.
+    pub fn new(rec: RecordingStream) -> Result<Self, String> {
+        rec.set_log_time_enabled(false);
+        // Our 3D frame is the rectified cameras': X right, Y down, Z along the view.
+        rec.log_static("/world", &rerun::ViewCoordinates::RDF())
+            .map_err(err)?;
+        Ok(Self {
             rec,
             metres: None,
             clouds: HashMap::new(),
             trails: HashMap::new(),
-        }
+            stages: Stages::Cells,
+        })
+    }
+
+    /// Shows `stages`.
+    pub fn with_stages(mut self, stages: Stages) -> Self {
+        self.stages = stages;
+        self
     }
 
     /// The stream.
@@ -156,6 +200,16 @@ impl Sink {
         self.rec
             .set_timestamp_nanos_since_epoch("capture_time", h.capture_ns as i64);
         let bad = |e: schemas::wire::WireError| format!("{edge}: {e}");
+        let intermediate = matches!(
+            kind,
+            MessageKind::Labels
+                | MessageKind::Disparity
+                | MessageKind::DisparityPair
+                | MessageKind::DisparityTiles
+        );
+        if intermediate && self.stages == Stages::Cells {
+            return Ok(());
+        }
         let summary = match kind {
             MessageKind::StereoFrame => {
                 let f = StereoFrame::decode(h, payload).map_err(bad)?;
@@ -201,11 +255,7 @@ impl Sink {
                 let t = DisparityTiles::decode(h, payload).map_err(bad)?;
                 // Tiles are shown where they lie in the frame; a right-based map under the
                 // right camera's name.
-                let path = match t.side {
-                    Side::Left => format!("/disparity/{edge}"),
-                    Side::Right => format!("/disparity/{edge}/right"),
-                };
-                let shown = self.log_depth(&path, &t.paste())?;
+                let shown = self.log_depth(&format!("/disparity/{edge}"), &t.paste())?;
                 format!("{} tile(s), {shown}", t.tiles.len())
             }
             MessageKind::CellList => {
@@ -462,16 +512,23 @@ impl Sink {
         ))
     }
 
+    /// Logs a camera image as JPEG ([`JPEG_QUALITY`]).
     fn log_image(&mut self, path: &str, img: &Image) -> Result<(), String> {
-        let r = match img {
-            Image::Grey(p) => {
-                rerun::Image::from_l8(p.data.clone(), [p.width as u32, p.height as u32])
-            }
-            Image::Rgb(p) => rerun::Image::from_rgb24(
+        use image::ImageEncoder;
+        let (w, h) = img.size();
+        let (bytes, colour) = match img {
+            Image::Grey(p) => (p.data.clone(), image::ExtendedColorType::L8),
+            Image::Rgb(p) => (
                 p.data.iter().flatten().copied().collect::<Vec<u8>>(),
-                [p.width as u32, p.height as u32],
+                image::ExtendedColorType::Rgb8,
             ),
         };
+        let mut jpeg = Vec::new();
+        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, JPEG_QUALITY)
+            .write_image(&bytes, w as u32, h as u32, colour)
+            .map_err(|e| format!("{path}: JPEG: {e}"))?;
+        let r = rerun::EncodedImage::from_file_contents(jpeg)
+            .with_media_type(rerun::components::MediaType::JPEG);
         self.rec.log(path, &r).map_err(err)
     }
 
@@ -497,6 +554,7 @@ impl Sink {
             [w, ht],
             rerun::datatypes::ChannelDatatype::F32,
         )
+        // A disparity is no depth: one "meter" per pixel of disparity, as the colour range says.
         .with_meter(1.0)
         .with_colormap(rerun::components::Colormap::Turbo);
         if lo <= hi {
@@ -682,7 +740,7 @@ mod tests {
             let (rec, storage) = rerun::RecordingStreamBuilder::new("microstereo-test")
                 .memory()
                 .unwrap();
-            let mut sink = Sink::new(rec);
+            let mut sink = Sink::new(rec).unwrap();
             let mut send = |c: bool| {
                 if c {
                     sink.log("triangulate/cloud", MessageKind::PointCloud, &ch, &cp)
@@ -733,11 +791,11 @@ mod tests {
         let (rec, storage) = rerun::RecordingStreamBuilder::new("microstereo-test")
             .memory()
             .unwrap();
-        let mut sink = Sink::new(rec);
+        let mut sink = Sink::new(rec).unwrap().with_stages(Stages::All);
         let path =
             std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../recordings/default.mcap");
-        // 36 MCAP messages: the stereo frames and label pairs are one edge message each, and
-        // the CameraInfo is not an edge: 14 edges (the tracks among them), 2 frames.
+        // 55 MCAP messages: the stereo frames and label pairs are one edge message each, and
+        // the frame tree, CameraInfo and markers are not edges: 14 edges, 2 frames.
         assert_eq!(log_recording(&mut sink, &path).unwrap(), 28);
         // Closing a memory stream moves what it holds to the next sink: take it first.
         sink.stream().flush_blocking().unwrap();
@@ -745,12 +803,14 @@ mod tests {
         sink.finish().unwrap();
         let mut seen: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
         let mut frames = BTreeSet::new();
+        let mut timelines = BTreeSet::new();
         for msg in msgs {
             if let rerun::log::LogMsg::ArrowMsg(_, a) = msg {
                 let chunk = rerun::log::Chunk::from_arrow_msg(&a).unwrap();
                 if let Some(col) = chunk.timelines().get(&"frame".into()) {
                     frames.extend(col.times_raw().iter().copied());
                 }
+                timelines.extend(chunk.timelines().keys().map(|t| t.to_string()));
                 let entry = seen.entry(chunk.entity_path().to_string()).or_default();
                 for d in chunk.component_descriptors() {
                     if let Some(a) = d.archetype {
@@ -765,15 +825,16 @@ mod tests {
                 "{path} should hold {arch}; seen: {seen:#?}"
             )
         };
-        has("/left/rectify/frame", "Image");
-        has("/right/rectify/frame", "Image");
+        has("/world", "ViewCoordinates");
+        has("/left/rectify/frame", "EncodedImage");
+        has("/right/rectify/frame", "EncodedImage");
         has("/left/segment/labels", "SegmentationImage");
         has("/left/segment/cells/contours", "LineStrips2D");
         has("/right/segment/cells/contours", "LineStrips2D");
-        // Tiles pasted into their frames, right-based ones under the right camera's name.
+        // Tiles pasted into their frames.
         has("/disparity/postprocess/disparity", "DepthImage");
         has("/disparity/match/left", "DepthImage");
-        has("/disparity/match/right/right", "DepthImage");
+        has("/disparity/match/right", "DepthImage");
         has("/disparity/triangulate/disparity", "DepthImage");
         has("/world/triangulate/cloud", "Points3D");
         has("/world/triangulate/targets", "Points3D");
@@ -782,5 +843,44 @@ mod tests {
         has("/world/manipulator-bridge/state/pipette", "LineStrips3D");
         has("/world/manipulator-bridge/state/tip", "Points3D");
         assert_eq!(frames, BTreeSet::from([0, 1]));
+        // No time this process logged: the recording's own clock only.
+        assert!(!timelines.contains("log_time"), "{timelines:?}");
+        assert!(timelines.contains("capture_time"), "{timelines:?}");
+    }
+
+    /// By default the viewer shows the camera frames, cells and 3D, not the intermediate
+    /// stages: the bundled 640×512 recording (every pixel's point in its cloud) stays
+    /// within the 1.5 MB a 1280×1024 frame may take, scaled to its pixels.
+    #[test]
+    fn by_default_the_frames_are_jpeg_and_the_intermediate_stages_stay_out() {
+        let (rec, storage) = rerun::RecordingStreamBuilder::new("microstereo-test")
+            .memory()
+            .unwrap();
+        let mut sink = Sink::new(rec).unwrap();
+        let path =
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../recordings/default.mcap");
+        log_recording(&mut sink, &path).unwrap();
+        sink.stream().flush_blocking().unwrap();
+        let msgs = storage.take();
+        sink.finish().unwrap();
+        let mut archetypes = BTreeSet::new();
+        let mut bytes = 0;
+        for msg in msgs {
+            if let rerun::log::LogMsg::ArrowMsg(_, a) = msg {
+                bytes += a.batch.get_array_memory_size();
+                let chunk = rerun::log::Chunk::from_arrow_msg(&a).unwrap();
+                for d in chunk.component_descriptors() {
+                    if let Some(a) = d.archetype {
+                        archetypes.insert(a.short_name().to_string());
+                    }
+                }
+            }
+        }
+        assert!(archetypes.contains("EncodedImage"), "{archetypes:?}");
+        for gone in ["Image", "DepthImage", "SegmentationImage"] {
+            assert!(!archetypes.contains(gone), "{gone}: {archetypes:?}");
+        }
+        let per_frame = 1_500_000 * (640 * 512) / (1280 * 1024);
+        assert!(bytes < 2 * per_frame, "{bytes} bytes for 2 frames");
     }
 }

@@ -7,7 +7,7 @@
 use clap::Parser;
 use runtime::process::{Invocation, NodeArgs};
 use std::path::PathBuf;
-use viewer::{Sink, Target};
+use viewer::{Sink, Stages, Target};
 
 /// Shows a recording in Rerun.
 #[derive(Parser, Debug)]
@@ -21,6 +21,10 @@ struct ViewCli {
     /// Send it to a running viewer (HOST:PORT or rerun+http://HOST:PORT/proxy).
     #[arg(long, conflicts_with = "output")]
     connect: Option<String>,
+    /// What to show: `cells` (camera frames as JPEG, cells, 3D) or `all` (and the label
+    /// images, disparity maps and tiles).
+    #[arg(long, default_value = "cells", value_parser = Stages::parse)]
+    stages: Stages,
 }
 
 fn view(a: ViewCli) -> Result<(), String> {
@@ -55,7 +59,7 @@ fn view(a: ViewCli) -> Result<(), String> {
                 Ok(())
             }
         })?;
-    let mut sink = Sink::new(viewer::open(&target)?);
+    let mut sink = Sink::new(viewer::open(&target)?)?.with_stages(a.stages);
     let n = viewer::log_recording(&mut sink, &a.file)?;
     sink.finish()?;
     if n == 0 {
@@ -84,8 +88,12 @@ fn tap(a: NodeArgs) -> Result<(), String> {
         })
         .unwrap_or_default();
     let target = Target::parse(&words)?;
+    let stages = match spec.params.get("stages").and_then(|v| v.as_str()) {
+        Some(w) => Stages::parse(w)?,
+        None => Stages::Cells,
+    };
     let edges = graph.input_edges(&a.id);
-    let mut sink = Sink::new(viewer::open(&target)?);
+    let mut sink = Sink::new(viewer::open(&target)?)?.with_stages(stages);
     // The supervisor writes the other nodes' log lines to this process's stdin.
     let rec = sink.stream().clone();
     std::thread::spawn(move || {
