@@ -193,10 +193,17 @@ pub fn add_viewer(graph: &mut Graph, words: &[String], all_stages: bool) -> Resu
     check_viewer_words(words)?;
     let words = words.iter().cloned().map(toml::Value::String).collect();
     let stages = if all_stages { "all" } else { "cells" };
-    let params = toml::Table::from_iter([
+    let mut params = toml::Table::from_iter([
         ("target".to_string(), toml::Value::Array(words)),
         ("stages".to_string(), toml::Value::String(stages.into())),
     ]);
+    // The cameras place the images in the 3D view, as the recorder's CameraInfo does.
+    if let Some(c) = crate::registry::cameras(graph) {
+        params.insert(
+            "cameras".into(),
+            toml::Value::try_from(c).map_err(|e| e.to_string())?,
+        );
+    }
     graph.add_tap(VIEWER_ID, "viewer", &[], params)?;
     let n = graph.nodes.last_mut().expect("added");
     n.runner = Runner::Exec(viewer_exe());

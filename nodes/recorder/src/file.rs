@@ -1108,6 +1108,38 @@ impl RawMessages {
     }
 }
 
+/// The rectified cameras a recording's CameraInfo gives (the first left and right ones),
+/// as a geometry in metres, and their image size; `None` when it holds none.
+pub fn recorded_cameras(path: &Path) -> Option<(schemas::Calibration, (usize, usize))> {
+    let (mut raw, _) = raw_messages(path).ok()?;
+    let (mut left, mut right) = (None, None);
+    while let Some(Ok(m)) = raw.next_message() {
+        if m.schema.as_deref() != Some(ros2::CAMERA_INFO.name) {
+            continue;
+        }
+        let slot = if m.channel.topic.ends_with("/right/camera_info") {
+            &mut right
+        } else {
+            &mut left
+        };
+        if slot.is_none() {
+            *slot = ros2::camera_of(&m.data).ok();
+        }
+        if let (Some(([f, cx, cy, _], size)), Some(([_, cx_right, _, tx], _))) = (left, right) {
+            let calibration = schemas::Calibration {
+                baseline: -tx / f,
+                focal_px: f,
+                cx,
+                cy,
+                cx_right,
+                unit: schemas::LengthUnit::M,
+            };
+            return (f > 0.0 && tx < 0.0).then_some((calibration, size));
+        }
+    }
+    None
+}
+
 /// Reads a recording once and lists its channels (a truncated or corrupt file gives what
 /// could be read, with the reason it stopped).
 pub fn overview(path: &Path) -> Result<Overview, RecordingError> {

@@ -185,6 +185,16 @@ pub fn camera_info(
     })
 }
 
+/// The rectified camera a `sensor_msgs/msg/CameraInfo` describes: `(f, cx, cy, Tx)` from
+/// its projection (Tx = −f·B, B in metres, on the right camera) and the image size.
+pub(crate) fn camera_of(cdr: &[u8]) -> Result<([f64; 4], (usize, usize)), String> {
+    let c: CameraInfo = from_cdr(cdr, CAMERA_INFO.name)?;
+    Ok((
+        [c.p[0], c.p[2], c.p[6], c.p[3]],
+        (c.width as usize, c.height as usize),
+    ))
+}
+
 macro_rules! cell_def {
     () => {
         concat!(

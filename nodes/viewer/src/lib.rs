@@ -1,7 +1,8 @@
 //! The graph in Rerun, from live edges or from a recording: one code path ([`Sink::log`]).
 //!
 //! Every edge message becomes Rerun data with its meaning: camera frames as JPEG images under
-//! `/left` and `/right`, and with [`Stages::All`] label images as `SegmentationImage`s and cell contours as
+//! `/world/left` and `/world/right` (each camera's Pinhole and place in the 3D view when the
+//! cameras are known: a cell in an image is the cell in 3D), and with [`Stages::All`] label images as `SegmentationImage`s and cell contours as
 //! `LineStrips2D` on top of them, disparity maps as colour-mapped `DepthImage`s under
 //! `/disparity` (tiles pasted into their frame), other images under `/images`, the point
 //! cloud and the targets as
@@ -70,8 +71,10 @@ pub fn blueprint() -> Blueprint {
     Blueprint::new(
         Vertical::new([
             Horizontal::new([
-                Spatial2DView::new("left").with_origin("/left").into(),
-                Spatial2DView::new("right").with_origin("/right").into(),
+                Spatial2DView::new("left").with_origin("/world/left").into(),
+                Spatial2DView::new("right")
+                    .with_origin("/world/right")
+                    .into(),
                 Spatial2DView::new("disparity")
                     .with_origin("/disparity")
                     .into(),
@@ -183,6 +186,38 @@ impl Sink {
         self
     }
 
+    /// Places the rectified cameras `calib` (images `width × height`) in the 3D view: each
+    /// camera's Pinhole and its place, half the baseline either side of `/world`'s origin,
+    /// so that the images under `/world/left` and `/world/right` sit in the 3D scene.
+    pub fn with_cameras(
+        self,
+        calib: &schemas::Calibration,
+        (width, height): (usize, usize),
+    ) -> Result<Self, String> {
+        let half = (0.5 * calib.baseline * calib.unit.metres()) as f32;
+        for (side, x, cx) in [("left", -half, calib.cx), ("right", half, calib.cx_right)] {
+            let path = format!("/world/{side}");
+            self.rec
+                .log_static(
+                    path.as_str(),
+                    &rerun::Transform3D::from_translation([x, 0.0, 0.0]),
+                )
+                .map_err(err)?;
+            let f = calib.focal_px as f32;
+            self.rec
+                .log_static(
+                    path.as_str(),
+                    &rerun::Pinhole::from_focal_length_and_resolution(
+                        [f, f],
+                        [width as f32, height as f32],
+                    )
+                    .with_principal_point([cx as f32, calib.cy as f32]),
+                )
+                .map_err(err)?;
+        }
+        Ok(self)
+    }
+
     /// The stream.
     pub fn stream(&self) -> &RecordingStream {
         &self.rec
@@ -214,7 +249,7 @@ impl Sink {
             MessageKind::StereoFrame => {
                 let f = StereoFrame::decode(h, payload).map_err(bad)?;
                 for (side, p) in [("left", &f.left), ("right", &f.right)] {
-                    self.log_image(&format!("/{side}/{edge}"), &Image::Grey(p.clone()))?;
+                    self.log_image(&format!("/world/{side}/{edge}"), &Image::Grey(p.clone()))?;
                 }
                 format!("{}×{}, 2 image(s)", f.left.width, f.left.height)
             }
@@ -238,7 +273,9 @@ impl Sink {
                     )
                     .with_opacity(0.4);
                     cells = cells.max(p.data.iter().copied().max().unwrap_or(0));
-                    self.rec.log(format!("/{side}/{edge}"), &img).map_err(err)?;
+                    self.rec
+                        .log(format!("/world/{side}/{edge}"), &img)
+                        .map_err(err)?;
                 }
                 format!("labels up to {cells}")
             }
@@ -279,7 +316,7 @@ impl Sink {
                         cells.iter().map(|c| format!("cell {}", c.id)).collect();
                     self.rec
                         .log(
-                            format!("/{side}/{edge}/contours"),
+                            format!("/world/{side}/{edge}/contours"),
                             &rerun::LineStrips2D::new(strips)
                                 .with_labels(labels)
                                 .with_class_ids(cells.iter().map(|c| c.id as u16)),
@@ -791,9 +828,18 @@ mod tests {
         let (rec, storage) = rerun::RecordingStreamBuilder::new("microstereo-test")
             .memory()
             .unwrap();
-        let mut sink = Sink::new(rec).unwrap().with_stages(Stages::All);
         let path =
             std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../recordings/default.mcap");
+        let (calib, size) = recorder::file::recorded_cameras(&path).unwrap();
+        // The default graph's synthetic rig: 1200 µm apart, f = 4000 px.
+        assert!((calib.baseline - 0.0012).abs() < 1e-12, "{calib:?}");
+        assert_eq!(calib.focal_px, 4000.0);
+        assert_eq!(size, (640, 512));
+        let mut sink = Sink::new(rec)
+            .unwrap()
+            .with_stages(Stages::All)
+            .with_cameras(&calib, size)
+            .unwrap();
         // 55 MCAP messages: the stereo frames and label pairs are one edge message each, and
         // the frame tree, CameraInfo and markers are not edges: 14 edges, 2 frames.
         assert_eq!(log_recording(&mut sink, &path).unwrap(), 28);
@@ -826,11 +872,14 @@ mod tests {
             )
         };
         has("/world", "ViewCoordinates");
-        has("/left/rectify/frame", "EncodedImage");
-        has("/right/rectify/frame", "EncodedImage");
-        has("/left/segment/labels", "SegmentationImage");
-        has("/left/segment/cells/contours", "LineStrips2D");
-        has("/right/segment/cells/contours", "LineStrips2D");
+        has("/world/left/rectify/frame", "EncodedImage");
+        has("/world/right/rectify/frame", "EncodedImage");
+        has("/world/left/segment/labels", "SegmentationImage");
+        has("/world/left/segment/cells/contours", "LineStrips2D");
+        has("/world/right/segment/cells/contours", "LineStrips2D");
+        // The cameras from the recording's CameraInfo: the images are in the 3D scene.
+        has("/world/left", "Pinhole");
+        has("/world/right", "Transform3D");
         // Tiles pasted into their frames.
         has("/disparity/postprocess/disparity", "DepthImage");
         has("/disparity/match/left", "DepthImage");

@@ -60,6 +60,9 @@ fn view(a: ViewCli) -> Result<(), String> {
             }
         })?;
     let mut sink = Sink::new(viewer::open(&target)?)?.with_stages(a.stages);
+    if let Some((calib, size)) = recorder::file::recorded_cameras(&a.file) {
+        sink = sink.with_cameras(&calib, size)?;
+    }
     let n = viewer::log_recording(&mut sink, &a.file)?;
     sink.finish()?;
     if n == 0 {
@@ -94,6 +97,13 @@ fn tap(a: NodeArgs) -> Result<(), String> {
     };
     let edges = graph.input_edges(&a.id);
     let mut sink = Sink::new(viewer::open(&target)?)?.with_stages(stages);
+    if let Some(c) = spec.params.get("cameras") {
+        let c: recorder::node::Cameras = c
+            .clone()
+            .try_into()
+            .map_err(|e| format!("viewer: cameras: {e}"))?;
+        sink = sink.with_cameras(&c.calibration, (c.width, c.height))?;
+    }
     // The supervisor writes the other nodes' log lines to this process's stdin.
     let rec = sink.stream().clone();
     std::thread::spawn(move || {
