@@ -47,6 +47,7 @@ def check(path):
     frames_named = set()
     tree, latched = set(), False
     cells_at, bodies_at = {}, {}
+    annotated = set()
     with open(path, "rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
         header = reader.get_header()
@@ -95,6 +96,11 @@ def check(path):
                         frames_named.add(m.header.frame_id)
                 bodies_at[(channel.topic, message.publish_time)] = sorted(
                     m.id for m in ros.markers if m.type == 2 and m.ns == "cells")
+            elif schema.name == "foxglove_msgs/msg/ImageAnnotations":
+                for a in ros.points:
+                    if a.type != 2 or len(a.points) < 3:
+                        problems.append(f"{channel.topic}: outline of type {a.type}, {len(a.points)} points")
+                annotated.add(channel.topic)
             elif schema.name == "microstereo_msgs/msg/CellArray":
                 for c in list(ros.left) + list(ros.right):
                     if len(c.contour) % 2 or not (c.x0 <= c.centroid[0] <= c.x1):
@@ -155,6 +161,11 @@ def check(path):
     for key, ids in cells_at.items():
         if bodies_at.get(key) != ids:
             problems.append(f"{key[0]} at {key[1]}: bodies {bodies_at.get(key)} for cells {ids}")
+    # Each cell list's outlines over both camera images.
+    for topic in [t for (t, n) in counts if n == "microstereo_msgs/msg/CellArray"]:
+        for side in ("left", "right"):
+            if f"{topic}/{side}/annotations" not in annotated:
+                problems.append(f"{topic}: no image annotations for the {side} view")
     decoded, trouble = rosbags_decodes(path)
     problems += trouble
     total = sum(counts.values())

@@ -943,7 +943,7 @@ fn inspect_lists_the_bundled_recording() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    assert!(said.contains("55 messages on 28 channels"), "{said}");
+    assert!(said.contains("61 messages on 31 channels"), "{said}");
     assert!(said.contains("frames 0–1"), "{said}");
     for (topic, ty, n) in [
         ("/rectify/frame/left/image", "sensor_msgs/msg/Image", "2"),

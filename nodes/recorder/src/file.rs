@@ -208,8 +208,9 @@ impl RecordingWriter {
 
     /// Starts the viewers' side of the recording for rectified cameras `calib` of images
     /// `size`: the frame tree on `/tf_static` (latched) now, and from here on each image's
-    /// CameraInfo beside it (but for the edges in `raw`, whose images are not rectified)
-    /// and the scene's markers beside the targets, tracks and the manipulator's state.
+    /// CameraInfo beside it (but for the edges in `raw`, whose images are not rectified),
+    /// the scene's markers beside the targets, tracks and the manipulator's state, and
+    /// image annotations (outlines, ids, heights) beside the cell lists and targets.
     pub fn write_cameras(
         &mut self,
         calib: &schemas::Calibration,
@@ -325,6 +326,13 @@ impl RecordingWriter {
             scene::markers(kind, header, payload).map_err(|r| bad(&self.path, topic.clone(), r))?
         {
             let id = self.side_channel(&topic, scene::MARKER_ARRAY, &BTreeMap::new())?;
+            self.write_side(id, header.sequence, log_time, header.capture_ns, &cdr)?;
+        }
+        let drawn = scene::annotations(kind, header, payload)
+            .map_err(|r| bad(&self.path, topic_base(edge, None), r))?;
+        for (side, cdr) in drawn {
+            let topic = format!("{}/annotations", topic_base(edge, side));
+            let id = self.side_channel(&topic, scene::IMAGE_ANNOTATIONS, &BTreeMap::new())?;
             self.write_side(id, header.sequence, log_time, header.capture_ns, &cdr)?;
         }
         Ok(())
@@ -1638,6 +1646,7 @@ mod tests {
                 "/raw/frame/right/image",
                 "/tf_static",
                 "/tri/targets",
+                "/tri/targets/left/annotations",
                 "/tri/targets/markers",
             ]
         );

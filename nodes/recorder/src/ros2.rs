@@ -511,8 +511,9 @@ impl RosManipulatorState {
     }
 }
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-struct Time {
+/// `builtin_interfaces/Time`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub(crate) struct Time {
     sec: i32,
     nanosec: u32,
 }
@@ -522,6 +523,16 @@ struct Time {
 pub(crate) struct Header {
     stamp: Time,
     pub(crate) frame_id: String,
+}
+
+impl Time {
+    /// The time `ns` nanoseconds after the epoch.
+    pub(crate) fn of(ns: u64) -> Self {
+        Self {
+            sec: (ns / 1_000_000_000) as i32,
+            nanosec: (ns % 1_000_000_000) as u32,
+        }
+    }
 }
 
 impl Header {

@@ -601,6 +601,214 @@ pub fn markers(
     scene.cdr().map(Some)
 }
 
+/// `foxglove_msgs/msg/ImageAnnotations` (foxglove_msgs 3): the cells' outlines and labels
+/// drawn over the camera images by Foxglove's Image panel.
+pub const IMAGE_ANNOTATIONS: MsgType = MsgType {
+    name: "foxglove_msgs/msg/ImageAnnotations",
+    definition: concat!(
+        "foxglove_msgs/CircleAnnotation[] circles\n",
+        "foxglove_msgs/PointsAnnotation[] points\n",
+        "foxglove_msgs/TextAnnotation[] texts\n",
+        sep!(),
+        "MSG: foxglove_msgs/CircleAnnotation\n",
+        "builtin_interfaces/Time timestamp\n",
+        "foxglove_msgs/Point2 position\n",
+        "float64 diameter\n",
+        "float64 thickness\n",
+        "foxglove_msgs/Color fill_color\n",
+        "foxglove_msgs/Color outline_color\n",
+        sep!(),
+        "MSG: builtin_interfaces/Time\n",
+        "int32 sec\n",
+        "uint32 nanosec\n",
+        sep!(),
+        "MSG: foxglove_msgs/Point2\n",
+        "float64 x\n",
+        "float64 y\n",
+        sep!(),
+        "MSG: foxglove_msgs/Color\n",
+        "float64 r\n",
+        "float64 g\n",
+        "float64 b\n",
+        "float64 a\n",
+        sep!(),
+        "MSG: foxglove_msgs/PointsAnnotation\n",
+        "builtin_interfaces/Time timestamp\n",
+        "uint8 UNKNOWN=0\n",
+        "uint8 POINTS=1\n",
+        "uint8 LINE_LOOP=2\n",
+        "uint8 LINE_STRIP=3\n",
+        "uint8 LINE_LIST=4\n",
+        "uint8 type\n",
+        "foxglove_msgs/Point2[] points\n",
+        "foxglove_msgs/Color outline_color\n",
+        "foxglove_msgs/Color[] outline_colors\n",
+        "foxglove_msgs/Color fill_color\n",
+        "float64 thickness\n",
+        sep!(),
+        "MSG: foxglove_msgs/TextAnnotation\n",
+        "builtin_interfaces/Time timestamp\n",
+        "foxglove_msgs/Point2 position\n",
+        "string text\n",
+        "float64 font_size\n",
+        "foxglove_msgs/Color text_color\n",
+        "foxglove_msgs/Color background_color\n"
+    ),
+};
+
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+struct Rgba {
+    r: f64,
+    g: f64,
+    b: f64,
+    a: f64,
+}
+
+impl From<Color> for Rgba {
+    fn from(c: Color) -> Self {
+        Self {
+            r: c.r.into(),
+            g: c.g.into(),
+            b: c.b.into(),
+            a: c.a.into(),
+        }
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+struct Point2 {
+    x: f64,
+    y: f64,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+struct PointsAnnotation {
+    timestamp: crate::ros2::Time,
+    r#type: u8,
+    points: Vec<Point2>,
+    outline_color: Rgba,
+    outline_colors: Vec<Rgba>,
+    fill_color: Rgba,
+    thickness: f64,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+struct TextAnnotation {
+    timestamp: crate::ros2::Time,
+    position: Point2,
+    text: String,
+    font_size: f64,
+    text_color: Rgba,
+    background_color: Rgba,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+struct CircleAnnotation {
+    timestamp: crate::ros2::Time,
+    position: Point2,
+    diameter: f64,
+    thickness: f64,
+    fill_color: Rgba,
+    outline_color: Rgba,
+}
+
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+struct ImageAnnotations {
+    circles: Vec<CircleAnnotation>,
+    points: Vec<PointsAnnotation>,
+    texts: Vec<TextAnnotation>,
+}
+
+impl ImageAnnotations {
+    /// An outline through pixel centres `points` and a label at its first point's left.
+    fn outline(&mut self, stamp: u64, points: Vec<Point2>, c: Color, label: String, at: Point2) {
+        let timestamp = crate::ros2::Time::of(stamp);
+        self.points.push(PointsAnnotation {
+            timestamp,
+            r#type: 2,
+            points,
+            outline_color: c.into(),
+            outline_colors: Vec::new(),
+            fill_color: Color { a: 0.0, ..c }.into(),
+            thickness: 1.5,
+        });
+        self.texts.push(TextAnnotation {
+            timestamp,
+            position: at,
+            text: label,
+            font_size: 12.0,
+            text_color: WHITE.into(),
+            background_color: Color {
+                r: 0.0,
+                g: 0.0,
+                b: 0.0,
+                a: 0.5,
+            }
+            .into(),
+        });
+    }
+}
+
+/// The image annotations of a message of `kind`, per image side: each cell's outline and id over both views for a cell list, each cell's height
+/// over the left view for targets; `[]` for other kinds.
+pub fn annotations(
+    kind: MessageKind,
+    h: &FrameHeader,
+    payload: &[u8],
+) -> Result<Vec<(Option<&'static str>, Vec<u8>)>, String> {
+    // Pixel centres: Foxglove's origin is the top-left pixel's corner.
+    let px = |x: f64, y: f64| Point2 {
+        x: x + 0.5,
+        y: y + 0.5,
+    };
+    match kind {
+        MessageKind::CellList => {
+            let lists = schemas::CellLists::decode(h, payload).map_err(|e| e.to_string())?;
+            [("left", &lists.left), ("right", &lists.right)]
+                .into_iter()
+                .map(|(side, cells)| {
+                    let mut a = ImageAnnotations::default();
+                    for c in cells {
+                        let outline = c.contour.iter().map(|p| px(p[0] as f64, p[1] as f64));
+                        let at = px(c.bbox.x0 as f64, c.bbox.y0 as f64);
+                        let label = format!("cell {}", c.id);
+                        a.outline(h.capture_ns, outline.collect(), TRUSTED, label, at);
+                    }
+                    Ok((Some(side), to_cdr(&a)?))
+                })
+                .collect()
+        }
+        MessageKind::Targets => {
+            let t = Targets::decode(h, payload).map_err(|e| e.to_string())?;
+            let mut a = ImageAnnotations::default();
+            for c in &t.cells {
+                let colour = match (c.height, c.quality.trusted) {
+                    (None, _) => NO_HEIGHT,
+                    (Some(_), true) => TRUSTED,
+                    (Some(_), false) => DOUBTED,
+                };
+                let [x, y] = c.centroid_px;
+                a.texts.push(TextAnnotation {
+                    timestamp: crate::ros2::Time::of(h.capture_ns),
+                    position: px(x, y),
+                    text: format!("cell {}: {}", c.id, height_text(c, &t.unit)),
+                    font_size: 12.0,
+                    text_color: colour.into(),
+                    background_color: Color {
+                        r: 0.0,
+                        g: 0.0,
+                        b: 0.0,
+                        a: 0.5,
+                    }
+                    .into(),
+                });
+            }
+            Ok(vec![(Some("left"), to_cdr(&a)?)])
+        }
+        _ => Ok(Vec::new()),
+    }
+}
+
 /// The namespace, id and position of each marker of a `MarkerArray` (tests read them).
 #[cfg(test)]
 pub(crate) fn decode_markers(cdr: &[u8]) -> Result<Vec<(String, i32, [f64; 3])>, String> {
@@ -618,6 +826,44 @@ pub(crate) fn decode_markers(cdr: &[u8]) -> Result<Vec<(String, i32, [f64; 3])>,
 mod tests {
     use super::*;
     use crate::ros2::from_cdr;
+
+    #[test]
+    fn cells_are_outlined_over_both_views_at_their_pixel_centres() {
+        use schemas::msg::Message;
+        let cell = |id, x0| schemas::Cell {
+            id,
+            area: 4,
+            centroid: [x0 as f64 + 0.5, 0.5],
+            bbox: schemas::BoundingBox {
+                x0,
+                y0: 0,
+                x1: x0 + 1,
+                y1: 1,
+            },
+            contour: vec![[x0, 0], [x0 + 1, 0], [x0 + 1, 1], [x0, 1]],
+            perimeter: 4.0,
+        };
+        let lists = schemas::CellLists {
+            left: vec![cell(1, 10), cell(2, 20)],
+            right: vec![cell(1, 7)],
+        };
+        let e = lists.encode();
+        let h = FrameHeader {
+            capture_ns: 2_000_000_003,
+            ..e.header
+        };
+        let got = annotations(MessageKind::CellList, &h, &e.to_vec()).unwrap();
+        let sides: Vec<_> = got.iter().map(|g| g.0).collect();
+        assert_eq!(sides, [Some("left"), Some("right")]);
+        let left: ImageAnnotations = from_cdr(&got[0].1, IMAGE_ANNOTATIONS.name).unwrap();
+        assert_eq!(left.points.len(), 2);
+        assert_eq!(left.points[0].r#type, 2, "a closed outline");
+        assert_eq!(left.points[0].points[0], Point2 { x: 10.5, y: 0.5 });
+        assert_eq!(left.texts[1].text, "cell 2");
+        assert_eq!(left.texts[1].timestamp, crate::ros2::Time::of(2_000_000_003));
+        let right: ImageAnnotations = from_cdr(&got[1].1, IMAGE_ANNOTATIONS.name).unwrap();
+        assert_eq!(right.points.len(), 1);
+    }
 
     #[test]
     fn an_ellipses_outline_gives_its_axes_and_angle() {

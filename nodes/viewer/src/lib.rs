@@ -840,8 +840,8 @@ mod tests {
             .with_stages(Stages::All)
             .with_cameras(&calib, size)
             .unwrap();
-        // 55 MCAP messages: the stereo frames and label pairs are one edge message each, and
-        // the frame tree, CameraInfo and markers are not edges: 14 edges, 2 frames.
+        // 61 MCAP messages: the stereo frames and label pairs are one edge message each, and
+        // the frame tree, CameraInfo, markers and annotations are not edges: 14 edges, 2 frames.
         assert_eq!(log_recording(&mut sink, &path).unwrap(), 28);
         // Closing a memory stream moves what it holds to the next sink: take it first.
         sink.stream().flush_blocking().unwrap();
