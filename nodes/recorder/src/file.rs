@@ -331,7 +331,7 @@ impl RecordingWriter {
         let drawn = scene::annotations(kind, header, payload)
             .map_err(|r| bad(&self.path, topic_base(edge, None), r))?;
         for (side, cdr) in drawn {
-            let topic = format!("{}/annotations", topic_base(edge, side));
+            let topic = format!("{}/annotations", topic_base(edge, Some(side)));
             let id = self.side_channel(&topic, scene::IMAGE_ANNOTATIONS, &BTreeMap::new())?;
             self.write_side(id, header.sequence, log_time, header.capture_ns, &cdr)?;
         }

@@ -755,7 +755,7 @@ pub fn annotations(
     kind: MessageKind,
     h: &FrameHeader,
     payload: &[u8],
-) -> Result<Vec<(Option<&'static str>, Vec<u8>)>, String> {
+) -> Result<Vec<(&'static str, Vec<u8>)>, String> {
     // Pixel centres: Foxglove's origin is the top-left pixel's corner.
     let px = |x: f64, y: f64| Point2 {
         x: x + 0.5,
@@ -774,7 +774,7 @@ pub fn annotations(
                         let label = format!("cell {}", c.id);
                         a.outline(h.capture_ns, outline.collect(), TRUSTED, label, at);
                     }
-                    Ok((Some(side), to_cdr(&a)?))
+                    Ok((side, to_cdr(&a)?))
                 })
                 .collect()
         }
@@ -803,7 +803,7 @@ pub fn annotations(
                     .into(),
                 });
             }
-            Ok(vec![(Some("left"), to_cdr(&a)?)])
+            Ok(vec![("left", to_cdr(&a)?)])
         }
         _ => Ok(Vec::new()),
     }
@@ -854,7 +854,7 @@ mod tests {
         };
         let got = annotations(MessageKind::CellList, &h, &e.to_vec()).unwrap();
         let sides: Vec<_> = got.iter().map(|g| g.0).collect();
-        assert_eq!(sides, [Some("left"), Some("right")]);
+        assert_eq!(sides, ["left", "right"]);
         let left: ImageAnnotations = from_cdr(&got[0].1, IMAGE_ANNOTATIONS.name).unwrap();
         assert_eq!(left.points.len(), 2);
         assert_eq!(left.points[0].r#type, 2, "a closed outline");
