@@ -248,6 +248,7 @@ const OUTPUT_NAMES: &[&str] = &[
     "report.json",
     "range_curve.png",
     "cells.json",
+    "report.html",
 ];
 
 /// An input under one of the output names in the output directory (a scene's true
@@ -418,6 +419,9 @@ pub fn reconstruct(a: ReconstructArgs) -> Result<(), CliError> {
     let figures = report.validation;
     let total_ms = report.total_ms;
     write_json(&o.join("report.json"), &report)?;
+    let json = serde_json::to_value(&report).expect("serialises");
+    let html = pipelines::html::pair_page(o, &json, &figures, cloud.as_ref().map(|c| &c.0));
+    io::atomic::write_bytes(&o.join("report.html"), html.as_bytes())?;
     runtime::outln!(
         "{:?} mode, range {}..{}: consistent {:.1} %, off by 1 {:.1} %, off by more {:.1} %; density after LR check {:.1} %",
         a.mode,
@@ -486,6 +490,10 @@ fn write_cells(
     );
     let report = CellsReport::new(preset, (&lists, &tiles, &targets), d, times);
     write_json(&o.join("cells.json"), &report)?;
+    let json = serde_json::to_value(&report).expect("serialises");
+    let hist = preset.variance_histogram(f);
+    let html = pipelines::html::cells_page(o, &json, (&targets, &tiles, &cloud), hist.as_ref());
+    io::atomic::write_bytes(&o.join("report.html"), html.as_bytes())?;
     runtime::outln!(
         "{} cells left, {} right, {} paired; matched {:.1} % of the image",
         report.cells_left,

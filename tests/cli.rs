@@ -16,6 +16,31 @@ fn data(name: &str) -> PathBuf {
         .join(name)
 }
 
+/// The figures of a report.html: each title and its picture, checked to be a whole PNG
+/// with something drawn (more than one colour) and to be counted by the page's own script.
+fn report_figures(page: &Path) -> Vec<(String, image::RgbImage)> {
+    use base64::Engine;
+    let html = std::fs::read_to_string(page).unwrap();
+    let mut out = Vec::new();
+    for part in html.split("<figure><h2>").skip(1) {
+        let title = part[..part.find("</h2>").unwrap()].to_string();
+        let start = part.find("base64,").unwrap() + 7;
+        let end = start + part[start..].find('"').unwrap();
+        let png = base64::engine::general_purpose::STANDARD
+            .decode(&part[start..end])
+            .unwrap();
+        let img = image::load_from_memory(&png).unwrap().to_rgb8();
+        let first = *img.get_pixel(0, 0);
+        assert!(
+            img.pixels().any(|p| *p != first),
+            "{title}: a blank picture"
+        );
+        out.push((title, img));
+    }
+    assert!(html.contains(&format!("data-figures=\"{}\"", out.len())));
+    out
+}
+
 #[test]
 fn reconstruct_writes_every_output_and_eval_reads_it() {
     let dir = tempfile::tempdir().unwrap();
@@ -54,9 +79,15 @@ fn reconstruct_writes_every_output_and_eval_reads_it() {
         "occlusion_right.png",
         "points.ply",
         "report.json",
+        "report.html",
     ] {
         assert!(o.join(f).is_file(), "{f} missing");
     }
+    let titles: Vec<String> = report_figures(&o.join("report.html"))
+        .into_iter()
+        .map(|f| f.0)
+        .collect();
+    assert_eq!(titles, ["Validation", "Disparity", "Occlusions", "3D view"]);
     let report: serde_json::Value =
         serde_json::from_slice(&std::fs::read(o.join("report.json")).unwrap()).unwrap();
     assert_eq!(report["mode"], "paper");
@@ -594,9 +625,30 @@ fn synth_then_reconstruct_cells_writes_per_cell_figures() {
         "points.ply",
         "overlay_left.png",
         "labels_left.png",
+        "report.html",
     ] {
         assert!(o.join(f).exists(), "{f}");
     }
+    // The page holds the paper's figures of a cell run, and each cell's row.
+    let titles: Vec<String> = report_figures(&o.join("report.html"))
+        .into_iter()
+        .map(|f| f.0)
+        .collect();
+    assert_eq!(
+        titles,
+        [
+            "Segmentation",
+            "Boundaries",
+            "Validation",
+            "Disparity",
+            "Occlusions",
+            "3D view"
+        ]
+    );
+    let page = std::fs::read_to_string(o.join("report.html")).unwrap();
+    let cells = page.split("<h2>Cells</h2>").nth(1).unwrap();
+    let cells = &cells[..cells.find("</table>").unwrap()];
+    assert_eq!(cells.matches("<tr><td>").count(), 4, "one row per cell");
     for d in [&o, &sc] {
         for e in std::fs::read_dir(d).unwrap() {
             let name = e.unwrap().file_name().to_string_lossy().into_owned();

@@ -212,6 +212,98 @@ pub fn write_labels_png(path: &Path, labels: &Plane<u32>) -> Result<(), IoError>
     })
 }
 
+/// The validation split (the paper's Table 2) as one bar: the share of matched pixels
+/// consistent exactly (green), off by one (amber) and off by more (red), each labelled
+/// with its per cent.
+pub fn validation_chart(exact: f64, off_by_one: f64, off_by_more: f64) -> RgbImage {
+    let (w, h, pad) = (560u32, 80u32, 20u32);
+    let mut img = RgbImage::from_pixel(w, h, Rgb([255, 255, 255]));
+    let total = (exact + off_by_one + off_by_more).max(f64::MIN_POSITIVE);
+    let span = (w - 2 * pad) as f64;
+    let mut x = pad as f64;
+    for (share, colour) in [
+        (exact, [60, 170, 80]),
+        (off_by_one, [240, 170, 40]),
+        (off_by_more, [210, 50, 40]),
+    ] {
+        let bar = (share / total * span).round();
+        if bar >= 1.0 {
+            draw_filled_rect_mut(
+                &mut img,
+                Rect::at(x as i32, pad as i32).of_size(bar as u32, 28),
+                Rgb(colour),
+            );
+        }
+        let pct = (share * 100.0).round() as u32;
+        draw_number(
+            &mut img,
+            (x as i32, pad as i32 + 34),
+            pct,
+            2,
+            [colour, [255, 255, 255]],
+        );
+        x += bar;
+    }
+    img
+}
+
+/// Most that [`cloud_view`] stretches depth: a dome cell as high as half its width still
+/// looks no taller than wide.
+pub const MAX_STRETCH: f64 = 2.0;
+
+/// The point cloud seen from above and to the side (turned 30° about the view's vertical
+/// and 35° about its horizontal), fitted to 640×480, far points drawn first: a 3D view
+/// that needs no viewer. Depth is shrunk so that its spread is half the wider lateral
+/// one, or stretched up to [`MAX_STRETCH`] times where it is less (a street's depth would
+/// otherwise fill the view, a microscope's relief vanish from it); the factor comes back
+/// with the picture. The fit and the
+/// stretch go by the 2nd–98th percentiles, so that a few stray points do not shrink the
+/// rest. `points` are `([X, Y, Z], colour)` in any one unit.
+pub fn cloud_view(points: &[([f32; 3], [u8; 3])]) -> (RgbImage, f64) {
+    let (w, h, pad) = (640u32, 480u32, 16.0f64);
+    let mut img = RgbImage::from_pixel(w, h, Rgb([250, 250, 250]));
+    if points.is_empty() {
+        return (img, 1.0);
+    }
+    let spread = |v: &mut Vec<f64>| -> (f64, f64) {
+        v.sort_by(f64::total_cmp);
+        let at = |q: f64| v[((v.len() - 1) as f64 * q).round() as usize];
+        let (lo, hi) = (at(0.02), at(0.98));
+        (0.5 * (lo + hi), (hi - lo).max(f64::MIN_POSITIVE))
+    };
+    let axis = |k: usize| spread(&mut points.iter().map(|p| f64::from(p.0[k])).collect());
+    let ((cx, sx), (cy, sy), (cz, sz)) = (axis(0), axis(1), axis(2));
+    let stretch = (0.5 * sx.max(sy) / sz).min(MAX_STRETCH);
+    let (a, b) = (30f64.to_radians(), 35f64.to_radians());
+    let turned: Vec<([f64; 3], [u8; 3])> = points
+        .iter()
+        .map(|(p, col)| {
+            let (x, y) = (f64::from(p[0]) - cx, f64::from(p[1]) - cy);
+            let z = (f64::from(p[2]) - cz) * stretch;
+            let (x1, z1) = (x * a.cos() + z * a.sin(), -x * a.sin() + z * a.cos());
+            let (y2, z2) = (y * b.cos() - z1 * b.sin(), y * b.sin() + z1 * b.cos());
+            ([x1, y2, z2], *col)
+        })
+        .collect();
+    let fit = |k: usize| {
+        let (c, s) = spread(&mut turned.iter().map(|p| p.0[k]).collect());
+        (c - 0.5 * s, s)
+    };
+    let ((x0, xs), (y0, ys)) = (fit(0), fit(1));
+    let scale = ((w as f64 - 2.0 * pad) / xs).min((h as f64 - 2.0 * pad) / ys);
+    let mut order: Vec<usize> = (0..turned.len()).collect();
+    order.sort_by(|&i, &j| turned[j].0[2].total_cmp(&turned[i].0[2]));
+    for i in order {
+        let ([x, y, _], col) = turned[i];
+        let px = (pad + (x - x0) * scale).round() as i32;
+        let py = (pad + (y - y0) * scale).round() as i32;
+        if (0..w as i32 - 1).contains(&px) && (0..h as i32 - 1).contains(&py) {
+            draw_filled_rect_mut(&mut img, Rect::at(px, py).of_size(2, 2), Rgb(col));
+        }
+    }
+    (img, stretch)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -267,5 +359,34 @@ mod tests {
         // (y 220) to 100 % (y 38): at y 212.7.
         assert_eq!(*img.get_pixel(54, 213), Rgb([40, 40, 160]));
         assert_eq!(*img.get_pixel(54, 205), Rgb([255, 255, 255]));
+    }
+
+    #[test]
+    fn the_validation_bar_is_split_by_its_shares() {
+        let img = validation_chart(0.5, 0.25, 0.25);
+        // 520 px of bar from x = 20: green to 280, amber to 410, red to 540.
+        assert_eq!(*img.get_pixel(279, 30), Rgb([60, 170, 80]));
+        assert_eq!(*img.get_pixel(281, 30), Rgb([240, 170, 40]));
+        assert_eq!(*img.get_pixel(409, 30), Rgb([240, 170, 40]));
+        assert_eq!(*img.get_pixel(411, 30), Rgb([210, 50, 40]));
+        assert_eq!(*img.get_pixel(541, 30), Rgb([255, 255, 255]));
+    }
+
+    #[test]
+    fn the_cloud_view_draws_near_points_over_far_ones_and_says_its_stretch() {
+        // A flat square of grey points, 100 wide, 1 deep, and one red point in its middle
+        // nearer the cameras: the relief is stretched the most allowed and red is on top.
+        let mut pts: Vec<([f32; 3], [u8; 3])> = (0..=100)
+            .flat_map(|i| {
+                (0..=100).map(move |j| ([i as f32, j as f32, 1000.0 + (i % 2) as f32], [90; 3]))
+            })
+            .collect();
+        pts.push(([50.0, 50.0, 990.0], [255, 0, 0]));
+        let (img, stretch) = cloud_view(&pts);
+        assert_eq!(stretch, MAX_STRETCH);
+        let red = img.pixels().filter(|p| **p == Rgb([255, 0, 0])).count();
+        assert_eq!(red, 4, "one 2×2 dot, not covered");
+        assert!(img.pixels().filter(|p| **p == Rgb([90; 3])).count() > 10_000);
+        assert_eq!(cloud_view(&[]).0.dimensions(), (640, 480));
     }
 }

@@ -14,6 +14,7 @@
 //! - [`recording`]: the graph a replay or a node test of a recording runs, and that test.
 
 pub mod fuzzing;
+pub mod html;
 pub mod launch;
 pub mod maps;
 pub mod microscope;

@@ -62,6 +62,16 @@ impl Stereo {
         })
     }
 
+    /// The left view's local-variance histogram and the segmentation's threshold on frame
+    /// `f` (`None` without segmentation), for the report's figure: segmented again, as the
+    /// segment node does, since its output holds cells, not the histogram.
+    pub fn variance_histogram(&self, f: &Frame) -> Option<([u64; 256], u16)> {
+        let params = self.segment.as_ref()?;
+        let frame = f.read(&self.outs().frame).ok()?;
+        let seg = segment::segment(&frame.left, params);
+        Some((seg.histogram, seg.threshold))
+    }
+
     /// The maps and cells of a cells-only run's frame `f`.
     pub fn cell_maps(&self, f: &Frame) -> Result<CellMaps, Error> {
         let outs = self.outs();

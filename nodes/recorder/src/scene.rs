@@ -860,7 +860,10 @@ mod tests {
         assert_eq!(left.points[0].r#type, 2, "a closed outline");
         assert_eq!(left.points[0].points[0], Point2 { x: 10.5, y: 0.5 });
         assert_eq!(left.texts[1].text, "cell 2");
-        assert_eq!(left.texts[1].timestamp, crate::ros2::Time::of(2_000_000_003));
+        assert_eq!(
+            left.texts[1].timestamp,
+            crate::ros2::Time::of(2_000_000_003)
+        );
         let right: ImageAnnotations = from_cdr(&got[1].1, IMAGE_ANNOTATIONS.name).unwrap();
         assert_eq!(right.points.len(), 1);
     }
