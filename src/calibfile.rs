@@ -127,7 +127,8 @@ fn import(a: ImportArgs) -> Result<(), CliError> {
 
 fn export(a: ExportArgs) -> Result<(), CliError> {
     let file = read_file(&a.file)?;
-    let cal = file.exported_cameras(&format!("'{}'", a.file.display()))?;
+    let source = format!("'{}'", a.file.display());
+    let cal = file.exported_cameras(&source)?;
     let mut outs: Vec<PathBuf> = a.opencv.iter().cloned().collect();
     outs.extend(a.camera_info.iter().flatten().cloned());
     formats::outputs::check(
@@ -137,19 +138,12 @@ fn export(a: ExportArgs) -> Result<(), CliError> {
         "give other output paths",
     )?;
     let rect = Rectification::bouguet(&cal);
-    let infos = match &a.camera_info {
-        Some(_) => Some(rect.to_camera_info(
-            file.unit
-                .ok_or_else(|| {
-                    CliError::Other(format!(
-                        "calibration '{}' gives no unit, and camera_info's Tx is in metres: add unit = \"mm\" (or \"um\", \"m\") to it",
-                        a.file.display()
-                    ))
-                })?
-                .metres(),
-        )),
-        None => None,
-    };
+    let metres = a
+        .camera_info
+        .as_ref()
+        .map(|_| file.metres(&source))
+        .transpose()?;
+    let infos = metres.map(|m| rect.to_camera_info(m));
     if let Some(p) = &a.opencv {
         formats::atomic::write_bytes(p, rect.to_opencv_yaml().as_bytes())?;
         runtime::outln!("OpenCV stereo YAML written to {}", p.display());

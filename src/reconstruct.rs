@@ -216,40 +216,15 @@ impl ReconstructArgs {
     fn geometry(&self) -> Option<Geometry> {
         match (&self.calibration, self.baseline, self.focal) {
             (Some(p), _, _) => Some(Geometry::File(p.display().to_string())),
-            (None, Some(b), Some(f)) => Some(Geometry::Inline(CalibrationFile {
-                baseline: b,
-                focal_px: Some(f),
-                f_eff: None,
-                pixel_pitch: None,
-                cx: self.cx,
-                cy: self.cy,
-                cx_right: self.cx_right.or(self.cx),
-                unit: self.unit,
-                stereo: None,
-                microscope: None,
-            })),
+            (None, Some(b), Some(f)) => Some(Geometry::Inline(CalibrationFile::inline(
+                (b, f),
+                (self.cx, self.cy, self.cx_right),
+                self.unit,
+            ))),
             _ => None,
         }
     }
 }
-
-/// Every file `reconstruct` may write into its output directory.
-const OUTPUT_NAMES: &[&str] = &[
-    "disparity.pfm",
-    "disparity_raw.pfm",
-    "disparity.png",
-    "disparity_color.png",
-    "occlusion_left.png",
-    "occlusion_right.png",
-    "labels_left.png",
-    "labels_right.png",
-    "overlay_left.png",
-    "points.ply",
-    "report.json",
-    "range_curve.png",
-    "cells.json",
-    "report.html",
-];
 
 /// An input under one of the output names in the output directory (a scene's true
 /// `disparity.pfm`, say) would be destroyed: refused before any work.
@@ -257,7 +232,7 @@ fn refuse_inputs_as_outputs(a: &ReconstructArgs) -> Result<(), CliError> {
     let inputs = [Some(&a.left), Some(&a.right), a.calibration.as_ref()];
     let inputs: Vec<&std::path::Path> = inputs.into_iter().flatten().map(|p| p.as_path()).collect();
     formats::outputs::check(
-        &formats::outputs::in_dir(&a.output, OUTPUT_NAMES),
+        &formats::outputs::in_dir(&a.output, pipelines::report::OUTPUT_NAMES),
         &inputs,
         a.overwrite,
         "give -o another directory",
@@ -403,25 +378,14 @@ pub fn reconstruct(a: ReconstructArgs) -> Result<(), CliError> {
         times,
     );
     if let Some(c) = &report.auto_range_curve {
-        let pts: Vec<(u32, f64)> = c
-            .iter()
-            .map(|s| {
-                (
-                    s.range.max.unsigned_abs().max(s.range.min.unsigned_abs()),
-                    s.consistency_ratio,
-                )
-            })
-            .collect();
-        let best = c.iter().position(|s| s.range == range).unwrap_or(0);
-        let chart = io::render::range_curve_chart(&pts, best);
+        let chart = pipelines::html::range_curve(c, range);
         io::write_color_png(&o.join("range_curve.png"), &chart)?;
     }
     let figures = report.validation;
     let total_ms = report.total_ms;
     write_json(&o.join("report.json"), &report)?;
-    let json = serde_json::to_value(&report).expect("serialises");
-    let html = pipelines::html::pair_page(o, &json, &figures, cloud.as_ref().map(|c| &c.0));
-    io::atomic::write_bytes(&o.join("report.html"), html.as_bytes())?;
+    let page = pipelines::html::pair_page(o, &report, &figures, cloud.as_ref().map(|c| &c.0));
+    io::atomic::write_bytes(&o.join("report.html"), page.as_bytes())?;
     runtime::outln!(
         "{:?} mode, range {}..{}: consistent {:.1} %, off by 1 {:.1} %, off by more {:.1} %; density after LR check {:.1} %",
         a.mode,
@@ -490,10 +454,9 @@ fn write_cells(
     );
     let report = CellsReport::new(preset, (&lists, &tiles, &targets), d, times);
     write_json(&o.join("cells.json"), &report)?;
-    let json = serde_json::to_value(&report).expect("serialises");
     let hist = preset.variance_histogram(f);
-    let html = pipelines::html::cells_page(o, &json, (&targets, &tiles, &cloud), hist.as_ref());
-    io::atomic::write_bytes(&o.join("report.html"), html.as_bytes())?;
+    let page = pipelines::html::cells_page(o, &report, (&targets, &tiles, &cloud), hist.as_ref());
+    io::atomic::write_bytes(&o.join("report.html"), page.as_bytes())?;
     runtime::outln!(
         "{} cells left, {} right, {} paired; matched {:.1} % of the image",
         report.cells_left,

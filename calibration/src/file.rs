@@ -163,6 +163,38 @@ impl CalibrationFile {
             .transpose()
     }
 
+    /// A rectified geometry given by hand: `baseline` in `unit`, focal length `focal_px`,
+    /// principal points `cx`, `cy` and `cx_right` (default: the image centre; the right
+    /// one the left's).
+    pub fn inline(
+        (baseline, focal_px): (f64, f64),
+        (cx, cy, cx_right): (Option<f64>, Option<f64>, Option<f64>),
+        unit: Option<LengthUnit>,
+    ) -> Self {
+        Self {
+            baseline,
+            focal_px: Some(focal_px),
+            f_eff: None,
+            pixel_pitch: None,
+            cx,
+            cy,
+            cx_right: cx_right.or(cx),
+            unit,
+            stereo: None,
+            microscope: None,
+        }
+    }
+
+    /// Metres per unit of the file (`source` names it in the error): a file without a
+    /// unit cannot be put in ROS's metres.
+    pub fn metres(&self, source: &str) -> Result<f64, String> {
+        self.unit.map(|u| u.metres()).ok_or_else(|| {
+            format!(
+                "calibration {source} gives no unit, and camera_info's Tx is in metres: add unit = \"mm\" (or \"um\", \"m\") to it"
+            )
+        })
+    }
+
     /// The file form of a geometry (focal length as f_eff and `pitch`).
     pub fn from_calibration(c: &Calibration, pitch: f64) -> Self {
         Self {

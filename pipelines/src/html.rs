@@ -154,6 +154,23 @@ pub fn page(title: &str, summary: &str, figures: &[Figure], tables: &[Table]) ->
     h
 }
 
+/// The range-selection curve of `curve` (the paper's Fig. 12), `chosen` in red: each
+/// range by its radius.
+pub fn range_curve(
+    curve: &[crate::range::RangeScore],
+    chosen: schemas::DisparityRange,
+) -> RgbImage {
+    let pts: Vec<(u32, f64)> = curve
+        .iter()
+        .map(|s| {
+            let r = s.range.max.unsigned_abs().max(s.range.min.unsigned_abs());
+            (r, s.consistency_ratio)
+        })
+        .collect();
+    let best = curve.iter().position(|s| s.range == chosen).unwrap_or(0);
+    formats::render::range_curve_chart(&pts, best)
+}
+
 /// The validation split figure of `v` (the LR check's shares).
 fn validation_figure(v: &schemas::ValidationFigures) -> Figure {
     Figure::of(
@@ -188,10 +205,11 @@ fn cloud_figure(cloud: &schemas::Cloud, unit: &str) -> Option<Figure> {
 /// every number of `report` (report.json).
 pub fn pair_page(
     dir: &Path,
-    report: &serde_json::Value,
+    report: &impl serde::Serialize,
     validation: &schemas::ValidationFigures,
     cloud: Option<&schemas::Cloud>,
 ) -> String {
+    let report = &serde_json::to_value(report).expect("a report serialises");
     let unit = report["unit"].as_str().unwrap_or("");
     let mut figures: Vec<Figure> = [
         Figure::file(
@@ -240,10 +258,11 @@ pub fn pair_page(
 /// `report` (cells.json).
 pub fn cells_page(
     dir: &Path,
-    report: &serde_json::Value,
+    report: &impl serde::Serialize,
     (targets, tiles, cloud): (&schemas::Targets, &schemas::DisparityTiles, &schemas::Cloud),
     histogram: Option<&([u64; 256], u16)>,
 ) -> String {
+    let report = &serde_json::to_value(report).expect("a report serialises");
     let mut figures = Vec::new();
     if let Some((h, t)) = histogram {
         figures.push(Figure::of(

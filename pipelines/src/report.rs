@@ -12,6 +12,24 @@ use schemas::{
 use serde::Serialize;
 use validate::node::ValidateParams;
 
+/// Every file `reconstruct` may write into its output directory.
+pub const OUTPUT_NAMES: &[&str] = &[
+    "disparity.pfm",
+    "disparity_raw.pfm",
+    "disparity.png",
+    "disparity_color.png",
+    "occlusion_left.png",
+    "occlusion_right.png",
+    "labels_left.png",
+    "labels_right.png",
+    "overlay_left.png",
+    "points.ply",
+    "report.json",
+    "range_curve.png",
+    "cells.json",
+    "report.html",
+];
+
 /// The preset's parameters as report.json lists them.
 #[derive(Serialize)]
 pub struct Config<'a> {
