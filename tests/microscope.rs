@@ -193,9 +193,9 @@ fn raw_graph(left: &Path, right: &Path, cal: &Path, range: [i32; 2]) -> String {
             ),
         ),
         (
-            "params = { calibration = \"synthetic\", cloud_step = 0 }".into(),
+            "params = { calibration = \"synthetic\", cloud_step = 4 }".into(),
             format!(
-                "params = {{ calibration = \"{}\", cloud_step = 0 }}",
+                "params = {{ calibration = \"{}\", cloud_step = 4 }}",
                 cal.display()
             ),
         ),
