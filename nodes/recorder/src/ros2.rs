@@ -48,6 +48,9 @@ macro_rules! header_defs {
     };
 }
 
+// The definitions' separator and the header's, for the other definitions in this crate.
+pub(crate) use {header_defs, sep};
+
 /// `sensor_msgs/msg/Image`: camera frames, disparity (32FC1) and labels (32SC1).
 pub const IMAGE: MsgType = MsgType {
     name: "sensor_msgs/msg/Image",

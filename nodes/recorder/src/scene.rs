@@ -8,7 +8,7 @@
 //! frame, where our own messages give lengths in their `unit`) and each camera's
 //! `left_camera_optical_frame` / `right_camera_optical_frame`, half the baseline either side.
 
-use crate::ros2::{Header, MsgType, to_cdr};
+use crate::ros2::{Header, MsgType, header_defs, sep, to_cdr};
 use schemas::msg::Message;
 use schemas::{Cell3, FrameHeader, ManipulatorState, MessageKind, Targets, Tracks};
 use serde::{Deserialize, Serialize};
@@ -32,23 +32,10 @@ pub fn camera_frame(side: &str) -> &'static str {
 /// metadata `offered_qos_profiles`, so that a replay hands it to late subscribers.
 pub const LATCHED_QOS: &str = "- history: 1\n  depth: 1\n  reliability: 1\n  durability: 1\n  deadline:\n    sec: 2147483647\n    nsec: 4294967295\n  lifespan:\n    sec: 2147483647\n    nsec: 4294967295\n  liveliness: 1\n  liveliness_lease_duration:\n    sec: 2147483647\n    nsec: 4294967295\n  avoid_ros_namespace_conventions: false\n";
 
-macro_rules! sep {
-    () => {
-        "================================================================================\n"
-    };
-}
-
 macro_rules! geometry_defs {
     () => {
         concat!(
-            sep!(),
-            "MSG: std_msgs/Header\n",
-            "builtin_interfaces/Time stamp\n",
-            "string frame_id\n",
-            sep!(),
-            "MSG: builtin_interfaces/Time\n",
-            "int32 sec\n",
-            "uint32 nanosec\n",
+            header_defs!(),
             sep!(),
             "MSG: geometry_msgs/Vector3\n",
             "float64 x\n",
@@ -252,36 +239,17 @@ struct Color {
     a: f32,
 }
 
-const TRUSTED: Color = Color {
-    r: 0.2,
-    g: 0.8,
-    b: 0.3,
-    a: 0.6,
-};
-const DOUBTED: Color = Color {
-    r: 1.0,
-    g: 0.6,
-    b: 0.1,
-    a: 0.5,
-};
-const NO_HEIGHT: Color = Color {
-    r: 0.6,
-    g: 0.6,
-    b: 0.6,
-    a: 0.4,
-};
-const PIPETTE: Color = Color {
-    r: 0.3,
-    g: 0.6,
-    b: 1.0,
-    a: 0.9,
-};
-const WHITE: Color = Color {
-    r: 1.0,
-    g: 1.0,
-    b: 1.0,
-    a: 1.0,
-};
+const fn rgba(r: f32, g: f32, b: f32, a: f32) -> Color {
+    Color { r, g, b, a }
+}
+
+const TRUSTED: Color = rgba(0.2, 0.8, 0.3, 0.6);
+const DOUBTED: Color = rgba(1.0, 0.6, 0.1, 0.5);
+const NO_HEIGHT: Color = rgba(0.6, 0.6, 0.6, 0.4);
+const PIPETTE: Color = rgba(0.3, 0.6, 1.0, 0.9);
+const WHITE: Color = rgba(1.0, 1.0, 1.0, 1.0);
+/// Behind a label: half-transparent black.
+const SHADE: Color = rgba(0.0, 0.0, 0.0, 0.5);
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 struct Pose {
@@ -738,13 +706,7 @@ impl ImageAnnotations {
             text: label,
             font_size: 12.0,
             text_color: WHITE.into(),
-            background_color: Color {
-                r: 0.0,
-                g: 0.0,
-                b: 0.0,
-                a: 0.5,
-            }
-            .into(),
+            background_color: SHADE.into(),
         });
     }
 }
@@ -794,13 +756,7 @@ pub fn annotations(
                     text: format!("cell {}: {}", c.id, height_text(c, &t.unit)),
                     font_size: 12.0,
                     text_color: colour.into(),
-                    background_color: Color {
-                        r: 0.0,
-                        g: 0.0,
-                        b: 0.0,
-                        a: 0.5,
-                    }
-                    .into(),
+                    background_color: SHADE.into(),
                 });
             }
             Ok(vec![("left", to_cdr(&a)?)])

@@ -22,11 +22,23 @@ fn a_recording_becomes_an_rrd_file() {
     assert!(o.status.success(), "{err}");
     assert!(err.contains("28 message(s)"), "{err}");
     let b = std::fs::read(&out).unwrap();
+    // Two 640×512 frames within the 1.5 MB a 1280×1024 frame may take, scaled to their
+    // pixels; the intermediate stages (`--all`) add the label images and disparity maps.
+    let budget = 2 * 1_500_000 * (640 * 512) / (1280 * 1024);
     assert!(
-        b.len() > 1_000_000 && b.starts_with(b"RRF2"),
+        b.starts_with(b"RRF2") && (100_000..=budget).contains(&b.len()),
         "{} bytes",
         b.len()
     );
+    let all = dir.path().join("all.rrd");
+    let o = viewer()
+        .args(["view", rec.to_str().unwrap(), "-o", all.to_str().unwrap()])
+        .args(["--stages", "all"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let every = std::fs::metadata(&all).unwrap().len() as usize;
+    assert!(every > b.len() + 500_000, "{every} bytes with every stage");
 }
 
 #[test]
