@@ -14,9 +14,9 @@ use std::io::{BufRead, BufReader, Write};
 use std::net::TcpStream;
 use std::time::{Duration, Instant};
 
-/// The stop-latency test runs alone: the others in this file hold this shared. Run beside
-/// them in the whole suite (their bridges, devices and clients on the same two cores), one
-/// of its 40 stops once took 80 ms; alone, under two CPU hogs, the worst was 11–27 ms.
+/// The stop-latency test runs alone: the others in this file hold this shared, so that
+/// their bridges, devices and clients do not share its two cores (beside them in the full
+/// suite one of its 40 stops once took 80 ms, before the reaper was paced).
 static ALONE: std::sync::RwLock<()> = std::sync::RwLock::new(());
 
 /// Holds [`ALONE`] shared for a test that may run beside the others.
