@@ -1053,7 +1053,7 @@ pub fn dead_nodes(instance: &str) -> usize {
 pub struct StaleCleanup {
     /// Dead nodes whose shared memory was removed.
     pub removed: usize,
-    /// Unsized shared-memory files (left by a process killed while creating them) removed.
+    /// Unfinished shared-memory files (left by a process killed while creating them) removed.
     pub empty_files: usize,
     /// The clean-up did not finish within its time and was left behind.
     pub gave_up: bool,
@@ -1192,9 +1192,13 @@ pub fn release_domain() -> bool {
     }
 }
 
-/// Removes the files in `dir` named `prefix*` that are empty and older than `age`: shared
-/// memory whose creator died before giving it a size (a live creator sizes it at once).
+/// Removes the files in `dir` named `prefix*` older than `age` that their creator never
+/// finished: empty (it died before giving them a size), or still write-only (iceoryx2
+/// creates shared memory owner-write-only and opens it up once initialised; such a file
+/// has no service or node that names it, so nothing else ever removes it). A live creator
+/// does both within microseconds.
 fn remove_unsized_shm(dir: &std::path::Path, prefix: &str, age: Duration) -> usize {
+    use std::os::unix::fs::PermissionsExt;
     let Ok(entries) = std::fs::read_dir(dir) else {
         return 0;
     };
@@ -1204,7 +1208,7 @@ fn remove_unsized_shm(dir: &std::path::Path, prefix: &str, age: Duration) -> usi
         .filter(|e| {
             e.metadata().is_ok_and(|m| {
                 m.is_file()
-                    && m.len() == 0
+                    && (m.len() == 0 || m.permissions().mode() & 0o777 == 0o200)
                     && m.modified()
                         .ok()
                         .and_then(|t| t.elapsed().ok())
@@ -1220,7 +1224,8 @@ mod tests {
     use super::*;
 
     #[test]
-    fn only_old_empty_files_of_the_prefix_are_removed() {
+    fn only_old_unfinished_files_of_the_prefix_are_removed() {
+        use std::os::unix::fs::PermissionsExt;
         let dir = tempfile::tempdir().unwrap();
         let old = std::time::SystemTime::now() - Duration::from_secs(60);
         let make = |name: &str, bytes: &[u8], when: Option<std::time::SystemTime>| {
@@ -1239,14 +1244,29 @@ mod tests {
         make("iox2_b.dynamic", b"", None);
         make("iox2_c.dynamic", b"x", Some(old));
         make("other.dynamic", b"", Some(old));
+        // Sized but never opened up: its creator died during initialisation.
+        make("iox2_d.event_mgmt", b"x", Some(old));
+        make("iox2_e.event_mgmt", b"x", None);
+        for f in ["iox2_d.event_mgmt", "iox2_e.event_mgmt"] {
+            let p = dir.path().join(f);
+            std::fs::set_permissions(&p, std::fs::Permissions::from_mode(0o200)).unwrap();
+        }
         let n = remove_unsized_shm(dir.path(), "iox2_", Duration::from_secs(10));
         let mut left: Vec<_> = std::fs::read_dir(dir.path())
             .unwrap()
             .map(|e| e.unwrap().file_name().into_string().unwrap())
             .collect();
         left.sort();
-        assert_eq!(n, 1);
-        assert_eq!(left, ["iox2_b.dynamic", "iox2_c.dynamic", "other.dynamic"]);
+        assert_eq!(n, 2);
+        assert_eq!(
+            left,
+            [
+                "iox2_b.dynamic",
+                "iox2_c.dynamic",
+                "iox2_e.event_mgmt",
+                "other.dynamic"
+            ]
+        );
     }
 }
 
