@@ -1117,11 +1117,18 @@ impl RawMessages {
 }
 
 /// The rectified cameras a recording's CameraInfo gives (the first left and right ones),
-/// as a geometry in metres, and their image size; `None` when it holds none.
+/// as a geometry in metres, and their image size; `None` when it holds none. CameraInfo
+/// goes beside every rectified image, so only the first two frames are read.
 pub fn recorded_cameras(path: &Path) -> Option<(schemas::Calibration, (usize, usize))> {
     let (mut raw, _) = raw_messages(path).ok()?;
     let (mut left, mut right) = (None, None);
+    let mut first = None;
     while let Some(Ok(m)) = raw.next_message() {
+        // Frames counted on the edges' own messages (the frame tree's is numbered 0).
+        let frame = m.header.sequence;
+        if m.channel.metadata.contains_key(META_EDGE) && frame > *first.get_or_insert(frame) + 1 {
+            return None;
+        }
         if m.schema.as_deref() != Some(ros2::CAMERA_INFO.name) {
             continue;
         }

@@ -428,9 +428,9 @@ impl Scene {
         self.last().text = label;
     }
 
-    fn cdr(&self) -> Result<Vec<u8>, String> {
+    fn cdr(self) -> Result<Vec<u8>, String> {
         to_cdr(&MarkerArray {
-            markers: self.markers.clone(),
+            markers: self.markers,
         })
     }
 }
